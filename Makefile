@@ -1,0 +1,43 @@
+# One-command set-up and entry points. Every target sets up the venv first (idempotent).
+#   make demo   - set up and run the live demo on a simulated ICM-20948
+#   make test   - set up and run lint + all tests
+#   make bench  - set up and run the benchmarks (not part of the tests)
+
+SHELL := /bin/bash
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+SHARED_DATA ?= ../shared/data
+
+.PHONY: setup demo test lint bench bench-engine bench-node colcon-build clean
+
+setup: $(STAMP)
+
+$(STAMP): requirements.txt requirements-dev.txt setup.py setup.cfg package.xml scripts/bootstrap_venv.sh
+	bash scripts/bootstrap_venv.sh $(VENV)
+	$(PY) -m pip install --disable-pip-version-check -q -r requirements-dev.txt
+	$(PY) -m pip install --disable-pip-version-check -q --no-deps -e .
+	touch $(STAMP)
+
+demo: setup
+	$(VENV)/bin/mag_calibrator_demo
+
+lint: setup
+	$(VENV)/bin/ruff check .
+
+test: setup lint
+	$(PY) -m pytest -q test
+
+bench: bench-engine bench-node
+
+bench-engine: setup
+	$(PY) benchmarks/bench_engine.py --data $(SHARED_DATA)
+
+bench-node: setup
+	$(PY) benchmarks/bench_node.py
+
+colcon-build: setup
+	source $(VENV)/bin/activate && colcon build --base-paths . --build-base build --install-base install
+
+clean:
+	rm -rf build install log .pytest_cache .ruff_cache

@@ -1,0 +1,3 @@
+"""mag_calibrator_ros: live magnetometer calibration for ROS 2 Jazzy."""
+
+__version__ = '0.1.0'

@@ -1,0 +1,1 @@
+"""Hardware layer: ICM-20948 / AK09916 registers, driver and register-level simulator; no rclpy."""

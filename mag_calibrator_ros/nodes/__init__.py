@@ -1,0 +1,1 @@
+"""ROS 2 nodes: thin shells that wire parameters, topics, services and diagnostics to the core."""

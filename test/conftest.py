@@ -1,0 +1,23 @@
+"""Test-wide settings: isolate ROS 2 traffic and locate the shared recordings."""
+
+import os
+from pathlib import Path
+import random
+
+import pytest
+
+# Every test run gets its own DDS domain on localhost only, so parallel runs (CI, other sessions,
+# a robot on the LAN) never see each other's topics. Must be set before rclpy.init().
+os.environ.setdefault('ROS_DOMAIN_ID', str(random.SystemRandom().randint(1, 100)))
+os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+SHARED_DATA = Path(os.environ.get('MAG_SHARED_DATA', REPO_ROOT.parent / 'shared' / 'data'))
+
+
+@pytest.fixture(scope='session')
+def shared_data() -> Path:
+    """The team's real recordings (../shared/data); never copied into the repository."""
+    if not SHARED_DATA.is_dir():
+        pytest.fail(f'shared recordings not found at {SHARED_DATA} (set MAG_SHARED_DATA)')
+    return SHARED_DATA
