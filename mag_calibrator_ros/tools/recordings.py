@@ -32,6 +32,8 @@ import numpy as np
 
 MAGNETIC_FIELD = 'sensor_msgs/msg/MagneticField'
 BAG_SUFFIXES = ('.db3', '.mcap')
+BINARY_CONTROL_FRACTION = 0.1
+"""Share of control bytes in the first 4 KiB that marks a binary file (serial noise has fewer)."""
 STDIN = '-'
 
 FIELD_SEPARATORS = re.compile(r'[\s,;=]+')
@@ -198,7 +200,8 @@ def _refuse_binary(path: Path, head: bytes) -> None:
     if head.startswith(b'SQLite format 3\x00') or head.startswith(b'\x89MCAP'):
         raise RecordingError(f'{path}: looks like a rosbag2 storage file; name it .db3 or .mcap '
                              'or pass its bag directory')
-    if b'\x00' in head:
+    control = sum(byte < 9 or 13 < byte < 32 for byte in head)
+    if control > BINARY_CONTROL_FRACTION * len(head):
         raise RecordingError(f'{path}: binary file, not a text recording or rosbag2 bag')
 
 
@@ -221,6 +224,11 @@ def _number(token: str) -> float | None:
         return float(token)
     except ValueError:
         return None
+
+
+def _is_text(tokens: list[str]) -> bool:
+    """Fewer than three numbers: a title or column names, not a damaged data line."""
+    return sum(_number(token) is not None for token in tokens) < 3
 
 
 def _is_comment(line: str) -> bool:
@@ -297,11 +305,14 @@ def _parse(
         if _is_comment(line):
             skipped['comment'] += 1
             continue
-        reason, row = _parse_line(_split(line), layout, needed)
+        tokens = _split(line)
+        reason, row = _parse_line(tokens, layout, needed)
         if row is not None:
             rows.append(row)
+        elif not rows and _is_text(tokens):
+            skipped['header'] += 1
         else:
-            skipped['header' if not rows and reason != 'non_finite' else reason] += 1
+            skipped[reason] += 1
     if progress is not None:
         progress(consumed, total if total is not None else consumed)
     return rows, dict(skipped)
