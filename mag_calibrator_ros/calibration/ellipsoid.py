@@ -1,0 +1,472 @@
+"""Ellipsoid fitting maths: algebraic starts and robust geometric refinement.
+
+Every fit runs on normalised data ``y = (x - c) / s`` (``c`` the per-axis median, ``s`` the median
+distance to it), so hard-iron offsets many times the field radius and any input unit (T, µT, gauss,
+counts) cost no accuracy: the numbers the solvers see are always of order one, in float64. Results
+are converted back to input units as ``unit = M (x - b)`` with ``|unit| ≈ 1`` on the data;
+fitting.py chooses the output scale.
+
+Models (all fits return an :class:`EllipsoidFit`):
+
+- ``sphere``: hard iron only, ``M = I / r`` (4 parameters).
+- ``axis``: the brief's least squares ``H = [x, y, z, -y², -z², 1]``, ``w = x²`` (axis-aligned
+  ellipsoid, 6 parameters), kept as the reference design: algebraic only, no robust refinement, so
+  it measures the method.
+- ``full``: hard iron + symmetric soft iron (9 parameters), quadric least-squares start.
+- ``planar``: motion confined to a plane (a ground robot yawing): 2-D ellipse in the plane of the
+  data; the offset and soft iron along the plane normal are held at the prior (or the data's mean /
+  the in-plane scale) and reported as unobserved.
+
+The geometric refinement minimises a robust loss (soft-L1) of ``e = |M (y - b)| - 1`` with an
+analytic Jacobian, flags residuals beyond ``outlier_threshold`` robust sigmas and refits the
+inliers by plain least squares (efficient for Gaussian noise).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+
+FIT_MODELS = ('sphere', 'axis', 'full', 'planar')
+PARAMETER_COUNTS = {'sphere': 4, 'axis': 6, 'full': 9, 'planar': 5}
+
+MIN_ROBUST_SIGMA = 1e-4
+"""Floor of the robust residual sigma (relative to the radius). Below 0.01 % no magnetometer is
+that quiet (16-bit quantisation alone is larger), and without a floor noiseless data would flag
+rounding as outliers."""
+
+_MAD_TO_SIGMA = 1.4826
+
+
+@dataclass(frozen=True)
+class Normalisation:
+    """``y = (x - centre) / scale``: data of order one whatever the offset and unit."""
+
+    centre: np.ndarray
+    scale: float
+
+    def forward(self, points: np.ndarray) -> np.ndarray:
+        return (points - self.centre) / self.scale
+
+
+def normalise(points: np.ndarray) -> Normalisation | None:
+    """Median centre and median distance; None when the points do not spread (all equal)."""
+    centre = np.median(points, axis=0)
+    deviation = points - centre
+    peak = float(np.max(np.abs(deviation))) if deviation.size else 0.0
+    if not np.isfinite(peak) or peak <= 1e-12 * max(float(np.max(np.abs(centre))), 1e-300):
+        return None
+    distances = np.linalg.norm(deviation / peak, axis=1) * peak  # pre-scaled: no overflow
+    scale = float(np.median(distances))
+    if not np.isfinite(scale) or scale <= 0.0:
+        scale = float(np.mean(distances))
+    if not np.isfinite(scale) or scale <= 0.0:
+        return None
+    return Normalisation(centre, scale)
+
+
+@dataclass(frozen=True)
+class EllipsoidFit:
+    """A fit in input units: ``unit = matrix @ (x - offset)`` has ``|unit| ≈ 1`` on the inliers.
+
+    ``residuals`` are ``|unit| - 1`` for every point given (in-plane for ``planar``), ``inliers``
+    marks the points of the final fit, ``condition`` is the condition number of the final
+    (normalised) Jacobian. ``parameter_std`` holds 1-sigma standard deviations in input units of
+    ``matrix``/``offset`` when known.
+    """
+
+    model: str
+    offset: np.ndarray
+    matrix: np.ndarray
+    residuals: np.ndarray
+    inliers: np.ndarray
+    condition: float
+    parameter_std: dict[str, list[float]] | None = None
+    unobserved: tuple[str, ...] = ()
+    plane_normal: np.ndarray | None = None
+    plane_basis: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def mean_radius(self) -> float:
+        """Geometric mean of the semi-axes (volume-equivalent radius; in-plane for ``planar``)."""
+        if self.plane_basis is not None:
+            block = self.plane_basis.T @ self.matrix @ self.plane_basis
+            return float(np.linalg.det(block[:2, :2]) ** -0.5)
+        return float(abs(np.linalg.det(self.matrix)) ** (-1.0 / 3.0))
+
+    @property
+    def axis_ratio(self) -> float:
+        """Longest over shortest semi-axis (in-plane for ``planar``); inf when not positive
+        definite."""
+        matrix = self.matrix
+        if self.plane_basis is not None:
+            matrix = (self.plane_basis.T @ matrix @ self.plane_basis)[:2, :2]
+        eigenvalues = np.linalg.eigvalsh(0.5 * (matrix + matrix.T))
+        return float(eigenvalues.max() / eigenvalues.min()) if eigenvalues.min() > 0 else np.inf
+
+
+def thickness(y: np.ndarray) -> tuple[float, np.ndarray]:
+    """How far the data leave their best plane: sqrt(smallest / middle covariance eigenvalue).
+
+    About 1 for data all round a sphere, about the relative noise for a ring (yaw only), 0.25 for a
+    hemisphere. Also returns the eigenvectors (columns, largest variance first; the last is the
+    normal).
+    """
+    if len(y) < 3:
+        return 0.0, np.eye(3)
+    eigenvalues, vectors = np.linalg.eigh(np.cov(y, rowvar=False))
+    eigenvalues, vectors = eigenvalues[::-1], vectors[:, ::-1]
+    if eigenvalues[1] <= 0:
+        return 0.0, vectors
+    return float(np.sqrt(max(eigenvalues[2], 0.0) / eigenvalues[1])), vectors
+
+
+# -----------------------------------------------------------------------------------------------
+# Algebraic starts (on normalised data)
+
+
+def sphere_least_squares(y: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """Linear sphere fit ``|y|² = 2 b·y + c``: (centre, radius)."""
+    design = np.column_stack([2.0 * y, np.ones(len(y))])
+    solution = np.linalg.lstsq(design, np.einsum('ij,ij->i', y, y), rcond=None)[0]
+    centre = solution[:3]
+    radius_sq = solution[3] + centre @ centre
+    if not np.isfinite(radius_sq) or radius_sq <= 0:
+        return None
+    return centre, float(np.sqrt(radius_sq))
+
+
+def quadric_least_squares(points: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Algebraic ellipse/ellipsoid ``pᵀ A p + 2 gᵀ p = 1``: (centre, M) with M = sqrt(A / k).
+
+    None unless the conic is an ellipse/ellipsoid (A/k positive definite).
+    """
+    d = points.shape[1]
+    rows, cols = np.triu_indices(d)
+    quadratic = points[:, rows] * points[:, cols] * np.where(rows == cols, 1.0, 2.0)
+    design = np.column_stack([quadratic, 2.0 * points])
+    solution = np.linalg.lstsq(design, np.ones(len(points)), rcond=None)[0]
+    a = np.zeros((d, d))
+    a[rows, cols] = solution[: len(rows)]
+    a[cols, rows] = solution[: len(rows)]
+    g = solution[len(rows) :]
+    try:
+        centre = -np.linalg.solve(a, g)
+    except np.linalg.LinAlgError:
+        return None
+    k = 1.0 + centre @ a @ centre
+    if not np.isfinite(k) or k <= 0:
+        return None
+    matrix = _symmetric_sqrt(a / k)
+    if matrix is None:
+        return None
+    return centre, matrix
+
+
+def axis_least_squares(y: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The brief's reference least squares (geometrikal / mag-calibrator-rs): (offset, semi-axes).
+
+    ``H = [x, y, z, -y², -z², 1]``, ``w = x²``, ``X = (HᵀH)⁻¹Hᵀw``, done here in float64 on
+    normalised data (the library's float32 on raw data fails once the offset exceeds a few field radii).
+    """
+    design = np.column_stack([y, -(y[:, 1] ** 2), -(y[:, 2] ** 2), np.ones(len(y))])
+    x = np.linalg.lstsq(design, y[:, 0] ** 2, rcond=None)[0]
+    if x[3] <= 0 or x[4] <= 0:
+        return None
+    offset = np.array([x[0] / 2.0, x[1] / (2.0 * x[3]), x[2] / (2.0 * x[4])])
+    temp = x[5] + offset[0] ** 2 + x[3] * offset[1] ** 2 + x[4] * offset[2] ** 2
+    if not np.isfinite(temp) or temp <= 0:
+        return None
+    scale = np.sqrt([temp, temp / x[3], temp / x[4]])
+    return offset, scale
+
+
+def _symmetric_sqrt(a: np.ndarray) -> np.ndarray | None:
+    a = 0.5 * (a + a.T)
+    if not np.all(np.isfinite(a)):
+        return None
+    eigenvalues, vectors = np.linalg.eigh(a)
+    if eigenvalues.min() <= 0:
+        return None
+    return (vectors * np.sqrt(eigenvalues)) @ vectors.T
+
+
+# -----------------------------------------------------------------------------------------------
+# Geometric residual |M (p - b)| - 1 and its Jacobian; d = 2 or 3; M = rho I (sphere) or symmetric
+
+
+class _Geometric:
+    """Residuals and analytic Jacobian of ``|M (p - b)| - 1`` over parameters [b, M]."""
+
+    def __init__(self, points: np.ndarray, spherical: bool) -> None:
+        self.points = points
+        self.d = points.shape[1]
+        self.spherical = spherical
+        self.rows, self.cols = np.triu_indices(self.d)
+        self.diagonal = self.rows == self.cols
+
+    def pack(self, centre: np.ndarray, matrix: np.ndarray) -> np.ndarray:
+        if self.spherical:
+            return np.append(centre, np.mean(np.diag(matrix)))
+        return np.concatenate([centre, matrix[self.rows, self.cols]])
+
+    def unpack(self, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        centre = params[: self.d]
+        if self.spherical:
+            return centre, params[self.d] * np.eye(self.d)
+        matrix = np.zeros((self.d, self.d))
+        matrix[self.rows, self.cols] = params[self.d :]
+        matrix[self.cols, self.rows] = params[self.d :]
+        return centre, matrix
+
+    def residuals(self, params: np.ndarray, points: np.ndarray | None = None) -> np.ndarray:
+        centre, matrix = self.unpack(params)
+        w = (self.points if points is None else points) - centre
+        return np.linalg.norm(w @ matrix, axis=1) - 1.0
+
+    def jacobian(self, params: np.ndarray) -> np.ndarray:
+        centre, matrix = self.unpack(params)
+        z = self.points - centre
+        w = z @ matrix
+        radius = np.maximum(np.linalg.norm(w, axis=1), 1e-300)
+        g = w / radius[:, None]
+        d_centre = -(g @ matrix)
+        if self.spherical:
+            d_matrix = (np.linalg.norm(z, axis=1))[:, None]
+        else:
+            r, c = self.rows, self.cols
+            d_matrix = g[:, r] * z[:, c] + np.where(self.diagonal, 0.0, 1.0) * g[:, c] * z[:, r]
+        return np.column_stack([d_centre, d_matrix])
+
+
+def robust_sigma(residuals: np.ndarray) -> float:
+    """1.4826 x median absolute residual, floored at MIN_ROBUST_SIGMA."""
+    if residuals.size == 0:
+        return MIN_ROBUST_SIGMA
+    return max(_MAD_TO_SIGMA * float(np.median(np.abs(residuals))), MIN_ROBUST_SIGMA)
+
+
+@dataclass(frozen=True)
+class _Refined:
+    centre: np.ndarray
+    matrix: np.ndarray
+    residuals: np.ndarray
+    inliers: np.ndarray
+    condition: float
+    std: np.ndarray | None
+
+
+def _refine(
+    points: np.ndarray,
+    centre: np.ndarray,
+    matrix: np.ndarray,
+    spherical: bool,
+    outlier_threshold: float,
+) -> _Refined:
+    """Robust soft-L1 fit from an algebraic start; outliers flagged; least squares on inliers."""
+    model = _Geometric(points, spherical)
+    start = model.pack(centre, matrix)
+    f_scale = robust_sigma(model.residuals(start))
+    robust = least_squares(
+        model.residuals, start, jac=model.jacobian, loss='soft_l1', f_scale=f_scale,
+        method='trf', x_scale=1.0, max_nfev=50,
+    )  # fmt: skip
+    params = robust.x
+    residuals = model.residuals(params)
+    inliers = np.abs(residuals) <= outlier_threshold * robust_sigma(residuals)
+    n_params = len(params)
+    if inliers.sum() > n_params:
+        inlier_model = _Geometric(points[inliers], spherical)
+        final = least_squares(
+            inlier_model.residuals, params, jac=inlier_model.jacobian, method='lm', max_nfev=100
+        )
+        if np.all(np.isfinite(final.x)):
+            params = final.x
+            residuals = model.residuals(params)
+            inliers = np.abs(residuals) <= outlier_threshold * robust_sigma(residuals[inliers])
+    jacobian = _Geometric(points[inliers], spherical).jacobian(params)
+    condition, std = _condition_and_std(jacobian, residuals[inliers])
+    fitted_centre, fitted_matrix = model.unpack(params)
+    return _Refined(fitted_centre, fitted_matrix, residuals, inliers, condition, std)
+
+
+def _condition_and_std(
+    jacobian: np.ndarray, residuals: np.ndarray
+) -> tuple[float, np.ndarray | None]:
+    """Condition number of J and parameter 1-sigma from sigma² (JᵀJ)⁻¹ (via the SVD)."""
+    n, p = jacobian.shape
+    if n == 0 or not np.all(np.isfinite(jacobian)):
+        return np.inf, None
+    _, singular, vt = np.linalg.svd(jacobian, full_matrices=False)
+    if singular[-1] <= 0:
+        return np.inf, None
+    condition = float(singular[0] / singular[-1])
+    if n <= p:
+        return condition, None
+    variance = float(residuals @ residuals) / (n - p)
+    covariance_diag = np.sum((vt.T / singular) ** 2, axis=1) * variance
+    return condition, np.sqrt(covariance_diag)
+
+
+# -----------------------------------------------------------------------------------------------
+# Public fits (input units in, input units out)
+
+
+def fit_ellipsoid(
+    points: np.ndarray,
+    model: str,
+    outlier_threshold: float = 4.0,
+    prior: tuple[np.ndarray, np.ndarray] | None = None,
+) -> EllipsoidFit | None:
+    """Fit ``model`` (one of FIT_MODELS) to finite (n, 3) input-unit points; None when impossible.
+
+    ``prior`` is (offset, unit-radius matrix) in input units, used by ``planar`` out of the plane.
+    """
+    if model not in FIT_MODELS:
+        raise ValueError(f'unknown fit model {model!r}; expected one of {FIT_MODELS}')
+    if len(points) < PARAMETER_COUNTS[model] + 1:
+        return None
+    norm = normalise(points)
+    if norm is None:
+        return None
+    y = norm.forward(points)
+    with np.errstate(all='ignore'):
+        try:
+            if model == 'planar':
+                return _fit_planar(y, norm, outlier_threshold, prior)
+            fitted = _fit_3d(y, model, outlier_threshold)
+        except (np.linalg.LinAlgError, ValueError):
+            return None
+    if fitted is None:
+        return None
+    return _to_input_units(fitted, norm, model)
+
+
+def _fit_3d(y: np.ndarray, model: str, outlier_threshold: float) -> _Refined | None:
+    if model == 'axis':
+        solved = axis_least_squares(y)
+        if solved is None:
+            return None
+        centre, semi_axes = solved
+        matrix = np.diag(1.0 / semi_axes)
+        residuals = np.linalg.norm((y - centre) @ matrix, axis=1) - 1.0
+        inliers = np.abs(residuals) <= outlier_threshold * robust_sigma(residuals)
+        jacobian = _Geometric(y[inliers], spherical=False).jacobian(
+            np.concatenate([centre, matrix[np.triu_indices(3)]])
+        )[:, [0, 1, 2, 3, 6, 8]]  # b and the diagonal of M: the axis model's own parameters
+        condition, _ = _condition_and_std(jacobian, residuals[inliers])
+        return _Refined(centre, matrix, residuals, inliers, condition, None)
+    sphere = sphere_least_squares(y)
+    if model == 'sphere':
+        if sphere is None:
+            return None
+        return _refine(y, sphere[0], np.eye(3) / sphere[1], True, outlier_threshold)
+    start = quadric_least_squares(y)
+    if start is None or _ratio(start[1]) > 10.0:
+        if sphere is None:
+            return None
+        start = (sphere[0], np.eye(3) / sphere[1])
+    return _refine(y, start[0], start[1], False, outlier_threshold)
+
+
+def _ratio(matrix: np.ndarray) -> float:
+    eigenvalues = np.linalg.eigvalsh(matrix)
+    return float(eigenvalues.max() / eigenvalues.min()) if eigenvalues.min() > 0 else np.inf
+
+
+def _to_input_units(fitted: _Refined, norm: Normalisation, model: str) -> EllipsoidFit | None:
+    offset = norm.centre + norm.scale * fitted.centre
+    matrix = fitted.matrix / norm.scale
+    if not (np.all(np.isfinite(offset)) and np.all(np.isfinite(matrix))):
+        return None
+    std = None
+    if fitted.std is not None and np.all(np.isfinite(fitted.std)):
+        if model == 'sphere':
+            std = {
+                'offset': (fitted.std[:3] * norm.scale).tolist(),
+                'matrix': (np.eye(3) * fitted.std[3] / norm.scale).ravel().tolist(),
+            }
+        else:
+            m_std = np.zeros((3, 3))
+            rows, cols = np.triu_indices(3)
+            m_std[rows, cols] = fitted.std[3:] / norm.scale
+            m_std[cols, rows] = fitted.std[3:] / norm.scale
+            std = {
+                'offset': (fitted.std[:3] * norm.scale).tolist(),
+                'matrix': m_std.ravel().tolist(),
+            }
+    return EllipsoidFit(
+        model, offset, matrix, fitted.residuals, fitted.inliers, fitted.condition, std
+    )
+
+
+def _fit_planar(
+    y: np.ndarray,
+    norm: Normalisation,
+    outlier_threshold: float,
+    prior: tuple[np.ndarray, np.ndarray] | None,
+) -> EllipsoidFit | None:
+    """2-D ellipse in the data's plane; normal offset/scale from the prior or held neutral."""
+    _, axes = thickness(y)
+    basis = axes.copy()
+    if np.linalg.det(basis) < 0:
+        basis[:, 2] = -basis[:, 2]
+    normal = basis[:, 2]
+    # orient the normal toward the body axis it is closest to (readable metadata, e.g. +z)
+    if normal[np.argmax(np.abs(normal))] < 0:
+        basis[:, [1, 2]] = -basis[:, [1, 2]]
+        normal = basis[:, 2]
+    in_plane = y @ basis[:, :2]
+    start = quadric_least_squares(in_plane)
+    if start is None or _ratio(start[1]) > 10.0:
+        radius = float(np.median(np.linalg.norm(in_plane - np.median(in_plane, axis=0), axis=1)))
+        if radius <= 0:
+            return None
+        start = (np.median(in_plane, axis=0), np.eye(2) / radius)
+    fitted = _refine(in_plane, start[0], start[1], False, outlier_threshold)
+    block_2d = fitted.matrix
+    along_normal = y @ normal
+    if prior is not None:
+        prior_offset = (prior[0] - norm.centre) / norm.scale
+        prior_matrix = basis.T @ (prior[1] * norm.scale) @ basis
+        normal_offset = float(prior_offset @ normal)
+        prior_2d = prior_matrix[:2, :2]
+        det_prior = np.linalg.det(prior_2d)
+        k = np.sqrt(np.linalg.det(block_2d) / det_prior) if det_prior > 0 else 1.0
+        block = np.zeros((3, 3))
+        block[:2, :2] = block_2d
+        block[:2, 2] = block[2, :2] = k * prior_matrix[:2, 2]
+        block[2, 2] = k * prior_matrix[2, 2]
+        if np.linalg.eigvalsh(block).min() <= 0:
+            block[:2, 2] = block[2, :2] = 0.0
+            block[2, 2] = np.sqrt(np.linalg.det(block_2d))
+    else:
+        normal_offset = float(np.mean(along_normal[fitted.inliers]))
+        block = np.zeros((3, 3))
+        block[:2, :2] = block_2d
+        block[2, 2] = np.sqrt(np.linalg.det(block_2d))
+    centre_y = basis[:, :2] @ fitted.centre + normal * normal_offset
+    matrix_y = basis @ block @ basis.T
+    offset = norm.centre + norm.scale * centre_y
+    matrix = matrix_y / norm.scale
+    if not (np.all(np.isfinite(offset)) and np.all(np.isfinite(matrix))):
+        return None
+    std = None
+    if fitted.std is not None and np.all(np.isfinite(fitted.std)):
+        std = {
+            'offset_in_plane': (fitted.std[:2] * norm.scale).tolist(),
+            'matrix_in_plane': (fitted.std[2:] / norm.scale).tolist(),
+        }
+    return EllipsoidFit(
+        'planar', offset, matrix, fitted.residuals, fitted.inliers, fitted.condition, std,
+        unobserved=('offset_normal', 'matrix_normal'), plane_normal=normal, plane_basis=basis,
+    )  # fmt: skip
+
+
+def information_criterion(residuals: np.ndarray, n_params: int) -> float:
+    """BIC of a least-squares fit with Gaussian residuals: n log(RSS/n) + k log(n)."""
+    n = len(residuals)
+    rss = max(float(residuals @ residuals), 1e-300)
+    return n * np.log(rss / n) + n_params * np.log(n)
