@@ -1,0 +1,328 @@
+"""``mag_calibrator_demo``: the whole live pipeline on a simulated ICM-20948, in one process.
+
+The driver (sim backend with a strong hard- and soft-iron distortion) and the calibrator run in one
+MultiThreadedExecutor exactly as they would on a robot, talking over DDS. While the simulated board
+tumbles, a progress bar shows direction coverage and buffer fill; once coverage suffices the demo
+asks for a calibration through the real ``~/calibrate`` service, measures the raw and corrected
+streams against the simulator's true field, saves the file through ``~/save`` and draws a
+before/after PNG. Exit status 0 when the calibration succeeded and everything was written.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Sequence
+from dataclasses import dataclass
+import math
+import os
+from pathlib import Path
+import sys
+import threading
+import time
+
+import numpy as np
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import MagneticField
+from std_srvs.srv import Trigger
+
+from mag_calibrator_ros.calibration.coverage import direction_coverage
+from mag_calibrator_ros.nodes.icm20948_driver import Icm20948DriverNode
+from mag_calibrator_ros.nodes.mag_calibrator import MagCalibratorNode
+from mag_calibrator_ros.tools.plotting import plot_calibration
+
+FIELD_UT = 50.0
+INCLINATION_DEG = 60.0
+HARD_IRON_UT = (120.0, -80.0, 60.0)
+SOFT_IRON = (  # symmetric, scales 0.85-1.15, off-diagonals up to 0.12
+    1.15, 0.10, -0.08,
+    0.10, 0.85, 0.12,
+    -0.08, 0.12, 1.00,
+)
+NAMESPACE = 'mag_calibrator_demo'
+LEVEL_HORIZONTAL_SHARE = math.cos(math.radians(INCLINATION_DEG))
+"""Heading is scored on samples whose true field is at least as horizontal (in the chip x-y
+plane) as a level-mounted sensor sees it; near the chip z axis a heading has no meaning."""
+
+
+def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog='mag_calibrator_demo',
+        description='Live calibration of a simulated ICM-20948 with a strong hard- and soft-iron '
+        'distortion: driver + calibrator in one process, calibrate via the service, '
+        'before/after errors against the simulator truth, calibration file and PNG.',
+    )
+    parser.add_argument('--output-dir', default='mag_calibrator_demo_out',
+                        help='where calibration.yaml and calibration.png go '
+                        '(default: %(default)s)')
+    parser.add_argument('--collect-timeout', type=float, default=45.0,
+                        help='seconds of tumbling at most before calibrating anyway '
+                        '(default: %(default)s)')
+    parser.add_argument('--min-coverage', type=float, default=None,
+                        help='direction coverage (0-1) to reach before calibrating '
+                        "(default: the calibrator's min_coverage)")
+    parser.add_argument('--evaluate-seconds', type=float, default=4.0,
+                        help='seconds of corrected stream scored against the truth '
+                        '(default: %(default)s)')
+    parser.add_argument('--buffer-size', type=int, default=None,
+                        help="calibrator buffer size (default: the calibrator's)")
+    parser.add_argument('--seed', type=int, default=1, help='simulated motion and noise seed')
+    args = parser.parse_args(argv)
+    if not args.collect_timeout > 0 or not args.evaluate_seconds > 0:
+        parser.error('--collect-timeout and --evaluate-seconds must be > 0')
+    if args.min_coverage is not None and not 0.0 < args.min_coverage <= 1.0:
+        parser.error('--min-coverage must be in (0, 1]')
+    return args
+
+
+@dataclass(frozen=True)
+class ErrorStats:
+    """RMS and max of one error measure over the scored samples."""
+
+    rms: float
+    max: float
+
+    @classmethod
+    def of(cls, errors: np.ndarray) -> ErrorStats:
+        if len(errors) == 0:
+            return cls(math.nan, math.nan)
+        return cls(float(np.sqrt(np.mean(errors**2))), float(np.max(np.abs(errors))))
+
+
+def direction_errors_deg(vectors: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    cosine = np.sum(vectors * truth, axis=1) / (
+        np.linalg.norm(vectors, axis=1) * np.linalg.norm(truth, axis=1)
+    )
+    return np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
+
+
+def heading_errors_deg(vectors: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Azimuth about the chip z axis (a level compass's heading), wrapped to [-180, 180)."""
+    horizontal = np.linalg.norm(truth[:, :2], axis=1) / np.linalg.norm(truth, axis=1)
+    keep = horizontal >= LEVEL_HORIZONTAL_SHARE - 1e-9
+    difference = (np.arctan2(vectors[keep, 1], vectors[keep, 0])
+                  - np.arctan2(truth[keep, 1], truth[keep, 0]))
+    return np.degrees((difference + np.pi) % (2.0 * np.pi) - np.pi)
+
+
+def error_table(vectors: np.ndarray, truth: np.ndarray) -> dict[str, ErrorStats]:
+    magnitude = (np.linalg.norm(vectors, axis=1) - np.linalg.norm(truth, axis=1)) * 1e6
+    return {
+        'direction error (deg)': ErrorStats.of(direction_errors_deg(vectors, truth)),
+        'heading error (deg)': ErrorStats.of(heading_errors_deg(vectors, truth)),
+        'magnitude error (uT)': ErrorStats.of(magnitude),
+    }
+
+
+class DemoObserver(Node):
+    """Watches raw and corrected streams and calls the calibrator's services, like a user."""
+
+    def __init__(self, context: Context) -> None:
+        super().__init__('demo_observer', namespace=NAMESPACE, context=context)
+        self._lock = threading.Lock()
+        self._raw_by_stamp: dict[tuple[int, int], np.ndarray] = {}
+        self.raw: list[np.ndarray] = []
+        self.pairs: list[tuple[np.ndarray, np.ndarray]] = []  # (raw, corrected)
+        self.create_subscription(MagneticField, 'imu/mag', self._on_raw, qos_profile_sensor_data)
+        self.create_subscription(
+            MagneticField, 'imu/mag_corrected', self._on_corrected, qos_profile_sensor_data
+        )
+        self.calibrate = self.create_client(Trigger, 'mag_calibrator/calibrate')
+        self.save = self.create_client(Trigger, 'mag_calibrator/save')
+
+    @staticmethod
+    def _vector(msg: MagneticField) -> np.ndarray:
+        return np.array([msg.magnetic_field.x, msg.magnetic_field.y, msg.magnetic_field.z])
+
+    def _on_raw(self, msg: MagneticField) -> None:
+        with self._lock:
+            self.raw.append(self._vector(msg))
+            self._raw_by_stamp[(msg.header.stamp.sec, msg.header.stamp.nanosec)] = self.raw[-1]
+            if len(self._raw_by_stamp) > 1000:
+                self._raw_by_stamp.pop(next(iter(self._raw_by_stamp)))
+
+    def _on_corrected(self, msg: MagneticField) -> None:
+        """Pair each corrected sample with its raw input: the header is passed through."""
+        with self._lock:
+            raw = self._raw_by_stamp.get((msg.header.stamp.sec, msg.header.stamp.nanosec))
+            if raw is not None:
+                self.pairs.append((raw, self._vector(msg)))
+
+    def take_pairs(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        with self._lock:
+            pairs, self.pairs = self.pairs, []
+        return pairs
+
+    def raw_samples(self) -> np.ndarray:
+        with self._lock:
+            return np.array(self.raw).reshape(-1, 3)
+
+    def call(self, client, timeout_s: float = 10.0) -> Trigger.Response | None:
+        if not client.wait_for_service(timeout_sec=timeout_s):
+            return None
+        future = client.call_async(Trigger.Request())
+        deadline = time.monotonic() + timeout_s
+        while not future.done() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        return future.result() if future.done() else None
+
+
+def progress_bar(coverage: float, fill: int, capacity: int, elapsed: float, width: int = 30
+                 ) -> str:
+    done = int(round(width * min(max(coverage, 0.0), 1.0)))
+    return (f'\r  tumbling [{"#" * done}{"." * (width - done)}] coverage {100 * coverage:3.0f} %'
+            f'  buffer {fill:4d}/{capacity}  {elapsed:4.1f} s ')
+
+
+def collect(calibrator: MagCalibratorNode, target: float, timeout_s: float) -> float:
+    """Show progress until coverage reaches ``target`` and the buffer is full, or time runs out."""
+    interactive = sys.stdout.isatty()
+    start = time.monotonic()
+    last_line = -math.inf
+    coverage = 0.0
+    while True:
+        elapsed = time.monotonic() - start
+        buffer = calibrator.session.buffer
+        samples = buffer.samples  # a copy: safe while the executor keeps adding
+        coverage = direction_coverage(samples).fraction if len(samples) >= 10 else 0.0
+        full = len(samples) >= buffer.capacity
+        if interactive or elapsed - last_line >= 2.0 or (coverage >= target and full):
+            line = progress_bar(coverage, len(samples), buffer.capacity, elapsed)
+            print(line if interactive else line.strip(), end='' if interactive else '\n',
+                  flush=True)
+            last_line = elapsed
+        if (coverage >= target and full) or elapsed >= timeout_s:
+            break
+        time.sleep(0.2)
+    if interactive:
+        print()
+    return coverage
+
+
+def score(observer: DemoObserver, driver: Icm20948DriverNode, seconds: float):
+    """Raw vs truth and corrected vs truth over ``seconds`` of the live corrected stream."""
+    observer.take_pairs()
+    time.sleep(seconds)
+    raw, corrected, truth = [], [], []
+    for raw_sample, corrected_sample in observer.take_pairs():
+        true_field = driver.simulator.truth_for_reading(raw_sample)
+        if true_field is not None:
+            raw.append(raw_sample)
+            corrected.append(corrected_sample)
+            truth.append(true_field)
+    if not truth:
+        return 0, None, None
+    truth = np.array(truth)
+    return len(truth), error_table(np.array(raw), truth), error_table(np.array(corrected), truth)
+
+
+def print_summary(count: int, before: dict, after: dict) -> None:
+    print(f'\nErrors against the simulator truth over {count} live samples '
+          '(before = raw imu/mag, after = imu/mag_corrected):')
+    print(f'  {"":24s} {"before RMS":>11s} {"before max":>11s} {"after RMS":>10s} '
+          f'{"after max":>10s}')
+    for name in before:
+        b, a = before[name], after[name]
+        print(f'  {name:24s} {b.rms:11.3f} {b.max:11.3f} {a.rms:10.3f} {a.max:10.3f}')
+
+
+def run(args: argparse.Namespace, context: Context) -> int:
+    output_dir = Path(args.output_dir).expanduser().resolve()
+    output_dir.mkdir(parents=True, exist_ok=True)
+    calibration_file = output_dir / 'calibration.yaml'
+    plot_file = output_dir / 'calibration.png'
+    for stale in (calibration_file, plot_file):
+        stale.unlink(missing_ok=True)  # the demo starts uncalibrated and rewrites both
+
+    print(f'Simulated ICM-20948: field {FIELD_UT:.0f} uT, inclination {INCLINATION_DEG:.0f} deg, '
+          f'hard iron {list(HARD_IRON_UT)} uT, soft iron {list(SOFT_IRON)} (row-major).')
+    driver = Icm20948DriverNode(namespace=NAMESPACE, context=context, parameter_overrides=[
+        Parameter('backend', value='sim'),
+        Parameter('rate_hz', value=100),
+        Parameter('sim.field_ut', value=FIELD_UT),
+        Parameter('sim.inclination_deg', value=INCLINATION_DEG),
+        Parameter('sim.hard_iron_ut', value=list(HARD_IRON_UT)),
+        Parameter('sim.soft_iron', value=list(SOFT_IRON)),
+        Parameter('sim.motion', value='tumble'),
+        Parameter('sim.seed', value=args.seed),
+    ])
+    overrides = [
+        Parameter('auto_calibrate', value=False),
+        Parameter('calibration_file', value=str(calibration_file)),
+        Parameter('field_strength', value=FIELD_UT * 1e-6),  # the local field, as from a WMM
+        Parameter('progress_log_period', value=0.0),
+    ]
+    if args.buffer_size is not None:
+        overrides.append(Parameter('buffer_size', value=args.buffer_size))
+    calibrator = MagCalibratorNode(namespace=NAMESPACE, context=context,
+                                   parameter_overrides=overrides)
+    observer = DemoObserver(context)
+    executor = MultiThreadedExecutor(context=context)
+    for node in (driver, calibrator, observer):
+        executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    try:
+        target = (args.min_coverage if args.min_coverage is not None
+                  else float(calibrator.get_parameter('min_coverage').value))
+        print(f'Rotate the board through every orientation: collecting until coverage '
+              f'{100 * target:.0f} % (at most {args.collect_timeout:.0f} s).')
+        collect(calibrator, target, args.collect_timeout)
+
+        response = observer.call(observer.calibrate)
+        if response is None:
+            print('~/calibrate did not answer', file=sys.stderr)
+            return 2
+        print(f'~/calibrate -> success={response.success}: {response.message}')
+        if not response.success:
+            return 1
+
+        print(f'Scoring {args.evaluate_seconds:.0f} s of the corrected stream...')
+        count, before, after = score(observer, driver, args.evaluate_seconds)
+        if count == 0:
+            print('no corrected samples could be paired with the truth', file=sys.stderr)
+            return 3
+        print_summary(count, before, after)
+
+        saved = observer.call(observer.save)
+        if saved is None or not saved.success:
+            print(f'~/save failed: {saved.message if saved else "no answer"}', file=sys.stderr)
+            return 4
+        calibration = calibrator.session.calibration
+        plot_calibration(observer.raw_samples() * 1e6, calibration.scaled(1e6), plot_file,
+                         'mag_calibrator_demo: simulated ICM-20948 (uT)')
+        print(f'\nCalibration file: {calibration_file}\n  (restart with: ros2 run '
+              f'mag_calibrator_ros mag_calibrator --ros-args --params-file {calibration_file})')
+        print(f'Before/after plot: {plot_file}')
+        direction = after['direction error (deg)']
+        print(f'\nDONE: calibrated ({calibration.model}); corrected direction error '
+              f'{direction.rms:.2f} deg RMS, {direction.max:.2f} deg max.')
+        return 0
+    finally:
+        executor.shutdown()
+        for node in (observer, calibrator, driver):
+            node.destroy_node()
+        spinner.join(timeout=5.0)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Console script ``mag_calibrator_demo``; returns the exit status."""
+    args = parse_args(argv)
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    context = Context()
+    rclpy.init(args=[], context=context)
+    try:
+        return run(args, context)
+    except KeyboardInterrupt:
+        print('\ninterrupted', file=sys.stderr)
+        return 130
+    finally:
+        rclpy.try_shutdown(context=context)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
