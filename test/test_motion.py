@@ -1,0 +1,115 @@
+"""Trajectories: proper rotations, determinism, hand-like tumbling that covers every direction."""
+
+import math
+
+import numpy as np
+import pytest
+
+from mag_calibrator_ros import motion
+
+
+def fibonacci_cells(count: int) -> np.ndarray:
+    """Near-equal-area cell centres on the unit sphere."""
+    i = np.arange(count) + 0.5
+    polar = np.arccos(1.0 - 2.0 * i / count)
+    azimuth = math.pi * (1.0 + 5.0**0.5) * i
+    return np.column_stack(
+        [np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar), np.cos(polar)]
+    )
+
+
+def covered_fraction(vectors: np.ndarray, cells: int = 100) -> float:
+    centres = fibonacci_cells(cells)
+    unit = vectors / np.linalg.norm(vectors, axis=1, keepdims=True)
+    return len(set(np.argmax(unit @ centres.T, axis=1))) / cells
+
+
+def test_earth_field_enu_components():
+    field = motion.earth_field(50.0, 60.0)
+    np.testing.assert_allclose(field, [0.0, 25.0, -50.0 * math.sin(math.radians(60.0))])
+    np.testing.assert_allclose(motion.earth_field(40.0, -30.0)[2], 20.0)  # southern: points up
+
+
+@pytest.mark.parametrize('strength, inclination', [(-1.0, 0.0), (math.nan, 0.0), (1.0, 91.0),
+                                                   (1.0, math.inf)])
+def test_earth_field_rejects_bad_input(strength, inclination):
+    with pytest.raises(ValueError):
+        motion.earth_field(strength, inclination)
+
+
+@pytest.mark.parametrize('kind', motion.TRAJECTORY_KINDS)
+def test_orientations_are_rotations_and_deterministic(kind):
+    times = np.linspace(0.0, 30.0, 301)
+    a = motion.make_trajectory(kind, seed=7).orientations(times)
+    b = motion.make_trajectory(kind, seed=7).orientations(times)
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_allclose(a @ np.transpose(a, (0, 2, 1)), np.broadcast_to(np.eye(3), a.shape),
+                               atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(a), 1.0, atol=1e-12)
+    np.testing.assert_allclose(motion.make_trajectory(kind, seed=7).orientation(12.3),
+                               motion.make_trajectory(kind, seed=7).orientations([12.3])[0])
+
+
+def test_seeds_differ():
+    a = motion.make_trajectory('tumble', 1).orientation(5.0)
+    b = motion.make_trajectory('tumble', 2).orientation(5.0)
+    assert not np.allclose(a, b)
+
+
+def test_tumble_is_smooth_hand_speed():
+    dt = 0.01
+    rotations = motion.make_trajectory('tumble', 3).rotations(np.arange(0.0, 60.0, dt))
+    rates = (rotations[:-1].inv() * rotations[1:]).magnitude() / dt
+    assert 1.0 < np.mean(rates) < 4.0  # a hand, not a centrifuge
+    assert 3.0 < np.max(rates) < 10.0  # several rad/s peaks
+    assert np.max(np.abs(np.diff(rates))) < 1.0  # no jumps between 10 ms steps
+
+
+@pytest.mark.parametrize('seed', range(5))
+def test_tumble_covers_all_directions_within_a_minute(seed):
+    fields = motion.body_field_samples('tumble', 6000, 100.0, 50.0, 60.0, seed)
+    assert covered_fraction(fields) >= 0.9
+
+
+def test_yaw_stays_nearly_level_and_turns():
+    times = np.arange(0.0, 60.0, 0.05)
+    matrices = motion.make_trajectory('yaw', 4).orientations(times)
+    tilt = np.degrees(np.arccos(np.clip(matrices[:, 2, 2], -1.0, 1.0)))  # body z vs world up
+    assert 0.5 < tilt.max() < 8.0
+    heading = np.unwrap(np.arctan2(matrices[:, 1, 0], matrices[:, 0, 0]))
+    assert abs(heading[-1] - heading[0]) > 4.0 * math.pi  # at least two full turns a minute
+
+
+def test_still_does_not_move():
+    fields = motion.body_field_samples('still', 500, 50.0, 48.0, 65.0, seed=5)
+    np.testing.assert_allclose(fields, np.broadcast_to(fields[0], fields.shape))
+    np.testing.assert_allclose(np.linalg.norm(fields[0]), 48.0)
+
+
+def test_body_field_keeps_strength():
+    fields = motion.body_field_samples('tumble', 1000, 100.0, 33.0, -20.0, seed=0)
+    np.testing.assert_allclose(np.linalg.norm(fields, axis=1), 33.0)
+    assert motion.body_field_samples('yaw', 0, 10.0, 1.0, 0.0).shape == (0, 3)
+
+
+def test_bad_arguments_are_refused():
+    with pytest.raises(ValueError, match='unknown motion'):
+        motion.make_trajectory('spin')
+    with pytest.raises(ValueError):
+        motion.make_trajectory('tumble').orientation(math.nan)
+    with pytest.raises(ValueError):
+        motion.make_trajectory('yaw').orientation(-1.0)
+    with pytest.raises(ValueError):
+        motion.body_field_samples('tumble', 10, 0.0, 1.0, 0.0)
+
+
+def test_tumble_forgets_old_knots_but_stays_continuous():
+    trajectory = motion.TumbleTrajectory(seed=1, retain_s=20.0)
+    first = trajectory.orientation(1.0)
+    late = trajectory.rotations(np.arange(100.0, 101.0, 0.01))
+    steps = (late[:-1].inv() * late[1:]).magnitude()
+    assert np.all(steps < 0.2)
+    assert len(trajectory._quats) < 2000  # bounded memory
+    assert first.shape == (3, 3)
+    with pytest.raises(ValueError, match='no longer available'):
+        trajectory.orientation(1.0)
