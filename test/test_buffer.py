@@ -1,0 +1,397 @@
+"""SampleBuffer: the brief's kNN uniqueness rule done right, screening, and its bookkeeping."""
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+import numpy as np
+import pytest
+
+from mag_calibrator_ros.calibration.buffer import OUTCOMES, REJECT_REASONS, SampleBuffer
+from mag_calibrator_ros.calibration.calibration import Calibration
+from mag_calibrator_ros.calibration.coverage import Coverage, direction_coverage
+
+FIELD = 50.0  # µT
+
+
+def sphere_samples(n, seed=0, offset=(30.0, -20.0, 10.0), noise=0.2):
+    """Uniform directions on a 50 µT sphere with a hard-iron offset and a little noise."""
+    rng = np.random.default_rng(seed)
+    directions = rng.normal(size=(n, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    return FIELD * directions + np.asarray(offset) + rng.normal(0.0, noise, (n, 3))
+
+
+def true_calibration(offset=(30.0, -20.0, 10.0)):
+    return Calibration(np.asarray(offset), np.eye(3), FIELD)
+
+
+def brute_scores(points, k):
+    """Mean distance of each point to its k nearest other points, the obvious way."""
+    distances = np.linalg.norm(points[:, None, :] - points[None, :, :], axis=2)
+    np.fill_diagonal(distances, np.inf)
+    return np.sort(distances, axis=1)[:, :k].mean(axis=1)
+
+
+class BruteForceBuffer:
+    """The brief's rule with consistent scoring, recomputed from scratch for every sample."""
+
+    def __init__(self, capacity, k):
+        self.capacity, self.k, self.points = capacity, k, []
+
+    def add(self, x):
+        if any(np.array_equal(p, x) for p in self.points):
+            return 'duplicate'
+        if len(self.points) < self.capacity:
+            self.points.append(x)
+            return 'added'
+        points = np.array(self.points)
+        scores = brute_scores(points, self.k)
+        weakest = int(np.argmin(scores))
+        own = np.sort(np.linalg.norm(points - x, axis=1))[: self.k].mean()
+        if own > scores[weakest]:
+            self.points[weakest] = x
+            return 'replaced'
+        return 'not_unique'
+
+
+def assert_bookkeeping_exact(buffer):
+    """Incremental neighbour lists give the same scores as a full recomputation."""
+    points = buffer.samples
+    if len(points) > buffer.k:
+        np.testing.assert_allclose(buffer.scores, brute_scores(points, buffer.k), rtol=1e-12)
+
+
+# -- the brief's rule -----------------------------------------------------------------------------
+
+
+def test_fills_first_then_replaces_the_most_crowded_sample():
+    buffer = SampleBuffer(capacity=6, k=2)
+    spread = [[50.0, 0, 0], [-50.0, 0, 0], [0, 50.0, 0], [0, -50.0, 0], [0, 0, 50.0]]
+    crowded = [50.0, 1.0, 0.0]  # next to the first sample: the two most crowded ones
+    for sample in [*spread, crowded]:
+        assert buffer.add(sample) == 'added'
+    assert buffer.fill == 6
+    weakest_before = np.argsort(buffer.scores)[:2]
+    assert set(weakest_before) == {0, 5}
+    assert buffer.add([0.0, 0.0, -50.0]) == 'replaced'
+    rows = {tuple(row) for row in buffer.samples}
+    assert (0.0, 0.0, -50.0) in rows
+    assert len(rows & {(50.0, 0.0, 0.0), (50.0, 1.0, 0.0)}) == 1  # one of the crowded pair left
+    assert_bookkeeping_exact(buffer)
+
+
+def test_a_crowded_new_sample_is_rejected():
+    """The brief's library scored buffered points with their zero self-distance, so every
+    candidate looked more unique than the weakest buffered point and got in. Here it does not."""
+    samples = sphere_samples(200, seed=1)
+    buffer = SampleBuffer(capacity=50, k=5)
+    buffer.add_many(samples)
+    before = buffer.samples
+    # A candidate in the middle of the densest spot: right between a point and its nearest twin.
+    scores = buffer.scores
+    densest = int(np.argmin(scores))
+    nearest = np.argsort(np.linalg.norm(before - before[densest], axis=1))[1]
+    candidate = 0.5 * (before[densest] + before[nearest])
+    assert buffer.add(candidate) == 'not_unique'
+    np.testing.assert_array_equal(buffer.samples, before)
+
+
+def test_a_candidate_as_unique_as_the_weakest_does_not_churn():
+    buffer = SampleBuffer(capacity=4, k=1)
+    for sample in ([1.0, 0, 0], [-1.0, 0, 0], [0, 1.0, 0], [0, -1.0, 0]):
+        buffer.add(sample)
+    # Every buffered point has nearest-neighbour distance sqrt(2); so does this candidate.
+    assert buffer.add([0.0, 0.0, 1.0]) == 'not_unique'
+
+
+def test_spread_improves_as_more_samples_stream_through():
+    samples = sphere_samples(3000, seed=2)
+    buffer = SampleBuffer(capacity=100, k=6)
+    buffer.add_many(samples[:100])
+    crowding_first = buffer.scores.min()
+    counts = buffer.add_many(samples[100:])
+    assert counts['replaced'] > 0 and counts['not_unique'] > 0
+    assert buffer.scores.min() > 1.5 * crowding_first
+    assert buffer.seen == 3000
+    assert_bookkeeping_exact(buffer)
+
+
+# -- bookkeeping: incremental equals brute force --------------------------------------------------
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    capacity=st.integers(2, 30),
+    k_fraction=st.floats(0.0, 1.0),
+    seed=st.integers(0, 2**32 - 1),
+    n=st.integers(1, 300),
+    duplicate_share=st.floats(0.0, 0.3),
+    scale_exponent=st.integers(-8, 4),
+)
+def test_incremental_bookkeeping_equals_brute_force(
+    capacity, k_fraction, seed, n, duplicate_share, scale_exponent
+):
+    k = 1 + int(k_fraction * (capacity - 2))
+    rng = np.random.default_rng(seed)
+    samples = rng.normal(size=(n, 3)) * 10.0**scale_exponent
+    repeats = rng.random(n) < duplicate_share
+    for i in np.flatnonzero(repeats):
+        samples[i] = samples[rng.integers(0, i + 1)]
+    buffer, reference = SampleBuffer(capacity, k), BruteForceBuffer(capacity, k)
+    for sample in samples:
+        assert buffer.add(sample) == reference.add(sample)
+    np.testing.assert_array_equal(buffer.samples, np.array(reference.points))
+    assert_bookkeeping_exact(buffer)
+
+
+@settings(max_examples=20, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1), capacity=st.integers(3, 40), new_capacity=st.integers(3, 40)
+)
+def test_resize_keeps_exact_bookkeeping_and_the_most_unique_samples(seed, capacity, new_capacity):
+    samples = np.random.default_rng(seed).normal(size=(200, 3))
+    buffer = SampleBuffer(capacity, k=2)
+    buffer.add_many(samples)
+    before = {tuple(row) for row in buffer.samples}
+    buffer.resize(capacity=new_capacity, k=1)
+    assert (buffer.capacity, buffer.k) == (new_capacity, 1)
+    assert buffer.fill == min(new_capacity, len(before))
+    assert {tuple(row) for row in buffer.samples} <= before
+    assert_bookkeeping_exact(buffer)
+    # Still a working buffer: new samples follow the rule.
+    reference = BruteForceBuffer(new_capacity, 1)
+    reference.points = list(buffer.samples)
+    for sample in np.random.default_rng(seed + 1).normal(size=(50, 3)):
+        assert buffer.add(sample) == reference.add(sample)
+    assert_bookkeeping_exact(buffer)
+
+
+def test_shrinking_drops_the_most_crowded_first():
+    buffer = SampleBuffer(capacity=5, k=1)
+    for sample in ([0.0, 0, 1], [10.0, 0, 1], [0, 10.0, 1], [-10.0, 0, 1], [0.1, 0, 1]):
+        buffer.add(sample)
+    buffer.resize(capacity=4)
+    rows = {tuple(row) for row in buffer.samples}
+    assert len(rows & {(0.0, 0.0, 1.0), (0.1, 0.0, 1.0)}) == 1
+
+
+# -- scale invariance -----------------------------------------------------------------------------
+
+
+def outcomes_and_samples(samples, scale):
+    buffer = SampleBuffer(capacity=60, k=6)
+    outcomes = [buffer.add(sample * scale) for sample in samples]
+    return outcomes, buffer.samples / scale, buffer.relative_knn_distance
+
+
+@pytest.mark.parametrize('scale', [1e-6, 1e-2, 1.0 / 0.15, 1024.0])  # T, gauss, counts, other
+def test_same_decisions_in_any_unit_synthetic(scale):
+    samples = sphere_samples(2000, seed=3)  # µT
+    outcomes, kept, relative = outcomes_and_samples(samples, 1.0)
+    scaled_outcomes, scaled_kept, scaled_relative = outcomes_and_samples(samples, scale)
+    assert scaled_outcomes == outcomes
+    np.testing.assert_allclose(scaled_kept, kept, rtol=1e-12, atol=1e-12)
+    assert scaled_relative == pytest.approx(relative, rel=1e-9)
+
+
+@pytest.mark.parametrize(
+    ('recording', 'delimiter'),
+    [('gd-notebook/mag_raw_data_long.txt', '\t'), ('lsm303dlhc-altimu10v3/mag_2.csv', ',')],
+)
+def test_same_decisions_in_any_unit_on_real_recordings(shared_data, recording, delimiter):
+    samples = np.loadtxt(shared_data / recording, delimiter=delimiter)
+    outcomes, kept, _ = outcomes_and_samples(samples, 1.0)
+    assert outcomes.count('replaced') > 0
+    for scale in (1e-6, 1e-2, 1.0 / 1100.0):
+        scaled_outcomes, scaled_kept, _ = outcomes_and_samples(samples, scale)
+        assert scaled_outcomes == outcomes
+        np.testing.assert_allclose(scaled_kept, kept, rtol=1e-9)
+
+
+def test_relative_knn_distance_is_scale_free_and_radius_is_right():
+    buffer = SampleBuffer(capacity=100, k=6)
+    buffer.add_many(sphere_samples(2000, seed=4))
+    assert buffer.field_radius() == pytest.approx(FIELD, rel=0.01)
+    assert 0.0 < buffer.relative_knn_distance < 1.0
+    relative = buffer.mean_knn_distance / FIELD
+    assert buffer.relative_knn_distance == pytest.approx(relative, rel=0.01)
+    buffer.set_reference(true_calibration())
+    assert buffer.field_radius() == pytest.approx(FIELD)
+
+
+def test_radius_of_a_planar_ring_is_the_ring_radius():
+    angle = np.linspace(0.0, 2.0 * np.pi, 200, endpoint=False)
+    ring = np.column_stack([FIELD * np.cos(angle), FIELD * np.sin(angle), np.full(200, 7.0)])
+    buffer = SampleBuffer(capacity=50, k=4)
+    buffer.add_many(ring)
+    assert buffer.field_radius() == pytest.approx(FIELD, rel=0.01)
+
+
+# -- screening ------------------------------------------------------------------------------------
+
+
+def test_every_reject_reason_is_counted():
+    buffer = SampleBuffer(capacity=10, k=3, full_scale=4900.0)
+    assert buffer.add([np.nan, 1.0, 2.0]) == 'non_finite'
+    assert buffer.add([np.inf, 1.0, 2.0]) == 'non_finite'
+    assert buffer.add([0.0, 0.0, 0.0]) == 'zero'
+    assert buffer.add([-0.0, 0.0, -0.0]) == 'zero'
+    assert buffer.add([4900.0, 1.0, 2.0]) == 'saturated'
+    assert buffer.add([1.0, -4912.5, 2.0]) == 'saturated'
+    assert buffer.add([30.0, 40.0, 0.0]) == 'added'
+    assert buffer.add([30.0, 40.0, 0.0]) == 'duplicate'
+    buffer.set_reference(Calibration(np.zeros(3), np.eye(3), FIELD))
+    assert buffer.add([300.0, 400.0, 0.0]) == 'magnitude_outlier'  # 10 F
+    assert buffer.add([3.0, 4.0, 0.0]) == 'magnitude_outlier'  # F / 10
+    assert buffer.rejects == {
+        'non_finite': 2, 'zero': 2, 'saturated': 2, 'duplicate': 1, 'magnitude_outlier': 2,
+    }
+    assert set(buffer.rejects) == set(REJECT_REASONS)
+    assert buffer.fill == 1 and buffer.seen == 10
+
+
+def test_one_exact_zero_component_is_a_legitimate_reading():
+    buffer = SampleBuffer(capacity=10, k=3)
+    for sample in ([0.0, 30.0, 40.0], [30.0, 0.0, -40.0], [-50.0, 0.0, 0.0]):
+        assert buffer.add(sample) == 'added'
+    assert buffer.fill == 3 and sum(buffer.rejects.values()) == 0
+
+
+def test_duplicates_are_refused_when_full_too():
+    samples = sphere_samples(300, seed=5)
+    buffer = SampleBuffer(capacity=40, k=4)
+    buffer.add_many(samples)
+    for row in buffer.samples:
+        assert buffer.add(row) == 'duplicate'
+    assert buffer.rejects['duplicate'] == 40
+
+
+def test_saturation_check_is_off_by_default():
+    assert SampleBuffer().add([1e30, 0.0, 1.0]) == 'added'
+
+
+def test_add_many_counts_every_outcome():
+    buffer = SampleBuffer(capacity=10, k=3)
+    counts = buffer.add_many([[1.0, 2.0, 3.0], [1.0, 2.0, 3.0], [np.nan, 0, 0], [0.0, 0.0, 0.0]])
+    assert set(counts) == set(OUTCOMES)
+    assert [counts[key] for key in ('added', 'duplicate', 'non_finite', 'zero')] == [1, 1, 1, 1]
+    assert buffer.add_many(np.empty((0, 3)))['added'] == 0
+
+
+@pytest.mark.parametrize('bad', [[1.0, 2.0], [[1.0, 2.0, 3.0, 4.0]], 'abc'])
+def test_malformed_samples_raise_a_clear_error(bad):
+    with pytest.raises(ValueError):
+        SampleBuffer().add(bad)
+
+
+def test_add_many_rejects_wrong_shapes():
+    with pytest.raises(ValueError, match=r'\(n, 3\)'):
+        SampleBuffer().add_many(np.zeros((4, 2)))
+
+
+@pytest.mark.parametrize(
+    'kwargs',
+    [
+        {'capacity': 1},
+        {'capacity': 10, 'k': 10},
+        {'capacity': 10, 'k': 0},
+        {'capacity': 10.5},
+        {'full_scale': -1.0},
+        {'full_scale': float('nan')},
+        {'magnitude_tolerance': 0.0},
+    ],
+)
+def test_bad_configuration_is_refused(kwargs):
+    with pytest.raises(ValueError):
+        SampleBuffer(**kwargs)
+
+
+# -- outliers -------------------------------------------------------------------------------------
+
+
+def with_spikes(samples, share, seed):
+    """Transients of 2-5 F in random directions: gross outliers."""
+    rng = np.random.default_rng(seed)
+    spiky = samples.copy()
+    where = rng.choice(len(samples), int(share * len(samples)), replace=False)
+    directions = rng.normal(size=(len(where), 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    spiky[where] += directions * rng.uniform(2.0, 5.0, (len(where), 1)) * FIELD
+    return spiky, set(map(tuple, spiky[where]))
+
+
+def test_spikes_get_in_without_a_reference_and_never_survive_once_one_is_set():
+    samples, spikes = with_spikes(sphere_samples(5000, seed=6), 0.002, seed=6)
+    buffer = SampleBuffer(capacity=50, k=5)
+    buffer.add_many(samples[:2500])
+    assert {tuple(row) for row in buffer.samples} & spikes  # the uniqueness rule loves spikes
+    evicted = buffer.set_reference(true_calibration())
+    assert evicted > 0 and buffer.evicted == evicted
+    assert not {tuple(row) for row in buffer.samples} & spikes
+    assert_bookkeeping_exact(buffer)
+    buffer.add_many(samples[2500:])
+    assert not {tuple(row) for row in buffer.samples} & spikes
+    assert buffer.rejects['magnitude_outlier'] == len(spikes & set(map(tuple, samples[2500:])))
+
+
+def test_good_data_is_never_a_magnitude_outlier():
+    """Soft iron of 10 % and 2 µT noise under a rough hard-iron-only reference: all kept."""
+    rng = np.random.default_rng(7)
+    directions = rng.normal(size=(5000, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    soft = np.array([[1.1, 0.05, 0.0], [0.05, 0.92, 0.03], [0.0, 0.03, 1.0]])
+    offset = np.array([150.0, -80.0, 40.0])
+    samples = FIELD * directions @ soft.T + offset + rng.normal(0.0, 2.0, (5000, 3))
+    buffer = SampleBuffer(capacity=100, k=6)
+    buffer.set_reference(Calibration(offset, np.eye(3), FIELD))
+    buffer.add_many(samples)
+    assert buffer.rejects['magnitude_outlier'] == 0
+
+
+def test_a_stale_reference_is_dropped_instead_of_starving_the_buffer():
+    """A calibration file from another mounting must not block the data a new fit needs."""
+    samples = sphere_samples(1000, seed=8)
+    buffer = SampleBuffer(capacity=50, k=5)
+    buffer.set_reference(Calibration(np.zeros(3), np.eye(3), 3.0 * FIELD))
+    counts = buffer.add_many(samples)
+    assert buffer.reference is None and buffer.reference_drops == 1
+    assert counts['magnitude_outlier'] == 99  # the 100th sample ends the window and is kept
+    assert buffer.fill == 50
+
+
+def test_set_reference_none_stops_screening():
+    buffer = SampleBuffer(capacity=10, k=3)
+    buffer.set_reference(true_calibration())
+    buffer.set_reference(None)
+    assert buffer.add([500.0, 0.0, 0.0]) == 'added'
+
+
+# -- progress, reset ------------------------------------------------------------------------------
+
+
+def test_coverage_grows_with_rotation_and_is_independent_of_capacity():
+    samples = sphere_samples(3000, seed=9)
+    small, large = SampleBuffer(capacity=100, k=6), SampleBuffer(capacity=300, k=6)
+    small.add_many(samples)
+    large.add_many(samples)
+    assert isinstance(small.coverage(), Coverage)
+    # 100 random samples of the same stream fill about 70 % of the 80 cells; well spread, more.
+    random_subset = samples[np.random.default_rng(9).choice(3000, 100, replace=False)]
+    assert small.coverage().fraction > direction_coverage(random_subset).fraction + 0.1
+    assert large.coverage().fraction > 0.95
+    cap = SampleBuffer(capacity=100, k=6)
+    cap.add_many(samples[samples[:, 2] > 10.0 + 25.0])  # only the top of the sphere
+    assert cap.coverage().fraction < 0.5
+    assert cap.coverage().hint
+
+
+def test_clear_forgets_samples_and_counters():
+    buffer = SampleBuffer(capacity=20, k=3)
+    buffer.add_many(sphere_samples(100, seed=10))
+    buffer.add([np.nan, 0.0, 0.0])
+    buffer.clear()
+    assert (buffer.fill, buffer.seen, buffer.mean_knn_distance) == (0, 0, 0.0)
+    assert sum(buffer.rejects.values()) == 0
+    assert buffer.relative_knn_distance == 0.0
+    buffer.add_many(sphere_samples(100, seed=11))
+    assert buffer.fill == 20
+    assert_bookkeeping_exact(buffer)
