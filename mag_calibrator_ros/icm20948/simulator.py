@@ -31,6 +31,7 @@ from mag_calibrator_ros.icm20948.driver import tesla_to_counts
 MEASUREMENT_TIME_S = 0.0072  # AK09916 measurement duration before the first DRDY in a mode
 TRUTH_LOG_SIZE = 8192  # readings remembered for truth_for_reading
 REGISTER_STARTUP_S = 0.001  # after DEVICE_RESET the ICM-20948 NACKs for this long
+TIME_EPSILON_S = 1e-9  # float tolerance on timing checks
 IDENTITY = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
 
 
@@ -327,7 +328,7 @@ class SimulatedIcm20948Bus:
         legal = value in reg.CONTINUOUS_RATES or value in (reg.MODE_SINGLE, reg.MODE_SELF_TEST)
         settled = (
             self._mode == reg.MODE_POWER_DOWN
-            and self._now() - self._powered_down_at >= reg.MODE_CHANGE_WAIT_S
+            and self._now() - self._powered_down_at >= reg.MODE_CHANGE_WAIT_S - TIME_EPSILON_S
         )
         if not legal or not settled:
             return  # the AK09916 ignores prohibited codes and mode changes not via power-down

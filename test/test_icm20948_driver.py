@@ -1,0 +1,297 @@
+"""Register-level protocol of the AK09916-in-ICM-20948 driver against the simulated chip."""
+
+import errno
+
+import numpy as np
+import pytest
+
+from mag_calibrator_ros.icm20948 import registers as reg
+from mag_calibrator_ros.icm20948.driver import (
+    DeviceNotFoundError,
+    Icm20948Magnetometer,
+    WrongDeviceError,
+    counts_to_tesla,
+    tesla_to_counts,
+)
+from mag_calibrator_ros.icm20948.simulator import SimConfig, SimulatedIcm20948Bus
+
+
+class FakeClock:
+    """Deterministic time for the simulator; ``sleep`` advances it instead of waiting."""
+
+    def __init__(self, start: float = 1000.0) -> None:
+        self.now = start
+
+    def __call__(self) -> float:
+        return self.now
+
+    def sleep(self, seconds: float) -> None:
+        self.now += seconds
+
+
+class RecordingBus:
+    """Forwards to the simulator and records each transaction with the fake time."""
+
+    def __init__(self, bus: SimulatedIcm20948Bus, clock: FakeClock) -> None:
+        self.bus, self.clock, self.log = bus, clock, []
+
+    def read_byte_data(self, addr, register):
+        value = self.bus.read_byte_data(addr, register)
+        self.log.append((self.clock.now, 'r', addr, register, value))
+        return value
+
+    def write_byte_data(self, addr, register, value):
+        self.bus.write_byte_data(addr, register, value)
+        self.log.append((self.clock.now, 'w', addr, register, value))
+
+    def read_i2c_block_data(self, addr, register, length):
+        values = self.bus.read_i2c_block_data(addr, register, length)
+        self.log.append((self.clock.now, 'rb', addr, register, tuple(values)))
+        return values
+
+
+def make(config: SimConfig | None = None, address: int = 0x69):
+    config = config if config is not None else SimConfig()
+    clock = FakeClock()
+    bus = SimulatedIcm20948Bus(config, clock=clock)
+    driver = Icm20948Magnetometer(bus, address=address, bus_name='/dev/i2c-7', sleep=clock.sleep)
+    return clock, bus, driver
+
+
+def poll(clock, driver, seconds: float, poll_hz: float = 250.0):
+    readings = []
+    for _ in range(int(round(seconds * poll_hz))):
+        clock.sleep(1.0 / poll_hz)
+        reading = driver.read()
+        if reading is not None:
+            readings.append(reading)
+    return readings
+
+
+def test_magnetometer_unreachable_until_bypass_on_and_master_off():
+    clock = FakeClock()
+    bus = SimulatedIcm20948Bus(SimConfig(), clock=clock)
+    with pytest.raises(OSError) as caught:
+        bus.read_byte_data(reg.AK09916_ADDRESS, reg.WIA1)
+    assert caught.value.errno == errno.EREMOTEIO
+    bus.write_byte_data(0x69, reg.INT_PIN_CFG, reg.INT_PIN_CFG_BYPASS_EN)
+    bus.write_byte_data(0x69, reg.USER_CTRL, reg.USER_CTRL_I2C_MST_EN)
+    with pytest.raises(OSError):
+        bus.read_byte_data(reg.AK09916_ADDRESS, reg.WIA1)
+    bus.write_byte_data(0x69, reg.USER_CTRL, 0)
+    assert bus.read_byte_data(reg.AK09916_ADDRESS, reg.WIA1) == reg.WIA1_VALUE
+
+
+def test_power_on_state_of_the_model():
+    clock = FakeClock()
+    bus = SimulatedIcm20948Bus(SimConfig(), clock=clock)
+    assert bus.read_byte_data(0x69, reg.WHO_AM_I) == reg.WHO_AM_I_VALUE
+    assert bus.read_byte_data(0x69, reg.PWR_MGMT_1) == reg.PWR_MGMT_1_RESET_VALUE
+    bus.write_byte_data(0x69, reg.REG_BANK_SEL, 2 << reg.BANK_SHIFT)
+    assert bus.read_byte_data(0x69, reg.WHO_AM_I) != reg.WHO_AM_I_VALUE  # bank 2, not WHO_AM_I
+    with pytest.raises(OSError):
+        bus.read_byte_data(0x68, reg.WHO_AM_I)  # nothing at the other address
+
+
+def test_initialise_sequence_and_waits():
+    clock, sim, _ = make()
+    bus = RecordingBus(sim, clock)
+    driver = Icm20948Magnetometer(bus, address=0x69, sleep=clock.sleep)
+    driver.initialise(rate_hz=50)
+    writes = [(kind, addr, register, value) for _, kind, addr, register, value in bus.log
+              if kind == 'w']
+    order = [
+        ('w', 0x69, reg.REG_BANK_SEL, 0),
+        ('w', 0x69, reg.PWR_MGMT_1, reg.PWR_MGMT_1_DEVICE_RESET),
+        ('w', 0x69, reg.PWR_MGMT_1, reg.PWR_MGMT_1_CLKSEL_AUTO),
+        ('w', 0x69, reg.USER_CTRL, 0),
+        ('w', 0x69, reg.INT_PIN_CFG, reg.INT_PIN_CFG_BYPASS_EN),
+        ('w', reg.AK09916_ADDRESS, reg.CNTL3, reg.CNTL3_SRST),
+        ('w', reg.AK09916_ADDRESS, reg.CNTL2, reg.MODE_POWER_DOWN),
+        ('w', reg.AK09916_ADDRESS, reg.CNTL2, reg.CONTINUOUS_MODES[50]),
+    ]
+    positions = [writes.index(step) for step in order]
+    assert positions == sorted(positions)
+    times = {(e[1], e[2], e[3], e[4]): e[0] for e in bus.log if e[1] == 'w'}
+    reset_at = times[('w', 0x69, reg.PWR_MGMT_1, reg.PWR_MGMT_1_DEVICE_RESET)]
+    wake_at = times[('w', 0x69, reg.PWR_MGMT_1, reg.PWR_MGMT_1_CLKSEL_AUTO)]
+    assert wake_at - reset_at >= reg.DEVICE_RESET_WAIT_S - 1e-9
+    down_at = times[('w', reg.AK09916_ADDRESS, reg.CNTL2, reg.MODE_POWER_DOWN)]
+    mode_at = times[('w', reg.AK09916_ADDRESS, reg.CNTL2, reg.CONTINUOUS_MODES[50])]
+    assert mode_at - down_at >= reg.MODE_CHANGE_WAIT_S - 1e-9
+    # Identities were checked: WHO_AM_I, then WIA1/WIA2 in one block read.
+    assert ('r', 0x69, reg.WHO_AM_I, reg.WHO_AM_I_VALUE) in [e[1:] for e in bus.log]
+    assert ('rb', reg.AK09916_ADDRESS, reg.WIA1, (0x48, 0x09)) in [e[1:] for e in bus.log]
+    assert sim.read_byte_data(reg.AK09916_ADDRESS, reg.CNTL2) == reg.CONTINUOUS_MODES[50]
+    assert driver.rate_hz == 50
+
+
+def test_initialise_without_waiting_fails_on_the_model():
+    """The model enforces the datasheet waits, so a driver that skipped them would be caught."""
+    clock = FakeClock()
+    sim = SimulatedIcm20948Bus(SimConfig(), clock=clock)
+    hasty = Icm20948Magnetometer(sim, sleep=lambda seconds: None)
+    with pytest.raises(OSError):
+        hasty.initialise(100)
+
+
+def test_initialise_recovers_a_chip_left_in_master_mode_and_another_bank():
+    clock, sim, driver = make()
+    sim.write_byte_data(0x69, reg.USER_CTRL, reg.USER_CTRL_I2C_MST_EN)
+    sim.write_byte_data(0x69, reg.REG_BANK_SEL, 3 << reg.BANK_SHIFT)
+    driver.initialise(100)
+    assert len(poll(clock, driver, 0.5)) > 0
+
+
+def test_rate_must_be_a_continuous_mode():
+    _, _, driver = make()
+    with pytest.raises(ValueError, match='10, 20, 50, 100'):
+        driver.initialise(30)
+    with pytest.raises(ValueError, match='0x68 or 0x69'):
+        Icm20948Magnetometer(SimulatedIcm20948Bus(SimConfig()), address=0x0C)
+
+
+@pytest.mark.parametrize('rate', [10, 20, 50, 100])
+def test_one_reading_per_sample_without_overruns(rate):
+    clock, sim, driver = make(SimConfig(seed=rate))
+    driver.initialise(rate)
+    readings = poll(clock, driver, 4.0, poll_hz=max(2.5 * rate, 50.0))
+    assert abs(len(readings) - 4 * rate) <= 1
+    assert driver.overruns == 0 and driver.overflows == 0
+    counts = np.array([r.counts for r in readings])
+    assert np.all(np.any(np.diff(counts, axis=0) != 0, axis=1))  # tumbling: never the same twice
+
+
+def test_no_new_data_reads_none_and_never_repeats():
+    clock, _, driver = make(SimConfig(motion='still', noise_ut=0.0))
+    driver.initialise(10)
+    while driver.read() is None:  # catch a sample within 1 ms of its data-ready
+        clock.sleep(0.001)
+    assert driver.read() is None  # DRDY cleared by the ST2 read: no duplicate
+    clock.sleep(0.05)
+    assert driver.read() is None
+    clock.sleep(0.06)
+    assert driver.read() is not None
+
+
+def test_burst_is_one_nine_byte_read_ending_at_st2():
+    clock, sim, _ = make()
+    bus = RecordingBus(sim, clock)
+    driver = Icm20948Magnetometer(bus, sleep=clock.sleep)
+    driver.initialise(100)
+    bus.log.clear()
+    for _ in range(50):
+        clock.sleep(0.004)
+        driver.read()
+    assert {(e[1], e[2], e[3], len(e[4])) for e in bus.log} == {
+        ('rb', reg.AK09916_ADDRESS, reg.ST1, 9)
+    }
+
+
+def test_partial_reader_without_st2_gets_stuck_data_but_the_driver_does_not():
+    clock, sim, driver = make()
+    driver.initialise(100)
+    clock.sleep(0.02)
+    first = sim.read_i2c_block_data(reg.AK09916_ADDRESS, reg.ST1, 7)  # ST1..HZH, no ST2
+    clock.sleep(0.1)
+    again = sim.read_i2c_block_data(reg.AK09916_ADDRESS, reg.ST1, 7)
+    assert first[1:] == again[1:]  # data protected (locked) until ST2 is read
+    assert again[0] & reg.ST1_DOR  # samples piled up meanwhile
+    reading = driver.read()  # the 9-byte burst ends with ST2: unlocks
+    assert reading is not None and reading.overrun
+    clock.sleep(0.01)
+    later = driver.read()
+    assert later is not None and not np.array_equal(later.counts, reading.counts)
+
+
+def test_overrun_flagged_and_counted_when_polling_too_slowly():
+    clock, _, driver = make()
+    driver.initialise(100)
+    readings = poll(clock, driver, 2.0, poll_hz=40.0)
+    assert len(readings) == 80
+    assert driver.overruns >= 75
+    assert all(r.overrun for r in readings[1:])
+
+
+def test_overflow_discards_and_counts():
+    # 4900 uT of hard iron plus the 50 uT earth field crosses +-32752 counts (4912.8 uT) often.
+    config = SimConfig(hard_iron_ut=(4900.0, 0.0, 0.0), noise_ut=0.0, seed=2)
+    clock, sim, driver = make(config)
+    driver.initialise(100)
+    readings = poll(clock, driver, 5.0)
+    assert driver.overflows > 10
+    assert len(readings) + driver.overflows == pytest.approx(500, abs=2)
+    assert all(np.all(np.abs(r.counts) <= reg.MEASUREMENT_LIMIT) for r in readings)
+    assert all(r.field_tesla[0] <= 4912.8e-6 + 1e-12 for r in readings)
+
+
+def test_units_and_axis_remap_into_the_accel_gyro_frame():
+    # A hard iron of +300 uT along the chip's (accel/gyro) y axis lies along -y of the AK09916.
+    config = SimConfig(motion='still', noise_ut=0.0, hard_iron_ut=(0.0, 300.0, -200.0), seed=4)
+    clock, sim, driver = make(config)
+    driver.initialise(100)
+    clock.sleep(0.02)
+    raw = sim.read_i2c_block_data(reg.AK09916_ADDRESS, reg.ST1, 9)
+    counts = np.frombuffer(bytes(raw[1:7]), dtype='<i2')
+    clock.sleep(0.01)
+    reading = driver.read()
+    truth = sim.truth_for_reading(reading.field_tesla)
+    expected_tesla = truth + np.array([0.0, 300e-6, -200e-6])
+    np.testing.assert_allclose(reading.field_tesla, expected_tesla, atol=0.076e-6)
+    # Independent of the driver's conversion: the register holds AK-frame counts of 0.15 uT.
+    np.testing.assert_allclose(counts * 0.15e-6, expected_tesla * [1, -1, -1], atol=0.076e-6)
+    assert counts[1] < -1500 and counts[2] > 1000
+
+
+def test_field_is_tesla_and_matches_truth_while_tumbling():
+    clock, sim, driver = make(SimConfig(field_ut=50.0, noise_ut=0.2, seed=9))
+    driver.initialise(100)
+    readings = poll(clock, driver, 10.0)
+    fields = np.array([r.field_tesla for r in readings])
+    np.testing.assert_allclose(np.linalg.norm(fields, axis=1), 50e-6, atol=2e-6)
+    truths = np.array([sim.truth_for_reading(r.field_tesla) for r in readings])
+    errors = np.linalg.norm(fields - truths, axis=1)
+    assert np.sqrt(np.mean(errors**2)) < 0.6e-6  # noise 0.2 uT x sqrt(3) plus quantisation
+    assert np.all(np.isfinite(fields)) and fields.dtype == float
+
+
+def test_count_conversions_round_trip():
+    counts = np.array([[123, -456, 32752], [-32752, 0, 1]])
+    np.testing.assert_array_equal(tesla_to_counts(counts_to_tesla(counts)), counts)
+    np.testing.assert_allclose(counts_to_tesla([1, 1, 1]), [0.15e-6, -0.15e-6, -0.15e-6])
+
+
+def test_wrong_chip_names_bus_address_expected_and_found():
+    _, _, driver = make(SimConfig(who_am_i=0x71))  # an MPU-9250 answering instead
+    with pytest.raises(WrongDeviceError) as caught:
+        driver.initialise(100)
+    message = str(caught.value)
+    for part in ('/dev/i2c-7', '0x69', '0xea', '0x71'):
+        assert part in message
+
+
+def test_wrong_magnetometer_names_expected_and_found():
+    _, _, driver = make(SimConfig(ak09916_id=(0x48, 0x05)))
+    with pytest.raises(WrongDeviceError) as caught:
+        driver.initialise(100)
+    message = str(caught.value)
+    for part in ('/dev/i2c-7', '0x0c', '0x48/0x09', '0x48/0x05'):
+        assert part in message
+
+
+def test_absent_device_names_bus_address_and_expected_id():
+    _, _, driver = make(SimConfig(address=0x69), address=0x68)
+    with pytest.raises(DeviceNotFoundError) as caught:
+        driver.initialise(100)
+    assert isinstance(caught.value, OSError) and caught.value.errno == errno.EREMOTEIO
+    message = str(caught.value)
+    for part in ('/dev/i2c-7', '0x68', '0xea', 'AD0'):
+        assert part in message
+
+
+def test_truth_log_is_bounded_and_unknown_readings_are_none():
+    clock, sim, driver = make()
+    driver.initialise(100)
+    assert sim.truth_for_reading(np.array([1.0, 1.0, 1.0])) is None
+    readings = poll(clock, driver, 1.0)
+    assert sim.truth_for_reading(readings[-1].field_tesla) is not None
