@@ -18,6 +18,8 @@ import numpy as np
 
 from mag_calibrator_ros.icm20948 import registers as reg
 
+INIT_TRANSACTION_ATTEMPTS = 3  # per register access during bring-up
+
 
 class SmbusLike(Protocol):
     """The subset of ``smbus2.SMBus`` the driver relies on."""
@@ -111,9 +113,9 @@ class Icm20948Magnetometer:
         self._select_bank(0)  # reset returns to bank 0; be explicit
         self._write_icm(reg.PWR_MGMT_1, reg.PWR_MGMT_1_CLKSEL_AUTO)  # wake, auto clock
         self._sleep(reg.WAKE_WAIT_S)
-        user_ctrl = self.bus.read_byte_data(self.address, reg.USER_CTRL)
+        user_ctrl = self._retry(self.bus.read_byte_data, self.address, reg.USER_CTRL)
         self._write_icm(reg.USER_CTRL, user_ctrl & ~reg.USER_CTRL_I2C_MST_EN & 0xFF)
-        pin_cfg = self.bus.read_byte_data(self.address, reg.INT_PIN_CFG)
+        pin_cfg = self._retry(self.bus.read_byte_data, self.address, reg.INT_PIN_CFG)
         self._write_icm(reg.INT_PIN_CFG, pin_cfg | reg.INT_PIN_CFG_BYPASS_EN)
         self._check_ak09916_identity()
         self._write_mag(reg.CNTL3, reg.CNTL3_SRST)
@@ -122,7 +124,7 @@ class Icm20948Magnetometer:
         self._sleep(reg.MODE_CHANGE_WAIT_S)
         mode = reg.CONTINUOUS_MODES[rate_hz]
         self._write_mag(reg.CNTL2, mode)
-        found = self.bus.read_byte_data(reg.AK09916_ADDRESS, reg.CNTL2)
+        found = self._retry(self.bus.read_byte_data, reg.AK09916_ADDRESS, reg.CNTL2)
         if found != mode:
             raise ModeNotAcceptedError(
                 f'AK09916 at {reg.AK09916_ADDRESS:#04x} on {self.bus_name} did not accept '
@@ -134,19 +136,33 @@ class Icm20948Magnetometer:
         """CNTL2 as the AK09916 reports it now (0 after a reset: the chip stopped measuring)."""
         return self.bus.read_byte_data(reg.AK09916_ADDRESS, reg.CNTL2)
 
+    def _retry(self, operation: Callable, *args: int) -> int | list[int] | None:
+        """Bring-up transactions are idempotent: retry a transient bus error a few times so one
+        glitch does not cost a whole re-initialisation; the last error propagates."""
+        for attempt in range(INIT_TRANSACTION_ATTEMPTS):
+            try:
+                return operation(*args)
+            except OSError:
+                if attempt == INIT_TRANSACTION_ATTEMPTS - 1:
+                    raise
+                self._sleep(reg.MODE_CHANGE_WAIT_S)
+        return None  # unreachable
+
     def _select_bank(self, bank: int) -> None:
-        self.bus.write_byte_data(self.address, reg.REG_BANK_SEL, bank << reg.BANK_SHIFT)
+        self._retry(
+            self.bus.write_byte_data, self.address, reg.REG_BANK_SEL, bank << reg.BANK_SHIFT
+        )
 
     def _write_icm(self, register: int, value: int) -> None:
-        self.bus.write_byte_data(self.address, register, value)
+        self._retry(self.bus.write_byte_data, self.address, register, value)
 
     def _write_mag(self, register: int, value: int) -> None:
-        self.bus.write_byte_data(reg.AK09916_ADDRESS, register, value)
+        self._retry(self.bus.write_byte_data, reg.AK09916_ADDRESS, register, value)
 
     def _check_icm20948_identity(self) -> None:
         try:
             self._select_bank(0)
-            found = self.bus.read_byte_data(self.address, reg.WHO_AM_I)
+            found = self._retry(self.bus.read_byte_data, self.address, reg.WHO_AM_I)
         except OSError as error:
             raise DeviceNotFoundError(
                 error.errno,
@@ -162,7 +178,7 @@ class Icm20948Magnetometer:
 
     def _check_ak09916_identity(self) -> None:
         try:
-            found = self.bus.read_i2c_block_data(reg.AK09916_ADDRESS, reg.WIA1, 2)
+            found = self._retry(self.bus.read_i2c_block_data, reg.AK09916_ADDRESS, reg.WIA1, 2)
         except OSError as error:
             raise DeviceNotFoundError(
                 error.errno,
