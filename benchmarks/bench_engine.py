@@ -152,12 +152,15 @@ def rough_field_strength(samples: np.ndarray) -> float:
 
 # -- (a) synthetic scenarios --
 
-SYNTHETIC_METHODS = ('brief', 'axis buf', 'tracker', 'tracker-n', 'full buf', 'full all')
+SYNTHETIC_METHODS = (
+    'brief', 'axis buf', 'tracker', 'tracker-n', 'full buf', 'full rnd', 'full all'
+)
 METHOD_LEGEND = (
     'brief = brief_port: its kNN buffer (N=100, k=2, pre_scaler=F) + float32 axis fit; '
     'axis buf / full buf = our fit on SampleBuffer(capacity=100) fed all samples; '
     'tracker / tracker-n = OnlineTracker from identity, raw / magnitude-normalised input, '
-    'one pass; full all = our fit on every sample'
+    'one pass; full rnd = our fit on 100 random samples (what the buffer must beat); '
+    'full all = our fit on every sample'
 )
 
 
@@ -171,8 +174,14 @@ def synthetic_outcomes(scenario: Scenario) -> dict[str, Outcome]:
         'tracker': tracker_outcome(raw, start, normalise=False),
         'tracker-n': tracker_outcome(raw, start, normalise=True),
         'full buf': fit_outcome(buffered, 'full', buffered),
+        'full rnd': fit_outcome(random_subset(raw, BUFFER_CAPACITY, scenario.seed), 'full'),
         'full all': fit_outcome(raw, 'full'),
     }
+
+
+def random_subset(samples: np.ndarray, size: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng([seed, 99])
+    return samples[np.sort(rng.choice(len(samples), size=size, replace=False))]
 
 
 def spikes_kept(scenario: Scenario, kept: np.ndarray | None) -> int:
