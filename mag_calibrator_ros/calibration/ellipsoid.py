@@ -24,6 +24,7 @@ inliers by plain least squares (efficient for Gaussian noise).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -36,6 +37,11 @@ MIN_ROBUST_SIGMA = 1e-4
 """Floor of the robust residual sigma (relative to the radius). Below 0.01 % no magnetometer is
 that quiet (16-bit quantisation alone is larger), and without a floor noiseless data would flag
 rounding as outliers."""
+
+GROSS_OUTLIER_SIGMAS = 10.0
+"""Points this many robust sigmas off the start surface never enter the robust fit: soft-L1 grows
+without bound, and a few spikes many radii away could otherwise bend M into a hyperboloid through
+them."""
 
 _MAD_TO_SIGMA = 1.4826
 
@@ -71,10 +77,13 @@ def normalise(points: np.ndarray) -> Normalisation | None:
 class EllipsoidFit:
     """A fit in input units: ``unit = matrix @ (x - offset)`` has ``|unit| ≈ 1`` on the inliers.
 
-    ``residuals`` are ``|unit| - 1`` for every point given (in-plane for ``planar``), ``inliers``
-    marks the points of the final fit, ``condition`` is the condition number of the final
-    (normalised) Jacobian. ``parameter_std`` holds 1-sigma standard deviations in input units of
-    ``matrix``/``offset`` when known.
+    ``residuals`` are ``|unit| - 1`` for every point given (in the plane for ``planar``),
+    ``inliers`` marks the points of the final fit, ``condition`` is the condition number of the
+    final (normalised) Jacobian, ``radius`` the volume-equivalent radius ``det(matrix)^(-1/3)`` in
+    input units, ``axis_ratio`` longest over shortest fitted semi-axis (in the plane for
+    ``planar``; inf when not positive definite). ``parameter_std`` holds 1-sigma standard
+    deviations in input units when known. ``headings`` (planar only) is each point's angle in the
+    fitted plane.
     """
 
     model: str
@@ -83,40 +92,28 @@ class EllipsoidFit:
     residuals: np.ndarray
     inliers: np.ndarray
     condition: float
+    radius: float
+    axis_ratio: float
     parameter_std: dict[str, list[float]] | None = None
     unobserved: tuple[str, ...] = ()
     plane_normal: np.ndarray | None = None
-    plane_basis: np.ndarray | None = field(default=None, repr=False)
-
-    @property
-    def mean_radius(self) -> float:
-        """Geometric mean of the semi-axes (volume-equivalent radius; in-plane for ``planar``)."""
-        if self.plane_basis is not None:
-            block = self.plane_basis.T @ self.matrix @ self.plane_basis
-            return float(np.linalg.det(block[:2, :2]) ** -0.5)
-        return float(abs(np.linalg.det(self.matrix)) ** (-1.0 / 3.0))
-
-    @property
-    def axis_ratio(self) -> float:
-        """Longest over shortest semi-axis (in-plane for ``planar``); inf when not positive
-        definite."""
-        matrix = self.matrix
-        if self.plane_basis is not None:
-            matrix = (self.plane_basis.T @ matrix @ self.plane_basis)[:2, :2]
-        eigenvalues = np.linalg.eigvalsh(0.5 * (matrix + matrix.T))
-        return float(eigenvalues.max() / eigenvalues.min()) if eigenvalues.min() > 0 else np.inf
+    headings: np.ndarray | None = field(default=None, repr=False)
 
 
 def thickness(y: np.ndarray) -> tuple[float, np.ndarray]:
     """How far the data leave their best plane: sqrt(smallest / middle covariance eigenvalue).
 
-    About 1 for data all round a sphere, about the relative noise for a ring (yaw only), 0.25 for a
-    hemisphere. Also returns the eigenvectors (columns, largest variance first; the last is the
-    normal).
+    About 1 for data all round a sphere, about the relative noise for a ring (yaw only), 0.5 for a
+    hemisphere. Gross outliers (far from the unit sphere the normalisation centred) are left out,
+    or a few spikes would make a ring look three-dimensional. Also returns the eigenvectors
+    (columns, largest variance first; the last is the normal).
     """
-    if len(y) < 3:
+    distance = np.linalg.norm(y, axis=1) - 1.0
+    window = max(GROSS_OUTLIER_SIGMAS * robust_sigma(distance), 0.2)
+    kept = y[np.abs(distance) <= window]
+    if len(kept) < 3:
         return 0.0, np.eye(3)
-    eigenvalues, vectors = np.linalg.eigh(np.cov(y, rowvar=False))
+    eigenvalues, vectors = np.linalg.eigh(np.cov(kept, rowvar=False))
     eigenvalues, vectors = eigenvalues[::-1], vectors[:, ::-1]
     if eigenvalues[1] <= 0:
         return 0.0, vectors
@@ -128,11 +125,11 @@ def thickness(y: np.ndarray) -> tuple[float, np.ndarray]:
 
 
 def sphere_least_squares(y: np.ndarray) -> tuple[np.ndarray, float] | None:
-    """Linear sphere fit ``|y|² = 2 b·y + c``: (centre, radius)."""
+    """Linear circle/sphere fit ``|y|² = 2 b·y + c``: (centre, radius)."""
     design = np.column_stack([2.0 * y, np.ones(len(y))])
     solution = np.linalg.lstsq(design, np.einsum('ij,ij->i', y, y), rcond=None)[0]
-    centre = solution[:3]
-    radius_sq = solution[3] + centre @ centre
+    centre = solution[:-1]
+    radius_sq = solution[-1] + centre @ centre
     if not np.isfinite(radius_sq) or radius_sq <= 0:
         return None
     return centre, float(np.sqrt(radius_sq))
@@ -169,7 +166,8 @@ def axis_least_squares(y: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """The brief's reference least squares (geometrikal / mag-calibrator-rs): (offset, semi-axes).
 
     ``H = [x, y, z, -y², -z², 1]``, ``w = x²``, ``X = (HᵀH)⁻¹Hᵀw``, done here in float64 on
-    normalised data (the library's float32 on raw data fails once the offset exceeds a few field radii).
+    normalised data (the library's float32 on raw data fails once the offset exceeds a few field
+    radii).
     """
     design = np.column_stack([y, -(y[:, 1] ** 2), -(y[:, 2] ** 2), np.ones(len(y))])
     x = np.linalg.lstsq(design, y[:, 0] ** 2, rcond=None)[0]
@@ -181,6 +179,42 @@ def axis_least_squares(y: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         return None
     scale = np.sqrt([temp, temp / x[3], temp / x[4]])
     return offset, scale
+
+
+def trimmed_start(
+    points: np.ndarray,
+    algebraic: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray] | None],
+    threshold: float,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """An algebraic fit made robust by trimming: spikes would otherwise ruin it (they enter
+    squared).
+
+    Starts from the unit sphere about the median (the normalisation), keeps points within
+    ``threshold`` robust sigmas of the current surface and refits, until the kept set settles.
+    """
+    d = points.shape[1]
+    centre, matrix = np.zeros(d), np.eye(d)
+    best = None
+    keep = np.ones(len(points), dtype=bool)
+    for _ in range(4):
+        residuals = np.linalg.norm((points - centre) @ matrix, axis=1) - 1.0
+        sigma = robust_sigma(residuals[keep] if best is not None else residuals)
+        new_keep = np.abs(residuals) <= max(threshold * sigma, 10.0 * MIN_ROBUST_SIGMA)
+        if best is not None and np.array_equal(new_keep, keep):
+            break
+        keep = new_keep
+        if keep.sum() < 2 * (d + 1 + d * (d + 1) // 2):
+            break
+        fitted = algebraic(points[keep])
+        if fitted is None or _ratio(fitted[1]) > 10.0:
+            break
+        best = centre, matrix = fitted
+    return best
+
+
+def _sphere_start(points: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    fitted = sphere_least_squares(points)
+    return None if fitted is None else (fitted[0], np.eye(points.shape[1]) / fitted[1])
 
 
 def _symmetric_sqrt(a: np.ndarray) -> np.ndarray | None:
@@ -267,29 +301,46 @@ def _refine(
 ) -> _Refined:
     """Robust soft-L1 fit from an algebraic start; outliers flagged; least squares on inliers."""
     model = _Geometric(points, spherical)
-    start = model.pack(centre, matrix)
-    f_scale = robust_sigma(model.residuals(start))
-    robust = least_squares(
-        model.residuals, start, jac=model.jacobian, loss='soft_l1', f_scale=f_scale,
-        method='trf', x_scale=1.0, max_nfev=50,
-    )  # fmt: skip
-    params = robust.x
-    residuals = model.residuals(params)
-    inliers = np.abs(residuals) <= outlier_threshold * robust_sigma(residuals)
+    params = model.pack(centre, matrix)
     n_params = len(params)
+    start_residuals = model.residuals(params)
+    f_scale = robust_sigma(start_residuals)
+    candidates = np.abs(start_residuals) <= max(GROSS_OUTLIER_SIGMAS, outlier_threshold) * f_scale
+    if candidates.sum() > n_params:
+        subset = _Geometric(points[candidates], spherical)
+        robust = least_squares(
+            subset.residuals, params, jac=subset.jacobian, loss='soft_l1', f_scale=f_scale,
+            method='trf', x_scale=1.0, max_nfev=50,
+        )  # fmt: skip
+        params = _better(model, params, robust.x)
+    residuals = model.residuals(params)
+    inliers = np.abs(residuals) <= outlier_threshold * robust_sigma(residuals[candidates])
     if inliers.sum() > n_params:
         inlier_model = _Geometric(points[inliers], spherical)
         final = least_squares(
             inlier_model.residuals, params, jac=inlier_model.jacobian, method='lm', max_nfev=100
         )
-        if np.all(np.isfinite(final.x)):
-            params = final.x
-            residuals = model.residuals(params)
-            inliers = np.abs(residuals) <= outlier_threshold * robust_sigma(residuals[inliers])
+        params = _better(model, params, final.x)
+        residuals = model.residuals(params)
+        inliers = np.abs(residuals) <= outlier_threshold * robust_sigma(residuals[inliers])
     jacobian = _Geometric(points[inliers], spherical).jacobian(params)
     condition, std = _condition_and_std(jacobian, residuals[inliers])
     fitted_centre, fitted_matrix = model.unpack(params)
     return _Refined(fitted_centre, fitted_matrix, residuals, inliers, condition, std)
+
+
+def _better(model: _Geometric, previous: np.ndarray, candidate: np.ndarray) -> np.ndarray:
+    """The candidate unless it is non-finite or its M lost positive definiteness (a
+    hyperboloid)."""
+    if not np.all(np.isfinite(candidate)):
+        return previous
+    _, matrix = model.unpack(candidate)
+    if (
+        np.linalg.eigvalsh(matrix).min() <= 0
+        and np.linalg.eigvalsh(model.unpack(previous)[1]).min() > 0
+    ):
+        return previous
+    return candidate
 
 
 def _condition_and_std(
@@ -332,10 +383,10 @@ def fit_ellipsoid(
     if norm is None:
         return None
     y = norm.forward(points)
-    with np.errstate(all='ignore'):
+    with np.errstate(all='ignore', under='ignore'):
         try:
             if model == 'planar':
-                return _fit_planar(y, norm, outlier_threshold, prior)
+                return _fit_planar(points, outlier_threshold, prior)
             fitted = _fit_3d(y, model, outlier_threshold)
         except (np.linalg.LinAlgError, ValueError):
             return None
@@ -358,16 +409,11 @@ def _fit_3d(y: np.ndarray, model: str, outlier_threshold: float) -> _Refined | N
         )[:, [0, 1, 2, 3, 6, 8]]  # b and the diagonal of M: the axis model's own parameters
         condition, _ = _condition_and_std(jacobian, residuals[inliers])
         return _Refined(centre, matrix, residuals, inliers, condition, None)
-    sphere = sphere_least_squares(y)
+    # the unit sphere about the median is the fallback start: the normalisation put it there
+    sphere = trimmed_start(y, _sphere_start, outlier_threshold) or (np.zeros(3), np.eye(3))
     if model == 'sphere':
-        if sphere is None:
-            return None
-        return _refine(y, sphere[0], np.eye(3) / sphere[1], True, outlier_threshold)
-    start = quadric_least_squares(y)
-    if start is None or _ratio(start[1]) > 10.0:
-        if sphere is None:
-            return None
-        start = (sphere[0], np.eye(3) / sphere[1])
+        return _refine(y, sphere[0], sphere[1], True, outlier_threshold)
+    start = trimmed_start(y, quadric_least_squares, outlier_threshold) or sphere
     return _refine(y, start[0], start[1], False, outlier_threshold)
 
 
@@ -398,59 +444,69 @@ def _to_input_units(fitted: _Refined, norm: Normalisation, model: str) -> Ellips
                 'matrix': m_std.ravel().tolist(),
             }
     return EllipsoidFit(
-        model, offset, matrix, fitted.residuals, fitted.inliers, fitted.condition, std
-    )
+        model, offset, matrix, fitted.residuals, fitted.inliers, fitted.condition,
+        _radius(matrix), _ratio(matrix), std,
+    )  # fmt: skip
+
+
+def _radius(matrix: np.ndarray) -> float:
+    determinant = float(np.linalg.det(matrix))
+    return determinant ** (-1.0 / 3.0) if determinant > 0 else np.inf
 
 
 def _fit_planar(
-    y: np.ndarray,
-    norm: Normalisation,
+    points: np.ndarray,
     outlier_threshold: float,
     prior: tuple[np.ndarray, np.ndarray] | None,
 ) -> EllipsoidFit | None:
-    """2-D ellipse in the data's plane; normal offset/scale from the prior or held neutral."""
-    _, axes = thickness(y)
-    basis = axes.copy()
+    """2-D ellipse in the plane of the data, fitted in the prior's corrected frame.
+
+    The prior (identity without one) corrects the points first; the fit then only adds an in-plane
+    correction (area-preserving shape, in-plane centre) and leaves the normal direction as the
+    prior had it. Without a prior the offset along the normal is the data's mean there, so the
+    corrected field lies in the plane: heading is right, the vertical component is unknown.
+    """
+    prior_offset, prior_matrix = prior if prior is not None else (np.zeros(3), np.eye(3))
+    u = (points - prior_offset) @ prior_matrix.T
+    norm = normalise(u)
+    if norm is None:
+        return None
+    y = norm.forward(u)
+    _, basis = thickness(y)
     if np.linalg.det(basis) < 0:
         basis[:, 2] = -basis[:, 2]
-    normal = basis[:, 2]
-    # orient the normal toward the body axis it is closest to (readable metadata, e.g. +z)
-    if normal[np.argmax(np.abs(normal))] < 0:
+    if basis[np.argmax(np.abs(basis[:, 2])), 2] < 0:  # normal toward its nearest body axis (+z...)
         basis[:, [1, 2]] = -basis[:, [1, 2]]
-        normal = basis[:, 2]
+    normal = basis[:, 2]
     in_plane = y @ basis[:, :2]
-    start = quadric_least_squares(in_plane)
-    if start is None or _ratio(start[1]) > 10.0:
-        radius = float(np.median(np.linalg.norm(in_plane - np.median(in_plane, axis=0), axis=1)))
-        if radius <= 0:
+    start = trimmed_start(in_plane, quadric_least_squares, outlier_threshold)
+    if start is None:
+        start = trimmed_start(in_plane, _sphere_start, outlier_threshold)
+    if start is None:
+        centre = np.median(in_plane, axis=0)
+        radius = float(np.median(np.linalg.norm(in_plane - centre, axis=1)))
+        if not radius > 0:
             return None
-        start = (np.median(in_plane, axis=0), np.eye(2) / radius)
+        start = (centre, np.eye(2) / radius)
     fitted = _refine(in_plane, start[0], start[1], False, outlier_threshold)
-    block_2d = fitted.matrix
-    along_normal = y @ normal
+    det_2d = float(np.linalg.det(fitted.matrix))
+    if not det_2d > 0:
+        return None
+    block = np.eye(3)
+    block[:2, :2] = fitted.matrix / np.sqrt(det_2d)  # shape only: the prior keeps the scale
     if prior is not None:
-        prior_offset = (prior[0] - norm.centre) / norm.scale
-        prior_matrix = basis.T @ (prior[1] * norm.scale) @ basis
-        normal_offset = float(prior_offset @ normal)
-        prior_2d = prior_matrix[:2, :2]
-        det_prior = np.linalg.det(prior_2d)
-        k = np.sqrt(np.linalg.det(block_2d) / det_prior) if det_prior > 0 else 1.0
-        block = np.zeros((3, 3))
-        block[:2, :2] = block_2d
-        block[:2, 2] = block[2, :2] = k * prior_matrix[:2, 2]
-        block[2, 2] = k * prior_matrix[2, 2]
-        if np.linalg.eigvalsh(block).min() <= 0:
-            block[:2, 2] = block[2, :2] = 0.0
-            block[2, 2] = np.sqrt(np.linalg.det(block_2d))
+        normal_offset = float(-norm.centre @ normal / norm.scale)  # unchanged from the prior
     else:
-        normal_offset = float(np.mean(along_normal[fitted.inliers]))
-        block = np.zeros((3, 3))
-        block[:2, :2] = block_2d
-        block[2, 2] = np.sqrt(np.linalg.det(block_2d))
-    centre_y = basis[:, :2] @ fitted.centre + normal * normal_offset
-    matrix_y = basis @ block @ basis.T
-    offset = norm.centre + norm.scale * centre_y
-    matrix = matrix_y / norm.scale
+        normal_offset = float(np.mean((y @ normal)[fitted.inliers]))
+    centre_u = norm.centre + norm.scale * (basis[:, :2] @ fitted.centre + normal * normal_offset)
+    correction = basis @ block @ basis.T
+    matrix = correction @ prior_matrix
+    offset = prior_offset + np.linalg.solve(prior_matrix, centre_u)
+    magnitudes = np.linalg.norm((points[fitted.inliers] - offset) @ matrix.T, axis=1)
+    scale = float(np.mean(magnitudes)) if magnitudes.size else 0.0
+    if not scale > 0:
+        return None
+    matrix = matrix / scale
     if not (np.all(np.isfinite(offset)) and np.all(np.isfinite(matrix))):
         return None
     std = None
@@ -459,9 +515,12 @@ def _fit_planar(
             'offset_in_plane': (fitted.std[:2] * norm.scale).tolist(),
             'matrix_in_plane': (fitted.std[2:] / norm.scale).tolist(),
         }
+    unit_in_plane = (in_plane - fitted.centre) @ fitted.matrix
+    headings = np.arctan2(unit_in_plane[:, 1], unit_in_plane[:, 0])
     return EllipsoidFit(
-        'planar', offset, matrix, fitted.residuals, fitted.inliers, fitted.condition, std,
-        unobserved=('offset_normal', 'matrix_normal'), plane_normal=normal, plane_basis=basis,
+        'planar', offset, matrix, fitted.residuals, fitted.inliers, fitted.condition,
+        _radius(matrix), _ratio(fitted.matrix), std, unobserved=('offset_normal', 'matrix_normal'),
+        plane_normal=normal, headings=headings,
     )  # fmt: skip
 
 

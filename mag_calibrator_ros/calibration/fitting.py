@@ -1,0 +1,378 @@
+"""fit_calibration(): choose and fit a model, then judge it with quality gates a user can act on.
+
+Every threshold is relative (percent of the field radius, ratios, fractions), so the same options
+work for data in tesla, microtesla, gauss or raw counts. Bad data never raises: unusable rows are
+dropped and counted, and anything that cannot be fitted comes back as ``success=False`` with the
+reason.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+import math
+import sys
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from mag_calibrator_ros.calibration.calibration import MODELS, Calibration, CalibrationError
+from mag_calibrator_ros.calibration.coverage import (
+    Coverage,
+    direction_coverage,
+    heading_coverage,
+    missing_rotation_hint,
+    occupied_cells,
+    whitened_directions,
+)
+from mag_calibrator_ros.calibration.ellipsoid import (
+    PARAMETER_COUNTS,
+    EllipsoidFit,
+    fit_ellipsoid,
+    information_criterion,
+    normalise,
+    thickness,
+)
+
+_HUGE = sys.float_info.max
+"""Stands in for an infinite condition number or axis ratio: results never carry inf or NaN."""
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """What to fit and the quality gates. Defaults and why:
+
+    - ``min_samples=30``: over three times the 9 parameters of ``full``, so the residual and the
+      outlier test have redundancy (NXP's fits use 4/7/10 parameters by sample count).
+    - ``min_coverage=0.5``: half of the 80 direction cells. A 100-sample buffer of a full tumble
+      reaches 0.8-0.9 and 50 samples at most 0.62; below one half whole rotations are missing and
+      the offset along them is extrapolated; the reason names the rotation.
+    - ``max_residual_pct=5.0``: RMS of ``|corrected| - F`` in % of F. ArduPilot accepts ~3 %;
+      cheap noisy sensors (BNO055) show ~2 % noise alone; a disturbed field gives far more.
+    - ``max_condition=1000``: of the fit's normalised Jacobian. Well-spread data give 2-10,
+      motion about one axis 1e5 and more (the parameters are then not determined by the data).
+    - ``max_axis_ratio=2.0``: real soft iron stretches axes by < 1.5 (PCB-mounted sensors ~1.1);
+      beyond 2 the fit describes something other than a magnetometer in a uniform field.
+    - ``outlier_threshold=4.0``: robust sigmas; Gaussian noise exceeds it once in 16,000 samples.
+    - ``planar_thickness=0.15``: data spreading less than 15 % out of their best plane (tilts
+      below about ±10°) are planar: only ``planar`` is determined by them.
+    - ``prior``: the calibration whose out-of-plane terms ``planar`` keeps.
+    """
+
+    model: str = 'auto'
+    field_strength: float | None = None
+    min_samples: int = 30
+    min_coverage: float = 0.5
+    max_residual_pct: float = 5.0
+    max_condition: float = 1000.0
+    max_axis_ratio: float = 2.0
+    outlier_threshold: float = 4.0
+    prior: Calibration | None = None
+    planar_thickness: float = 0.15
+
+    def __post_init__(self) -> None:
+        problems = []
+        if self.model not in MODELS:
+            problems.append(f'model must be one of {MODELS}, got {self.model!r}')
+        if self.field_strength is not None and not (
+            math.isfinite(self.field_strength) and self.field_strength > 0
+        ):
+            problems.append(f'field_strength must be None or > 0, got {self.field_strength}')
+        if self.min_samples < 1:
+            problems.append(f'min_samples must be >= 1, got {self.min_samples}')
+        if not 0.0 <= self.min_coverage <= 1.0:
+            problems.append(f'min_coverage must be in [0, 1], got {self.min_coverage}')
+        for name in ('max_residual_pct', 'max_condition', 'outlier_threshold'):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                problems.append(f'{name} must be a positive number, got {value}')
+        if not (math.isfinite(self.max_axis_ratio) and self.max_axis_ratio >= 1.0):
+            problems.append(f'max_axis_ratio must be >= 1, got {self.max_axis_ratio}')
+        if not 0.0 <= self.planar_thickness < 1.0:
+            problems.append(f'planar_thickness must be in [0, 1), got {self.planar_thickness}')
+        if problems:
+            raise ValueError('invalid FitOptions: ' + '; '.join(problems))
+
+
+@dataclass(frozen=True)
+class FitMetrics:
+    """How good a fit is. Residuals are ``|corrected|/F - 1`` over the inliers, in percent."""
+
+    model: str
+    n_samples: int
+    n_inliers: int
+    residual_rms_pct: float
+    residual_max_pct: float
+    coverage: float
+    condition_number: float
+    outlier_count: int
+    mean_radius: float
+    axis_ratio: float
+    parameter_std: dict[str, list[float]] | None
+    unobserved: tuple[str, ...]
+    n_non_finite: int = 0
+    coverage_hint: str = ''
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain JSON-able dict (lists, not tuples or arrays)."""
+        data = asdict(self)
+        data['unobserved'] = list(self.unobserved)
+        return data
+
+
+@dataclass(frozen=True)
+class FitResult:
+    """Outcome of fit_calibration.
+
+    ``calibration`` is the best effort even when a gate fails (None only when nothing could be
+    fitted); apply it only when ``success``. ``outliers`` marks every input row not used by the
+    final fit (robust outliers and non-finite rows).
+    """
+
+    success: bool
+    calibration: Calibration | None
+    reason: str
+    metrics: FitMetrics
+    outliers: np.ndarray = field(repr=False)
+
+
+def fit_calibration(samples: ArrayLike, options: FitOptions | None = None) -> FitResult:
+    """Fit ``options.model`` to (n, 3) raw samples; never raises on data, never returns NaN/Inf."""
+    options = options or FitOptions()
+    rows, finite, problem = _usable_rows(samples)
+    n_bad = int((~finite).sum())
+    if problem:
+        return _failure(options, problem, finite, 0, n_bad)
+    n = len(rows)
+    if n == 0:
+        reason = (
+            f'no usable samples: all {n_bad} rows contain NaN or Inf' if n_bad else 'no samples'
+        )
+        return _failure(options, reason, finite, 0, n_bad)
+    norm = normalise(rows)
+    if norm is None:
+        return _failure(
+            options,
+            f'all {n} samples are (nearly) identical: rotate the sensor through many orientations',
+            finite, n, n_bad,
+        )  # fmt: skip
+    with np.errstate(all='ignore'):
+        layer_thickness, _ = thickness(norm.forward(rows))
+        fitted, choice_note = _fit_model(rows, options, layer_thickness)
+    if fitted is None:
+        reason = _too_few(n, options) or (
+            f'the {options.model} model could not be fitted to {n} samples: they do not '
+            'outline an ellipsoid; rotate the sensor through many orientations'
+        )
+        return _failure(options, reason, finite, n, n_bad)
+    return _judge(rows, finite, fitted, options, layer_thickness, n_bad, choice_note)
+
+
+def _usable_rows(samples: ArrayLike) -> tuple[np.ndarray, np.ndarray, str]:
+    """(finite rows, finite mask over the input rows, problem text or '')."""
+    try:
+        array = np.asarray(samples, dtype=float)
+    except (TypeError, ValueError) as error:
+        return np.empty((0, 3)), np.zeros(0, bool), f'samples are not numbers: {error}'
+    if array.ndim == 1 and array.size == 0:
+        array = array.reshape(0, 3)
+    if array.ndim != 2 or array.shape[1] != 3:
+        return (
+            np.empty((0, 3)),
+            np.zeros(0, bool),
+            f'samples must be an (n, 3) array, got shape {array.shape}',
+        )
+    finite = np.all(np.isfinite(array), axis=1)
+    return array[finite], finite, ''
+
+
+def _too_few(n: int, options: FitOptions) -> str:
+    if n >= options.min_samples:
+        return ''
+    return (
+        f'too few samples: {n}, need at least {options.min_samples}; keep rotating the sensor '
+        'through new orientations'
+    )
+
+
+def _fit_model(
+    rows: np.ndarray, options: FitOptions, layer_thickness: float
+) -> tuple[EllipsoidFit | None, str]:
+    """The requested model, or for ``auto`` the one the data determine with the lowest BIC."""
+    prior = None
+    if options.prior is not None:
+        prior = (options.prior.offset, options.prior.matrix / options.prior.field_strength)
+    threshold = options.outlier_threshold
+    if options.model != 'auto':
+        return fit_ellipsoid(rows, options.model, threshold, prior), ''
+    if layer_thickness < options.planar_thickness:
+        note = f'auto: planar (samples lie near one plane, thickness {layer_thickness:.2f})'
+        return fit_ellipsoid(rows, 'planar', threshold, prior), note
+    sphere = fit_ellipsoid(rows, 'sphere', threshold)
+    full = None
+    if len(rows) >= 2 * PARAMETER_COUNTS['full']:
+        full = fit_ellipsoid(rows, 'full', threshold)
+    if full is not None and full.condition > options.max_condition:
+        if sphere is not None:
+            return sphere, f'auto: sphere (full is not determined, condition {full.condition:.0f})'
+    if full is None or sphere is None:
+        chosen = full or sphere
+        return chosen, f'auto: {chosen.model}' if chosen else ''
+    common = full.inliers  # the flexible model's inliers: a sphere must not win by discarding
+    scores = {
+        fit.model: information_criterion(fit.residuals[common], PARAMETER_COUNTS[fit.model])
+        for fit in (sphere, full)
+    }
+    chosen = full if scores['full'] < scores['sphere'] else sphere
+    return (
+        chosen,
+        f'auto: {chosen.model} (BIC sphere {scores["sphere"]:.1f}, full {scores["full"]:.1f})',
+    )
+
+
+def _judge(
+    rows: np.ndarray,
+    finite: np.ndarray,
+    fitted: EllipsoidFit,
+    options: FitOptions,
+    layer_thickness: float,
+    n_bad: int,
+    choice_note: str,
+) -> FitResult:
+    inliers = fitted.inliers
+    inlier_residuals = fitted.residuals[inliers]
+    residual_rms = _finite(100.0 * float(np.sqrt(np.mean(inlier_residuals**2))))
+    residual_max = _finite(100.0 * float(np.max(np.abs(inlier_residuals))))
+    mean_radius = _finite(fitted.radius)
+    field_strength = options.field_strength or mean_radius
+    reasons = []
+    calibration = None
+    matrix = fitted.matrix * field_strength
+    positive_definite = bool(np.linalg.eigvalsh(0.5 * (matrix + matrix.T)).min() > 0)
+    if positive_definite and field_strength > 0:
+        try:
+            calibration = Calibration(fitted.offset, matrix, field_strength, fitted.model)
+        except CalibrationError as error:
+            reasons.append(f'fitted calibration unusable: {error}')
+    else:
+        reasons.append(
+            'fitted soft-iron matrix is not positive definite: the samples do not outline an '
+            'ellipsoid (disturbed field or too little rotation)'
+        )
+    trusted = calibration if fitted.condition <= options.max_condition else None
+    coverage = _coverage(rows, fitted, trusted)
+    n_inliers = int(inliers.sum())
+    reasons = _gates(rows, fitted, options, layer_thickness, coverage, residual_rms) + reasons
+    metrics = FitMetrics(
+        model=fitted.model,
+        n_samples=len(rows),
+        n_inliers=n_inliers,
+        residual_rms_pct=residual_rms,
+        residual_max_pct=residual_max,
+        coverage=float(coverage.fraction),
+        condition_number=_finite(fitted.condition),
+        outlier_count=int((~inliers).sum()),
+        mean_radius=mean_radius,
+        axis_ratio=_finite(fitted.axis_ratio),
+        parameter_std=fitted.parameter_std,
+        unobserved=fitted.unobserved,
+        n_non_finite=n_bad,
+        coverage_hint=coverage.hint,
+    )
+    if calibration is not None:
+        extra = (
+            {'plane_normal': fitted.plane_normal.tolist()}
+            if fitted.plane_normal is not None
+            else {}
+        )
+        calibration = calibration.with_metadata(
+            residual_rms_pct=residual_rms,
+            coverage=float(coverage.fraction),
+            samples=n_inliers,
+            **extra,
+        )
+    outliers = ~finite
+    outliers[np.flatnonzero(finite)[~inliers]] = True
+    notes = [choice_note] if choice_note else []
+    if n_bad:
+        notes.append(f'{n_bad} rows with NaN/Inf dropped')
+    reason = '; '.join(reasons) if reasons else 'ok' + (f' ({"; ".join(notes)})' if notes else '')
+    return FitResult(not reasons, calibration, reason, metrics, outliers)
+
+
+def _gates(
+    rows: np.ndarray,
+    fitted: EllipsoidFit,
+    options: FitOptions,
+    layer_thickness: float,
+    coverage: Coverage,
+    residual_rms: float,
+) -> list[str]:
+    """Every failed quality gate, each with what to do about it."""
+    reasons = []
+    too_few = _too_few(len(rows), options)
+    if too_few:
+        reasons.append(too_few)
+    if coverage.fraction < options.min_coverage:
+        reasons.append(
+            f'coverage {100 * coverage.fraction:.0f} % is below '
+            f'{100 * options.min_coverage:.0f} %: {coverage.hint}'
+        )
+    if fitted.model != 'planar' and layer_thickness < options.planar_thickness:
+        reasons.append(
+            f'samples lie near one plane (thickness {layer_thickness:.2f} < '
+            f'{options.planar_thickness:.2f}): the {fitted.model} model needs tilting as well; '
+            f'{_tilt_hint(rows)}, or use model planar'
+        )
+    if fitted.condition > options.max_condition:
+        reasons.append(
+            f'ill-conditioned fit (condition number {_finite(fitted.condition):.3g} > '
+            f'{options.max_condition:.3g}): the samples do not determine the {fitted.model} '
+            'model; rotate through more orientations or choose a simpler model (sphere)'
+        )
+    ratio = fitted.axis_ratio
+    if ratio > options.max_axis_ratio:
+        reasons.append(
+            f'soft-iron axis ratio {_finite(ratio):.3g} exceeds {options.max_axis_ratio:.3g}: '
+            'strong magnetic material near the sensor, a changing field, or a bad fit'
+        )
+    if residual_rms > options.max_residual_pct:
+        reasons.append(
+            f'residual {residual_rms:.2f} % of the field exceeds '
+            f'{options.max_residual_pct:.2f} %: the field was disturbed (nearby iron, motors, '
+            'currents) or the sensor is very noisy'
+        )
+    return reasons
+
+
+def _tilt_hint(rows: np.ndarray) -> str:
+    """Which rotation would take planar data off its plane."""
+    hint = missing_rotation_hint(occupied_cells(whitened_directions(rows)))
+    return hint or 'tilt the sensor about its other axes'
+
+
+def _coverage(rows: np.ndarray, fitted: EllipsoidFit, calibration: Calibration | None) -> Coverage:
+    """3-D direction coverage, or heading coverage in the plane for ``planar``."""
+    if fitted.headings is not None and fitted.plane_normal is not None:
+        return heading_coverage(fitted.headings[fitted.inliers], fitted.plane_normal)
+    return direction_coverage(rows[fitted.inliers], calibration)
+
+
+def _finite(value: float) -> float:
+    value = float(value)
+    if math.isnan(value):
+        return _HUGE
+    return max(min(value, _HUGE), -_HUGE)
+
+
+def _failure(
+    options: FitOptions, reason: str, finite: np.ndarray, n: int, n_bad: int
+) -> FitResult:
+    model = options.model
+    metrics = FitMetrics(
+        model=model, n_samples=n, n_inliers=0, residual_rms_pct=0.0, residual_max_pct=0.0,
+        coverage=0.0, condition_number=0.0, outlier_count=0, mean_radius=0.0, axis_ratio=0.0,
+        parameter_std=None, unobserved=(), n_non_finite=n_bad,
+        coverage_hint='rotate the sensor slowly through all orientations',
+    )  # fmt: skip
+    return FitResult(False, None, reason, metrics, ~finite)
