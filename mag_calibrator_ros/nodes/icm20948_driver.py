@@ -55,7 +55,7 @@ ERRORS_BEFORE_REINIT = 3
 STUCK_PERIODS = 5
 STUCK_MIN_S = 0.25
 BACKOFF_INITIAL_S = 0.1
-BACKOFF_MAX_S = 2.0
+BACKOFF_MAX_S = 0.5  # cheap to retry (a dozen register accesses); recover fast
 # Diagnostics: WARN when the measured rate is below this share of the requested one.
 RATE_WARN_FRACTION = 0.8
 
