@@ -36,6 +36,7 @@ HEADING_SECTORS = 36
 AXIS_NAMES = ('roll axis (x)', 'pitch axis (y)', 'yaw axis (z)')
 _BAND_EDGES = 1.0 - 2.0 * np.cumsum((0,) + BAND_CELLS) / CELL_COUNT  # z from +1 down to -1
 _BAND_FIRST_CELL = np.cumsum((0,) + BAND_CELLS)[:-1]
+_REACH_DEG = 12.0
 _MAX_WHITENING_RATIO = 3.0
 """A whitening that stretches one axis more than 3x the others is not soft iron (real ratios are <
 1.5) but a plane of data: stretching its noise would fake coverage."""
@@ -101,13 +102,15 @@ def whitened_directions(samples: ArrayLike, calibration: Calibration | None = No
     points = finite_rows(samples)
     if len(points) == 0:
         return np.empty((0, 3))
-    if calibration is not None:
-        vectors = calibration.apply(points)
-    else:
-        vectors = _quick_whiten(points)
-    norms = np.linalg.norm(vectors, axis=1)
-    keep = np.isfinite(norms) & (norms > 0)
-    return vectors[keep] / norms[keep, None]
+    with np.errstate(all='ignore'):
+        if calibration is not None:
+            vectors = calibration.apply(points)
+        else:
+            vectors = _quick_whiten(points)
+        peak = np.max(np.abs(vectors), axis=1, keepdims=True)  # no overflow in the norm
+        keep = np.isfinite(peak[:, 0]) & (peak[:, 0] > 0)
+        vectors = vectors[keep] / peak[keep]
+        return vectors / np.linalg.norm(vectors, axis=1, keepdims=True)
 
 
 def _quick_whiten(points: np.ndarray) -> np.ndarray:
@@ -154,16 +157,24 @@ def direction_coverage(samples: ArrayLike, calibration: Calibration | None = Non
 def missing_rotation_hint(occupied: np.ndarray) -> str:
     """Name the body rotation(s) that would sweep the field through the empty cells ('' when full).
 
-    Rotating about axis a moves the field along circles around a, fastest at 90° from a; so each
-    axis is scored by how many empty cells lie within 30° of its great circle (|d·a| < 0.5), and
-    the axes within 80% of the best are named. The empty directions that matter most are named too.
+    Rotating about axis a moves the field along a circle of constant angle to a. So an empty cell
+    is reachable by rotating about a when some occupied cell lies at about the same angle from a
+    (within half a cell, 12°); each axis scores the empty cells it reaches, and the axes within 80%
+    of the best are named. Yawing a sensor whose field points along z, for example, reaches
+    nothing new. The body direction most of the empty cells lie around is named too.
     """
     empty = _CENTRES[~occupied]
     if len(empty) == 0:
         return ''
     if not occupied.any():
         return 'no usable samples yet: rotate the sensor slowly through all orientations'
-    scores = np.array([np.sum(np.abs(empty[:, axis]) < 0.5) for axis in range(3)])
+    full = _CENTRES[occupied]
+    scores = np.zeros(3, dtype=int)
+    for axis in range(3):
+        empty_angle = np.degrees(np.arccos(np.clip(empty[:, axis], -1.0, 1.0)))
+        full_angle = np.degrees(np.arccos(np.clip(full[:, axis], -1.0, 1.0)))
+        gap = np.min(np.abs(empty_angle[:, None] - full_angle[None, :]), axis=1)
+        scores[axis] = int(np.sum(gap <= _REACH_DEG))
     best = scores.max()
     axes = [AXIS_NAMES[a] for a in range(3) if scores[a] >= 0.8 * best and scores[a] > 0]
     if not axes:
@@ -174,13 +185,16 @@ def missing_rotation_hint(occupied: np.ndarray) -> str:
 
 
 def _dominant_missing_direction(empty: np.ndarray) -> str:
-    """The body direction (e.g. '+z/-z' or '-x') most of the empty cells lie around."""
+    """The body direction (e.g. '-z', or '+z and -z') most of the empty cells lie around.
+
+    One-sided gaps (a hemisphere, a cap) have a clear mean direction; two-sided ones (a ring seen
+    from yawing) have none, and the axis they spread along is named with both signs.
+    """
     mean = empty.mean(axis=0)
-    spread = (empty**2).mean(axis=0)
-    axis = int(np.argmax(spread))
-    name = 'xyz'[axis]
-    if abs(mean[axis]) > 0.5 * np.sqrt(spread[axis]):
-        return f'{"+" if mean[axis] > 0 else "-"}{name} of the sensor'
+    if np.linalg.norm(mean) > 0.1:
+        axis = int(np.argmax(np.abs(mean)))
+        return f'{"+" if mean[axis] > 0 else "-"}{"xyz"[axis]} of the sensor'
+    name = 'xyz'[int(np.argmax((empty**2).mean(axis=0)))]
     return f'+{name} and -{name} of the sensor'
 
 

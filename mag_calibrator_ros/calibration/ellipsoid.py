@@ -513,7 +513,7 @@ def _fit_planar(
     if fitted.std is not None and np.all(np.isfinite(fitted.std)):
         std = {
             'offset_in_plane': (fitted.std[:2] * norm.scale).tolist(),
-            'matrix_in_plane': (fitted.std[2:] / norm.scale).tolist(),
+            'matrix_in_plane_relative': fitted.std[2:].tolist(),  # of the unit-radius shape
         }
     unit_in_plane = (in_plane - fitted.centre) @ fitted.matrix
     headings = np.arctan2(unit_in_plane[:, 1], unit_in_plane[:, 0])

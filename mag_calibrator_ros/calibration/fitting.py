@@ -8,7 +8,7 @@ reason.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 import math
 import sys
 from typing import Any
@@ -156,16 +156,40 @@ def fit_calibration(samples: ArrayLike, options: FitOptions | None = None) -> Fi
             f'all {n} samples are (nearly) identical: rotate the sensor through many orientations',
             finite, n, n_bad,
         )  # fmt: skip
+    # Work in input units / 2^k (exact in floating point): tesla and counts alike are of order one.
+    unit = 2.0 ** round(math.log2(norm.scale))
+    rows = rows / unit
+    options = replace(
+        options,
+        field_strength=None if options.field_strength is None else options.field_strength / unit,
+        prior=None if options.prior is None else options.prior.scaled(1.0 / unit),
+    )
     with np.errstate(all='ignore'):
-        layer_thickness, _ = thickness(norm.forward(rows))
+        layer_thickness, _ = thickness(normalise(rows).forward(rows))
         fitted, choice_note = _fit_model(rows, options, layer_thickness)
-    if fitted is None:
-        reason = _too_few(n, options) or (
-            f'the {options.model} model could not be fitted to {n} samples: they do not '
-            'outline an ellipsoid; rotate the sensor through many orientations'
-        )
-        return _failure(options, reason, finite, n, n_bad)
-    return _judge(rows, finite, fitted, options, layer_thickness, n_bad, choice_note)
+        if fitted is None:
+            reason = _too_few(n, options) or (
+                f'the {options.model} model could not be fitted to {n} samples: they do not '
+                'outline an ellipsoid; rotate the sensor through many orientations'
+            )
+            return _failure(options, reason, finite, n, n_bad)
+        result = _judge(rows, finite, fitted, options, layer_thickness, n_bad, choice_note)
+    return _in_input_units(result, unit)
+
+
+def _in_input_units(result: FitResult, unit: float) -> FitResult:
+    """Undo the power-of-two working unit: offsets and radii scale, matrices do not."""
+    std = result.metrics.parameter_std
+    if std is not None:
+        std = {
+            key: [v * unit for v in values] if key.startswith('offset') else values
+            for key, values in std.items()
+        }
+    metrics = replace(
+        result.metrics, mean_radius=_finite(result.metrics.mean_radius * unit), parameter_std=std
+    )
+    calibration = result.calibration.scaled(unit) if result.calibration is not None else None
+    return replace(result, calibration=calibration, metrics=metrics)
 
 
 def _usable_rows(samples: ArrayLike) -> tuple[np.ndarray, np.ndarray, str]:
@@ -274,7 +298,7 @@ def _judge(
         outlier_count=int((~inliers).sum()),
         mean_radius=mean_radius,
         axis_ratio=_finite(fitted.axis_ratio),
-        parameter_std=fitted.parameter_std,
+        parameter_std=_output_std(fitted.parameter_std, field_strength),
         unobserved=fitted.unobserved,
         n_non_finite=n_bad,
         coverage_hint=coverage.hint,
@@ -298,6 +322,20 @@ def _judge(
         notes.append(f'{n_bad} rows with NaN/Inf dropped')
     reason = '; '.join(reasons) if reasons else 'ok' + (f' ({"; ".join(notes)})' if notes else '')
     return FitResult(not reasons, calibration, reason, metrics, outliers)
+
+
+def _output_std(
+    std: dict[str, list[float]] | None, field_strength: float
+) -> dict[str, list[float]] | None:
+    """Standard deviations of the output calibration: its matrix is F times the unit-radius one."""
+    if std is None:
+        return None
+    scaled = {
+        key: [v * field_strength for v in values] if key == 'matrix' else list(values)
+        for key, values in std.items()
+    }
+    finite = all(math.isfinite(v) for values in scaled.values() for v in values)
+    return scaled if finite else None
 
 
 def _gates(
