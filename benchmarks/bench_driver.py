@@ -105,8 +105,16 @@ class _Sink:
         self.node.create_subscription(MagneticField, 'imu/mag', self._on_message, qos)
         self._executor = SingleThreadedExecutor()
         self._executor.add_node(self.node)
-        self._thread = threading.Thread(target=self._executor.spin, daemon=True)
+        self._thread = threading.Thread(target=self._spin, daemon=True)
         self._thread.start()
+
+    def _spin(self) -> None:
+        from rclpy.executors import ExternalShutdownException
+
+        try:
+            self._executor.spin()
+        except ExternalShutdownException:
+            pass  # close() shut rclpy down
 
     def _on_message(self, message) -> None:
         with self._lock:

@@ -276,6 +276,7 @@ class Icm20948DriverNode(Node):
         if problems:
             message = 'refusing to start, invalid parameters:\n  ' + '\n  '.join(problems)
             self.get_logger().fatal(message)
+            Node.destroy_node(self)  # nothing else was created yet
             raise DriverConfigurationError(message)
         return DriverSettings(
             backend=values['backend'],
@@ -328,6 +329,7 @@ class Icm20948DriverNode(Node):
             driver.initialise(self.settings.rate_hz)
         except (OSError, WrongDeviceError) as error:
             self._fault(f'initialisation failed: {error}', now)
+            self._close_bus()  # a USB adapter may come back as a new device: reopen next time
             self._next_attempt = now + self._backoff
             self._backoff = min(2.0 * self._backoff, BACKOFF_MAX_S)
             return
@@ -466,13 +468,16 @@ class Icm20948DriverNode(Node):
             f'{self.get_name()}: magnetometer', self.hardware_id, level, message, values
         )])
 
-    def destroy_node(self) -> None:
+    def _close_bus(self) -> None:
         bus, self._bus = self._bus, None
         if bus is not None and bus is not self.simulator:
             try:
                 bus.close()
             except OSError:
                 pass
+
+    def destroy_node(self) -> None:
+        self._close_bus()
         super().destroy_node()
 
 
