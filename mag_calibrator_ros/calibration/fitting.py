@@ -168,11 +168,14 @@ def fit_calibration(samples: ArrayLike, options: FitOptions | None = None) -> Fi
         layer_thickness, _ = thickness(normalise(rows).forward(rows))
         fitted, choice_note = _fit_model(rows, options, layer_thickness)
         if fitted is None:
-            reason = _too_few(n, options) or (
-                f'the {options.model} model could not be fitted to {n} samples: they do not '
+            reasons = [
+                _too_few(n, options)
+                or f'the {options.model} model could not be fitted to {n} samples: they do not '
                 'outline an ellipsoid; rotate the sensor through many orientations'
-            )
-            return _failure(options, reason, finite, n, n_bad)
+            ]
+            if options.model != 'planar' and layer_thickness < options.planar_thickness:
+                reasons.append(_planar_reason(rows, options.model, layer_thickness, options))
+            return _failure(options, '; '.join(reasons), finite, n, n_bad)
         result = _judge(rows, finite, fitted, options, layer_thickness, n_bad, choice_note)
     return _in_input_units(result, unit)
 
@@ -357,11 +360,7 @@ def _gates(
             f'{100 * options.min_coverage:.0f} %: {coverage.hint}'
         )
     if fitted.model != 'planar' and layer_thickness < options.planar_thickness:
-        reasons.append(
-            f'samples lie near one plane (thickness {layer_thickness:.2f} < '
-            f'{options.planar_thickness:.2f}): the {fitted.model} model needs tilting as well; '
-            f'{_tilt_hint(rows)}, or use model planar'
-        )
+        reasons.append(_planar_reason(rows, fitted.model, layer_thickness, options))
     if fitted.condition > options.max_condition:
         reasons.append(
             f'ill-conditioned fit (condition number {_finite(fitted.condition):.3g} > '
@@ -381,6 +380,16 @@ def _gates(
             'currents) or the sensor is very noisy'
         )
     return reasons
+
+
+def _planar_reason(
+    rows: np.ndarray, model: str, layer_thickness: float, options: FitOptions
+) -> str:
+    return (
+        f'samples lie near one plane (thickness {layer_thickness:.2f} < '
+        f'{options.planar_thickness:.2f}): the {model} model needs tilting as well; '
+        f'{_tilt_hint(rows)}, or use model planar'
+    )
 
 
 def _tilt_hint(rows: np.ndarray) -> str:

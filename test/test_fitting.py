@@ -1,0 +1,516 @@
+"""fit_calibration: recovery of known hard and soft iron, model choice, every gate, bad input."""
+
+import json
+import math
+
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+import numpy as np
+import pytest
+
+from mag_calibrator_ros.calibration import (
+    Calibration,
+    FitMetrics,
+    FitOptions,
+    FitResult,
+    fit_calibration,
+)
+from mag_calibrator_ros.calibration.ellipsoid import axis_least_squares
+
+FIELD = 50.0  # µT
+
+
+def unit_vectors(rng, n):
+    vectors = rng.normal(size=(n, 3))
+    return vectors / np.linalg.norm(vectors, axis=1, keepdims=True)
+
+
+def soft_iron(rng, off_diagonal=0.15, diagonal=0.1):
+    """A symmetric positive-definite distortion with the given off-diagonal bound."""
+    while True:
+        matrix = np.diag(1.0 + rng.uniform(-diagonal, diagonal, 3))
+        upper = rng.uniform(-off_diagonal, off_diagonal, 3)
+        matrix[0, 1] = matrix[1, 0] = upper[0]
+        matrix[0, 2] = matrix[2, 0] = upper[1]
+        matrix[1, 2] = matrix[2, 1] = upper[2]
+        if np.linalg.eigvalsh(matrix).min() > 0.3:
+            return matrix
+
+
+def yaw_directions(rng, n, inclination_deg=60.0):
+    """A ground robot turning in place: the body field keeps its vertical component."""
+    heading = rng.uniform(0.0, 2.0 * np.pi, n)
+    inclination = np.radians(inclination_deg)
+    return np.column_stack(
+        [
+            np.cos(inclination) * np.cos(heading),
+            np.cos(inclination) * np.sin(heading),
+            np.full(n, -np.sin(inclination)),
+        ]
+    )
+
+
+def readings(directions, rng, soft, offset, noise=0.25, spikes=0.0, field=FIELD):
+    """Raw readings (soft @ h + offset + noise) and the indices of injected spikes."""
+    raw = field * directions @ soft.T + offset + rng.normal(0.0, noise, directions.shape)
+    count = int(round(spikes * len(raw)))
+    spiked = rng.choice(len(raw), count, replace=False)
+    raw[spiked] += rng.choice([-1.0, 1.0], (count, 1)) * rng.uniform(1.0, 4.0, (count, 3)) * field
+    return raw, spiked
+
+
+def direction_error_deg(calibration, directions, soft, offset, field=FIELD):
+    """RMS angle between corrected noise-free readings and the true field directions."""
+    corrected = calibration.apply(field * directions @ soft.T + offset)
+    corrected /= np.linalg.norm(corrected, axis=1, keepdims=True)
+    cosine = np.clip(np.sum(corrected * directions, axis=1), -1.0, 1.0)
+    return float(np.sqrt(np.mean(np.degrees(np.arccos(cosine)) ** 2)))
+
+
+def assert_all_finite(result: FitResult):
+    """The never-NaN/Inf promise, including a strict JSON round trip of the metrics."""
+    json.dumps(result.metrics.as_dict(), allow_nan=False)
+    if result.calibration is not None:
+        assert np.all(np.isfinite(result.calibration.offset))
+        assert np.all(np.isfinite(result.calibration.matrix))
+        assert math.isfinite(result.calibration.field_strength)
+    assert result.reason
+
+
+# ----------------------------------------------------------------------------------------------
+# recovery
+
+
+def test_full_recovers_hard_and_soft_iron_with_spikes():
+    rng = np.random.default_rng(11)
+    soft, offset = soft_iron(rng), np.array([240.0, -180.0, 90.0])
+    directions = unit_vectors(rng, 400)
+    raw, spiked = readings(directions, rng, soft, offset, spikes=0.03)
+    result = fit_calibration(raw, FitOptions(model='full'))
+    assert result.success, result.reason
+    assert result.metrics.model == 'full'
+    calibration = result.calibration
+    np.testing.assert_allclose(calibration.offset, offset, atol=0.1)
+    # corrected = M (raw - b) = F M soft h: M soft must be a multiple of the identity
+    product = calibration.matrix @ soft
+    np.testing.assert_allclose(product / np.cbrt(np.linalg.det(product)), np.eye(3), atol=3e-3)
+    assert direction_error_deg(calibration, directions, soft, offset) < 0.1
+    assert set(spiked) <= set(np.flatnonzero(result.outliers))
+    assert result.metrics.outlier_count <= len(spiked) + 2
+    assert result.metrics.n_inliers == len(raw) - result.metrics.outlier_count
+
+
+def test_parameter_std_is_reported_and_consistent_with_the_error():
+    rng = np.random.default_rng(12)
+    soft, offset = soft_iron(rng), np.array([-90.0, 30.0, 160.0])
+    raw, _ = readings(unit_vectors(rng, 300), rng, soft, offset, noise=0.5)
+    result = fit_calibration(raw, FitOptions(model='full'))
+    std = result.metrics.parameter_std
+    assert std is not None and len(std['offset']) == 3 and len(std['matrix']) == 9
+    sigma = np.asarray(std['offset'])
+    assert np.all(sigma > 0)
+    assert np.all(np.abs(result.calibration.offset - offset) < 5 * sigma)
+    assert np.all(sigma < 0.2)  # 0.5 µT noise, 300 samples: about 0.05 µT
+
+
+def test_sphere_model_recovers_the_offset():
+    rng = np.random.default_rng(13)
+    offset = np.array([30.0, 260.0, -120.0])
+    raw, _ = readings(unit_vectors(rng, 200), rng, np.eye(3), offset)
+    result = fit_calibration(raw, FitOptions(model='sphere'))
+    assert result.success, result.reason
+    np.testing.assert_allclose(result.calibration.offset, offset, atol=0.15)
+    matrix = result.calibration.matrix
+    np.testing.assert_allclose(matrix, matrix[0, 0] * np.eye(3), atol=1e-12)
+
+
+def test_axis_model_is_the_brief_least_squares():
+    """Same numbers as the brief's H = [x, y, z, -y², -z², 1] solve (direct, uncentred float64)."""
+    rng = np.random.default_rng(14)
+    soft, offset = np.diag([1.1, 0.9, 1.05]), np.array([12.0, -8.0, 5.0])
+    raw, _ = readings(unit_vectors(rng, 200), rng, soft, offset)
+    design = np.column_stack([raw, -(raw[:, 1] ** 2), -(raw[:, 2] ** 2), np.ones(len(raw))])
+    x = np.linalg.solve(design.T @ design, design.T @ raw[:, 0] ** 2)
+    brief_offset = np.array([x[0] / 2, x[1] / (2 * x[3]), x[2] / (2 * x[4])])
+    temp = x[5] + brief_offset[0] ** 2 + x[3] * brief_offset[1] ** 2 + x[4] * brief_offset[2] ** 2
+    brief_scale = np.sqrt([temp, temp / x[3], temp / x[4]])
+
+    result = fit_calibration(raw, FitOptions(model='axis', field_strength=1.0))
+    assert result.success, result.reason
+    np.testing.assert_allclose(result.calibration.offset, brief_offset, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(np.diag(result.calibration.matrix), 1.0 / brief_scale, rtol=1e-9)
+    matrix = result.calibration.matrix
+    assert np.count_nonzero(matrix - np.diag(np.diag(matrix))) == 0
+
+
+def test_axis_model_has_no_cross_terms_so_full_beats_it_under_soft_iron():
+    rng = np.random.default_rng(15)
+    soft, offset = soft_iron(rng, off_diagonal=0.15), np.array([100.0, 50.0, -20.0])
+    for _ in range(3):
+        soft = soft_iron(rng, off_diagonal=0.15)
+        if np.abs(soft - np.diag(np.diag(soft))).max() > 0.1:
+            break
+    directions = unit_vectors(rng, 300)
+    raw, _ = readings(directions, rng, soft, offset)
+    axis = fit_calibration(raw, FitOptions(model='axis')).calibration
+    full = fit_calibration(raw, FitOptions(model='full')).calibration
+    assert direction_error_deg(axis, directions, soft, offset) > 1.0
+    assert direction_error_deg(full, directions, soft, offset) < 0.1
+
+
+def test_axis_least_squares_rejects_a_non_ellipsoid():
+    rng = np.random.default_rng(16)
+    t, z = rng.uniform(0, 2 * np.pi, 300), rng.uniform(-1, 1, 300)
+    radius = np.sqrt(1 + z**2)  # hyperboloid of one sheet
+    assert axis_least_squares(np.column_stack([radius * np.cos(t), radius * np.sin(t), z])) is None
+
+
+# ----------------------------------------------------------------------------------------------
+# output scale
+
+
+@pytest.mark.parametrize('field_strength', [None, 1.0, 48.5])
+def test_corrected_magnitude_is_the_requested_field_strength(field_strength):
+    rng = np.random.default_rng(17)
+    soft, offset = soft_iron(rng), np.array([70.0, -20.0, 140.0])
+    raw, _ = readings(unit_vectors(rng, 300), rng, soft, offset)
+    result = fit_calibration(raw, FitOptions(model='full', field_strength=field_strength))
+    magnitude = np.linalg.norm(result.calibration.apply(raw), axis=1)
+    expected = field_strength or result.metrics.mean_radius
+    assert result.calibration.field_strength == pytest.approx(expected)
+    assert np.mean(magnitude) == pytest.approx(expected, rel=2e-3)
+    if field_strength is None:  # volume preserved: the fitted radius of the raw ellipsoid
+        assert expected == pytest.approx(FIELD * np.cbrt(np.linalg.det(soft)), rel=2e-3)
+
+
+def test_unit_invariance_tesla_microtesla_counts():
+    rng = np.random.default_rng(18)
+    soft, offset = soft_iron(rng), np.array([-150.0, 80.0, 60.0])
+    raw_ut, _ = readings(unit_vectors(rng, 250), rng, soft, offset, noise=0.5, spikes=0.02)
+    results = {
+        unit: fit_calibration(raw_ut * factor)
+        for unit, factor in (('T', 1e-6), ('uT', 1.0), ('counts', 1 / 0.15))
+    }
+    reference = results['uT']
+    for unit, factor in (('T', 1e-6), ('counts', 1 / 0.15)):
+        result = results[unit]
+        assert result.success == reference.success
+        assert result.metrics.model == reference.metrics.model
+        np.testing.assert_array_equal(result.outliers, reference.outliers)
+        np.testing.assert_allclose(
+            result.calibration.matrix, reference.calibration.matrix, rtol=1e-6
+        )
+        np.testing.assert_allclose(
+            result.calibration.offset, reference.calibration.offset * factor, rtol=1e-6
+        )
+        assert result.metrics.mean_radius == pytest.approx(reference.metrics.mean_radius * factor)
+        assert result.metrics.residual_rms_pct == pytest.approx(reference.metrics.residual_rms_pct)
+        assert result.metrics.condition_number == pytest.approx(reference.metrics.condition_number)
+
+
+# ----------------------------------------------------------------------------------------------
+# automatic model choice
+
+
+def test_auto_picks_sphere_for_a_clean_sphere():
+    rng = np.random.default_rng(19)
+    raw, _ = readings(unit_vectors(rng, 300), rng, np.eye(3), np.array([5.0, 6.0, 7.0]))
+    result = fit_calibration(raw)
+    assert result.success, result.reason
+    assert result.metrics.model == 'sphere'
+    assert result.calibration.model == 'sphere'
+
+
+def test_auto_picks_full_under_soft_iron():
+    rng = np.random.default_rng(20)
+    raw, _ = readings(unit_vectors(rng, 300), rng, soft_iron(rng), np.array([5.0, 6.0, 7.0]))
+    result = fit_calibration(raw)
+    assert result.success, result.reason
+    assert result.metrics.model == 'full'
+    assert 'BIC' in result.reason
+
+
+def test_auto_picks_planar_for_a_yawing_robot_even_with_spikes():
+    rng = np.random.default_rng(21)
+    raw, _ = readings(yaw_directions(rng, 400), rng, soft_iron(rng), np.array([60, -30, 90.0]),
+                      spikes=0.02)  # fmt: skip
+    result = fit_calibration(raw)
+    assert result.success, result.reason
+    assert result.metrics.model == 'planar'
+    assert result.metrics.unobserved == ('offset_normal', 'matrix_normal')
+
+
+def test_auto_never_fits_full_to_too_few_samples():
+    rng = np.random.default_rng(22)
+    raw, _ = readings(unit_vectors(rng, 15), rng, soft_iron(rng), np.zeros(3))
+    result = fit_calibration(raw, FitOptions(min_samples=10, min_coverage=0.1))
+    assert result.metrics.model == 'sphere'
+
+
+# ----------------------------------------------------------------------------------------------
+# planar
+
+
+def test_planar_without_prior_gives_heading_and_reports_the_unobserved_terms():
+    rng = np.random.default_rng(23)
+    soft, offset = soft_iron(rng, off_diagonal=0.05), np.array([110.0, -70.0, 40.0])
+    directions = yaw_directions(rng, 300)
+    raw, _ = readings(directions, rng, soft, offset)
+    result = fit_calibration(raw, FitOptions(model='planar'))
+    assert result.success, result.reason
+    assert result.metrics.unobserved == ('offset_normal', 'matrix_normal')
+    assert result.calibration.metadata['plane_normal'][2] > 0.95
+    corrected = result.calibration.apply(FIELD * directions @ soft.T + offset)
+    heading_error = np.angle(
+        np.exp(1j * (np.arctan2(corrected[:, 1], corrected[:, 0])
+                     - np.arctan2(directions[:, 1], directions[:, 0])))
+    )  # fmt: skip
+    assert np.degrees(np.std(heading_error)) < 0.5
+    assert result.metrics.coverage == 1.0  # heading sectors in the plane
+
+
+def test_planar_with_prior_keeps_the_vertical_and_corrects_heading():
+    rng = np.random.default_rng(24)
+    soft, offset = soft_iron(rng), np.array([110.0, -70.0, 40.0])
+    directions = yaw_directions(rng, 300)
+    raw, _ = readings(directions, rng, soft, offset)
+    # a prior from an earlier full calibration, with the in-plane offset since drifted by 3 µT
+    prior = Calibration(offset + [3.0, -2.0, 0.0], np.linalg.inv(soft) * FIELD, FIELD)
+    result = fit_calibration(raw, FitOptions(model='planar', prior=prior, field_strength=FIELD))
+    assert result.success, result.reason
+    assert direction_error_deg(prior, directions, soft, offset) > 2.0
+    assert direction_error_deg(result.calibration, directions, soft, offset) < 0.3
+
+
+def test_planar_data_fail_3d_models_with_advice():
+    rng = np.random.default_rng(25)
+    raw, _ = readings(yaw_directions(rng, 300), rng, soft_iron(rng), np.zeros(3))
+    for model in ('full', 'sphere', 'axis'):
+        result = fit_calibration(raw, FitOptions(model=model))
+        assert not result.success
+        assert 'near one plane' in result.reason and 'planar' in result.reason
+        assert 'roll axis (x)' in result.reason or 'pitch axis (y)' in result.reason
+        assert_all_finite(result)
+
+
+# ----------------------------------------------------------------------------------------------
+# gates: each one fails on data made to trip it, with advice
+
+
+def test_gate_too_few_samples():
+    rng = np.random.default_rng(26)
+    raw, _ = readings(unit_vectors(rng, 20), rng, np.eye(3), np.zeros(3))
+    result = fit_calibration(raw, FitOptions(model='sphere', min_coverage=0.0))
+    assert not result.success
+    assert 'too few samples: 20, need at least 30' in result.reason
+    assert result.calibration is not None  # best effort all the same
+    assert fit_calibration(raw, FitOptions(model='sphere', min_samples=20, min_coverage=0)).success
+
+
+def test_gate_fewer_samples_than_parameters_fits_nothing():
+    result = fit_calibration(
+        np.array([[1.0, 2, 3], [2, 3, 1], [3, 1, 2]]), FitOptions(model='full')
+    )
+    assert not result.success and result.calibration is None
+    assert 'too few samples: 3' in result.reason
+    assert_all_finite(result)
+
+
+def test_gate_coverage_names_the_missing_rotation():
+    rng = np.random.default_rng(27)
+    directions = unit_vectors(rng, 3000)
+    cap = directions[directions[:, 2] > 0.5][:300]
+    result = fit_calibration(FIELD * cap + [20.0, 0, 0], FitOptions(model='sphere'))
+    assert not result.success
+    assert 'coverage' in result.reason
+    assert 'keep rotating about the roll axis (x) and the pitch axis (y)' in result.reason
+    assert '-z' in result.reason
+    assert result.metrics.coverage < 0.5
+    assert result.metrics.coverage_hint in result.reason
+
+
+def test_gate_ill_conditioning():
+    rng = np.random.default_rng(28)
+    raw, _ = readings(unit_vectors(rng, 300), rng, soft_iron(rng), np.zeros(3))
+    assert fit_calibration(raw, FitOptions(model='full')).success
+    result = fit_calibration(raw, FitOptions(model='full', max_condition=1.5))
+    assert not result.success
+    assert 'ill-conditioned' in result.reason
+    assert result.metrics.condition_number > 1.5
+
+
+def test_gate_ill_conditioning_on_a_narrow_band():
+    """A band of tilts within ±5° of one plane does not determine a full ellipsoid."""
+    rng = np.random.default_rng(29)
+    directions = yaw_directions(rng, 400)
+    tilt = np.radians(rng.uniform(-5, 5, 400))
+    directions[:, 2] += tilt
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    raw, _ = readings(directions, rng, soft_iron(rng), np.zeros(3))
+    result = fit_calibration(raw, FitOptions(model='full', planar_thickness=0.0))
+    assert not result.success
+    assert 'ill-conditioned' in result.reason
+
+
+def test_gate_axis_ratio():
+    rng = np.random.default_rng(30)
+    raw, _ = readings(unit_vectors(rng, 300), rng, np.diag([2.6, 1.0, 1.0]), np.zeros(3))
+    result = fit_calibration(raw, FitOptions(model='full'))
+    assert not result.success
+    assert 'axis ratio 2.6 exceeds 2' in result.reason
+    assert result.metrics.axis_ratio == pytest.approx(2.6, rel=0.01)
+    assert fit_calibration(raw, FitOptions(model='full', max_axis_ratio=3.0)).success
+
+
+def test_gate_residual():
+    rng = np.random.default_rng(31)
+    raw, _ = readings(unit_vectors(rng, 300), rng, np.eye(3), np.zeros(3), noise=5.0)
+    result = fit_calibration(raw, FitOptions(model='full'))
+    assert not result.success
+    assert 'residual' in result.reason and 'exceeds 5.00 %' in result.reason
+    assert result.metrics.residual_rms_pct > 5.0
+
+
+def test_gate_not_an_ellipsoid():
+    """Readings on a hyperboloid: never a calibration that passes, never an indefinite matrix."""
+    rng = np.random.default_rng(32)
+    t, z = rng.uniform(0, 2 * np.pi, 300), rng.uniform(-1, 1, 300)
+    radius = np.sqrt(1 + z**2)
+    raw = FIELD * np.column_stack([radius * np.cos(t), radius * np.sin(t), z]) + 100.0
+    for model in ('full', 'axis', 'sphere', 'auto'):
+        result = fit_calibration(raw, FitOptions(model=model))
+        assert not result.success
+        assert_all_finite(result)
+        if result.calibration is not None:
+            assert np.linalg.eigvalsh(result.calibration.matrix).min() > 0
+
+
+def test_every_reason_is_joined_when_several_gates_fail():
+    rng = np.random.default_rng(33)
+    raw, _ = readings(yaw_directions(rng, 20), rng, np.eye(3), np.zeros(3), noise=4.0)
+    result = fit_calibration(raw, FitOptions(model='full'))
+    assert not result.success
+    assert result.reason.count(';') >= 2
+    assert 'too few samples' in result.reason and 'coverage' in result.reason
+
+
+# ----------------------------------------------------------------------------------------------
+# bad input never raises and never yields NaN/Inf
+
+
+@pytest.mark.parametrize(
+    ('samples', 'expected'),
+    [
+        (np.full((40, 3), np.nan), 'all 40 rows contain NaN or Inf'),
+        (np.full((40, 3), np.inf), 'all 40 rows contain NaN or Inf'),
+        (np.zeros((40, 3)), 'identical'),
+        (np.tile([12.0, -3.0, 40.0], (40, 1)), 'identical'),
+        ([], 'no samples'),
+        (np.ones((10, 2)), 'shape (10, 2)'),
+        ([['a', 'b', 'c']], 'not numbers'),
+        (None, 'shape ()'),
+        (np.outer(np.linspace(-1, 1, 100), [1.0, 2.0, 3.0]), 'rotate'),
+    ],
+)
+def test_unusable_input(samples, expected):
+    for model in ('auto', 'full', 'sphere', 'axis', 'planar'):
+        result = fit_calibration(samples, FitOptions(model=model))
+        assert not result.success
+        assert expected in result.reason
+        assert isinstance(result.metrics, FitMetrics)
+        assert_all_finite(result)
+
+
+def test_non_finite_rows_are_dropped_counted_and_marked():
+    rng = np.random.default_rng(34)
+    raw, _ = readings(unit_vectors(rng, 300), rng, soft_iron(rng), np.array([40.0, 0, 0]))
+    clean = fit_calibration(raw, FitOptions(model='full'))
+    dirty = np.vstack([raw, [[np.nan, 1, 2], [np.inf, 0, 0], [1, -np.inf, 3]]])
+    result = fit_calibration(dirty, FitOptions(model='full'))
+    assert result.success, result.reason
+    assert result.metrics.n_non_finite == 3
+    assert result.metrics.n_samples == 300
+    assert '3 rows with NaN/Inf dropped' in result.reason
+    assert result.outliers.shape == (303,) and result.outliers[-3:].all()
+    np.testing.assert_allclose(result.calibration.offset, clean.calibration.offset)
+
+
+def test_zero_components_are_legitimate_readings():
+    rng = np.random.default_rng(35)
+    raw, _ = readings(unit_vectors(rng, 300), rng, np.eye(3), np.zeros(3))
+    raw[::10, 0] = 0.0
+    raw[5::10, 2] = 0.0
+    result = fit_calibration(raw, FitOptions(model='sphere', max_residual_pct=50))
+    assert result.metrics.n_samples == 300
+
+
+@pytest.mark.parametrize('scale', [1e-300, 1e-9, 1e9, 1e300])
+def test_extreme_scales_fit_alike(scale):
+    rng = np.random.default_rng(36)
+    soft, offset = soft_iron(rng), np.array([100.0, 40.0, -60.0])
+    raw, _ = readings(unit_vectors(rng, 200), rng, soft, offset)
+    reference = fit_calibration(raw, FitOptions(model='full'))
+    with np.errstate(all='raise'):  # no overflow or invalid operation anywhere
+        result = fit_calibration(raw / FIELD * scale, FitOptions(model='full'))
+    assert result.success, result.reason
+    np.testing.assert_allclose(result.calibration.matrix, reference.calibration.matrix, rtol=1e-6)
+    assert_all_finite(result)
+
+
+def test_invalid_options_are_rejected_with_every_problem():
+    with pytest.raises(ValueError, match='model must be one of') as error:
+        FitOptions(model='ellipse', field_strength=-1.0, min_coverage=2.0, max_axis_ratio=0.5)
+    message = str(error.value)
+    assert 'field_strength' in message and 'min_coverage' in message
+    assert 'max_axis_ratio' in message
+
+
+def test_metrics_as_dict_is_plain_json():
+    rng = np.random.default_rng(37)
+    raw, _ = readings(unit_vectors(rng, 200), rng, soft_iron(rng), np.zeros(3))
+    result = fit_calibration(raw)
+    data = json.loads(json.dumps(result.metrics.as_dict(), allow_nan=False))
+    assert data['model'] == result.metrics.model
+    assert isinstance(data['unobserved'], list)
+    assert set(data) >= {
+        'model', 'n_samples', 'n_inliers', 'residual_rms_pct', 'residual_max_pct', 'coverage',
+        'condition_number', 'outlier_count', 'mean_radius', 'axis_ratio', 'parameter_std',
+        'unobserved',
+    }  # fmt: skip
+    metadata = result.calibration.metadata
+    assert metadata['residual_rms_pct'] == result.metrics.residual_rms_pct
+    assert metadata['coverage'] == result.metrics.coverage
+    assert metadata['samples'] == result.metrics.n_inliers
+
+
+# ----------------------------------------------------------------------------------------------
+# property: random ellipsoids, offsets up to ±5 F, soft iron with off-diagonals up to 0.15, noise
+# and a few % of spikes, in any unit
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    offset_in_fields=st.lists(st.floats(-5.0, 5.0), min_size=3, max_size=3),
+    off_diagonal=st.floats(0.0, 0.15),
+    spikes=st.floats(0.0, 0.03),
+    unit_exponent=st.integers(-7, 4),
+)
+def test_random_ellipsoids_are_recovered(
+    seed, offset_in_fields, off_diagonal, spikes, unit_exponent
+):
+    rng = np.random.default_rng(seed)
+    field = 10.0**unit_exponent * rng.uniform(1.0, 9.0)
+    soft = soft_iron(rng, off_diagonal=off_diagonal)
+    offset = np.asarray(offset_in_fields) * field
+    directions = unit_vectors(rng, 300)
+    raw, spiked = readings(
+        directions, rng, soft, offset, noise=0.005 * field, spikes=spikes, field=field
+    )
+    result = fit_calibration(raw, FitOptions(model='full'))
+    assert result.success, result.reason
+    assert_all_finite(result)
+    assert np.linalg.norm(result.calibration.offset - offset) < 0.01 * field
+    assert direction_error_deg(result.calibration, directions, soft, offset, field) < 0.3
+    assert set(spiked) <= set(np.flatnonzero(result.outliers))
+    assert result.metrics.residual_rms_pct < 1.0
