@@ -157,6 +157,20 @@ def test_survives_i2c_errors_and_publishes_only_valid_samples(harness_factory):
     np.testing.assert_allclose(np.linalg.norm(h.fields(), axis=1), 50e-6, atol=3e-6)
     before = h.node.published
     assert h.spin_until(lambda: h.node.published > before + 10)  # still alive and publishing
+    assert any(s.level == DiagnosticStatus.WARN and 'I2C errors' in s.message
+               for s in h.statuses)
+
+
+def test_overflowed_samples_are_never_published(harness_factory):
+    # 4900 uT of hard iron + the earth field: many samples beyond the AK09916's +-4912.8 uT.
+    h = harness_factory(sim__hard_iron_ut=[4900.0, 0.0, 0.0], sim__field_ut=50.0, sim__seed=2)
+    assert h.spin_until(lambda: h.node.overflows > 10 and len(h.messages) > 10)
+    assert np.all(np.abs(h.fields()) <= 32752 * 0.15e-6 + 1e-12)
+    assert_valid_stream(h)
+    assert h.spin_until(lambda: any(
+        {kv.key: kv.value for kv in s.values}.get('overflows (HOFL)', '0') != '0'
+        for s in h.statuses
+    ), limit_s=5.0)
 
 
 def test_outage_stops_output_then_recovers(harness_factory):

@@ -226,6 +226,7 @@ class Icm20948DriverNode(Node):
         self.last_recovery_s: float | None = None
         self._window_start = time.monotonic()
         self._window_published = 0
+        self._window_counters = (0, 0)  # i2c_errors, overflows at the window start
         self.measured_rate_hz = 0.0
 
         self._publisher = self.create_publisher(MagneticField, TOPIC, DRIVER_QOS)
@@ -442,13 +443,22 @@ class Icm20948DriverNode(Node):
         elapsed = now - self._window_start
         if elapsed > 0.0:
             self.measured_rate_hz = self._window_published / elapsed
+        errors = self.i2c_errors - self._window_counters[0]
+        overflows = self.overflows - self._window_counters[1]
         self._window_start, self._window_published = now, 0
+        self._window_counters = (self.i2c_errors, self.overflows)
         requested = self.settings.rate_hz
+        warnings = []
+        if self.measured_rate_hz < RATE_WARN_FRACTION * requested:
+            warnings.append(f'{self.measured_rate_hz:.1f} Hz of {requested} Hz requested')
+        if errors:
+            warnings.append(f'{errors} I2C errors in the last {elapsed:.1f} s (wiring?)')
+        if overflows:
+            warnings.append(f'{overflows} overflowed samples discarded (magnet nearby?)')
         if not self._running:
             level, message = diagnostics.ERROR, self._last_error or 'not initialised'
-        elif self.measured_rate_hz < RATE_WARN_FRACTION * requested:
-            level = diagnostics.WARN
-            message = f'publishing {self.measured_rate_hz:.1f} Hz of {requested} Hz requested'
+        elif warnings:
+            level, message = diagnostics.WARN, '; '.join(warnings)
         else:
             level, message = diagnostics.OK, f'publishing {self.measured_rate_hz:.1f} Hz'
         values = {
