@@ -215,11 +215,9 @@ def _double(value: float) -> str:
         return '.nan'
     if math.isinf(value):
         return '.inf' if value > 0 else '-.inf'
-    text = repr(value)
-    if 'e' in text and '.' not in text:
+    text = repr(value)  # always has a '.' or an 'e', and round-trips exactly
+    if '.' not in text:
         text = text.replace('e', '.0e', 1)  # 1e-06 is a string to YAML 1.1; 1.0e-06 is not
-    elif '.' not in text and 'e' not in text:
-        text += '.0'
     return text
 
 
