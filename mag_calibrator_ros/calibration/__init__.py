@@ -1,10 +1,17 @@
 """Calibration engine: pure numpy/scipy, no rclpy (DESIGN.md §2)."""
 
+from mag_calibrator_ros.calibration.buffer import REJECT_REASONS, SampleBuffer
 from mag_calibrator_ros.calibration.calibration import (
     MODELS,
     Calibration,
     CalibrationError,
     calibration_problems,
+)
+from mag_calibrator_ros.calibration.calibration_file import (
+    CalibrationFileError,
+    calibration_from_parameters,
+    load_calibration,
+    save_calibration,
 )
 from mag_calibrator_ros.calibration.coverage import Coverage, direction_coverage
 from mag_calibrator_ros.calibration.fitting import (
@@ -13,7 +20,11 @@ from mag_calibrator_ros.calibration.fitting import (
     FitResult,
     fit_calibration,
 )
+from mag_calibrator_ros.calibration.tracker import OnlineTracker, TrackerHealth
 
 __all__ = ['MODELS', 'Calibration', 'CalibrationError', 'calibration_problems']
 __all__ += ['Coverage', 'direction_coverage']
 __all__ += ['FitMetrics', 'FitOptions', 'FitResult', 'fit_calibration']
+__all__ += ['REJECT_REASONS', 'SampleBuffer', 'OnlineTracker', 'TrackerHealth']
+__all__ += ['CalibrationFileError', 'calibration_from_parameters', 'load_calibration']
+__all__ += ['save_calibration']
