@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from mag_calibrator_ros.calibration.calibration import Calibration
+from mag_calibrator_ros.calibration.coverage import Coverage, direction_coverage
 
 REJECT_REASONS = ('non_finite', 'zero', 'saturated', 'duplicate', 'magnitude_outlier')
 """Why :meth:`SampleBuffer.add` refused a sample (each one counted in ``rejects``)."""
@@ -175,10 +176,8 @@ class SampleBuffer:
             return self._reference.field_strength / det ** (1.0 / 3.0)
         return _sphere_radius(self._points[: self._fill])
 
-    def coverage(self):  # -> Coverage (imported lazily: coverage.py imports nothing from here)
+    def coverage(self) -> Coverage:
         """Share of equal-area direction cells occupied, after centring/whitening (N-free)."""
-        from mag_calibrator_ros.calibration.coverage import direction_coverage
-
         return direction_coverage(self.samples, self._reference)
 
     # -- feeding -------------------------------------------------------------------------------
