@@ -26,6 +26,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from statistics import NormalDist
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -181,34 +182,52 @@ def axis_least_squares(y: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     return offset, scale
 
 
+TRIMMED_SHARE = 0.6
+"""Share of points the algebraic start is fitted to (least trimmed squares): up to 40 % spikes
+(a buffer that keeps far-out samples can hold that many) cannot pull it."""
+_TRIMMED_MEDIAN = NormalDist().inv_cdf(0.5 + TRIMMED_SHARE / 4)
+
+
 def trimmed_start(
     points: np.ndarray,
     algebraic: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray] | None],
     threshold: float,
 ) -> tuple[np.ndarray, np.ndarray] | None:
-    """An algebraic fit made robust by trimming: spikes would otherwise ruin it (they enter
-    squared).
+    """An algebraic fit that spikes cannot ruin (in plain least squares they enter squared).
 
-    Starts from the unit sphere about the median (the normalisation), keeps points within
-    ``threshold`` robust sigmas of the current surface and refits, until the kept set settles.
+    Least trimmed squares by concentration steps: from the unit sphere about the median (where
+    the normalisation put the data), fit the ``TRIMMED_SHARE`` of points closest to the current
+    surface, repeat until that set settles; then refit once on every point within ``threshold``
+    robust sigmas of it, for an efficient start when there are few outliers.
     """
     d = points.shape[1]
+    n_needed = 2 * (d + 1 + d * (d + 1) // 2)
+    n_kept = max(int(np.ceil(TRIMMED_SHARE * len(points))), n_needed)
+    if len(points) < n_needed:
+        return None
     centre, matrix = np.zeros(d), np.eye(d)
     best = None
-    keep = np.ones(len(points), dtype=bool)
-    for _ in range(4):
-        residuals = np.linalg.norm((points - centre) @ matrix, axis=1) - 1.0
-        sigma = robust_sigma(residuals[keep] if best is not None else residuals)
-        new_keep = np.abs(residuals) <= max(threshold * sigma, 10.0 * MIN_ROBUST_SIGMA)
-        if best is not None and np.array_equal(new_keep, keep):
+    kept = np.zeros(0, dtype=int)
+    for _ in range(10):
+        residuals = np.abs(np.linalg.norm((points - centre) @ matrix, axis=1) - 1.0)
+        new_kept = np.sort(np.argpartition(residuals, n_kept - 1)[:n_kept])
+        if np.array_equal(new_kept, kept):
             break
-        keep = new_keep
-        if keep.sum() < 2 * (d + 1 + d * (d + 1) // 2):
-            break
-        fitted = algebraic(points[keep])
+        kept = new_kept
+        fitted = algebraic(points[kept])
         if fitted is None or _ratio(fitted[1]) > 10.0:
             break
         best = centre, matrix = fitted
+    if best is None:
+        return None
+    residuals = np.linalg.norm((points - centre) @ matrix, axis=1) - 1.0
+    # the kept residuals are the smallest ones: their median is the TRIMMED_SHARE/2 quantile of |e|
+    sigma = max(float(np.median(np.abs(residuals[kept]))) / _TRIMMED_MEDIAN, MIN_ROBUST_SIGMA)
+    inliers = np.abs(residuals) <= threshold * sigma
+    if inliers.sum() >= n_needed:
+        refitted = algebraic(points[inliers])
+        if refitted is not None and _ratio(refitted[1]) <= 10.0:
+            return refitted
     return best
 
 
