@@ -358,6 +358,28 @@ def test_a_stale_reference_is_dropped_instead_of_starving_the_buffer():
     assert buffer.fill == 50
 
 
+def test_small_reference_updates_do_not_hide_a_stale_reference():
+    """Online tracking nudges the reference every second; the staleness count must carry on."""
+    samples = sphere_samples(1000, seed=12)
+    buffer = SampleBuffer(capacity=50, k=5)
+    stale = Calibration(np.zeros(3), np.eye(3), 3.0 * FIELD)
+    buffer.set_reference(stale)
+    for start in range(0, 1000, 40):
+        buffer.add_many(samples[start:start + 40])
+        if buffer.reference is not None:
+            nudged = buffer.reference.offset + 0.001 * FIELD
+            buffer.set_reference(Calibration(nudged, np.eye(3), 3.0 * FIELD))
+    assert buffer.reference_drops == 1 and buffer.fill == 50
+
+
+def test_a_reference_most_of_the_buffer_disagrees_with_evicts_nothing():
+    """A file from another mounting must not wipe a buffer full of good, current data."""
+    buffer = SampleBuffer(capacity=50, k=5)
+    buffer.add_many(sphere_samples(500, seed=13))
+    assert buffer.set_reference(Calibration(np.zeros(3), np.eye(3), 3.0 * FIELD)) == 0
+    assert buffer.fill == 50 and buffer.evicted == 0
+
+
 def test_set_reference_none_stops_screening():
     buffer = SampleBuffer(capacity=10, k=3)
     buffer.set_reference(true_calibration())

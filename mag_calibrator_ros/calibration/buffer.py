@@ -250,7 +250,8 @@ class SampleBuffer:
         if self._window_checked >= max(100, self._capacity):
             if self._window_outliers > STALE_REFERENCE_SHARE * self._window_checked:
                 self.reference_drops += 1
-                self._set_reference_matrices(None)
+                self._reference = None
+                self._window_checked = self._window_outliers = 0
                 return False
             self._window_checked = self._window_outliers = 0
         return outlier
@@ -262,29 +263,34 @@ class SampleBuffer:
 
         Buffered samples that the new reference shows to be outliers are evicted at once, so a
         spike that got in before any calibration existed does not survive; returns how many.
+        When most of the buffer disagrees with the reference, nothing is evicted: the buffer
+        and the reference describe different situations, and new samples decide (see
+        :data:`STALE_REFERENCE_SHARE`). A reference that moved little (online tracking) keeps
+        the outlier statistics gathered under the previous one.
         """
-        self._set_reference_matrices(calibration)
-        if calibration is None or self._fill == 0:
+        previous = self._reference
+        self._reference = calibration
+        if _moved(previous, calibration, 0.5 * self.magnitude_tolerance):
+            self._window_checked = self._window_outliers = 0
+        if calibration is None:
+            return 0
+        self._ref_matrix = calibration.matrix / calibration.field_strength
+        self._ref_offset = calibration.offset.copy()
+        if self._fill == 0:
             return 0
         relative = np.linalg.norm(
             (self._points[: self._fill] - self._ref_offset) @ self._ref_matrix.T, axis=1
         )
         keep = np.abs(relative - 1.0) <= self.magnitude_tolerance
         removed = int(self._fill - np.count_nonzero(keep))
-        if removed:
-            kept = self._points[: self._fill][keep]
-            self._fill = len(kept)
-            self._points[: self._fill] = kept
-            self._refresh_all()
-            self.evicted += removed
+        if removed == 0 or removed > STALE_REFERENCE_SHARE * self._fill:
+            return 0
+        kept = self._points[: self._fill][keep]
+        self._fill = len(kept)
+        self._points[: self._fill] = kept
+        self._refresh_all()
+        self.evicted += removed
         return removed
-
-    def _set_reference_matrices(self, calibration: Calibration | None) -> None:
-        self._reference = calibration
-        self._window_checked = self._window_outliers = 0
-        if calibration is not None:
-            self._ref_matrix = calibration.matrix / calibration.field_strength
-            self._ref_offset = calibration.offset.copy()
 
     def resize(self, capacity: int | None = None, k: int | None = None) -> None:
         """Change capacity and/or k at run time, keeping the most unique samples that fit.
@@ -404,6 +410,18 @@ def _checked_size(capacity: int, k: int) -> tuple[int, int]:
     if isinstance(k, bool) or int(k) != k or not 1 <= k < capacity:
         raise ValueError(f'k must be an integer in [1, capacity - 1], got {k!r}')
     return int(capacity), int(k)
+
+
+def _moved(old: Calibration | None, new: Calibration | None, tolerance: float) -> bool:
+    """Whether ``new`` judges magnitudes visibly differently from ``old`` (relative units)."""
+    if old is None or new is None:
+        return old is not new
+    radius = old.field_strength / float(np.linalg.det(old.matrix)) ** (1.0 / 3.0)
+    offset_shift = float(np.linalg.norm(new.offset - old.offset)) / radius
+    matrix_shift = float(np.linalg.norm(
+        new.matrix / new.field_strength - old.matrix / old.field_strength, ord=2
+    )) * radius
+    return not offset_shift + matrix_shift <= tolerance
 
 
 def _sphere_radius(points: np.ndarray) -> float:
