@@ -6,7 +6,9 @@ The brief's notebook learns a diagonal model ``m = a * x + b`` sample by sample 
 
 - the full model ``m = A (x / s - beta)``: ``A`` symmetric positive definite (soft iron with cross
   terms), ``beta`` the hard-iron offset; it starts from any :class:`Calibration` (identity, a fit,
-  a file) and follows slow drift. ``corrected = F m`` so ``M = F A / s`` and ``b = s beta``;
+  a file) and follows slow drift. ``corrected = F R m`` so ``M = F R A / s`` and ``b = s beta``,
+  where ``R`` is the rotation part of a non-symmetric start matrix (polar decomposition), kept as
+  given because a magnitude loss cannot see rotations (``R = I`` for the usual symmetric M);
 - unit-free: ``s`` is the field radius in input units (from the starting calibration, or from the
   first sample when that calibration is grossly off-scale, as the notebook's ``Model`` does), so
   one learning rate serves T, µT, gauss and counts;
@@ -30,6 +32,7 @@ import math
 
 import numpy as np
 from numpy.typing import ArrayLike
+import scipy.linalg
 
 from mag_calibrator_ros.calibration.calibration import Calibration
 
@@ -103,12 +106,18 @@ class OnlineTracker:
         self.normalise_input = bool(normalise_input)
         self.max_step = float(max_step)
         self._start = calibration
-        matrix = 0.5 * (calibration.matrix + calibration.matrix.T)
+        # M = R P: the loss |R P v| = |P v| cannot see a rotation R, so R is kept as given and
+        # only the symmetric positive definite P is learnt (R = I for the usual symmetric M).
+        matrix = calibration.matrix
+        if np.allclose(matrix, matrix.T, rtol=0.0, atol=1e-12 * np.abs(matrix).max()):
+            self._rotation = np.eye(3)
+            matrix = 0.5 * (matrix + matrix.T)
+        else:
+            self._rotation, matrix = scipy.linalg.polar(matrix, side='right')
+            matrix = 0.5 * (matrix + matrix.T)
         eigenvalues = np.linalg.eigvalsh(matrix)
-        if eigenvalues.max() > MAX_CONDITION * eigenvalues.min():
-            raise ValueError(
-                f'starting matrix is too anisotropic to track (eigenvalues {eigenvalues.tolist()})'
-            )
+        # Never more anisotropic than physical (or than the start, if that already is).
+        self._max_condition = max(MAX_CONDITION, float(eigenvalues[-1] / eigenvalues[0]))
         # Internal units: s = field radius in input units, so A has determinant 1.
         geometric_mean = float(np.prod(eigenvalues)) ** (1.0 / 3.0)
         self._field = calibration.field_strength
@@ -129,7 +138,7 @@ class OnlineTracker:
         if self._cached is None:
             self._cached = Calibration(
                 self._beta * self._scale,
-                self._a * (self._field / self._scale),
+                self._rotation @ self._a * (self._field / self._scale),
                 self._field,
                 model='full',
                 metadata={**self._start.metadata, 'tracker_steps': self._steps},
@@ -209,7 +218,7 @@ class OnlineTracker:
             self._refused += 1
             return False
         eigenvalues = np.linalg.eigvalsh(new_a)
-        if not (eigenvalues[0] > 0.0 and eigenvalues[-1] <= MAX_CONDITION * eigenvalues[0]):
+        if not (eigenvalues[0] > 0.0 and eigenvalues[-1] <= self._max_condition * eigenvalues[0]):
             self._refused += 1
             return False
         self._a, self._beta = new_a, new_beta
