@@ -49,8 +49,9 @@ class FitOptions:
       the offset along them is extrapolated; the reason names the rotation.
     - ``max_residual_pct=5.0``: RMS of ``|corrected| - F`` in % of F. ArduPilot accepts ~3 %;
       cheap noisy sensors (BNO055) show ~2 % noise alone; a disturbed field gives far more.
-    - ``max_condition=1000``: of the fit's normalised Jacobian. Well-spread data give 2-10,
-      motion about one axis 1e5 and more (the parameters are then not determined by the data).
+    - ``max_condition=15``: of the fit's normalised Jacobian. It grows as the covered share of
+      the sphere shrinks: about 2 all round, 5 at three quarters, 10 at 60 %, 20 for a hemisphere
+      (whose unseen half is then off by over 1°), 1e5 and more for motion about one axis.
     - ``max_axis_ratio=2.0``: real soft iron stretches axes by < 1.5 (PCB-mounted sensors ~1.1);
       beyond 2 the fit describes something other than a magnetometer in a uniform field.
     - ``outlier_threshold=4.0``: robust sigmas; Gaussian noise exceeds it once in 16,000 samples.
@@ -64,7 +65,7 @@ class FitOptions:
     min_samples: int = 30
     min_coverage: float = 0.5
     max_residual_pct: float = 5.0
-    max_condition: float = 1000.0
+    max_condition: float = 15.0
     max_axis_ratio: float = 2.0
     outlier_threshold: float = 4.0
     prior: Calibration | None = None
@@ -239,12 +240,24 @@ def _fit_model(
     full = None
     if len(rows) >= 2 * PARAMETER_COUNTS['full']:
         full = fit_ellipsoid(rows, 'full', threshold)
-    if full is not None and full.condition > options.max_condition:
-        if sphere is not None:
-            return sphere, f'auto: sphere (full is not determined, condition {full.condition:.0f})'
-    if full is None or sphere is None:
-        chosen = full or sphere
-        return chosen, f'auto: {chosen.model}' if chosen else ''
+    determined = [
+        fit for fit in (sphere, full) if fit is not None and fit.condition <= options.max_condition
+    ]
+    if not determined:
+        # Nearly planar motion (a robot yawing with some tilt) determines the heading plane at
+        # least; anything thicker gets the best-conditioned 3-D fit, and the gates say what is
+        # missing.
+        chosen = None
+        if layer_thickness < 2.0 * options.planar_thickness:
+            chosen = fit_ellipsoid(rows, 'planar', threshold, prior)
+        candidates = [fit for fit in (sphere, full) if fit is not None]
+        if chosen is None and candidates:
+            chosen = min(candidates, key=lambda fit: fit.condition)
+        note = 'neither a sphere nor an ellipsoid is determined by the samples'
+        return chosen, f'auto: {chosen.model} ({note})' if chosen else ''
+    if len(determined) == 1:
+        chosen = determined[0]
+        return chosen, f'auto: {chosen.model} (condition {chosen.condition:.0f})'
     common = full.inliers  # the flexible model's inliers: a sphere must not win by discarding
     scores = {
         fit.model: information_criterion(fit.residuals[common], PARAMETER_COUNTS[fit.model])
