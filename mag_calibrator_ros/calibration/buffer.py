@@ -340,17 +340,26 @@ class SampleBuffer:
             self._refresh_all()
             return
         rows_before = slice(0, n_before)
-        # Rows that had the replaced sample as a neighbour, and rows the newcomer now enters.
-        touched = distances < self._kth[rows_before]
+        enters = distances < self._kth[rows_before]  # the newcomer is nearer than their k-th
         if slot < n_before:
-            touched |= (self._nbr_index[rows_before] == slot).any(axis=1)
-        touched[slot:slot + 1] = True
+            # Rows that lose the replaced sample as a neighbour need a fresh search.
+            lost = (self._nbr_index[rows_before] == slot).any(axis=1)
+            lost[slot] = True
+            enters &= ~lost
+            rebuild = np.flatnonzero(lost)
+        else:
+            rebuild = np.array([slot])
         self._points[slot] = x
         self._fill = n_after
-        rows = np.flatnonzero(touched)
-        if slot >= n_before:
-            rows = np.append(rows, slot)
-        self._refresh_rows(rows)
+        gain = np.flatnonzero(enters)
+        if len(gain):  # the newcomer takes the place of their farthest neighbour: O(k) each
+            farthest = self._nbr_dist[gain].argmax(axis=1)
+            self._nbr_dist[gain, farthest] = distances[gain]
+            self._nbr_index[gain, farthest] = slot
+            nearest = self._nbr_dist[gain]
+            self._kth[gain] = nearest.max(axis=1)
+            self._score[gain] = nearest.mean(axis=1)
+        self._refresh_rows(rebuild)
 
     def _remove(self, slot: int) -> None:
         """Remove the sample in ``slot``; the last sample moves into it."""
