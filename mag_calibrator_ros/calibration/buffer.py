@@ -40,9 +40,12 @@ DEFAULT_CAPACITY = 100
 that a sample costs microseconds and a fit milliseconds."""
 
 DEFAULT_K = 6
-"""The six nearest neighbours are the first ring around a point on an evenly covered sphere: the
-score then measures local crowding rather than the distance to one twin (k = 1 keeps noisy pairs
-apart but lets clusters of three in), and it stays cheap (cost grows with k per replacement)."""
+"""The six nearest neighbours are the first ring around a point on an evenly covered sphere, so
+the score measures local crowding rather than the distance to one twin. Measured (12 'strong'
+synthetic tumbles of benchmarks/scenarios.py, N = 100, a plain algebraic full fit of the buffer):
+mean direction error 0.213 / 0.210 / 0.197 / 0.215 deg for k = 2 / 4 / 6 / 8 (random 100-sample
+subsets: 0.218 deg). The differences are small; k = 6 was best and costs little (the replacement
+work grows with k)."""
 
 DEFAULT_MAGNITUDE_TOLERANCE = 0.3
 """A sample whose corrected magnitude is off the reference field by more than 30 % is a gross
