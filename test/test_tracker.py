@@ -198,8 +198,13 @@ def test_spikes_do_not_derail_it():
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
     raw[where] += directions * rng.uniform(0.5, 3.0, (60, 1)) * FIELD
     tracker = OnlineTracker(ideal_calibration(hard_iron))
-    tracker.update_many(raw)
+    converged = []
+    for sample in raw:
+        tracker.update(sample)
+        converged.append(tracker.health.converged)
     assert direction_error_rms_deg(tracker.calibration, reading, truth) < 0.5
+    assert all(converged[200:])  # spikes do not make the health flicker
+    assert tracker.health.rms_error > 0.05  # while the plain loss does see them
 
 
 @settings(max_examples=60, deadline=None)

@@ -60,6 +60,8 @@ strength itself is that wrong) only the offset is learnt."""
 HUBER_RESIDUAL = 0.05
 
 LOSS_SMOOTHING = 0.01  # EMA weight per sample: the loss is averaged over about 100 samples
+WARM_UP_LOSS_CAP = 0.3**2  # per-sample loss caps of the health averages (see OnlineTracker)
+SETTLED_LOSS_CAP = 0.1**2
 CONVERGED_RMS = 0.05  # |m| within 5 % of the field, RMS, counts as converged
 MIN_STEPS_FOR_CONVERGENCE = 100
 _MIN_NORM = 1e-3  # |m| or |v| below this gives no usable gradient direction
@@ -70,8 +72,9 @@ class TrackerHealth:
     """How the tracker is doing.
 
     ``loss``: EMA of ``(|m| - 1)^2`` (its square root is the RMS magnitude error relative to the
-    field); ``converged``: enough steps and that RMS below 5 %; ``last_step``: size of the last
-    parameter change in field units (it falls as the tracker settles).
+    field); ``converged``: enough steps and that RMS (each sample capped at 10 %, so spikes do
+    not flip it) below 5 %; ``last_step``: size of the last parameter change in field units (it
+    falls as the tracker settles).
     """
 
     steps: int
@@ -128,6 +131,10 @@ class OnlineTracker:
         self._skipped = 0
         self._refused = 0
         self._loss = math.nan
+        # The same EMA with each sample's loss capped, so spikes barely count: at 30 % error for
+        # the warm-up test (which must see gross errors), at 10 % for the convergence test.
+        self._warm_up_loss = math.nan
+        self._settled_loss = math.nan
         self._last_step = 0.0
         self._rescaled = False
         self._cached: Calibration | None = calibration
@@ -149,7 +156,8 @@ class OnlineTracker:
     def health(self) -> TrackerHealth:
         loss = self._loss if math.isfinite(self._loss) else math.inf
         converged = (
-            self._steps >= MIN_STEPS_FOR_CONVERGENCE and loss <= CONVERGED_RMS * CONVERGED_RMS
+            self._steps >= MIN_STEPS_FOR_CONVERGENCE
+            and self._settled_loss <= CONVERGED_RMS * CONVERGED_RMS
         )
         return TrackerHealth(
             steps=self._steps,
@@ -225,9 +233,9 @@ class OnlineTracker:
         self._cached = None
         self._steps += 1
         loss = residual * residual
-        self._loss = loss if not math.isfinite(self._loss) else (
-            self._loss + LOSS_SMOOTHING * (loss - self._loss)
-        )
+        self._loss = _smoothed(self._loss, loss)
+        self._warm_up_loss = _smoothed(self._warm_up_loss, min(loss, WARM_UP_LOSS_CAP))
+        self._settled_loss = _smoothed(self._settled_loss, min(loss, SETTLED_LOSS_CAP))
         self._last_step = math.hypot(np.linalg.norm(step_a), np.linalg.norm(step_beta))
         return True
 
@@ -239,10 +247,17 @@ class OnlineTracker:
     def _warming_up(self) -> bool:
         if self._steps >= WARM_UP_MAX_STEPS:
             return False
-        return not (math.isfinite(self._loss) and self._loss <= WARM_UP_RMS * WARM_UP_RMS)
+        return not self._warm_up_loss <= WARM_UP_RMS * WARM_UP_RMS
 
     def _rescale(self, norm_m: float) -> None:
         """Adopt the first sample's magnitude as the field radius (the notebook's ``norm_x``)."""
         self._scale *= norm_m
         self._beta = self._beta / norm_m
         self._rescaled = True
+
+
+def _smoothed(average: float, value: float) -> float:
+    """Exponential moving average; the first value starts it."""
+    if not math.isfinite(average):
+        return value
+    return average + LOSS_SMOOTHING * (value - average)
