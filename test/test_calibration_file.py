@@ -195,6 +195,15 @@ def test_save_keeps_permissions_and_follows_symlinks(tmp_path):
     assert real.stat().st_mode & 0o777 == 0o600
 
 
+def test_saving_onto_a_directory_gives_a_clear_error_and_leaves_no_litter(tmp_path):
+    target = tmp_path / 'taken'
+    target.mkdir()
+    with pytest.raises(CalibrationFileError, match='cannot write') as error:
+        save_calibration(target, fitted_calibration())
+    assert str(target) in str(error.value)
+    assert sorted(os.listdir(tmp_path)) == ['taken'] and target.is_dir()
+
+
 def test_an_unwritable_place_gives_a_clear_error(tmp_path):
     blocker = tmp_path / 'a_file'
     blocker.write_text('x')
