@@ -275,7 +275,7 @@ def test_planar_with_prior_keeps_the_vertical_and_corrects_heading():
     directions = yaw_directions(rng, 300)
     raw, _ = readings(directions, rng, soft, offset)
     # a prior from an earlier full calibration, with the in-plane offset since drifted by 3 µT
-    prior = Calibration(offset + [3.0, -2.0, 0.0], np.linalg.inv(soft) * FIELD, FIELD)
+    prior = Calibration(offset + [3.0, -2.0, 0.0], np.linalg.inv(soft), FIELD)
     result = fit_calibration(raw, FitOptions(model='planar', prior=prior, field_strength=FIELD))
     assert result.success, result.reason
     assert direction_error_deg(prior, directions, soft, offset) > 2.0

@@ -251,21 +251,41 @@ def _symmetric_sqrt(a: np.ndarray) -> np.ndarray | None:
 
 
 class _Geometric:
-    """Residuals and analytic Jacobian of ``|M (p - b)| - 1`` over parameters [b, M]."""
+    """Residuals and analytic Jacobian of ``|M (p - b)| - 1`` over parameters [b, upper(M)].
 
-    def __init__(self, points: np.ndarray, spherical: bool) -> None:
+    ``free`` (indices into that vector) optimises only some parameters, the others held at
+    ``base``: the planar model with a prior frees the in-plane ones.
+    """
+
+    def __init__(
+        self,
+        points: np.ndarray,
+        spherical: bool,
+        free: np.ndarray | None = None,
+        base: np.ndarray | None = None,
+    ) -> None:
         self.points = points
         self.d = points.shape[1]
         self.spherical = spherical
         self.rows, self.cols = np.triu_indices(self.d)
         self.diagonal = self.rows == self.cols
+        self.free = free
+        self.base = base
+
+    def subset(self, mask: np.ndarray) -> _Geometric:
+        return _Geometric(self.points[mask], self.spherical, self.free, self.base)
 
     def pack(self, centre: np.ndarray, matrix: np.ndarray) -> np.ndarray:
         if self.spherical:
             return np.append(centre, np.mean(np.diag(matrix)))
-        return np.concatenate([centre, matrix[self.rows, self.cols]])
+        params = np.concatenate([centre, matrix[self.rows, self.cols]])
+        return params if self.free is None else params[self.free]
 
     def unpack(self, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if self.free is not None:
+            full = self.base.copy()
+            full[self.free] = params
+            params = full
         centre = params[: self.d]
         if self.spherical:
             return centre, params[self.d] * np.eye(self.d)
@@ -291,7 +311,8 @@ class _Geometric:
         else:
             r, c = self.rows, self.cols
             d_matrix = g[:, r] * z[:, c] + np.where(self.diagonal, 0.0, 1.0) * g[:, c] * z[:, r]
-        return np.column_stack([d_centre, d_matrix])
+        jacobian = np.column_stack([d_centre, d_matrix])
+        return jacobian if self.free is None else jacobian[:, self.free]
 
 
 def robust_sigma(residuals: np.ndarray) -> float:
@@ -317,16 +338,22 @@ def _refine(
     matrix: np.ndarray,
     spherical: bool,
     outlier_threshold: float,
+    free: np.ndarray | None = None,
 ) -> _Refined:
-    """Robust soft-L1 fit from an algebraic start; outliers flagged; least squares on inliers."""
+    """Robust soft-L1 fit from an algebraic start; outliers flagged; least squares on inliers.
+
+    With ``free``, only those parameters move; the rest stay at the start's values.
+    """
     model = _Geometric(points, spherical)
+    if free is not None:
+        model = _Geometric(points, spherical, free, model.pack(centre, matrix))
     params = model.pack(centre, matrix)
     n_params = len(params)
     start_residuals = model.residuals(params)
     f_scale = robust_sigma(start_residuals)
     candidates = np.abs(start_residuals) <= max(GROSS_OUTLIER_SIGMAS, outlier_threshold) * f_scale
     if candidates.sum() > n_params:
-        subset = _Geometric(points[candidates], spherical)
+        subset = model.subset(candidates)
         robust = least_squares(
             subset.residuals, params, jac=subset.jacobian, loss='soft_l1', f_scale=f_scale,
             method='trf', x_scale=1.0, max_nfev=50,
@@ -335,14 +362,14 @@ def _refine(
     residuals = model.residuals(params)
     inliers = np.abs(residuals) <= outlier_threshold * robust_sigma(residuals[candidates])
     if inliers.sum() > n_params:
-        inlier_model = _Geometric(points[inliers], spherical)
+        inlier_model = model.subset(inliers)
         final = least_squares(
             inlier_model.residuals, params, jac=inlier_model.jacobian, method='lm', max_nfev=100
         )
         params = _better(model, params, final.x)
         residuals = model.residuals(params)
         inliers = np.abs(residuals) <= outlier_threshold * robust_sigma(residuals[inliers])
-    jacobian = _Geometric(points[inliers], spherical).jacobian(params)
+    jacobian = model.subset(inliers).jacobian(params)
     condition, std = _condition_and_std(jacobian, residuals[inliers])
     fitted_centre, fitted_matrix = model.unpack(params)
     return _Refined(fitted_centre, fitted_matrix, residuals, inliers, condition, std)
@@ -478,15 +505,24 @@ def _fit_planar(
     outlier_threshold: float,
     prior: tuple[np.ndarray, np.ndarray] | None,
 ) -> EllipsoidFit | None:
-    """2-D ellipse in the plane of the data, fitted in the prior's corrected frame.
+    """Motion in one plane: fit what it determines, in the prior's corrected frame.
 
-    The prior (identity without one) corrects the points first; the fit then only adds an in-plane
-    correction (area-preserving shape, in-plane centre) and leaves the normal direction as the
-    prior had it. Without a prior the offset along the normal is the data's mean there, so the
-    corrected field lies in the plane: heading is right, the vertical component is unknown.
+    The prior (identity without one) corrects the points first. Without a prior a 2-D ellipse is
+    fitted in the plane of the data (area-preserving shape and in-plane centre) and the offset
+    along the normal is the data's mean there: the corrected field lies in the plane, heading is
+    right, the vertical component is unknown. With a prior the 3-D residual is minimised with only
+    the in-plane parameters free, so the normal terms stay the prior's and tilts taken while
+    turning (which change the horizontal field by tan(inclination) x tilt: 5 % for ±3° at 60°)
+    are explained instead of counted as error.
     """
     prior_offset, prior_matrix = prior if prior is not None else (np.zeros(3), np.eye(3))
     u = (points - prior_offset) @ prior_matrix.T
+    if prior is not None:  # unit radius on these data, whatever the prior's scale or units
+        radius = float(np.median(np.linalg.norm(u, axis=1)))
+        if not (np.isfinite(radius) and radius > 0):
+            return None
+        prior_matrix = prior_matrix / radius
+        u = u / radius
     norm = normalise(u)
     if norm is None:
         return None
@@ -496,8 +532,29 @@ def _fit_planar(
         basis[:, 2] = -basis[:, 2]
     if basis[np.argmax(np.abs(basis[:, 2])), 2] < 0:  # normal toward its nearest body axis (+z...)
         basis[:, [1, 2]] = -basis[:, [1, 2]]
-    normal = basis[:, 2]
-    in_plane = y @ basis[:, :2]
+    w = y @ basis  # plane coordinates, normal last
+    flat = _fit_ellipse_2d(w[:, :2], outlier_threshold)
+    if flat is None:
+        return None
+    if prior is not None:
+        prior_normal = float(basis[:, 2] @ (-norm.centre / norm.scale))
+        in_3d = _planar_in_3d(w, norm.scale, prior_normal, flat, outlier_threshold)
+        if in_3d is not None:
+            return _planar_result(points, in_3d, basis, norm, prior_offset, prior_matrix, False)
+    block = np.eye(3)
+    block[:2, :2] = flat.matrix / np.sqrt(np.linalg.det(flat.matrix))  # shape; scale set below
+    if prior is not None:
+        normal_offset = float(basis[:, 2] @ (-norm.centre / norm.scale))
+    else:
+        normal_offset = float(np.mean(w[flat.inliers, 2]))
+    rotated = _Refined(
+        np.append(flat.centre, normal_offset), block, flat.residuals, flat.inliers,
+        flat.condition, flat.std,
+    )  # fmt: skip
+    return _planar_result(points, rotated, basis, norm, prior_offset, prior_matrix, True)
+
+
+def _fit_ellipse_2d(in_plane: np.ndarray, outlier_threshold: float) -> _Refined | None:
     start = trimmed_start(in_plane, quadric_least_squares, outlier_threshold)
     if start is None:
         start = trimmed_start(in_plane, _sphere_start, outlier_threshold)
@@ -508,39 +565,76 @@ def _fit_planar(
             return None
         start = (centre, np.eye(2) / radius)
     fitted = _refine(in_plane, start[0], start[1], False, outlier_threshold)
-    det_2d = float(np.linalg.det(fitted.matrix))
-    if not det_2d > 0:
+    return fitted if np.linalg.det(fitted.matrix) > 0 else None
+
+
+_IN_PLANE = np.array([0, 1, 3, 4, 6])
+"""Parameters [b_u, b_v, M_uu, M_uv, M_vv] of the 3-D model in the plane's frame (normal last)."""
+
+
+def _planar_in_3d(
+    w: np.ndarray, scale: float, prior_normal: float, flat: _Refined, outlier_threshold: float
+) -> _Refined | None:
+    """3-D residual, in-plane parameters free, the rest at the prior (``s I`` centred on it)."""
+    centre = np.append(flat.centre, prior_normal)
+    vertical = scale * (w[flat.inliers, 2] - prior_normal)
+    horizontal_share = np.sqrt(max(1.0 - float(np.mean(vertical**2)), 0.05))
+    matrix = scale * np.eye(3)
+    matrix[:2, :2] = flat.matrix * horizontal_share
+    refined = _refine(w, centre, matrix, False, outlier_threshold, free=_IN_PLANE)
+    if np.linalg.eigvalsh(refined.matrix).min() <= 0:
         return None
-    block = np.eye(3)
-    block[:2, :2] = fitted.matrix / np.sqrt(det_2d)  # shape only: the prior keeps the scale
-    if prior is not None:
-        normal_offset = float(-norm.centre @ normal / norm.scale)  # unchanged from the prior
-    else:
-        normal_offset = float(np.mean((y @ normal)[fitted.inliers]))
-    centre_u = norm.centre + norm.scale * (basis[:, :2] @ fitted.centre + normal * normal_offset)
-    correction = basis @ block @ basis.T
-    matrix = correction @ prior_matrix
+    std = None
+    if refined.std is not None:  # in-plane offset in normalised units, matrix relative to s
+        std = np.concatenate([refined.std[:2], refined.std[2:] / scale])
+    return _Refined(
+        refined.centre, refined.matrix, refined.residuals, refined.inliers, refined.condition, std
+    )
+
+
+def _planar_result(
+    points: np.ndarray,
+    rotated: _Refined,
+    basis: np.ndarray,
+    norm: Normalisation,
+    prior_offset: np.ndarray,
+    prior_matrix: np.ndarray,
+    rescale: bool,
+) -> EllipsoidFit | None:
+    """From the plane's normalised frame back to input units, through the prior's correction."""
+    centre_u = norm.centre + norm.scale * (basis @ rotated.centre)
+    correction = basis @ rotated.matrix @ basis.T / norm.scale
+    matrix = _symmetric_polar_factor(correction @ prior_matrix)
     offset = prior_offset + np.linalg.solve(prior_matrix, centre_u)
-    magnitudes = np.linalg.norm((points[fitted.inliers] - offset) @ matrix.T, axis=1)
-    scale = float(np.mean(magnitudes)) if magnitudes.size else 0.0
-    if not scale > 0:
-        return None
-    matrix = matrix / scale
+    if rescale:  # unit radius on the data (2-D: the corrected field lies in the plane)
+        magnitudes = np.linalg.norm((points[rotated.inliers] - offset) @ matrix.T, axis=1)
+        mean = float(np.mean(magnitudes)) if magnitudes.size else 0.0
+        if not mean > 0:
+            return None
+        matrix = matrix / mean
     if not (np.all(np.isfinite(offset)) and np.all(np.isfinite(matrix))):
         return None
     std = None
-    if fitted.std is not None and np.all(np.isfinite(fitted.std)):
+    if rotated.std is not None and np.all(np.isfinite(rotated.std)):
         std = {
-            'offset_in_plane': (fitted.std[:2] * norm.scale).tolist(),
-            'matrix_in_plane_relative': fitted.std[2:].tolist(),  # of the unit-radius shape
+            'offset_in_plane': (rotated.std[:2] * norm.scale).tolist(),
+            'matrix_in_plane_relative': rotated.std[2:].tolist(),
         }
-    unit_in_plane = (in_plane - fitted.centre) @ fitted.matrix
-    headings = np.arctan2(unit_in_plane[:, 1], unit_in_plane[:, 0])
+    w = norm.forward((points - prior_offset) @ prior_matrix.T) @ basis
+    unit = (w - rotated.centre) @ rotated.matrix
     return EllipsoidFit(
-        'planar', offset, matrix, fitted.residuals, fitted.inliers, fitted.condition,
-        _radius(matrix), _ratio(fitted.matrix), std, unobserved=('offset_normal', 'matrix_normal'),
-        plane_normal=normal, headings=headings,
+        'planar', offset, matrix, rotated.residuals, rotated.inliers, rotated.condition,
+        _radius(matrix), _ratio(rotated.matrix[:2, :2]), std,
+        unobserved=('offset_normal', 'matrix_normal'), plane_normal=basis[:, 2],
+        headings=np.arctan2(unit[:, 1], unit[:, 0]),
     )  # fmt: skip
+
+
+def _symmetric_polar_factor(matrix: np.ndarray) -> np.ndarray:
+    """P of M = R P: the same magnitudes |M v| = |P v|, without M's rotation (the symmetric
+    convention every calibration here uses; a prior times a correction is not symmetric)."""
+    _, singular, vt = np.linalg.svd(matrix)
+    return (vt.T * singular) @ vt
 
 
 def information_criterion(residuals: np.ndarray, n_params: int) -> float:
