@@ -514,3 +514,57 @@ def test_random_ellipsoids_are_recovered(
     assert direction_error_deg(result.calibration, directions, soft, offset, field) < 0.3
     assert set(spiked) <= set(np.flatnonzero(result.outliers))
     assert result.metrics.residual_rms_pct < 1.0
+
+
+# ----------------------------------------------------------------------------------------------
+# harder data
+
+
+def test_planar_with_prior_explains_tilts_taken_while_turning():
+    """±5° of tilt at 60° inclination changes the horizontal field by ~±9 %; not an error."""
+    rng = np.random.default_rng(38)
+    soft, offset = soft_iron(rng), np.array([-40.0, 90.0, 20.0])
+    heading = rng.uniform(0, 2 * np.pi, 400)
+    inclination = np.radians(60.0 + rng.uniform(-5.0, 5.0, 400))
+    directions = np.column_stack(
+        [np.cos(inclination) * np.cos(heading), np.cos(inclination) * np.sin(heading),
+         -np.sin(inclination)]
+    )  # fmt: skip
+    raw, _ = readings(directions, rng, soft, offset)
+    prior = Calibration(offset + [2.0, 3.0, 0.0], np.linalg.inv(soft) * 1e3, FIELD * 1e3)
+    result = fit_calibration(raw, FitOptions(model='planar', prior=prior))
+    assert result.success, result.reason
+    assert result.metrics.residual_rms_pct < 1.0  # the noise, not the tilts
+    assert direction_error_deg(result.calibration, directions, soft, offset) < 0.3
+    flat = fit_calibration(raw, FitOptions(model='planar'))
+    assert flat.metrics.residual_rms_pct > 3.0  # without a prior the tilts look like error
+
+
+def test_a_quarter_of_spikes_is_survived():
+    """A buffer that keeps far-out samples can hold this many spikes (0.3-2 F, any direction)."""
+    rng = np.random.default_rng(39)
+    soft, offset = soft_iron(rng), np.array([280.0, -120.0, 60.0])
+    directions = unit_vectors(rng, 100)
+    raw, _ = readings(directions, rng, soft, offset, noise=0.5)
+    spiked = rng.choice(100, 25, replace=False)
+    kicks = rng.normal(size=(25, 3))
+    kicks *= rng.uniform(0.3, 2.0, (25, 1)) * FIELD / np.linalg.norm(kicks, axis=1, keepdims=True)
+    raw[spiked] += kicks
+    result = fit_calibration(raw, FitOptions(model='full'))
+    assert result.success, result.reason
+    assert direction_error_deg(result.calibration, directions, soft, offset) < 0.6
+    # a spike along the sphere's surface is invisible (and harmless); any 10 sigma off it is caught
+    radial = np.abs(np.linalg.norm((raw - offset) @ np.linalg.inv(soft).T, axis=1) / FIELD - 1)
+    assert set(np.flatnonzero(radial > 0.1)) <= set(np.flatnonzero(result.outliers))
+    assert result.metrics.outlier_count <= 25
+
+
+def test_a_hemisphere_does_not_determine_a_full_ellipsoid():
+    rng = np.random.default_rng(40)
+    directions = unit_vectors(rng, 3000)
+    upper = directions[directions[:, 2] > 0.0][:300]
+    raw, _ = readings(upper, rng, soft_iron(rng), np.array([50.0, 0.0, 0.0]))
+    full = fit_calibration(raw, FitOptions(model='full'))
+    assert not full.success
+    assert 'ill-conditioned' in full.reason
+    assert fit_calibration(raw).metrics.model != 'full'
