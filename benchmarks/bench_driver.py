@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import random
 import subprocess
@@ -50,19 +51,21 @@ def _driver_process(duration_s: float, error_rate: float, outage: bool) -> int:
     ])
     executor = SingleThreadedExecutor()
     executor.add_node(node)
+    go = threading.Event()  # the parent says GO once its subscriber receives our messages
+    threading.Thread(target=lambda: (sys.stdin.readline(), go.set()), daemon=True).start()
     print('READY', flush=True)
-    start_wall = time.monotonic()
-    measure_from = start_wall + WARMUP_S
-    stop_at = measure_from + duration_s
+    measure_from = time.monotonic() + WARMUP_S
+    stop_at = math.inf
     outage_start_ros = None
     cpu0 = wall0 = None
     while True:
         now = time.monotonic()
         if now >= stop_at:
             break
-        if cpu0 is None and now >= measure_from:
+        if cpu0 is None and now >= measure_from and go.is_set():
             cpu0, wall0 = time.process_time(), now
             published0 = node.published
+            measure_from, stop_at = now, now + duration_s
         if outage and outage_start_ros is None and now >= measure_from + OUTAGE_AT_S:
             outage_start_ros = time.time()
             node.simulator.start_outage(OUTAGE_S)
@@ -135,10 +138,12 @@ def run_scenario(sink: _Sink, name: str, duration_s: float, error_rate: float = 
                  outage: bool = False) -> dict:
     command = [sys.executable, __file__, '--driver-process', '--duration', str(duration_s),
                '--error-rate', str(error_rate)] + (['--outage'] if outage else [])
-    child = subprocess.Popen(command, stdout=subprocess.PIPE, text=True)
+    child = subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     assert child.stdout.readline().strip() == 'READY', 'driver process failed to start'
-    sink.take()
-    output, _ = child.communicate(timeout=duration_s + 60)
+    deadline = time.monotonic() + 30.0
+    while len(sink.take()) == 0 and time.monotonic() < deadline:  # DDS discovery done
+        time.sleep(0.1)
+    output, _ = child.communicate('GO\n', timeout=duration_s + 90)
     if child.returncode != 0:
         raise RuntimeError(f'{name}: driver process exited {child.returncode}')
     result = json.loads(next(line for line in output.splitlines()
@@ -153,6 +158,7 @@ def run_scenario(sink: _Sink, name: str, duration_s: float, error_rate: float = 
         'received': len(stamps),
         'published': result['published'],
         'rate_hz': len(stamps) / window,
+        'node_rate_hz': result['published'] / window,
         'interval_ms': float(np.mean(intervals)) if len(intervals) else float('nan'),
         'jitter_ms': float(np.std(intervals)) if len(intervals) else float('nan'),
         'p99_ms': float(np.percentile(intervals, 99)) if len(intervals) else float('nan'),
@@ -175,7 +181,8 @@ def run_scenario(sink: _Sink, name: str, duration_s: float, error_rate: float = 
 
 
 def print_table(rows: list[dict]) -> None:
-    columns = [('scenario', '{}'), ('rate_hz', '{:.2f}'), ('interval_ms', '{:.2f}'),
+    columns = [('scenario', '{}'), ('rate_hz', '{:.2f}'), ('node_rate_hz', '{:.2f}'),
+               ('interval_ms', '{:.2f}'),
                ('jitter_ms', '{:.2f}'), ('p99_ms', '{:.1f}'), ('max_gap_ms', '{:.0f}'),
                ('cpu_pct', '{:.1f}'), ('i2c_errors', '{}'), ('reinits', '{}'),
                ('overruns', '{}'), ('recovery_s', '{:.2f}')]
@@ -210,8 +217,9 @@ def main() -> int:
     finally:
         sink.close()
     print(f'\nicm20948_driver, sim backend, requested {RATE_HZ} Hz, ROS_DOMAIN_ID '
-          f"{os.environ['ROS_DOMAIN_ID']} (rate from header stamps; outage row: rate outside "
-          f'the outage, recovery = first stamp after the device is back)\n')
+          f"{os.environ['ROS_DOMAIN_ID']}. rate_hz: received, from header stamps (outage row: "
+          f'outside the outage); node_rate_hz: published by the node over the whole window; '
+          f'recovery = first stamp after the device is back.\n')
     print_table(rows)
     outage_row = rows[2]
     print(f"\nmessages stamped inside the outage: {outage_row.get('in_outage')}")
