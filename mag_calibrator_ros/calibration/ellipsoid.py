@@ -207,13 +207,15 @@ def trimmed_start(
         return None
     centre, matrix = np.zeros(d), np.eye(d)
     best = None
-    kept = np.zeros(0, dtype=int)
-    for _ in range(10):
+    kept = np.zeros(len(points), dtype=bool)
+    for _ in range(8):
         residuals = np.abs(np.linalg.norm((points - centre) @ matrix, axis=1) - 1.0)
-        new_kept = np.sort(np.argpartition(residuals, n_kept - 1)[:n_kept])
-        if np.array_equal(new_kept, kept):
-            break
+        new_kept = np.zeros(len(points), dtype=bool)
+        new_kept[np.argpartition(residuals, n_kept - 1)[:n_kept]] = True
+        settled = np.count_nonzero(new_kept != kept) <= max(2, len(points) // 50)
         kept = new_kept
+        if settled and best is not None:
+            break
         fitted = algebraic(points[kept])
         if fitted is None or _ratio(fitted[1]) > 10.0:
             break
