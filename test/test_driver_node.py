@@ -25,9 +25,12 @@ from mag_calibrator_ros.nodes.icm20948_driver import (
 
 @pytest.fixture(scope='module', autouse=True)
 def ros():
-    rclpy.init()
+    owner = not rclpy.ok()  # another module may already hold the default context
+    if owner:
+        rclpy.init()
     yield
-    rclpy.try_shutdown()
+    if owner:
+        rclpy.try_shutdown()
 
 
 class Harness:
