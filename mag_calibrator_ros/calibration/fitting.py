@@ -97,7 +97,21 @@ class FitOptions:
 
 @dataclass(frozen=True)
 class FitMetrics:
-    """How good a fit is. Residuals are ``|corrected|/F - 1`` over the inliers, in percent."""
+    """How good a fit is; every number finite (inf stands as the largest float).
+
+    - residuals: ``|corrected|/F - 1`` over the inliers, in percent (for ``planar`` without a
+      prior: of the in-plane field).
+    - ``n_samples``: finite rows used; ``n_non_finite``: rows dropped for NaN/Inf.
+    - ``coverage``: share of the 80 direction cells (3-D models) or of the 36 heading sectors
+      (``planar``); ``coverage_hint`` the rotation still missing ('' when complete).
+    - ``condition_number``: of the final normalised Jacobian (see FitOptions.max_condition).
+    - ``mean_radius``: volume-equivalent radius of the fitted ellipsoid, input units (the output F
+      when ``field_strength`` is None).
+    - ``axis_ratio``: longest over shortest semi-axis (in the plane for ``planar``).
+    - ``parameter_std``: 1-sigma of the output ``offset`` (input units) and ``matrix`` (row-major)
+      from the Jacobian; for ``planar`` ``offset_in_plane`` and the relative in-plane shape.
+    - ``unobserved``: what the data could not determine (``planar``: the normal terms).
+    """
 
     model: str
     n_samples: int
@@ -320,11 +334,11 @@ def _judge(
         coverage_hint=coverage.hint,
     )
     if calibration is not None:
-        extra = (
-            {'plane_normal': fitted.plane_normal.tolist()}
-            if fitted.plane_normal is not None
-            else {}
-        )
+        extra: dict[str, Any] = {}
+        if fitted.plane_normal is not None:
+            extra['plane_normal'] = fitted.plane_normal.tolist()
+        if fitted.unobserved:
+            extra['unobserved'] = list(fitted.unobserved)
         calibration = calibration.with_metadata(
             residual_rms_pct=residual_rms,
             coverage=float(coverage.fraction),
