@@ -13,11 +13,14 @@ Models (all fits return an :class:`EllipsoidFit`):
   ellipsoid, 6 parameters), kept as the reference design: algebraic only, no robust refinement, so
   it measures the method.
 - ``full``: hard iron + symmetric soft iron (9 parameters), quadric least-squares start.
-- ``planar``: motion confined to a plane (a ground robot yawing): 2-D ellipse in the plane of the
-  data; the offset and soft iron along the plane normal are held at the prior (or the data's mean /
-  the in-plane scale) and reported as unobserved.
+- ``planar``: motion confined to a plane (a ground robot yawing). Without a prior: a 2-D ellipse in
+  the plane of the data, the offset along the normal at the data's mean. With a prior: the 3-D
+  residual with only the in-plane parameters free. Either way the normal terms are reported as
+  unobserved.
 
-The geometric refinement minimises a robust loss (soft-L1) of ``e = |M (y - b)| - 1`` with an
+Algebraic starts are least trimmed squares (fitted to the 60 % of points nearest the current
+surface, repeated until that set settles), so even a buffer holding many spikes starts well. The
+geometric refinement then minimises a robust loss (soft-L1) of ``e = |M (y - b)| - 1`` with an
 analytic Jacobian, flags residuals beyond ``outlier_threshold`` robust sigmas and refits the
 inliers by plain least squares (efficient for Gaussian noise).
 """
