@@ -181,9 +181,9 @@ def test_outage_stops_output_then_recovers(harness_factory):
     assert h.spin_until(lambda: len(h.messages) >= 20)
     clock = h.node.get_clock()
     outage_start = clock.now().nanoseconds * 1e-9
-    h.node.simulator.start_outage(1.0)
-    outage_end = outage_start + 1.0
-    h.spin(1.0)
+    h.node.simulator.start_outage(1.5)  # > 1 s, so a 1 Hz diagnostics tick falls inside it
+    outage_end = outage_start + 1.5
+    h.spin(1.5)
     assert h.spin_until(lambda: h.node.reinitialisations >= 1 and
                         h.stamps()[-1] > outage_end, limit_s=10.0)
     stamps = h.stamps()
