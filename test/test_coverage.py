@@ -164,3 +164,16 @@ def test_heading_coverage_counts_sectors_and_names_the_turn():
     assert 'yaw axis (z)' in coverage.hint and '180°' in coverage.hint
     complete = heading_coverage(np.linspace(-np.pi, np.pi, 400), np.array([0.0, 0.0, 1.0]))
     assert complete.fraction == 1.0 and complete.hint == ''
+
+
+def test_spikes_do_not_count_as_directions():
+    """A yawing sensor with a fifth of its samples spiked still lacks roll and pitch."""
+    rng = np.random.default_rng(11)
+    raw = distorted(rotation_about(2, rng.uniform(0, 2 * np.pi, 400)), rng)
+    spiked = rng.choice(len(raw), 80, replace=False)
+    kicks = rng.normal(size=(80, 3))
+    raw[spiked] += kicks / np.linalg.norm(kicks, axis=1, keepdims=True) * FIELD * 1.5
+    clean = direction_coverage(np.delete(raw, spiked, axis=0))
+    coverage = direction_coverage(raw)
+    assert coverage.occupied <= clean.occupied + 4
+    assert 'roll axis (x)' in coverage.hint and 'yaw' not in coverage.hint

@@ -22,7 +22,13 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from mag_calibrator_ros.calibration.calibration import Calibration
-from mag_calibrator_ros.calibration.ellipsoid import normalise, quadric_least_squares
+from mag_calibrator_ros.calibration.ellipsoid import (
+    GROSS_OUTLIER_SIGMAS,
+    normalise,
+    quadric_least_squares,
+    robust_sigma,
+    trimmed_start,
+)
 
 BAND_CELLS = (1, 6, 11, 14, 16, 14, 11, 6, 1)
 """Cells per zonal band, north to south. Band height in z is proportional to its cell count, so
@@ -37,6 +43,7 @@ AXIS_NAMES = ('roll axis (x)', 'pitch axis (y)', 'yaw axis (z)')
 _BAND_EDGES = 1.0 - 2.0 * np.cumsum((0,) + BAND_CELLS) / CELL_COUNT  # z from +1 down to -1
 _BAND_FIRST_CELL = np.cumsum((0,) + BAND_CELLS)[:-1]
 _REACH_DEG = 12.0
+_WHITENING_OUTLIER_SIGMAS = 4.0
 _MAX_WHITENING_RATIO = 3.0
 """A whitening that stretches one axis more than 3x the others is not soft iron (real ratios are <
 1.5) but a plane of data: stretching its noise would fake coverage."""
@@ -96,8 +103,8 @@ def finite_rows(samples: ArrayLike) -> np.ndarray:
 def whitened_directions(samples: ArrayLike, calibration: Calibration | None = None) -> np.ndarray:
     """Unit field directions (m, 3) in the sensor frame after centring and whitening.
 
-    With a calibration: its corrected directions. Without: a quick algebraic ellipsoid fit when it
-    is plausible, else the median centre and a covariance whitening bounded to ratio 3.
+    With a calibration: its corrected directions. Without: a quick trimmed algebraic ellipsoid fit
+    when it is plausible, else the median centre and a covariance whitening bounded to ratio 3.
     """
     points = finite_rows(samples)
     if len(points) == 0:
@@ -109,32 +116,43 @@ def whitened_directions(samples: ArrayLike, calibration: Calibration | None = No
             vectors = _quick_whiten(points)
         peak = np.max(np.abs(vectors), axis=1, keepdims=True)  # no overflow in the norm
         keep = np.isfinite(peak[:, 0]) & (peak[:, 0] > 0)
-        vectors = vectors[keep] / peak[keep]
-        return vectors / np.linalg.norm(vectors, axis=1, keepdims=True)
+        vectors, peak = vectors[keep] / peak[keep], peak[keep, 0]
+        radius = np.linalg.norm(vectors, axis=1) * peak
+        vectors = vectors / np.linalg.norm(vectors, axis=1, keepdims=True)
+        if len(radius) == 0:
+            return vectors
+        # spikes are no field direction: leave out gross radius outliers (> 10 sigma, > 10 %)
+        deviation = radius / np.median(radius) - 1.0
+        return vectors[
+            np.abs(deviation) <= max(GROSS_OUTLIER_SIGMAS * robust_sigma(deviation), 0.1)
+        ]
 
 
 def _quick_whiten(points: np.ndarray) -> np.ndarray:
+    """Centred, whitened vectors without a calibration.
+
+    A trimmed algebraic ellipsoid (spikes do not move it) when plausible, else the median centre
+    and a bounded covariance whitening.
+    """
     norm = normalise(points)
     if norm is None:
         return np.empty((0, 3))
-    y = norm.forward(points)
+    y = norm.forward(points)  # the median is at the origin
     with np.errstate(all='ignore'):
-        if len(y) >= 10:
-            try:
-                start = quadric_least_squares(y)
-            except (np.linalg.LinAlgError, ValueError):
-                start = None
-            if start is not None:
-                eigenvalues = np.linalg.eigvalsh(start[1])
-                if eigenvalues.max() <= _MAX_WHITENING_RATIO * eigenvalues.min():
-                    return (y - start[0]) @ start[1]
-        centre = np.mean(y, axis=0)
+        try:
+            start = trimmed_start(y, quadric_least_squares, _WHITENING_OUTLIER_SIGMAS)
+        except (np.linalg.LinAlgError, ValueError):
+            start = None
+        if start is not None:
+            eigenvalues = np.linalg.eigvalsh(start[1])
+            if eigenvalues.max() <= _MAX_WHITENING_RATIO * eigenvalues.min():
+                return (y - start[0]) @ start[1]
         if len(y) < 4:
-            return y - centre
+            return y
         eigenvalues, vectors = np.linalg.eigh(np.cov(y, rowvar=False))
         floor = eigenvalues.max() / _MAX_WHITENING_RATIO**2
         scales = 1.0 / np.sqrt(np.maximum(eigenvalues, max(floor, 1e-300)))
-        return (y - centre) @ (vectors * scales) @ vectors.T
+        return y @ (vectors * scales) @ vectors.T
 
 
 def occupied_cells(directions: np.ndarray) -> np.ndarray:
