@@ -175,5 +175,7 @@ def test_spikes_do_not_count_as_directions():
     raw[spiked] += kicks / np.linalg.norm(kicks, axis=1, keepdims=True) * FIELD * 1.5
     clean = direction_coverage(np.delete(raw, spiked, axis=0))
     coverage = direction_coverage(raw)
-    assert coverage.occupied <= clean.occupied + 4
+    # a few spikes land back on the sphere and look like field readings; the rest must not count
+    assert coverage.occupied <= clean.occupied + 8
+    assert coverage.fraction < 0.35
     assert 'roll axis (x)' in coverage.hint and 'yaw' not in coverage.hint
