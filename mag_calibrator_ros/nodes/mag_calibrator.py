@@ -50,6 +50,12 @@ from mag_calibrator_ros.nodes.runtime import spin_node
 NODE_NAME = 'mag_calibrator'
 DEFAULT_CALIBRATION_FILE = '~/.ros/mag_calibrator/calibration.yaml'
 DIAGNOSTICS_PERIOD_S = 1.0
+INPUT_QOS = QoSProfile(
+    history=qos_profile_sensor_data.history,
+    depth=100,  # sensor-data QoS (best effort, REP-2003) with room for bursts at 1 kHz
+    reliability=qos_profile_sensor_data.reliability,
+    durability=qos_profile_sensor_data.durability,
+)
 DEFAULTS = SessionSettings()
 
 
@@ -141,7 +147,7 @@ class MagCalibratorNode(Node):
         self._publisher = self.create_publisher(
             MagneticField, 'imu/mag_corrected', QoSProfile(depth=10)
         )
-        self.create_subscription(MagneticField, 'imu/mag', self._on_mag, qos_profile_sensor_data)
+        self.create_subscription(MagneticField, 'imu/mag', self._on_mag, INPUT_QOS)
         self.create_service(Trigger, '~/calibrate', self._on_calibrate)
         self.create_service(Trigger, '~/save', self._on_save)
         self.create_service(Trigger, '~/reset', self._on_reset)

@@ -1,0 +1,461 @@
+"""mag_calibrator node over real rclpy/DDS: simulated driver -> calibrator -> services -> topic.
+
+One rclpy context per module (domain from conftest, discovery on localhost); every node spins on
+its own background thread (NodeThreads: Jazzy's MultiThreadedExecutor starves under this load);
+each test has its own namespace, so streams never mix.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+import math
+from pathlib import Path
+import threading
+import time
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from mag_calibrator_ros.calibration.calibration_file import load_calibration
+import numpy as np
+import pytest
+from rcl_interfaces.srv import SetParameters
+import rclpy
+from rclpy.context import Context
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import MagneticField
+from std_srvs.srv import Trigger
+import yaml
+
+from mag_calibrator_ros.nodes.icm20948_driver import Icm20948DriverNode
+from mag_calibrator_ros.nodes.mag_calibrator import MagCalibratorNode
+from mag_calibrator_ros.tools.demo import NodeThreads
+
+HARD_IRON_UT = [120.0, -80.0, 60.0]
+SOFT_IRON = [1.15, 0.10, -0.08, 0.10, 0.85, 0.12, -0.08, 0.12, 1.00]  # strong, symmetric
+WAIT_S = 20.0
+
+
+def wait_for(condition: Callable[[], bool], timeout_s: float = WAIT_S, step_s: float = 0.05
+             ) -> bool:
+    """Poll ``condition`` until true or ``timeout_s`` (a bound on waiting, not an assertion)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(step_s)
+    return condition()
+
+
+class Ros:
+    """One context for the module; every node spins on its own thread (see NodeThreads)."""
+
+    def __init__(self) -> None:
+        self.context = Context()
+        rclpy.init(args=[], context=self.context)
+        self.spinning = NodeThreads(self.context)
+
+    def add(self, node: Node) -> Node:
+        return self.spinning.add(node)
+
+    def remove(self, node: Node) -> None:
+        self.spinning.remove(node)
+
+    def calibrator(self, namespace: str, **parameters) -> MagCalibratorNode:
+        overrides = [Parameter(name, value=value) for name, value in parameters.items()]
+        return self.add(MagCalibratorNode(
+            namespace=namespace, context=self.context, parameter_overrides=overrides))
+
+    def driver(self, namespace: str, **parameters) -> Icm20948DriverNode:
+        values = {'backend': 'sim', 'rate_hz': 100, **parameters}
+        overrides = [Parameter(name, value=value) for name, value in values.items()]
+        return self.add(Icm20948DriverNode(
+            namespace=namespace, context=self.context, parameter_overrides=overrides))
+
+    def close(self) -> None:
+        self.spinning.shutdown()
+        rclpy.try_shutdown(context=self.context)
+
+
+class Probe(Node):
+    """A user of the calibrator: raw publisher, corrected subscriber, service clients."""
+
+    def __init__(self, ros: Ros, namespace: str) -> None:
+        super().__init__('probe', namespace=namespace, context=ros.context)
+        self._lock = threading.Lock()
+        self.raw: dict[tuple[int, int], np.ndarray] = {}
+        self.corrected: list[MagneticField] = []
+        self.diagnostics: list[DiagnosticStatus] = []
+        self.publisher = self.create_publisher(MagneticField, 'imu/mag', 10)
+        self.create_subscription(MagneticField, 'imu/mag', self._on_raw, 100)
+        self.create_subscription(MagneticField, 'imu/mag_corrected', self._on_corrected, 100)
+        self.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 10)
+        ros.add(self)
+
+    def _on_raw(self, msg: MagneticField) -> None:
+        with self._lock:
+            self.raw[(msg.header.stamp.sec, msg.header.stamp.nanosec)] = vector(msg)
+
+    def _on_corrected(self, msg: MagneticField) -> None:
+        with self._lock:
+            self.corrected.append(msg)
+
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        with self._lock:
+            self.diagnostics.extend(msg.status)
+
+    def take_corrected(self) -> list[MagneticField]:
+        with self._lock:
+            taken, self.corrected = self.corrected, []
+        return taken
+
+    def raw_for(self, msg: MagneticField) -> np.ndarray | None:
+        with self._lock:
+            return self.raw.get((msg.header.stamp.sec, msg.header.stamp.nanosec))
+
+    def statuses(self, name_part: str) -> list[DiagnosticStatus]:
+        with self._lock:
+            return [s for s in self.diagnostics if name_part in s.name]
+
+    def call(self, service: str) -> Trigger.Response:
+        client = self.create_client(Trigger, service)
+        assert client.wait_for_service(timeout_sec=WAIT_S), f'{service} not available'
+        future = client.call_async(Trigger.Request())
+        assert wait_for(future.done), f'{service} did not answer'
+        self.destroy_client(client)
+        return future.result()
+
+    def send(self, field_t, sec: int, nanosec: int = 0, frame_id: str = 'imu_link',
+             covariance=None) -> None:
+        msg = MagneticField()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
+        msg.header.frame_id = frame_id
+        msg.magnetic_field.x, msg.magnetic_field.y, msg.magnetic_field.z = (
+            float(v) for v in field_t)
+        if covariance is not None:
+            msg.magnetic_field_covariance = np.asarray(covariance, dtype=float).reshape(9)
+        self.publisher.publish(msg)
+
+    def connected_to(self, calibrator: Node) -> bool:
+        return (self.publisher.get_subscription_count() >= 1
+                and self.count_publishers(
+                    calibrator.resolve_topic_name('imu/mag_corrected')) >= 1)
+
+
+def vector(msg: MagneticField) -> np.ndarray:
+    return np.array([msg.magnetic_field.x, msg.magnetic_field.y, msg.magnetic_field.z])
+
+
+def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    cosine = float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)))
+    return math.degrees(math.acos(min(1.0, max(-1.0, cosine))))
+
+
+@pytest.fixture(scope='module')
+def ros():
+    ros = Ros()
+    yield ros
+    ros.close()
+
+
+@pytest.fixture(scope='module')
+def live(ros, tmp_path_factory):
+    """Sim driver with strong hard and soft iron -> calibrator, calibrated through ~/calibrate."""
+    namespace = 'live'
+    calibration_file = tmp_path_factory.mktemp('live') / 'sub' / 'calibration.yaml'
+    driver = ros.driver(namespace, **{
+        'sim.hard_iron_ut': HARD_IRON_UT, 'sim.soft_iron': SOFT_IRON,
+        'sim.noise_ut': 0.05, 'sim.motion': 'tumble', 'sim.seed': 3})
+    calibrator = ros.calibrator(
+        namespace, auto_calibrate=False, min_coverage=0.5, progress_log_period=0.0,
+        calibration_file=str(calibration_file))
+    probe = Probe(ros, namespace)
+    ready = wait_for(lambda: calibrator.session.buffer.fill >= calibrator.session.buffer.capacity
+                     and calibrator.session.buffer.coverage().fraction >= 0.6, timeout_s=30.0)
+    assert ready, f'buffer never filled: {calibrator.session.progress_text()}'
+    assert probe.take_corrected() == [], 'published corrected data before any calibration'
+    response = probe.call('mag_calibrator/calibrate')
+    yield {'driver': driver, 'calibrator': calibrator, 'probe': probe, 'response': response,
+           'file': calibration_file}
+    for node in (probe, calibrator, driver):
+        ros.remove(node)
+
+
+def test_end_to_end_direction_error_within_half_a_degree(live):
+    response, probe, driver = live['response'], live['probe'], live['driver']
+    assert response.success, response.message
+    for word in ('model', 'offset', 'uT', 'residual', 'coverage'):
+        assert word in response.message
+    probe.take_corrected()
+    assert wait_for(lambda: len(probe.corrected) >= 150)
+    errors = []
+    for msg in probe.take_corrected():
+        raw = probe.raw_for(msg)
+        assert raw is not None, 'corrected message header does not match any raw message'
+        assert msg.header.frame_id == 'imu_link'
+        truth = driver.simulator.truth_for_reading(raw)
+        if truth is not None:
+            errors.append(angle_deg(vector(msg), truth))
+    assert len(errors) >= 100
+    errors = np.array(errors)
+    print(f'end to end: {len(errors)} samples, direction error RMS '
+          f'{np.sqrt(np.mean(errors**2)):.3f} deg, max {errors.max():.3f} deg; {response.message}')
+    assert np.sqrt(np.mean(errors**2)) <= 0.5 and errors.max() <= 0.5, (
+        f'direction error RMS {np.sqrt(np.mean(errors**2)):.3f} max {errors.max():.3f} deg')
+
+
+def test_diagnostics_report_state_coverage_rate_and_rejects(live):
+    probe = live['probe']
+    assert wait_for(lambda: any(
+        dict((kv.key, kv.value) for kv in s.values).get('state') == 'calibrated'
+        for s in probe.statuses('mag_calibrator')), timeout_s=5.0)
+    status = probe.statuses('mag_calibrator')[-1]
+    values = {kv.key: kv.value for kv in status.values}
+    assert status.level == DiagnosticStatus.OK
+    for key in ('coverage_pct', 'buffer_fill', 'last_residual_pct', 'input_rate_hz',
+                'rejected_non_finite', 'rejected_stamp_backwards', 'rejected_frame_changed'):
+        assert key in values
+    assert float(values['input_rate_hz']) > 10.0
+
+
+def send_and_collect(probe: Probe, calibrator: MagCalibratorNode, messages, expect: int
+                     ) -> list[MagneticField]:
+    assert wait_for(lambda: probe.connected_to(calibrator))
+    probe.take_corrected()
+    for args, kwargs in messages:
+        probe.send(*args, **kwargs)
+        time.sleep(0.01)
+    wait_for(lambda: len(probe.corrected) >= expect, timeout_s=5.0)
+    time.sleep(0.3)  # anything published by mistake arrives too
+    return probe.take_corrected()
+
+
+def test_save_then_restart_gives_the_same_output_without_recalibrating(ros, live, tmp_path):
+    calibration = live['calibrator'].session.calibration
+    saved = live['probe'].call('mag_calibrator/save')
+    assert saved.success, saved.message
+    assert live['file'].is_file()
+    raw = [np.array([130e-6, -60e-6, 20e-6]), np.array([80e-6, -120e-6, 95e-6])]
+    expected = calibration.apply(np.array(raw))
+
+    for attempt in ('file', 'file-again'):
+        namespace = f'restart_{attempt.replace("-", "_")}'
+        node = ros.calibrator(namespace, auto_calibrate=False, calibration_file=str(live['file']))
+        assert node.session.state == 'calibrated'
+        probe = Probe(ros, namespace)
+        out = send_and_collect(probe, node, [((x, 10 + i), {}) for i, x in enumerate(raw)], 2)
+        np.testing.assert_allclose([vector(m) for m in out], expected, rtol=1e-9, atol=1e-15)
+        ros.remove(probe)
+        ros.remove(node)
+
+
+def parameters_from_file(path: Path) -> list[Parameter]:
+    """The saved file as parameter overrides, as ``--params-file`` would give them."""
+    document = yaml.safe_load(path.read_text())
+    calibration = document['mag_calibrator']['ros__parameters']['calibration']
+    return [Parameter(f'calibration.{key}', value=value) for key, value in calibration.items()]
+
+
+def test_params_file_restores_the_calibration(live, tmp_path):
+    calibration = live['calibrator'].session.calibration
+    assert live['probe'].call('mag_calibrator/save').success
+    # The real command-line path: rclpy.init(args=[... --params-file FILE]) in a fresh context,
+    # with no calibration_file on disk so only the parameters can provide the calibration.
+    context = Context()
+    rclpy.init(args=['--ros-args', '--params-file', str(live['file'])], context=context)
+    try:
+        node = MagCalibratorNode(context=context, parameter_overrides=[
+            Parameter('calibration_file', value=str(tmp_path / 'absent.yaml'))])
+        assert node.session.state == 'calibrated'
+        np.testing.assert_allclose(node.session.calibration.offset, calibration.offset,
+                                   rtol=1e-9)
+        np.testing.assert_allclose(node.session.calibration.matrix, calibration.matrix,
+                                   rtol=1e-9)
+        assert node.get_parameter('calibration.model').value == calibration.model
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+    # The same through parameter_overrides (how a launch file passes them).
+    context = Context()
+    rclpy.init(args=[], context=context)
+    try:
+        node = MagCalibratorNode(context=context, namespace='overrides', parameter_overrides=[
+            *parameters_from_file(live['file']),
+            Parameter('calibration_file', value=str(tmp_path / 'absent.yaml'))])
+        np.testing.assert_allclose(node.session.calibration.apply([1e-5, 2e-5, 3e-5]),
+                                   calibration.apply([1e-5, 2e-5, 3e-5]), rtol=1e-9)
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+
+
+def test_failed_calibration_keeps_the_previous_one(ros, live):
+    node = ros.calibrator('keep', auto_calibrate=False, calibration_file=str(live['file']))
+    assert live['probe'].call('mag_calibrator/save').success
+    probe = Probe(ros, 'keep')
+    assert probe.call('mag_calibrator/load').success
+    before = node.session.calibration
+    assert probe.call('mag_calibrator/reset').success
+    response = probe.call('mag_calibrator/calibrate')
+    assert not response.success
+    assert response.message and 'previous calibration' in response.message
+    assert node.session.calibration is before
+    out = send_and_collect(probe, node, [(([100e-6, 0.0, 0.0], 1), {})], 1)
+    assert len(out) == 1
+    ros.remove(probe)
+    ros.remove(node)
+
+
+def test_too_little_coverage_is_refused_with_a_reason(ros, tmp_path):
+    driver = ros.driver('still', **{'sim.motion': 'still', 'sim.hard_iron_ut': HARD_IRON_UT})
+    node = ros.calibrator('still', auto_calibrate=False, model='full',
+                          calibration_file=str(tmp_path / 'none.yaml'))
+    probe = Probe(ros, 'still')
+    assert wait_for(lambda: node.session.buffer.fill >= 20)
+    response = probe.call('mag_calibrator/calibrate')
+    assert not response.success
+    assert len(response.message) > 20, response.message
+    assert node.session.calibration is None
+    assert probe.take_corrected() == []
+    for n in (probe, node, driver):
+        ros.remove(n)
+
+
+def test_planar_motion_with_a_3d_model_is_refused(ros, tmp_path):
+    driver = ros.driver('yaw', **{'sim.motion': 'yaw', 'sim.hard_iron_ut': HARD_IRON_UT})
+    node = ros.calibrator('yaw', auto_calibrate=False, model='full',
+                          calibration_file=str(tmp_path / 'none.yaml'))
+    probe = Probe(ros, 'yaw')
+    assert wait_for(lambda: node.session.buffer.fill >= 60)
+    response = probe.call('mag_calibrator/calibrate')
+    assert not response.success, response.message
+    assert response.message.startswith('calibration failed: ')
+    assert node.session.state == 'collecting'
+    for n in (probe, node, driver):
+        ros.remove(n)
+
+
+def test_missing_file_runs_uncalibrated_and_load_says_so(ros, tmp_path):
+    node = ros.calibrator('missing', calibration_file=str(tmp_path / 'nothing' / 'here.yaml'))
+    probe = Probe(ros, 'missing')
+    assert node.session.state == 'uncalibrated'
+    response = probe.call('mag_calibrator/load')
+    assert not response.success and 'no calibration file' in response.message
+    save = probe.call('mag_calibrator/save')
+    assert not save.success and 'nothing to save' in save.message
+    assert wait_for(lambda: probe.connected_to(node))
+    assert wait_for(lambda: probe.send([30e-6, 10e-6, -40e-6], 1) or node.session.accepted,
+                    timeout_s=5.0, step_s=0.2)
+    time.sleep(0.3)
+    assert probe.take_corrected() == []  # received, buffered, but nothing to publish yet
+    assert node.session.state == 'collecting'
+    ros.remove(probe)
+    ros.remove(node)
+
+
+@pytest.mark.parametrize('content', [
+    'mag_calibrator: [unclosed',
+    'mag_calibrator:\n  ros__parameters:\n    calibration:\n      offset: [1.0, 2.0]\n',
+    'mag_calibrator:\n  ros__parameters:\n    calibration:\n      offset: [0.0, 0.0, 0.0]\n'
+    '      matrix: [1.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 1.0]\n'
+    '      field_strength: 5.0e-05\n      model: full\n',
+    '\x00\x01 binary garbage',
+], ids=['bad-yaml', 'short-offset', 'not-positive-definite', 'binary'])
+def test_corrupt_file_reports_error_and_runs_uncalibrated(ros, tmp_path, content):
+    path = tmp_path / 'calibration.yaml'
+    path.write_text(content)
+    namespace = 'corrupt'
+    node = ros.calibrator(namespace, calibration_file=str(path))
+    probe = Probe(ros, namespace)
+    assert node.session.state == 'uncalibrated'
+    assert wait_for(lambda: any(s.level == DiagnosticStatus.ERROR and str(path) in s.message
+                                for s in probe.statuses(f'{node.get_name()}')), timeout_s=5.0)
+    response = probe.call('mag_calibrator/load')
+    assert not response.success and str(path) in response.message
+    ros.remove(probe)
+    ros.remove(node)
+
+
+def test_bad_messages_are_counted_and_never_published(ros, live):
+    node = ros.calibrator('bad', auto_calibrate=False, calibration_file=str(live['file']))
+    assert live['probe'].call('mag_calibrator/save').success
+    probe = Probe(ros, 'bad')
+    assert probe.call('mag_calibrator/load').success
+    good = [40e-6, -20e-6, 10e-6]
+    covariance = np.diag([1e-14, 2e-14, 3e-14])
+    # A first valid message (repeated until one arrives: the first best-effort message may go
+    # before the subscription has matched) sets the stream's frame and stamp.
+    assert wait_for(lambda: probe.send(good, 100, covariance=covariance) or probe.corrected,
+                    timeout_s=5.0, step_s=0.2)
+    time.sleep(0.3)
+    first = probe.take_corrected()[0]
+    matrix = node.session.calibration.matrix
+    np.testing.assert_allclose(np.reshape(first.magnetic_field_covariance, (3, 3)),
+                               matrix @ covariance @ matrix.T, rtol=1e-9)
+    messages = [
+        (([math.nan, 1e-5, 1e-5], 101), {}),
+        (([math.inf, 1e-5, 1e-5], 102), {}),
+        (([0.0, 0.0, 0.0], 103), {}),
+        (([0.5, 1e-5, 1e-5], 104), {}),                  # beyond the AK09916 full scale
+        ((good, 99), {}),                                # stamp going backwards
+        ((good, 105), {'frame_id': 'other_link'}),       # frame change mid-stream
+        (([0.0, 3e-5, 0.0], 106), {}),                   # one zero component is legitimate
+    ]
+    out = send_and_collect(probe, node, messages, 1)
+    assert [m.header.stamp.sec for m in out] == [106]
+    assert not np.any(out[0].magnetic_field_covariance)  # unknown stays unknown
+    rejects = node.session.screen_rejects
+    for reason in ('non_finite', 'zero', 'saturated', 'stamp_backwards', 'frame_changed'):
+        expected = 2 if reason == 'non_finite' else 1
+        assert rejects[reason] == expected, (reason, rejects)
+    ros.remove(probe)
+    ros.remove(node)
+
+
+def set_parameter_over_service(probe: Node, node: Node, name: str, value) -> tuple[bool, str]:
+    service = f'{node.get_fully_qualified_name()}/set_parameters'
+    client = probe.create_client(SetParameters, service)
+    assert client.wait_for_service(timeout_sec=WAIT_S)
+    parameter = Parameter(name, value=value).to_parameter_msg()
+    future = client.call_async(SetParameters.Request(parameters=[parameter]))
+    assert wait_for(future.done)
+    probe.destroy_client(client)
+    result = future.result().results[0]
+    return result.successful, result.reason
+
+
+def test_parameter_changes_are_validated(ros, tmp_path):
+    node = ros.calibrator('params', calibration_file=str(tmp_path / 'c.yaml'))
+    probe = Probe(ros, 'params')
+    size = node.get_parameter('buffer_size').value
+    refused = {
+        'k': size,                       # k must stay below the buffer size
+        'model': 'banana',
+        'buffer_size': 3,                # below the descriptor's range
+        'min_coverage': 1.5,
+        'field_strength': -1e-6,
+        'calibration_file': '  ',
+        'calibration.offset': [1.0, 2.0, 3.0],   # read-only: start-up only
+    }
+    for name, value in refused.items():
+        ok, reason = set_parameter_over_service(probe, node, name, value)
+        assert not ok, name
+        assert reason, name
+    assert node.get_parameter('model').value == 'auto'
+    ok, reason = set_parameter_over_service(probe, node, 'buffer_size', size + 50)
+    assert ok, reason
+    assert node.session.buffer.capacity == size + 50
+    ok, reason = set_parameter_over_service(probe, node, 'model', 'sphere')
+    assert ok, reason
+    assert node.session.settings.model == 'sphere'
+    ok, _ = set_parameter_over_service(probe, node, 'online_tracking', True)
+    assert ok and node.session.settings.online_tracking
+    ros.remove(probe)
+    ros.remove(node)
+
+
+def test_saved_file_is_loadable_and_in_tesla(live):
+    assert live['probe'].call('mag_calibrator/save').success
+    calibration = load_calibration(live['file'])
+    assert 30e-6 < calibration.field_strength < 70e-6
+    np.testing.assert_allclose(calibration.offset, np.array(HARD_IRON_UT) * 1e-6, atol=2e-6)
+

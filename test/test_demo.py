@@ -1,0 +1,23 @@
+"""mag_calibrator_demo end to end with a short configuration: exit 0, file and PNG written."""
+
+from mag_calibrator_ros.calibration.calibration_file import load_calibration
+from mag_calibrator_ros.tools import demo
+
+
+def test_demo_runs_calibrates_and_writes_outputs(tmp_path, capsys):
+    out = tmp_path / 'demo_out'
+    status = demo.main(['--output-dir', str(out), '--collect-timeout', '20', '--min-coverage',
+                        '0.6', '--evaluate-seconds', '1.5'])
+    printed = capsys.readouterr().out
+    assert status == 0, printed
+    assert (out / 'calibration.png').stat().st_size > 10_000
+    calibration = load_calibration(out / 'calibration.yaml')
+    assert abs(calibration.field_strength - 50e-6) < 1e-9  # the demo gives the local field
+    assert 'direction error' in printed and 'DONE' in printed
+
+
+def test_demo_rejects_bad_options(capsys):
+    import pytest
+
+    with pytest.raises(SystemExit):
+        demo.main(['--evaluate-seconds', '0'])
