@@ -14,7 +14,6 @@ import threading
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from mag_calibrator_ros.calibration.calibration_file import load_calibration
 import numpy as np
 import pytest
 from rcl_interfaces.srv import SetParameters
@@ -26,6 +25,7 @@ from sensor_msgs.msg import MagneticField
 from std_srvs.srv import Trigger
 import yaml
 
+from mag_calibrator_ros.calibration.calibration_file import load_calibration
 from mag_calibrator_ros.nodes.icm20948_driver import Icm20948DriverNode
 from mag_calibrator_ros.nodes.mag_calibrator import MagCalibratorNode
 from mag_calibrator_ros.tools.demo import NodeThreads

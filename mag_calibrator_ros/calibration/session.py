@@ -322,7 +322,6 @@ class CalibrationSession:
             calibration = result.calibration.with_metadata(
                 residual_rms_pct=float(result.metrics.residual_rms_pct),
                 coverage=float(result.metrics.coverage),
-                samples=int(result.metrics.n_samples),
                 time=time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()),
                 frame_id=self.frame_id or '',
                 units='T',

@@ -28,7 +28,6 @@ from std_srvs.srv import Trigger
 
 from mag_calibrator_ros.calibration.calibration import Calibration, CalibrationError
 from mag_calibrator_ros.calibration.calibration_file import (
-    CALIBRATION_METADATA_KEYS,
     CalibrationFileError,
     calibration_from_parameters,
 )
@@ -118,6 +117,11 @@ PARAMETERS: dict[str, tuple[object, str, dict]] = {
                             {'floating_point_range': _float_range(0.0, 3600.0)}),
 }
 SESSION_FIELDS = {f.name for f in fields(SessionSettings)}
+CALIBRATION_METADATA_KEYS = (
+    'residual_rms_pct', 'coverage', 'samples', 'time', 'frame_id', 'units', 'source',
+    'plane_normal', 'unobserved',
+)
+"""Metadata the fit and the node write into a saved file (declared so --params-file keeps it)."""
 CALIBRATION_PARAMETERS: dict[str, tuple[Parameter.Type, str]] = {
     'calibration.offset': (Parameter.Type.DOUBLE_ARRAY, 'Hard-iron offset b [3], tesla.'),
     'calibration.matrix': (Parameter.Type.DOUBLE_ARRAY, 'Soft-iron matrix M [9], row-major.'),
@@ -249,8 +253,8 @@ class MagCalibratorNode(Node):
         try:
             message = self.session.load(self._calibration_file())
         except (CalibrationFileError, CalibrationError, OSError) as error:
-            return False, self._report_problem(f'{error}; running with the previous state '
-                                               f'({self.session.state})')
+            return False, self._report_problem(
+                f'{error}; the calibration in force is unchanged (state {self.session.state})')
         self._problem = None
         self.get_logger().info(message)
         return True, message
