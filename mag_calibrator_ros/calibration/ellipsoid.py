@@ -23,6 +23,14 @@ surface, repeated until that set settles), so even a buffer holding many spikes 
 geometric refinement then minimises a robust loss (soft-L1) of ``e = |M (y - b)| - 1`` with an
 analytic Jacobian, flags residuals beyond ``outlier_threshold`` robust sigmas and refits the
 inliers by plain least squares (efficient for Gaussian noise).
+
+Optional ``weights`` (one per point, > 0) weight every least-squares step and the robust loss: a
+point that stands for the average of ``n`` readings (SampleBuffer merges nearby samples) has ``n``
+times less noise variance, so it gets weight ``n``. Outliers are flagged on the plain residual
+against the robust sigma of one reading (residual x sqrt(weight)): a lone spike is flagged as
+without weights, and an averaged point is never flagged merely because the model's misfit exceeds
+its reduced noise. The condition number stays that of the plain Jacobian: weights say how
+precisely a point is known, not whether the points determine the model.
 """
 
 from __future__ import annotations
@@ -128,10 +136,22 @@ def thickness(y: np.ndarray) -> tuple[float, np.ndarray]:
 # Algebraic starts (on normalised data)
 
 
-def sphere_least_squares(y: np.ndarray) -> tuple[np.ndarray, float] | None:
+def _weighted_lstsq(
+    design: np.ndarray, target: np.ndarray, weights: np.ndarray | None
+) -> np.ndarray:
+    """Least squares with each row scaled by sqrt(weight) (plain when ``weights`` is None)."""
+    if weights is not None:
+        root = np.sqrt(weights)
+        design, target = design * root[:, None], target * root
+    return np.linalg.lstsq(design, target, rcond=None)[0]
+
+
+def sphere_least_squares(
+    y: np.ndarray, weights: np.ndarray | None = None
+) -> tuple[np.ndarray, float] | None:
     """Linear circle/sphere fit ``|y|² = 2 b·y + c``: (centre, radius)."""
     design = np.column_stack([2.0 * y, np.ones(len(y))])
-    solution = np.linalg.lstsq(design, np.einsum('ij,ij->i', y, y), rcond=None)[0]
+    solution = _weighted_lstsq(design, np.einsum('ij,ij->i', y, y), weights)
     centre = solution[:-1]
     radius_sq = solution[-1] + centre @ centre
     if not np.isfinite(radius_sq) or radius_sq <= 0:
@@ -139,7 +159,9 @@ def sphere_least_squares(y: np.ndarray) -> tuple[np.ndarray, float] | None:
     return centre, float(np.sqrt(radius_sq))
 
 
-def quadric_least_squares(points: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+def quadric_least_squares(
+    points: np.ndarray, weights: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray] | None:
     """Algebraic ellipse/ellipsoid ``pᵀ A p + 2 gᵀ p = 1``: (centre, M) with M = sqrt(A / k).
 
     None unless the conic is an ellipse/ellipsoid (A/k positive definite).
@@ -148,7 +170,7 @@ def quadric_least_squares(points: np.ndarray) -> tuple[np.ndarray, np.ndarray] |
     rows, cols = np.triu_indices(d)
     quadratic = points[:, rows] * points[:, cols] * np.where(rows == cols, 1.0, 2.0)
     design = np.column_stack([quadratic, 2.0 * points])
-    solution = np.linalg.lstsq(design, np.ones(len(points)), rcond=None)[0]
+    solution = _weighted_lstsq(design, np.ones(len(points)), weights)
     a = np.zeros((d, d))
     a[rows, cols] = solution[: len(rows)]
     a[cols, rows] = solution[: len(rows)]
@@ -166,7 +188,9 @@ def quadric_least_squares(points: np.ndarray) -> tuple[np.ndarray, np.ndarray] |
     return centre, matrix
 
 
-def axis_least_squares(y: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+def axis_least_squares(
+    y: np.ndarray, weights: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray] | None:
     """The brief's reference least squares (geometrikal / mag-calibrator-rs): (offset, semi-axes).
 
     ``H = [x, y, z, -y², -z², 1]``, ``w = x²``, ``X = (HᵀH)⁻¹Hᵀw``, done here in float64 on
@@ -174,7 +198,7 @@ def axis_least_squares(y: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     radii).
     """
     design = np.column_stack([y, -(y[:, 1] ** 2), -(y[:, 2] ** 2), np.ones(len(y))])
-    x = np.linalg.lstsq(design, y[:, 0] ** 2, rcond=None)[0]
+    x = _weighted_lstsq(design, y[:, 0] ** 2, weights)
     if x[3] <= 0 or x[4] <= 0:
         return None
     offset = np.array([x[0] / 2.0, x[1] / (2.0 * x[3]), x[2] / (2.0 * x[4])])
@@ -193,8 +217,9 @@ _TRIMMED_MEDIAN = NormalDist().inv_cdf(0.5 + TRIMMED_SHARE / 4)
 
 def trimmed_start(
     points: np.ndarray,
-    algebraic: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray] | None],
+    algebraic: Callable[[np.ndarray, np.ndarray | None], tuple[np.ndarray, np.ndarray] | None],
     threshold: float,
+    weights: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """An algebraic fit that spikes cannot ruin (in plain least squares they enter squared).
 
@@ -219,7 +244,7 @@ def trimmed_start(
         kept = new_kept
         if settled and best is not None:
             break
-        fitted = algebraic(points[kept])
+        fitted = algebraic(points[kept], _part(weights, kept))
         if fitted is None or _ratio(fitted[1]) > 10.0:
             break
         best = centre, matrix = fitted
@@ -230,14 +255,20 @@ def trimmed_start(
     sigma = max(float(np.median(np.abs(residuals[kept]))) / _TRIMMED_MEDIAN, MIN_ROBUST_SIGMA)
     inliers = np.abs(residuals) <= threshold * sigma
     if inliers.sum() >= n_needed:
-        refitted = algebraic(points[inliers])
+        refitted = algebraic(points[inliers], _part(weights, inliers))
         if refitted is not None and _ratio(refitted[1]) <= 10.0:
             return refitted
     return best
 
 
-def _sphere_start(points: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    fitted = sphere_least_squares(points)
+def _part(weights: np.ndarray | None, mask: np.ndarray) -> np.ndarray | None:
+    return None if weights is None else weights[mask]
+
+
+def _sphere_start(
+    points: np.ndarray, weights: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray] | None:
+    fitted = sphere_least_squares(points, weights)
     return None if fitted is None else (fitted[0], np.eye(points.shape[1]) / fitted[1])
 
 
@@ -259,7 +290,8 @@ class _Geometric:
     """Residuals and analytic Jacobian of ``|M (p - b)| - 1`` over parameters [b, upper(M)].
 
     ``free`` (indices into that vector) optimises only some parameters, the others held at
-    ``base``: the planar model with a prior frees the in-plane ones.
+    ``base``: the planar model with a prior frees the in-plane ones. ``weights`` scale the
+    ``weighted_*`` residuals and Jacobian by their square root (``residuals`` stay plain).
     """
 
     def __init__(
@@ -268,8 +300,11 @@ class _Geometric:
         spherical: bool,
         free: np.ndarray | None = None,
         base: np.ndarray | None = None,
+        weights: np.ndarray | None = None,
     ) -> None:
         self.points = points
+        self.weights = weights
+        self.root_weights = None if weights is None else np.sqrt(weights)
         self.d = points.shape[1]
         self.spherical = spherical
         self.rows, self.cols = np.triu_indices(self.d)
@@ -278,7 +313,9 @@ class _Geometric:
         self.base = base
 
     def subset(self, mask: np.ndarray) -> _Geometric:
-        return _Geometric(self.points[mask], self.spherical, self.free, self.base)
+        return _Geometric(
+            self.points[mask], self.spherical, self.free, self.base, _part(self.weights, mask)
+        )
 
     def pack(self, centre: np.ndarray, matrix: np.ndarray) -> np.ndarray:
         if self.spherical:
@@ -319,6 +356,27 @@ class _Geometric:
         jacobian = np.column_stack([d_centre, d_matrix])
         return jacobian if self.free is None else jacobian[:, self.free]
 
+    def weighted_residuals(self, params: np.ndarray) -> np.ndarray:
+        residuals = self.residuals(params)
+        return residuals if self.root_weights is None else residuals * self.root_weights
+
+    def weighted_jacobian(self, params: np.ndarray) -> np.ndarray:
+        jacobian = self.jacobian(params)
+        return jacobian if self.root_weights is None else jacobian * self.root_weights[:, None]
+
+    def robust_loss(self) -> str | Callable[[np.ndarray], np.ndarray]:
+        """soft-L1, each point's term multiplied by its weight (scipy's loss-callable form)."""
+        if self.weights is None:
+            return 'soft_l1'
+        weights = self.weights
+
+        def weighted_soft_l1(z: np.ndarray) -> np.ndarray:
+            t = 1.0 + z
+            return np.vstack([weights * 2.0 * (np.sqrt(t) - 1.0), weights / np.sqrt(t),
+                              -0.5 * weights * t**-1.5])
+
+        return weighted_soft_l1
+
 
 def robust_sigma(residuals: np.ndarray) -> float:
     """1.4826 x median absolute residual, floored at MIN_ROBUST_SIGMA."""
@@ -344,38 +402,49 @@ def _refine(
     spherical: bool,
     outlier_threshold: float,
     free: np.ndarray | None = None,
+    weights: np.ndarray | None = None,
 ) -> _Refined:
     """Robust soft-L1 fit from an algebraic start; outliers flagged; least squares on inliers.
 
     With ``free``, only those parameters move; the rest stay at the start's values.
     """
-    model = _Geometric(points, spherical)
+    model = _Geometric(points, spherical, weights=weights)
     if free is not None:
-        model = _Geometric(points, spherical, free, model.pack(centre, matrix))
+        model = _Geometric(points, spherical, free, model.pack(centre, matrix), weights)
     params = model.pack(centre, matrix)
     n_params = len(params)
     start_residuals = model.residuals(params)
-    f_scale = robust_sigma(start_residuals)
+    # sigma of one reading (a point of weight w is the mean of w readings: sqrt(w) less noise);
+    # every point is held to it, so an averaged point is never flagged for a misfit smaller
+    # than one reading's noise, and a lone spike still is
+    f_scale = robust_sigma(model.weighted_residuals(params))
     candidates = np.abs(start_residuals) <= max(GROSS_OUTLIER_SIGMAS, outlier_threshold) * f_scale
     if candidates.sum() > n_params:
         subset = model.subset(candidates)
         robust = least_squares(
-            subset.residuals, params, jac=subset.jacobian, loss='soft_l1', f_scale=f_scale,
-            method='trf', x_scale=1.0, max_nfev=50,
+            subset.residuals, params, jac=subset.jacobian, loss=subset.robust_loss(),
+            f_scale=f_scale, method='trf', x_scale=1.0, max_nfev=50,
         )  # fmt: skip
         params = _better(model, params, robust.x)
     residuals = model.residuals(params)
-    inliers = np.abs(residuals) <= outlier_threshold * robust_sigma(residuals[candidates])
+    sigma = robust_sigma(model.weighted_residuals(params)[candidates])
+    inliers = np.abs(residuals) <= outlier_threshold * sigma
     if inliers.sum() > n_params:
         inlier_model = model.subset(inliers)
         final = least_squares(
-            inlier_model.residuals, params, jac=inlier_model.jacobian, method='lm', max_nfev=100
+            inlier_model.weighted_residuals, params, jac=inlier_model.weighted_jacobian,
+            method='lm', max_nfev=100,
         )
         params = _better(model, params, final.x)
         residuals = model.residuals(params)
-        inliers = np.abs(residuals) <= outlier_threshold * robust_sigma(residuals[inliers])
-    jacobian = model.subset(inliers).jacobian(params)
-    condition, std = _condition_and_std(jacobian, residuals[inliers])
+        sigma = robust_sigma(model.weighted_residuals(params)[inliers])
+        inliers = np.abs(residuals) <= outlier_threshold * sigma
+    final_model = model.subset(inliers)
+    condition, std = _condition_and_std(final_model.jacobian(params), residuals[inliers])
+    if weights is not None:  # determinacy from the geometry, precision from the weights
+        _, std = _condition_and_std(
+            final_model.weighted_jacobian(params), final_model.weighted_residuals(params)
+        )
     fitted_centre, fitted_matrix = model.unpack(params)
     return _Refined(fitted_centre, fitted_matrix, residuals, inliers, condition, std)
 
@@ -421,10 +490,12 @@ def fit_ellipsoid(
     model: str,
     outlier_threshold: float = 4.0,
     prior: tuple[np.ndarray, np.ndarray] | None = None,
+    weights: np.ndarray | None = None,
 ) -> EllipsoidFit | None:
     """Fit ``model`` (one of FIT_MODELS) to finite (n, 3) input-unit points; None when impossible.
 
     ``prior`` is (offset, unit-radius matrix) in input units, used by ``planar`` out of the plane.
+    ``weights`` (n,) are finite and > 0 (see the module docstring), or None for equal weights.
     """
     if model not in FIT_MODELS:
         raise ValueError(f'unknown fit model {model!r}; expected one of {FIT_MODELS}')
@@ -437,8 +508,8 @@ def fit_ellipsoid(
     with np.errstate(all='ignore', under='ignore'):
         try:
             if model == 'planar':
-                return _fit_planar(points, outlier_threshold, prior)
-            fitted = _fit_3d(y, model, outlier_threshold)
+                return _fit_planar(points, outlier_threshold, prior, weights)
+            fitted = _fit_3d(y, model, outlier_threshold, weights)
         except (np.linalg.LinAlgError, ValueError):
             return None
     if fitted is None:
@@ -446,9 +517,11 @@ def fit_ellipsoid(
     return _to_input_units(fitted, norm, model)
 
 
-def _fit_3d(y: np.ndarray, model: str, outlier_threshold: float) -> _Refined | None:
+def _fit_3d(
+    y: np.ndarray, model: str, outlier_threshold: float, weights: np.ndarray | None = None
+) -> _Refined | None:
     if model == 'axis':
-        solved = axis_least_squares(y)
+        solved = axis_least_squares(y, weights)
         if solved is None:
             return None
         centre, semi_axes = solved
@@ -461,11 +534,12 @@ def _fit_3d(y: np.ndarray, model: str, outlier_threshold: float) -> _Refined | N
         condition, _ = _condition_and_std(jacobian, residuals[inliers])
         return _Refined(centre, matrix, residuals, inliers, condition, None)
     # the unit sphere about the median is the fallback start: the normalisation put it there
-    sphere = trimmed_start(y, _sphere_start, outlier_threshold) or (np.zeros(3), np.eye(3))
+    sphere = trimmed_start(y, _sphere_start, outlier_threshold, weights)
+    sphere = sphere or (np.zeros(3), np.eye(3))
     if model == 'sphere':
-        return _refine(y, sphere[0], sphere[1], True, outlier_threshold)
-    start = trimmed_start(y, quadric_least_squares, outlier_threshold) or sphere
-    return _refine(y, start[0], start[1], False, outlier_threshold)
+        return _refine(y, sphere[0], sphere[1], True, outlier_threshold, weights=weights)
+    start = trimmed_start(y, quadric_least_squares, outlier_threshold, weights) or sphere
+    return _refine(y, start[0], start[1], False, outlier_threshold, weights=weights)
 
 
 def _ratio(matrix: np.ndarray) -> float:
@@ -509,6 +583,7 @@ def _fit_planar(
     points: np.ndarray,
     outlier_threshold: float,
     prior: tuple[np.ndarray, np.ndarray] | None,
+    weights: np.ndarray | None = None,
 ) -> EllipsoidFit | None:
     """Motion in one plane: fit what it determines, in the prior's corrected frame.
 
@@ -538,38 +613,42 @@ def _fit_planar(
     if basis[np.argmax(np.abs(basis[:, 2])), 2] < 0:  # normal toward its nearest body axis (+z...)
         basis[:, [1, 2]] = -basis[:, [1, 2]]
     w = y @ basis  # plane coordinates, normal last
-    flat = _fit_ellipse_2d(w[:, :2], outlier_threshold)
+    flat = _fit_ellipse_2d(w[:, :2], outlier_threshold, weights)
     if flat is None:
         return None
     if prior is not None:
         prior_normal = float(basis[:, 2] @ (-norm.centre / norm.scale))
-        in_3d = _planar_in_3d(w, norm.scale, prior_normal, flat, outlier_threshold)
+        in_3d = _planar_in_3d(w, norm.scale, prior_normal, flat, outlier_threshold, weights)
         if in_3d is not None:
-            return _planar_result(points, in_3d, basis, norm, prior_offset, prior_matrix, False)
+            return _planar_result(
+                points, in_3d, basis, norm, prior_offset, prior_matrix, False, weights
+            )
     block = np.eye(3)
     block[:2, :2] = flat.matrix / np.sqrt(np.linalg.det(flat.matrix))  # shape; scale set below
     if prior is not None:
         normal_offset = float(basis[:, 2] @ (-norm.centre / norm.scale))
     else:
-        normal_offset = float(np.mean(w[flat.inliers, 2]))
+        normal_offset = float(np.average(w[flat.inliers, 2], weights=_part(weights, flat.inliers)))
     rotated = _Refined(
         np.append(flat.centre, normal_offset), block, flat.residuals, flat.inliers,
         flat.condition, flat.std,
     )  # fmt: skip
-    return _planar_result(points, rotated, basis, norm, prior_offset, prior_matrix, True)
+    return _planar_result(points, rotated, basis, norm, prior_offset, prior_matrix, True, weights)
 
 
-def _fit_ellipse_2d(in_plane: np.ndarray, outlier_threshold: float) -> _Refined | None:
-    start = trimmed_start(in_plane, quadric_least_squares, outlier_threshold)
+def _fit_ellipse_2d(
+    in_plane: np.ndarray, outlier_threshold: float, weights: np.ndarray | None = None
+) -> _Refined | None:
+    start = trimmed_start(in_plane, quadric_least_squares, outlier_threshold, weights)
     if start is None:
-        start = trimmed_start(in_plane, _sphere_start, outlier_threshold)
+        start = trimmed_start(in_plane, _sphere_start, outlier_threshold, weights)
     if start is None:
         centre = np.median(in_plane, axis=0)
         radius = float(np.median(np.linalg.norm(in_plane - centre, axis=1)))
         if not radius > 0:
             return None
         start = (centre, np.eye(2) / radius)
-    fitted = _refine(in_plane, start[0], start[1], False, outlier_threshold)
+    fitted = _refine(in_plane, start[0], start[1], False, outlier_threshold, weights=weights)
     return fitted if np.linalg.det(fitted.matrix) > 0 else None
 
 
@@ -578,7 +657,12 @@ _IN_PLANE = np.array([0, 1, 3, 4, 6])
 
 
 def _planar_in_3d(
-    w: np.ndarray, scale: float, prior_normal: float, flat: _Refined, outlier_threshold: float
+    w: np.ndarray,
+    scale: float,
+    prior_normal: float,
+    flat: _Refined,
+    outlier_threshold: float,
+    weights: np.ndarray | None = None,
 ) -> _Refined | None:
     """3-D residual, in-plane parameters free, the rest at the prior (``s I`` centred on it)."""
     centre = np.append(flat.centre, prior_normal)
@@ -586,7 +670,7 @@ def _planar_in_3d(
     horizontal_share = np.sqrt(max(1.0 - float(np.mean(vertical**2)), 0.05))
     matrix = scale * np.eye(3)
     matrix[:2, :2] = flat.matrix * horizontal_share
-    refined = _refine(w, centre, matrix, False, outlier_threshold, free=_IN_PLANE)
+    refined = _refine(w, centre, matrix, False, outlier_threshold, _IN_PLANE, weights)
     if np.linalg.eigvalsh(refined.matrix).min() <= 0:
         return None
     std = None
@@ -605,6 +689,7 @@ def _planar_result(
     prior_offset: np.ndarray,
     prior_matrix: np.ndarray,
     rescale: bool,
+    weights: np.ndarray | None = None,
 ) -> EllipsoidFit | None:
     """From the plane's normalised frame back to input units, through the prior's correction."""
     centre_u = norm.centre + norm.scale * (basis @ rotated.centre)
@@ -613,7 +698,10 @@ def _planar_result(
     offset = prior_offset + np.linalg.solve(prior_matrix, centre_u)
     if rescale:  # unit radius on the data (2-D: the corrected field lies in the plane)
         magnitudes = np.linalg.norm((points[rotated.inliers] - offset) @ matrix.T, axis=1)
-        mean = float(np.mean(magnitudes)) if magnitudes.size else 0.0
+        mean = (
+            float(np.average(magnitudes, weights=_part(weights, rotated.inliers)))
+            if magnitudes.size else 0.0
+        )
         if not mean > 0:
             return None
         matrix = matrix / mean

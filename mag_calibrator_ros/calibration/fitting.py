@@ -151,11 +151,20 @@ class FitResult:
     outliers: np.ndarray = field(repr=False)
 
 
-def fit_calibration(samples: ArrayLike, options: FitOptions | None = None) -> FitResult:
-    """Fit ``options.model`` to (n, 3) raw samples; never raises on data, never returns NaN/Inf."""
+def fit_calibration(
+    samples: ArrayLike, options: FitOptions | None = None, weights: ArrayLike | None = None
+) -> FitResult:
+    """Fit ``options.model`` to (n, 3) raw samples; never raises on data, never returns NaN/Inf.
+
+    ``weights`` (n,), optional: how many readings each row stands for (SampleBuffer.counts, when
+    a row is the average of several), or any relative precision; finite and > 0. They weight the
+    least squares only: residual metrics, outlier flags and the condition gate stay per row.
+    """
     options = options or FitOptions()
     rows, finite, problem = _usable_rows(samples)
     n_bad = int((~finite).sum())
+    if not problem and weights is not None:
+        weights, problem = _usable_weights(weights, finite)
     if problem:
         return _failure(options, problem, finite, 0, n_bad)
     n = len(rows)
@@ -181,7 +190,7 @@ def fit_calibration(samples: ArrayLike, options: FitOptions | None = None) -> Fi
     )
     with np.errstate(all='ignore'):
         layer_thickness, _ = thickness(normalise(rows).forward(rows))
-        fitted, choice_note = _fit_model(rows, options, layer_thickness)
+        fitted, choice_note = _fit_model(rows, options, layer_thickness, weights)
         if fitted is None:
             reasons = [
                 _too_few(n, options)
@@ -228,6 +237,19 @@ def _usable_rows(samples: ArrayLike) -> tuple[np.ndarray, np.ndarray, str]:
     return array[finite], finite, ''
 
 
+def _usable_weights(weights: ArrayLike, finite: np.ndarray) -> tuple[np.ndarray | None, str]:
+    """(weights of the finite rows, problem text or '')."""
+    try:
+        array = np.asarray(weights, dtype=float)
+    except (TypeError, ValueError) as error:
+        return None, f'weights are not numbers: {error}'
+    if array.shape != finite.shape:
+        return None, f'weights must have shape ({len(finite)},), one per sample, got {array.shape}'
+    if not np.all(np.isfinite(array) & (array > 0.0)):
+        return None, 'weights must be finite and > 0'
+    return array[finite], ''
+
+
 def _too_few(n: int, options: FitOptions) -> str:
     if n >= options.min_samples:
         return ''
@@ -238,7 +260,7 @@ def _too_few(n: int, options: FitOptions) -> str:
 
 
 def _fit_model(
-    rows: np.ndarray, options: FitOptions, layer_thickness: float
+    rows: np.ndarray, options: FitOptions, layer_thickness: float, weights: np.ndarray | None
 ) -> tuple[EllipsoidFit | None, str]:
     """The requested model, or for ``auto`` the one the data determine with the lowest BIC."""
     prior = None
@@ -246,14 +268,14 @@ def _fit_model(
         prior = (options.prior.offset, options.prior.matrix / options.prior.field_strength)
     threshold = options.outlier_threshold
     if options.model != 'auto':
-        return fit_ellipsoid(rows, options.model, threshold, prior), ''
+        return fit_ellipsoid(rows, options.model, threshold, prior, weights), ''
     if layer_thickness < options.planar_thickness:
         note = f'auto: planar (samples lie near one plane, thickness {layer_thickness:.2f})'
-        return fit_ellipsoid(rows, 'planar', threshold, prior), note
-    sphere = fit_ellipsoid(rows, 'sphere', threshold)
+        return fit_ellipsoid(rows, 'planar', threshold, prior, weights), note
+    sphere = fit_ellipsoid(rows, 'sphere', threshold, weights=weights)
     full = None
     if len(rows) >= 2 * PARAMETER_COUNTS['full']:
-        full = fit_ellipsoid(rows, 'full', threshold)
+        full = fit_ellipsoid(rows, 'full', threshold, weights=weights)
     determined = [
         fit for fit in (sphere, full) if fit is not None and fit.condition <= options.max_condition
     ]
@@ -263,7 +285,7 @@ def _fit_model(
         # missing.
         chosen = None
         if layer_thickness < 2.0 * options.planar_thickness:
-            chosen = fit_ellipsoid(rows, 'planar', threshold, prior)
+            chosen = fit_ellipsoid(rows, 'planar', threshold, prior, weights)
         candidates = [fit for fit in (sphere, full) if fit is not None]
         if chosen is None and candidates:
             chosen = min(candidates, key=lambda fit: fit.condition)
@@ -273,8 +295,11 @@ def _fit_model(
         chosen = determined[0]
         return chosen, f'auto: {chosen.model} (condition {chosen.condition:.0f})'
     common = full.inliers  # the flexible model's inliers: a sphere must not win by discarding
-    scores = {
-        fit.model: information_criterion(fit.residuals[common], PARAMETER_COUNTS[fit.model])
+    root = np.ones(len(rows)) if weights is None else np.sqrt(weights)
+    scores = {  # on weighted residuals: an averaged row's residual is that much more telling
+        fit.model: information_criterion(
+            (fit.residuals * root)[common], PARAMETER_COUNTS[fit.model]
+        )
         for fit in (sphere, full)
     }
     chosen = full if scores['full'] < scores['sphere'] else sphere
