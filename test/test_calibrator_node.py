@@ -168,6 +168,15 @@ def live(ros, tmp_path_factory):
     calibrator = ros.calibrator(
         namespace, auto_calibrate=False, min_coverage=0.5, progress_log_period=0.0,
         calibration_file=str(calibration_file))
+    # A second calibrator on the same stream calibrates by itself and saves (output remapped so
+    # the two corrected streams never mix).
+    auto_file = calibration_file.parent / 'auto.yaml'
+    auto = ros.add(MagCalibratorNode(
+        node_name='mag_calibrator_auto', namespace=namespace, context=ros.context,
+        cli_args=['--ros-args', '-r', 'imu/mag_corrected:=imu/mag_corrected_auto'],
+        parameter_overrides=[Parameter('auto_save', value=True),
+                             Parameter('auto_calibrate_period', value=1.0),
+                             Parameter('calibration_file', value=str(auto_file))]))
     probe = Probe(ros, namespace)
     ready = wait_for(lambda: calibrator.session.buffer.fill >= calibrator.session.buffer.capacity
                      and calibrator.session.buffer.coverage().fraction >= 0.6, timeout_s=30.0)
@@ -175,8 +184,8 @@ def live(ros, tmp_path_factory):
     assert probe.take_corrected() == [], 'published corrected data before any calibration'
     response = probe.call('mag_calibrator/calibrate')
     yield {'driver': driver, 'calibrator': calibrator, 'probe': probe, 'response': response,
-           'file': calibration_file}
-    for node in (probe, calibrator, driver):
+           'file': calibration_file, 'auto': auto, 'auto_file': auto_file}
+    for node in (probe, auto, calibrator, driver):
         ros.remove(node)
 
 
@@ -203,12 +212,23 @@ def test_end_to_end_direction_error_within_half_a_degree(live):
         f'direction error RMS {np.sqrt(np.mean(errors**2)):.3f} max {errors.max():.3f} deg')
 
 
+def test_auto_calibrate_calibrates_and_saves_by_itself(live):
+    auto = live['auto']
+    assert wait_for(lambda: auto.session.state == 'calibrated', timeout_s=30.0), (
+        auto.session.progress_text())
+    assert auto.session.last_attempt is not None and auto.session.last_attempt.success
+    assert wait_for(live['auto_file'].is_file, timeout_s=2.0)
+    saved = load_calibration(live['auto_file'])
+    np.testing.assert_allclose(saved.offset, auto.session.calibration.offset, rtol=1e-9)
+    np.testing.assert_allclose(saved.offset, np.array(HARD_IRON_UT) * 1e-6, atol=2e-6)
+
+
 def test_diagnostics_report_state_coverage_rate_and_rejects(live):
     probe = live['probe']
     assert wait_for(lambda: any(
         dict((kv.key, kv.value) for kv in s.values).get('state') == 'calibrated'
-        for s in probe.statuses('mag_calibrator')), timeout_s=5.0)
-    status = probe.statuses('mag_calibrator')[-1]
+        for s in probe.statuses('mag_calibrator: ')), timeout_s=5.0)
+    status = probe.statuses('mag_calibrator: ')[-1]
     values = {kv.key: kv.value for kv in status.values}
     assert status.level == DiagnosticStatus.OK
     for key in ('coverage_pct', 'buffer_fill', 'last_residual_pct', 'input_rate_hz',
