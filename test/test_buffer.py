@@ -55,7 +55,7 @@ class BruteForceBuffer:
 
 def assert_bookkeeping_exact(buffer):
     """Incremental neighbour lists give the same scores as a full recomputation."""
-    points = buffer.samples
+    points = buffer.anchors
     if len(points) > buffer.k:
         np.testing.assert_allclose(buffer.scores, brute_scores(points, buffer.k), rtol=1e-12)
 
@@ -85,14 +85,14 @@ def test_a_crowded_new_sample_is_rejected():
     samples = sphere_samples(200, seed=1)
     buffer = SampleBuffer(capacity=50, k=5)
     buffer.add_many(samples)
-    before = buffer.samples
+    before = buffer.anchors
     # A candidate in the middle of the densest spot: right between a point and its nearest twin.
     scores = buffer.scores
     densest = int(np.argmin(scores))
     nearest = np.argsort(np.linalg.norm(before - before[densest], axis=1))[1]
     candidate = 0.5 * (before[densest] + before[nearest])
     assert buffer.add(candidate) == 'not_unique'
-    np.testing.assert_array_equal(buffer.samples, before)
+    np.testing.assert_array_equal(buffer.anchors, before)
 
 
 def test_a_candidate_as_unique_as_the_weakest_does_not_churn():
@@ -108,6 +108,7 @@ def test_spread_improves_as_more_samples_stream_through():
     buffer = SampleBuffer(capacity=100, k=6)
     buffer.add_many(samples[:100])
     crowding_first = buffer.scores.min()
+    assert buffer.merged == 0  # nothing to merge into before a provisional reference
     counts = buffer.add_many(samples[100:])
     assert counts['replaced'] > 0 and counts['not_unique'] > 0
     assert buffer.scores.min() > 1.5 * crowding_first
@@ -136,10 +137,12 @@ def test_incremental_bookkeeping_equals_brute_force(
     repeats = rng.random(n) < duplicate_share
     for i in np.flatnonzero(repeats):
         samples[i] = samples[rng.integers(0, i + 1)]
-    buffer, reference = SampleBuffer(capacity, k), BruteForceBuffer(capacity, k)
+    buffer = SampleBuffer(capacity, k, self_reference=False)  # the rule alone: nothing merged
+    reference = BruteForceBuffer(capacity, k)
     for sample in samples:
         assert buffer.add(sample) == reference.add(sample)
     np.testing.assert_array_equal(buffer.samples, np.array(reference.points))
+    np.testing.assert_array_equal(buffer.anchors, buffer.samples)
     assert_bookkeeping_exact(buffer)
 
 
@@ -149,7 +152,7 @@ def test_incremental_bookkeeping_equals_brute_force(
 )
 def test_resize_keeps_exact_bookkeeping_and_the_most_unique_samples(seed, capacity, new_capacity):
     samples = np.random.default_rng(seed).normal(size=(200, 3))
-    buffer = SampleBuffer(capacity, k=2)
+    buffer = SampleBuffer(capacity, k=2, self_reference=False)
     buffer.add_many(samples)
     before = {tuple(row) for row in buffer.samples}
     buffer.resize(capacity=new_capacity, k=1)
@@ -260,7 +263,7 @@ def test_duplicates_are_refused_when_full_too():
     samples = sphere_samples(300, seed=5)
     buffer = SampleBuffer(capacity=40, k=4)
     buffer.add_many(samples)
-    for row in buffer.samples:
+    for row in buffer.anchors:
         assert buffer.add(row) == 'duplicate'
     assert buffer.rejects['duplicate'] == 40
 
@@ -321,7 +324,7 @@ def with_spikes(samples, share, seed):
 
 def test_spikes_get_in_without_a_reference_and_never_survive_once_one_is_set():
     samples, spikes = with_spikes(sphere_samples(5000, seed=6), 0.002, seed=6)
-    buffer = SampleBuffer(capacity=50, k=5)
+    buffer = SampleBuffer(capacity=50, k=5, self_reference=False)
     buffer.add_many(samples[:2500])
     assert {tuple(row) for row in buffer.samples} & spikes  # the uniqueness rule loves spikes
     evicted = buffer.set_reference(true_calibration())
@@ -416,4 +419,229 @@ def test_clear_forgets_samples_and_counters():
     assert buffer.relative_knn_distance == 0.0
     buffer.add_many(sphere_samples(100, seed=11))
     assert buffer.fill == 20
+    assert_bookkeeping_exact(buffer)
+
+
+# -- self-reference and merging -------------------------------------------------------------------
+
+
+SOFT = np.array([[1.08, 0.12, -0.03], [0.12, 0.95, 0.06], [-0.03, 0.06, 1.02]])
+OFFSET = np.array([180.0, -90.0, 60.0])
+
+
+def tumble_stream(n=3000, seed=21, noise=0.5, spike_share=0.0, small_spikes=False):
+    """A hand tumble at 50 Hz through hard and soft iron, as the node sees it, plus spikes.
+
+    Returns (raw, truth reading without noise and spikes, spike mask).
+    """
+    from mag_calibrator_ros.motion import body_field_samples
+
+    rng = np.random.default_rng(seed)
+    reading = body_field_samples('tumble', n, 50.0, FIELD, 55.0, seed) @ SOFT.T + OFFSET
+    raw = reading + rng.normal(0.0, noise, reading.shape)
+    spikes = np.zeros(n, dtype=bool)
+    spikes[rng.choice(n, int(round(spike_share * n)), replace=False)] = True
+    directions = rng.normal(size=(int(spikes.sum()), 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    low, high = (0.3, 2.0) if small_spikes else (2.0, 5.0)
+    raw[spikes] += directions * rng.uniform(low, high, (len(directions), 1)) * FIELD
+    return raw, reading, spikes
+
+
+def true_relative_magnitude(points):
+    """|S^-1 (x - h)| / F: 1 on the true ellipsoid."""
+    return np.linalg.norm((points - OFFSET) @ np.linalg.inv(SOFT).T, axis=1) / FIELD
+
+
+def test_spikes_are_refused_and_evicted_without_any_external_reference():
+    """A uniqueness buffer loves spikes (73 of 100 points at 3 % before the self-reference);
+    its own periodic fit now refuses them, and no one had to call set_reference."""
+    raw, _, spikes = tumble_stream(spike_share=0.03)
+    buffer = SampleBuffer(capacity=100, k=6)
+    buffer.add_many(raw)
+    assert buffer.reference is None and buffer.provisional_reference is not None
+    assert buffer.self_fits >= 1
+    spike_rows = set(map(tuple, raw[spikes]))
+    assert not {tuple(row) for row in buffer.anchors} & spike_rows
+    assert buffer.rejects['magnitude_outlier'] >= 0.8 * spikes.sum()
+    # the rest was good data: hardly any refused
+    assert buffer.rejects['magnitude_outlier'] <= spikes.sum() + 5
+    # what stays is the ellipsoid: no point further off than the screen lets through
+    assert np.all(np.abs(true_relative_magnitude(buffer.samples) - 1.0) < 0.05)
+    assert_bookkeeping_exact(buffer)
+
+
+def test_without_self_reference_the_spikes_stay():
+    """The same stream with the self-reference off: the failure the feature fixes."""
+    raw, _, spikes = tumble_stream(spike_share=0.03)
+    buffer = SampleBuffer(capacity=100, k=6, self_reference=False)
+    buffer.add_many(raw)
+    assert buffer.provisional_reference is None and buffer.merged == 0
+    assert len({tuple(row) for row in buffer.anchors} & set(map(tuple, raw[spikes]))) > 30
+
+
+def replay_groups(buffer, stream):
+    """Feed ``stream`` and track, the obvious way, which readings each buffered point stands for.
+
+    A merge goes to the nearest anchor; a replaced anchor's readings go to its nearest other
+    anchor once a provisional reference exists (before, the brief's rule drops the sample).
+    """
+    groups = {}
+    for x in stream:
+        before = buffer.anchors
+        folding = buffer.provisional_reference is not None
+        merged = buffer.merged
+        outcome = buffer.add(x)
+        after = {tuple(row) for row in buffer.anchors}
+        if outcome == 'added':
+            groups[tuple(x)] = [x]
+        elif outcome == 'replaced':
+            (gone,) = [row for row in before if tuple(row) not in after]
+            readings = groups.pop(tuple(gone))
+            if folding:
+                others = np.array([row for row in before if tuple(row) != tuple(gone)])
+                nearest = others[np.argmin(np.linalg.norm(others - gone, axis=1))]
+                groups[tuple(nearest)].extend(readings)
+            groups[tuple(x)] = [x]
+        elif buffer.merged > merged:
+            groups[tuple(before[np.argmin(np.linalg.norm(before - x, axis=1))])].append(x)
+        for anchor in list(groups):  # evicted by a new provisional reference
+            if anchor not in after:
+                del groups[anchor]
+    return groups
+
+
+def on_surface(readings, reference):
+    """Mean direction, mean radius to second order (the buffer's rule, from the raw readings)."""
+    matrix = reference.matrix / reference.field_strength
+    readings = np.asarray(readings)
+    u = (readings.mean(axis=0) - reference.offset) @ matrix.T
+    covariance = matrix @ np.cov(readings, rowvar=False, bias=True) @ matrix.T
+    radius = np.linalg.norm(u)
+    direction = u / radius
+    surface = radius + (np.trace(covariance) - direction @ covariance @ direction) / (2 * radius)
+    return reference.offset + np.linalg.solve(matrix, surface * direction)
+
+
+def test_counts_and_means_equal_a_brute_force_replay():
+    """Counts, sums and second moments (kept about each anchor, moved exactly when a replaced
+    point's readings join a neighbour) give what the readings themselves give."""
+    raw, _, _ = tumble_stream(n=2000, seed=22)
+    buffer = SampleBuffer(capacity=60, k=6)
+    groups = replay_groups(buffer, raw)
+    assert buffer.evicted == 0 and buffer.merged > 1000
+    reference = buffer.provisional_reference
+    counts, samples = buffer.counts, buffer.samples
+    assert counts.max() > 20
+    for anchor, count, sample in zip(buffer.anchors, counts, samples, strict=True):
+        readings = groups[tuple(anchor)]
+        assert count == len(readings)
+        expected = readings[0] if count == 1 else on_surface(readings, reference)
+        np.testing.assert_allclose(sample, expected, rtol=1e-9)
+    assert counts.sum() == sum(len(readings) for readings in groups.values())
+
+
+def test_merged_means_stay_on_the_surface_and_lose_noise():
+    """Noise-free: every mean lies on the ellipsoid, where a plain mean of the readings spread
+    over a patch sinks inside it. Noisy: means are far closer to it than single readings."""
+    _, reading, _ = tumble_stream(seed=23, noise=0.0)
+    clean = SampleBuffer(capacity=100, k=6)
+    groups = replay_groups(clean, reading)
+    assert clean.merged > 1000
+    on_surface_error = np.abs(true_relative_magnitude(clean.samples) - 1.0)
+    plain = np.array([np.mean(groups[tuple(a)], axis=0) for a in clean.anchors])
+    plain_error = np.abs(true_relative_magnitude(plain) - 1.0)
+    assert plain_error.max() > 2e-3  # the sagitta of the larger patches
+    assert on_surface_error.max() < 0.1 * plain_error.max()
+
+    raw, _, _ = tumble_stream(seed=23, noise=0.5)
+    noisy = SampleBuffer(capacity=100, k=6)
+    noisy.add_many(raw)
+    heavy = noisy.counts >= 10
+    assert heavy.sum() > 20
+    merged_error = np.std(true_relative_magnitude(noisy.samples[heavy]) - 1.0)
+    single_error = np.std(true_relative_magnitude(raw) - 1.0)
+    assert merged_error < 0.4 * single_error
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), capacity=st.integers(20, 80), k=st.integers(1, 8),
+       spike_share=st.floats(0.0, 0.05))
+def test_bookkeeping_stays_exact_with_merges_evictions_and_replacements(
+    seed, capacity, k, spike_share
+):
+    raw, _, _ = tumble_stream(n=1500, seed=seed % 1000, spike_share=spike_share)
+    buffer = SampleBuffer(capacity, k)
+    buffer.add_many(raw)
+    assert_bookkeeping_exact(buffer)
+    assert {tuple(row) for row in buffer.anchors} <= set(map(tuple, raw))
+    assert buffer.counts.min() >= 1.0
+
+
+def test_weighted_fit_of_the_buffer_is_near_the_fit_of_every_sample():
+    """Each point carrying many readings: N = 100 points calibrate close to all 3,000 samples
+    (random 100-sample subsets give about 0.2 deg here)."""
+    from mag_calibrator_ros.calibration import FitOptions, fit_calibration
+
+    raw, reading, spikes = tumble_stream(seed=25, spike_share=0.01, small_spikes=True)
+    buffer = SampleBuffer(capacity=100, k=6)
+    buffer.add_many(raw)
+    result = fit_calibration(buffer.samples, FitOptions(model='full'), weights=buffer.counts)
+    assert result.success
+    corrected = result.calibration.apply(reading)
+    truth = (reading - OFFSET) @ np.linalg.inv(SOFT).T
+    cosine = np.sum(corrected * truth, axis=1) / (
+        np.linalg.norm(corrected, axis=1) * np.linalg.norm(truth, axis=1))
+    error_deg = np.degrees(np.sqrt(np.mean(np.arccos(np.clip(cosine, -1.0, 1.0)) ** 2)))
+    assert error_deg < 0.12
+
+
+def test_self_reference_decisions_are_the_same_in_any_unit():
+    raw, _, _ = tumble_stream(seed=26, spike_share=0.02, small_spikes=True)
+    runs = []
+    for scale in (1.0, 1e-6, 1.0 / 0.15):
+        buffer = SampleBuffer(capacity=60, k=6)
+        outcomes = [buffer.add(sample * scale) for sample in raw]
+        runs.append((outcomes, buffer.samples / scale, buffer.counts, buffer.merged))
+    assert runs[0][3] > 0
+    for outcomes, samples, counts, merged in runs[1:]:
+        assert outcomes == runs[0][0] and merged == runs[0][3]
+        np.testing.assert_array_equal(counts, runs[0][2])
+        np.testing.assert_allclose(samples, runs[0][1], rtol=1e-9)
+
+
+def test_a_moved_sensor_drops_the_provisional_reference_and_recovers():
+    """The provisional reference describes the buffer; when the sensor's iron changes, most new
+    readings disagree, the reference is dropped rather than starving the buffer."""
+    raw, _, _ = tumble_stream(seed=27)
+    buffer = SampleBuffer(capacity=100, k=6)
+    buffer.add_many(raw)
+    assert buffer.provisional_reference is not None
+    moved = raw + np.array([60.0, 0.0, 0.0])  # new hard iron: every reading 1.2 F off
+    buffer.add_many(moved[:300])
+    assert buffer.rejects['magnitude_outlier'] < 300
+    assert {tuple(row) for row in buffer.anchors} & set(map(tuple, moved[:300]))
+
+
+def test_clear_forgets_the_provisional_reference_and_counts():
+    raw, _, _ = tumble_stream(seed=28)
+    buffer = SampleBuffer(capacity=50, k=6)
+    buffer.add_many(raw)
+    assert buffer.provisional_reference is not None and buffer.merged > 0
+    buffer.clear()
+    assert buffer.provisional_reference is None
+    assert (buffer.merged, buffer.self_fits, buffer.fill) == (0, 0, 0)
+    assert buffer.counts.size == 0
+
+
+def test_resize_keeps_counts_and_means():
+    raw, _, _ = tumble_stream(seed=29)
+    buffer = SampleBuffer(capacity=100, k=6)
+    buffer.add_many(raw)
+    pairs = {tuple(a): (tuple(m), c)
+             for a, m, c in zip(buffer.anchors, buffer.samples, buffer.counts, strict=True)}
+    buffer.resize(capacity=60)
+    assert buffer.fill == 60
+    for a, m, c in zip(buffer.anchors, buffer.samples, buffer.counts, strict=True):
+        assert pairs[tuple(a)] == (tuple(m), c)
     assert_bookkeeping_exact(buffer)
