@@ -316,7 +316,10 @@ class CalibrationSession:
 
     def calibrate(self) -> CalibrationAttempt:
         """Fit the buffer; apply on success, keep the previous calibration on failure."""
-        result = fit_calibration(self.buffer.samples, self.settings.fit_options())
+        # counts: how many readings each buffered point averages (SampleBuffer merging)
+        result = fit_calibration(
+            self.buffer.samples, self.settings.fit_options(), weights=self.buffer.counts
+        )
         metrics = result.metrics.as_dict()
         if result.success and result.calibration is not None:
             calibration = result.calibration.with_metadata(
