@@ -67,6 +67,7 @@ class Outcome:
     calibration: Calibration | None
     note: str = ''  # '' = fine; else a short reason (gate failed, no result ...)
     kept: np.ndarray | None = None  # the buffered samples, when the method has a buffer
+    flagged: int | None = None  # rows the fit flagged as outliers, when the method is a fit
 
 
 @dataclass
@@ -112,19 +113,35 @@ def short(reason: str, limit: int = 110) -> str:
     return reason if len(reason) <= limit else reason[: limit - 1] + '…'
 
 
-def fit_outcome(samples: np.ndarray, model: str, kept: np.ndarray | None = None) -> Outcome:
-    result = fit_calibration(samples, FitOptions(model=model))
+def fit_outcome(
+    samples: np.ndarray | Buffered, model: str, kept: np.ndarray | None = None
+) -> Outcome:
+    """Fit plain samples, or a streamed buffer with its counts as weights (as the node does)."""
+    if isinstance(samples, Buffered):
+        result = fit_calibration(samples.samples, FitOptions(model=model), weights=samples.counts)
+    else:
+        result = fit_calibration(samples, FitOptions(model=model))
     note = '' if result.success else f'gate: {short(result.reason)}'
     if result.calibration is None:
         note = f'no result: {short(result.reason)}'
-    return Outcome(result.calibration, note, kept)
+    return Outcome(result.calibration, note, kept, int(np.sum(result.outliers)))
 
 
-def streamed_buffer(samples: np.ndarray, capacity: int = BUFFER_CAPACITY) -> np.ndarray:
-    """Every sample through SampleBuffer, as ``mag_calibrator_fit --buffer`` does."""
+@dataclass(frozen=True)
+class Buffered:
+    """What a streamed SampleBuffer holds: its points, how many readings each averages, and
+    the samples that won the places (raw readings: used to count the spikes kept)."""
+
+    samples: np.ndarray
+    counts: np.ndarray
+    anchors: np.ndarray
+
+
+def streamed_buffer(samples: np.ndarray, capacity: int = BUFFER_CAPACITY) -> Buffered:
+    """Every sample through SampleBuffer, as the node and ``mag_calibrator_fit --buffer`` do."""
     buffer = SampleBuffer(capacity=capacity)
     buffer.add_many(samples)
-    return buffer.samples
+    return Buffered(buffer.samples, buffer.counts, buffer.anchors)
 
 
 def brief_outcome(samples: np.ndarray, pre_scaler: float) -> Outcome:
@@ -157,7 +174,8 @@ SYNTHETIC_METHODS = (
 )
 METHOD_LEGEND = (
     'brief = brief_port: its kNN buffer (N=100, k=2, pre_scaler=F) + float32 axis fit; '
-    'axis buf / full buf = our fit on SampleBuffer(capacity=100) fed all samples; '
+    'axis buf / full buf = our fit on SampleBuffer(capacity=100) fed all samples, weighted by '
+    'its counts (readings merged into each point), as the node fits it; '
     'tracker / tracker-n = OnlineTracker from identity, raw / magnitude-normalised input, '
     'one pass; full rnd = our fit on 100 random samples (what the buffer must beat); '
     'full all = our fit on every sample'
@@ -170,10 +188,10 @@ def synthetic_outcomes(scenario: Scenario) -> dict[str, Outcome]:
     start = Calibration.identity(strength)
     return {
         'brief': brief_outcome(raw, strength),
-        'axis buf': fit_outcome(buffered, 'axis', buffered),
+        'axis buf': fit_outcome(buffered, 'axis', buffered.anchors),
         'tracker': tracker_outcome(raw, start, normalise=False),
         'tracker-n': tracker_outcome(raw, start, normalise=True),
-        'full buf': fit_outcome(buffered, 'full', buffered),
+        'full buf': fit_outcome(buffered, 'full', buffered.anchors),
         'full rnd': fit_outcome(random_subset(raw, BUFFER_CAPACITY, scenario.seed), 'full'),
         'full all': fit_outcome(raw, 'full'),
     }
@@ -232,19 +250,16 @@ def synthetic_section(scenarios: Sequence[Scenario]) -> tuple[list[Table], dict]
             str(int(scenario.spikes.sum())),
             str(spikes_kept(scenario, outcomes['brief'].kept)),
             str(spikes_kept(scenario, outcomes['full buf'].kept)),
-            flagged_count(outcomes['full buf'].kept, 'full'),
-            flagged_count(scenario.raw, 'full'),
+            flagged_count(outcomes['full buf']),
+            flagged_count(outcomes['full all']),
         ])
     rms_table.notes = [METHOD_LEGEND, '* = the method reported a problem (listed below)', *notes]
     spread_table.notes = ['judged on the noise-free readings S @ B + h: 0 is perfect']
     return [rms_table, max_table, spread_table, kept_table], {'worst_full_buf': worst_full_buf}
 
 
-def flagged_count(samples: np.ndarray | None, model: str) -> str:
-    if samples is None:
-        return '—'
-    result = fit_calibration(samples, FitOptions(model=model))
-    return str(int(np.sum(result.outliers)))
+def flagged_count(outcome: Outcome) -> str:
+    return '—' if outcome.flagged is None else str(outcome.flagged)
 
 
 # -- (b) shared recordings --
@@ -315,7 +330,7 @@ def recordings_section(data_dir: Path) -> tuple[list[Table], dict]:
         outcomes = {
             'authors': Outcome(recording.authors),
             'brief': brief_outcome(samples, rough_field_strength(samples)),
-            'full buf': fit_outcome(buffered, 'full', buffered),
+            'full buf': fit_outcome(buffered, 'full', buffered.anchors),
             'full all': fit_outcome(samples, 'full'),
         }
         spreads = {}
@@ -337,8 +352,8 @@ def recordings_section(data_dir: Path) -> tuple[list[Table], dict]:
         verdicts[recording.name] = (spreads['authors'], spreads['full all'], spreads['full buf'])
     table.notes = [
         "brief: N=100, k=2, pre_scaler = half the mean axis span (a user's field estimate); "
-        'full buf: SampleBuffer(capacity=100) then fit; full all: every row; '
-        '* = the method reported a problem (listed below)',
+        'full buf: SampleBuffer(capacity=100) then fit weighted by its counts; '
+        'full all: every row; * = the method reported a problem (listed below)',
         *notes,
     ]
     return [table], verdicts
