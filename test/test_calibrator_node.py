@@ -423,6 +423,8 @@ def test_bad_messages_are_counted_and_never_published(ros, live):
     out = send_and_collect(probe, node, messages, 1)
     assert [m.header.stamp.sec for m in out] == [106]
     assert not np.any(out[0].magnetic_field_covariance)  # unknown stays unknown
+    assert wait_for(lambda: any(s.level == DiagnosticStatus.WARN and 'refused' in s.message
+                                for s in probe.statuses('mag_calibrator: ')), timeout_s=3.0)
     rejects = node.session.screen_rejects
     for reason in ('non_finite', 'zero', 'saturated', 'stamp_backwards', 'frame_changed'):
         expected = 2 if reason == 'non_finite' else 1

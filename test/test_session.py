@@ -243,3 +243,5 @@ def test_diagnostic_values_report_rate_and_counters():
     assert values['input_rate_hz'] == pytest.approx(50.5)
     assert values['rejected_zero'] == 1
     assert values['buffer_fill'] == session.buffer.fill
+    assert session.new_screen_rejects() == {'zero': 1}
+    assert session.new_screen_rejects() == {}

@@ -223,6 +223,7 @@ class CalibrationSession:
         self._recent: deque[np.ndarray] = deque(maxlen=TRACKING_EVALUATION_SAMPLES)
         self._last_auto_attempt = -math.inf
         self._last_tracking_check: float | None = None
+        self._reported_rejects = dict(self.screen_rejects)
         if calibration is not None:
             self.apply_calibration(calibration)
 
@@ -433,6 +434,14 @@ class CalibrationSession:
         if self.settings.auto_calibrate:
             return f'{text}, {fill} \u2014 enough to calibrate; calibrating automatically'
         return f'{text}, {fill} \u2014 enough to calibrate: call ~/calibrate'
+
+    def new_screen_rejects(self) -> dict[str, int]:
+        """Messages refused since the previous call, by reason (only reasons that occurred)."""
+        new = {reason: count - self._reported_rejects[reason]
+               for reason, count in self.screen_rejects.items()
+               if count > self._reported_rejects[reason]}
+        self._reported_rejects = dict(self.screen_rejects)
+        return new
 
     def diagnostic_values(self, now: float) -> dict[str, object]:
         """Key/values for /diagnostics; read once per diagnostics period (updates the rate)."""

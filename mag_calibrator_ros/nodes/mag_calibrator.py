@@ -363,6 +363,9 @@ class MagCalibratorNode(Node):
         state = self.session.state
         if self._problem is not None:
             level, message = ERROR, self._problem
+        elif refused := self.session.new_screen_rejects():
+            counts = ', '.join(f'{reason} {count}' for reason, count in refused.items())
+            level, message = WARN, f'{state}: input messages refused since last report: {counts}'
         elif state == 'calibrated':
             level, message = OK, self.session.progress_text()
         elif values['input_rate_hz'] == 0.0:
