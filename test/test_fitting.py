@@ -580,3 +580,109 @@ def test_a_hemisphere_does_not_determine_a_full_ellipsoid():
     assert not full.success
     assert 'ill-conditioned' in full.reason
     assert fit_calibration(raw).metrics.model != 'full'
+
+
+# ----------------------------------------------------------------------------------------------
+# weights (SampleBuffer's counts: a point that averages n readings)
+
+
+def averaged_points(rng, soft, offset, n=120, noise=0.5, max_count=60):
+    """Points that each average 1 or ``max_count`` readings: noise shrinks by sqrt(count)."""
+    directions = unit_vectors(rng, n)
+    counts = rng.choice([1.0, float(max_count)], n)
+    raw = FIELD * directions @ soft.T + offset
+    raw += rng.normal(0.0, noise, raw.shape) / np.sqrt(counts)[:, None]
+    return raw, counts, directions
+
+
+@pytest.mark.parametrize('model', ['sphere', 'axis', 'full', 'planar', 'auto'])
+def test_unit_weights_change_nothing(model):
+    rng = np.random.default_rng(41)
+    soft, offset = soft_iron(rng), np.array([80.0, -20.0, 140.0])
+    directions = yaw_directions(rng, 200) if model == 'planar' else unit_vectors(rng, 200)
+    # the axis model is the brief's plain least squares: spikes would leave nothing to compare
+    raw, _ = readings(directions, rng, soft, offset, spikes=0.0 if model == 'axis' else 0.02)
+    plain = fit_calibration(raw, FitOptions(model=model))
+    weighted = fit_calibration(raw, FitOptions(model=model), weights=np.ones(len(raw)))
+    assert weighted.success == plain.success and weighted.reason == plain.reason
+    np.testing.assert_allclose(weighted.calibration.offset, plain.calibration.offset, rtol=1e-9)
+    np.testing.assert_allclose(weighted.calibration.matrix, plain.calibration.matrix, rtol=1e-9)
+    np.testing.assert_array_equal(weighted.outliers, plain.outliers)
+
+
+def test_integer_weights_equal_repeated_rows():
+    rng = np.random.default_rng(42)
+    soft, offset = soft_iron(rng), np.array([-150.0, 60.0, 30.0])
+    raw, _ = readings(unit_vectors(rng, 150), rng, soft, offset, noise=0.2)
+    counts = rng.integers(1, 8, len(raw))
+    weighted = fit_calibration(raw, FitOptions(model='full'), weights=counts)
+    repeated = fit_calibration(np.repeat(raw, counts, axis=0), FitOptions(model='full'))
+    assert weighted.success and repeated.success
+    assert weighted.metrics.outlier_count == repeated.metrics.outlier_count == 0
+    np.testing.assert_allclose(weighted.calibration.offset, repeated.calibration.offset,
+                               rtol=1e-6)
+    np.testing.assert_allclose(weighted.calibration.matrix, repeated.calibration.matrix,
+                               rtol=1e-6)
+
+
+def test_weights_make_averaged_points_count():
+    """Points of very different precision: weighting by counts is markedly more accurate."""
+    errors = {'plain': [], 'weighted': []}
+    for seed in range(6):
+        rng = np.random.default_rng(100 + seed)
+        soft, offset = soft_iron(rng), rng.uniform(-200.0, 200.0, 3)
+        raw, counts, directions = averaged_points(rng, soft, offset, noise=1.0)
+        plain = fit_calibration(raw, FitOptions(model='full'))
+        weighted = fit_calibration(raw, FitOptions(model='full'), weights=counts)
+        assert weighted.success, weighted.reason
+        errors['plain'].append(direction_error_deg(plain.calibration, directions, soft, offset))
+        errors['weighted'].append(
+            direction_error_deg(weighted.calibration, directions, soft, offset)
+        )
+    assert np.mean(errors['weighted']) < 0.7 * np.mean(errors['plain'])
+
+
+def test_weighted_outliers_are_judged_against_one_readings_noise():
+    """A lone spike is flagged; a heavily averaged point off by less than one reading's noise
+    allows is not (its weight says how well it is known, not that the model must fit it)."""
+    rng = np.random.default_rng(43)
+    soft, offset = soft_iron(rng), np.array([20.0, 50.0, -90.0])
+    raw, counts, _ = averaged_points(rng, soft, offset, noise=0.5, max_count=1)
+    radius = FIELD * soft @ unit_vectors(rng, 2).T  # two more points, 2 % and 25 % off
+    heavy = offset + 1.02 * radius[:, 0]
+    spike = offset + 1.25 * radius[:, 1]
+    samples = np.vstack([raw, heavy, spike])
+    weights = np.append(counts, [50.0, 1.0])
+    result = fit_calibration(samples, FitOptions(model='full'), weights=weights)
+    assert result.success, result.reason
+    assert result.outliers[-1] and not result.outliers[-2]
+    assert result.metrics.outlier_count == 1
+
+
+@pytest.mark.parametrize(
+    ('weights', 'message'),
+    [
+        (np.ones(5), 'shape'),
+        (-np.ones(60), '> 0'),
+        (np.zeros(60), '> 0'),
+        (np.full(60, np.nan), 'finite'),
+        (['a'] * 60, 'not numbers'),
+    ],
+)
+def test_bad_weights_fail_clearly_without_raising(weights, message):
+    rng = np.random.default_rng(44)
+    raw, _ = readings(unit_vectors(rng, 60), rng, np.eye(3), np.zeros(3))
+    result = fit_calibration(raw, FitOptions(model='full'), weights=weights)
+    assert not result.success and result.calibration is None
+    assert 'weights' in result.reason and message in result.reason
+    assert_all_finite(result)
+
+
+def test_weights_of_non_finite_rows_are_dropped_with_them():
+    rng = np.random.default_rng(45)
+    soft, offset = soft_iron(rng), np.array([10.0, 20.0, 30.0])
+    raw, counts, _ = averaged_points(rng, soft, offset)
+    raw[[3, 7]] = np.nan
+    result = fit_calibration(raw, FitOptions(model='full'), weights=counts)
+    assert result.success, result.reason
+    assert result.metrics.n_non_finite == 2 and result.outliers[3] and result.outliers[7]
