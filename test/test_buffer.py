@@ -645,3 +645,19 @@ def test_resize_keeps_counts_and_means():
     for a, m, c in zip(buffer.anchors, buffer.samples, buffer.counts, strict=True):
         assert pairs[tuple(a)] == (tuple(m), c)
     assert_bookkeeping_exact(buffer)
+
+
+def test_yaw_only_motion_never_gets_a_provisional_reference():
+    """A ground robot turning in place does not determine the full model the self-reference
+    needs (a planar fit would misjudge every tilt): the buffer then behaves as the brief's rule
+    alone, merging nothing."""
+    from mag_calibrator_ros.motion import body_field_samples
+
+    rng = np.random.default_rng(30)
+    reading = body_field_samples('yaw', 3000, 50.0, FIELD, 60.0, 30) @ SOFT.T + OFFSET
+    buffer = SampleBuffer(capacity=100, k=6)
+    buffer.add_many(reading + rng.normal(0.0, 0.5, reading.shape))
+    assert buffer.self_fits > 0
+    assert buffer.provisional_reference is None
+    assert buffer.merged == 0 and np.all(buffer.counts == 1.0)
+    np.testing.assert_array_equal(buffer.samples, buffer.anchors)
