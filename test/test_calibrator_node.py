@@ -28,7 +28,7 @@ import yaml
 from mag_calibrator_ros.calibration.calibration_file import load_calibration
 from mag_calibrator_ros.nodes.icm20948_driver import Icm20948DriverNode
 from mag_calibrator_ros.nodes.mag_calibrator import MagCalibratorNode
-from mag_calibrator_ros.tools.demo import NodeThreads
+from mag_calibrator_ros.nodes.runtime import NodeThreads
 
 HARD_IRON_UT = [120.0, -80.0, 60.0]
 SOFT_IRON = [1.15, 0.10, -0.08, 0.10, 0.85, 0.12, -0.08, 0.12, 1.00]  # strong, symmetric

@@ -24,11 +24,6 @@ import time
 import numpy as np
 import rclpy
 from rclpy.context import Context
-from rclpy.executors import (
-    ExternalShutdownException,
-    ShutdownException,
-    SingleThreadedExecutor,
-)
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
@@ -39,6 +34,7 @@ from mag_calibrator_ros import motion
 from mag_calibrator_ros.calibration.coverage import direction_coverage
 from mag_calibrator_ros.nodes.icm20948_driver import Icm20948DriverNode
 from mag_calibrator_ros.nodes.mag_calibrator import MagCalibratorNode
+from mag_calibrator_ros.nodes.runtime import NodeThreads
 from mag_calibrator_ros.tools.plotting import plot_calibration
 
 FIELD_UT = 50.0
@@ -53,47 +49,6 @@ NAMESPACE = 'mag_calibrator_demo'
 LEVEL_HORIZONTAL_SHARE = math.cos(math.radians(INCLINATION_DEG))
 """Heading is scored on samples whose true field is at least as horizontal (in the chip x-y
 plane) as a level-mounted sensor sees it; near the chip z axis a heading has no meaning."""
-
-
-class NodeThreads:
-    """Spins each node with its own SingleThreadedExecutor on its own thread, in one process.
-
-    Why not one MultiThreadedExecutor: Jazzy's rclpy (7.1.x) re-queues callbacks that no worker
-    has started yet (ros2/rclpy#1452, fixed upstream by ros2/rclpy#1547). With the driver at
-    100 Hz and the calibrator in one such executor the driver fell to 4-7 Hz at 100 % CPU; one
-    executor per node keeps 100 Hz at about 13 % CPU. Callbacks of different nodes still run
-    concurrently, and a node is stopped before it is destroyed (no handle races).
-    """
-
-    def __init__(self, context: Context) -> None:
-        self._context = context
-        self._spinning: dict[Node, tuple[SingleThreadedExecutor, threading.Thread]] = {}
-
-    def add(self, node: Node) -> Node:
-        executor = SingleThreadedExecutor(context=self._context)
-        executor.add_node(node)
-        thread = threading.Thread(target=self._spin, args=(executor,), daemon=True,
-                                  name=f'spin {node.get_name()}')
-        self._spinning[node] = (executor, thread)
-        thread.start()
-        return node
-
-    def _spin(self, executor: SingleThreadedExecutor) -> None:
-        try:
-            executor.spin()
-        except (ExternalShutdownException, ShutdownException):
-            pass
-
-    def remove(self, node: Node) -> None:
-        """Stop spinning ``node``, then destroy it."""
-        executor, thread = self._spinning.pop(node)
-        executor.shutdown()
-        thread.join(timeout=5.0)
-        node.destroy_node()
-
-    def shutdown(self) -> None:
-        for node in list(self._spinning):
-            self.remove(node)
 
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
