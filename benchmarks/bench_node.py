@@ -74,11 +74,13 @@ def _feeder(rate_hz: float, duration_s: float, start_delay_s: float) -> int:
 
 
 def _relay() -> int:
-    """The ceiling: subscribe (sensor-data QoS, as the node does), copy, publish."""
+    """The ceiling: subscribe with the node's own input QoS, copy, publish."""
     import rclpy
     from rclpy.executors import ExternalShutdownException
-    from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import MagneticField
+
+    from mag_calibrator_ros.nodes.mag_calibrator import INPUT_QOS
 
     rclpy.init()
     node = rclpy.create_node('bench_relay')
@@ -92,7 +94,7 @@ def _relay() -> int:
         copy.magnetic_field_covariance = message.magnetic_field_covariance
         publisher.publish(copy)
 
-    node.create_subscription(MagneticField, 'imu/mag', relay, qos_profile_sensor_data)
+    node.create_subscription(MagneticField, 'imu/mag', relay, INPUT_QOS)
     try:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
