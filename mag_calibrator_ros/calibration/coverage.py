@@ -24,9 +24,11 @@ from numpy.typing import ArrayLike
 from mag_calibrator_ros.calibration.calibration import Calibration
 from mag_calibrator_ros.calibration.ellipsoid import (
     GROSS_OUTLIER_SIGMAS,
+    PARAMETER_COUNTS,
     normalise,
     quadric_least_squares,
     robust_sigma,
+    sphere_least_squares,
     trimmed_start,
 )
 
@@ -47,6 +49,26 @@ _WHITENING_OUTLIER_SIGMAS = 4.0
 _MAX_WHITENING_RATIO = 3.0
 """A whitening that stretches one axis more than 3x the others is not soft iron (real ratios are <
 1.5) but a plane of data: stretching its noise would fake coverage."""
+SHELL_TOLERANCE = 0.15
+"""Largest relative radial scatter (robust sigma of |v| / median |v| - 1) of centred, whitened
+readings that still describe a shell of field directions. Real sensors in real fields give 0.5-6 %
+(the shared recordings 0.7-5 %); a still sensor's noise blob gives about 40 % however it is fitted
+(the radii of a 3-D Gaussian cloud), as does a wobble of a few degrees (a flat noisy patch)."""
+STILL_SPREAD = 0.1
+"""Readings scattering by less than this share of their magnitude barely change: a still sensor
+or a wobble of a few degrees (a tumble scatters by the field over field plus offset, >= 0.15 up to
+an offset of 5x the field)."""
+STILL_HINT = 'rotate the sensor through many orientations: the readings barely change'
+NOT_A_SHELL_HINT = (
+    'the readings do not outline a sphere of field directions: rotate the sensor slowly through '
+    'many orientations, away from iron, magnets, motors and currents'
+)
+FEW_HINT = 'too few distinct readings yet: keep rotating the sensor through new orientations'
+MIN_LEVELS = 8
+"""Fewer distinct values than this on every axis (a still sensor read in counts, or the first few
+samples) describe no shell: any sphere fits a handful of quantisation steps exactly."""
+_FEW_CELLS = 4
+"""A wobble of a few degrees seen through a good calibration touches at most about 4 cells."""
 
 
 @dataclass(frozen=True)
@@ -104,55 +126,109 @@ def whitened_directions(samples: ArrayLike, calibration: Calibration | None = No
     """Unit field directions (m, 3) in the sensor frame after centring and whitening.
 
     With a calibration: its corrected directions. Without: a quick trimmed algebraic ellipsoid fit
-    when it is plausible, else the median centre and a covariance whitening bounded to ratio 3.
+    when it is plausible, else a bounded covariance whitening or a sphere fit. Empty when the
+    readings do not describe a shell of field directions (see ``shell_directions``).
     """
-    points = finite_rows(samples)
+    return shell_directions(samples, calibration)[0]
+
+
+def shell_directions(
+    samples: ArrayLike, calibration: Calibration | None = None
+) -> tuple[np.ndarray, str]:
+    """(unit directions (m, 3), '') when the readings describe a shell, else (empty, advice).
+
+    Any centring and whitening fitted to the data themselves turns a still sensor's noise blob
+    into a ball of "directions" all round. So directions are trusted only when the centred,
+    whitened readings lie on a shell: relative radial scatter at most ``SHELL_TOLERANCE``.
+    """
+    points = distinct_rows(finite_rows(samples))
     if len(points) == 0:
-        return np.empty((0, 3))
+        return np.empty((0, 3)), ''
+    if max(len(np.unique(column)) for column in points.T) < MIN_LEVELS:
+        # a few quantisation steps (a still sensor read in counts): any shell fits them exactly
+        return np.empty((0, 3)), STILL_HINT if readings_barely_change(points) else FEW_HINT
     with np.errstate(all='ignore'):
         if calibration is not None:
-            vectors = calibration.apply(points)
+            candidates = [calibration.apply(points)]
         else:
-            vectors = _quick_whiten(points)
-        peak = np.max(np.abs(vectors), axis=1, keepdims=True)  # no overflow in the norm
-        keep = np.isfinite(peak[:, 0]) & (peak[:, 0] > 0)
-        vectors, peak = vectors[keep] / peak[keep], peak[keep, 0]
-        radius = np.linalg.norm(vectors, axis=1) * peak
-        vectors = vectors / np.linalg.norm(vectors, axis=1, keepdims=True)
-        if len(radius) == 0:
-            return vectors
-        # spikes are no field direction: leave out gross radius outliers (> 10 sigma, > 10 %)
-        deviation = radius / np.median(radius) - 1.0
-        return vectors[
-            np.abs(deviation) <= max(GROSS_OUTLIER_SIGMAS * robust_sigma(deviation), 0.1)
-        ]
+            candidates = _quick_whitenings(points)
+        for vectors in candidates:
+            directions, radius = _unit_and_radius(vectors)
+            if len(radius) == 0:
+                continue
+            deviation = radius / np.median(radius) - 1.0
+            if robust_sigma(deviation) > SHELL_TOLERANCE:
+                continue
+            # spikes are no field direction: leave out gross radius outliers (> 10 sigma, > 10 %)
+            window = max(GROSS_OUTLIER_SIGMAS * robust_sigma(deviation), 0.1)
+            return directions[np.abs(deviation) <= window], ''
+    return np.empty((0, 3)), STILL_HINT if readings_barely_change(points) else NOT_A_SHELL_HINT
 
 
-def _quick_whiten(points: np.ndarray) -> np.ndarray:
-    """Centred, whitened vectors without a calibration.
+def distinct_rows(points: np.ndarray) -> np.ndarray:
+    """The rows without repeats, in their first order: a repeated reading is no new evidence of
+    a shell (and many repeats would make the robust radial scatter zero)."""
+    if len(points) < 2:
+        return points
+    first = np.unique(points, axis=0, return_index=True)[1]
+    return points[np.sort(first)]
 
-    A trimmed algebraic ellipsoid (spikes do not move it) when plausible, else the median centre
-    and a bounded covariance whitening.
+
+def readings_barely_change(points: np.ndarray) -> bool:
+    """True when the readings scatter by less than ``STILL_SPREAD`` of their magnitude.
+
+    Scale-free (any unit); a tumble scatters by about the field over at most the field plus the
+    hard-iron offset (0.15 at 5x the field), a still sensor by its noise (typically 0.1-4 %).
+    """
+    norm = normalise(finite_rows(points))
+    if norm is None:
+        return True
+    magnitude = float(np.linalg.norm(norm.centre / norm.scale)) * norm.scale
+    return bool(norm.scale < STILL_SPREAD * magnitude)
+
+
+def _unit_and_radius(vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit vectors and lengths of the finite, non-zero rows (no overflow in the norm)."""
+    peak = np.max(np.abs(vectors), axis=1, keepdims=True) if len(vectors) else np.ones((0, 1))
+    keep = np.isfinite(peak[:, 0]) & (peak[:, 0] > 0)
+    vectors, peak = vectors[keep] / peak[keep], peak[keep, 0]
+    length = np.linalg.norm(vectors, axis=1)
+    return vectors / length[:, None], length * peak
+
+
+def _quick_whitenings(points: np.ndarray) -> list[np.ndarray]:
+    """Centred, whitened vectors without a calibration, most trusted first.
+
+    A trimmed algebraic ellipsoid (spikes do not move it) when its axis ratio is plausible; a
+    bounded covariance whitening about the median (a ring from yawing); a sphere fit (few samples,
+    or a cap seen from a small rotation). The caller takes the first that describes a shell.
     """
     norm = normalise(points)
     if norm is None:
-        return np.empty((0, 3))
+        return []
     y = norm.forward(points)  # the median is at the origin
-    with np.errstate(all='ignore'):
-        try:
-            start = trimmed_start(y, quadric_least_squares, _WHITENING_OUTLIER_SIGMAS)
-        except (np.linalg.LinAlgError, ValueError):
-            start = None
-        if start is not None:
-            eigenvalues = np.linalg.eigvalsh(start[1])
-            if eigenvalues.max() <= _MAX_WHITENING_RATIO * eigenvalues.min():
-                return (y - start[0]) @ start[1]
-        if len(y) < 4:
-            return y
+    candidates = []
+    try:
+        start = trimmed_start(y, quadric_least_squares, _WHITENING_OUTLIER_SIGMAS)
+    except (np.linalg.LinAlgError, ValueError):
+        start = None
+    if start is not None:
+        eigenvalues = np.linalg.eigvalsh(start[1])
+        if eigenvalues.max() <= _MAX_WHITENING_RATIO * eigenvalues.min():
+            candidates.append((y - start[0]) @ start[1])
+    if len(y) >= 4:
         eigenvalues, vectors = np.linalg.eigh(np.cov(y, rowvar=False))
         floor = eigenvalues.max() / _MAX_WHITENING_RATIO**2
         scales = 1.0 / np.sqrt(np.maximum(eigenvalues, max(floor, 1e-300)))
-        return y @ (vectors * scales) @ vectors.T
+        candidates.append(y @ (vectors * scales) @ vectors.T)
+    if len(y) >= 2 * PARAMETER_COUNTS['sphere']:
+        try:
+            sphere = sphere_least_squares(y)
+        except (np.linalg.LinAlgError, ValueError):
+            sphere = None
+        if sphere is not None:
+            candidates.append(y - sphere[0])
+    return candidates
 
 
 def occupied_cells(directions: np.ndarray) -> np.ndarray:
@@ -165,11 +241,20 @@ def occupied_cells(directions: np.ndarray) -> np.ndarray:
 
 def direction_coverage(samples: ArrayLike, calibration: Calibration | None = None) -> Coverage:
     """Share of the 80 equal-area direction cells occupied, with a hint naming the missing
-    rotation."""
-    directions = whitened_directions(samples, calibration)
+    rotation.
+
+    Readings that describe no shell of directions (a still sensor, a tiny wobble, a disturbed
+    field) cover nothing, and the hint says why.
+    """
+    directions, problem = shell_directions(samples, calibration)
+    if problem:
+        return Coverage(0.0, 0, CELL_COUNT, problem)
     occupied = occupied_cells(directions)
     count = int(occupied.sum())
-    return Coverage(count / CELL_COUNT, count, CELL_COUNT, missing_rotation_hint(occupied))
+    hint = missing_rotation_hint(occupied)
+    if 0 < count <= _FEW_CELLS and readings_barely_change(finite_rows(samples)):
+        hint = STILL_HINT  # e.g. a still sensor seen through a good calibration: one cell
+    return Coverage(count / CELL_COUNT, count, CELL_COUNT, hint)
 
 
 def missing_rotation_hint(occupied: np.ndarray) -> str:
