@@ -411,6 +411,8 @@ def _gates(
             f'coverage {100 * coverage.fraction:.0f} % is below '
             f'{100 * options.min_coverage:.0f} %: {coverage.hint}'
         )
+    if coverage.occupied == 0:
+        return reasons  # no field direction told apart (a still sensor): other gates judge noise
     if fitted.model != 'planar' and layer_thickness < options.planar_thickness:
         reasons.append(_planar_reason(rows, fitted.model, layer_thickness, options))
     if fitted.condition > options.max_condition:
