@@ -411,7 +411,7 @@ def _gates(
             f'coverage {100 * coverage.fraction:.0f} % is below '
             f'{100 * options.min_coverage:.0f} %: {coverage.hint}'
         )
-    if coverage.occupied == 0:
+    if coverage.occupied == 0 and coverage.fraction < options.min_coverage:
         return reasons  # no field direction told apart (a still sensor): other gates judge noise
     if fitted.model != 'planar' and layer_thickness < options.planar_thickness:
         reasons.append(_planar_reason(rows, fitted.model, layer_thickness, options))
