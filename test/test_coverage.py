@@ -1,16 +1,31 @@
 """direction_coverage: equal-area cells after whitening, independent of N, and a useful hint."""
 
+from pathlib import Path
+import sys
+
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
-from mag_calibrator_ros.calibration import Calibration, Coverage, direction_coverage
+from mag_calibrator_ros.calibration import (
+    Calibration,
+    Coverage,
+    FitOptions,
+    direction_coverage,
+    fit_calibration,
+)
 from mag_calibrator_ros.calibration.coverage import (
     CELL_COUNT,
+    NOT_A_SHELL_HINT,
+    STILL_HINT,
     cell_centres,
     cell_index,
     heading_coverage,
     whitened_directions,
 )
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_fit_recordings import PUBLISHED  # noqa: E402  (the authors' calibrations, one place)
 
 FIELD = 50.0
 OFFSET = np.array([210.0, -140.0, 75.0])
@@ -179,3 +194,149 @@ def test_spikes_do_not_count_as_directions():
     assert coverage.occupied <= clean.occupied + 8
     assert coverage.fraction < 0.35
     assert 'roll axis (x)' in coverage.hint and 'yaw' not in coverage.hint
+
+
+# --- degenerate data: a still sensor, a small wobble, yaw only ---------------------------------
+
+UNITS = {'uT': 1.0, 'T': 1e-6, 'counts': 1.0 / 0.15}
+"""Per-unit factors from microtesla; counts are rounded to integers (0.15 uT per count)."""
+
+
+def in_unit(raw_ut, unit):
+    scaled = raw_ut * UNITS[unit]
+    return np.round(scaled) if unit == 'counts' else scaled
+
+
+def still(rng, n, offset_fields, noise):
+    """A sensor lying still: one field direction plus noise, offset a multiple of the field."""
+    direction = np.tile(unit_vectors(rng, 1), (n, 1))
+    offset = np.array([0.6, -0.5, 0.62]) / np.linalg.norm([0.6, -0.5, 0.62])
+    return (
+        FIELD * direction @ SOFT.T
+        + offset_fields * FIELD * offset
+        + rng.normal(0.0, noise, (n, 3))
+    )
+
+
+def wobbled(rng, n, degrees):
+    """Field directions of a body rocked by up to ``degrees`` about random axes."""
+    field = np.array([0.55, 0.30, -0.78])
+    field /= np.linalg.norm(field)
+    axes = unit_vectors(rng, n) * rng.uniform(0.0, np.radians(degrees), (n, 1))
+    return Rotation.from_rotvec(axes).apply(field)
+
+
+@pytest.mark.parametrize('unit', sorted(UNITS))
+@pytest.mark.parametrize('offset_fields', [0.0, 1.0, 5.0])
+@pytest.mark.parametrize('noise', [0.02, 0.1, 0.5, 2.0])
+def test_still_sensor_covers_nothing_and_says_rotate(unit, offset_fields, noise):
+    """Centred and whitened by a fit to itself, a noise blob looks like a sphere: it must not."""
+    rng = np.random.default_rng(int(100 * noise + 10 * offset_fields))
+    coverage = direction_coverage(in_unit(still(rng, 300, offset_fields, noise), unit))
+    assert coverage.fraction < 0.1
+    assert coverage.hint == STILL_HINT
+    assert 'rotate the sensor' in coverage.hint
+
+
+def test_still_sensor_through_a_good_calibration_is_one_cell_and_says_rotate():
+    rng = np.random.default_rng(20)
+    good = Calibration(OFFSET, np.linalg.inv(SOFT), FIELD)
+    raw = FIELD * np.tile(unit_vectors(rng, 1), (300, 1)) @ SOFT.T + OFFSET
+    coverage = direction_coverage(raw + rng.normal(0.0, 0.25, raw.shape), good)
+    assert coverage.occupied <= 2
+    assert coverage.hint == STILL_HINT
+
+
+def test_still_sensor_read_in_a_few_counts_covers_nothing():
+    """Noise below one count: a handful of distinct readings, which any sphere fits exactly."""
+    rng = np.random.default_rng(21)
+    for noise_counts in (0.2, 0.35, 0.6):
+        raw = np.round(still(rng, 500, 1.0, 0.0) / 0.15 + rng.normal(0.0, noise_counts, (500, 3)))
+        coverage = direction_coverage(raw)
+        assert coverage.occupied == 0, noise_counts
+        assert coverage.hint == STILL_HINT
+
+
+def test_real_still_start_of_a_recording_covers_nothing(shared_data):
+    """The fxos8700 recording's first 24 rows are the sensor lying still (PROVENANCE.md)."""
+    raw = np.loadtxt(shared_data / 'fxos8700-mwrona' / 'mag-readings.txt', ndmin=2)
+    coverage = direction_coverage(raw[:24])
+    assert coverage.fraction == 0.0
+    assert coverage.hint == STILL_HINT
+    assert direction_coverage(raw).fraction > 0.8  # the whole recording is a tumble
+
+
+@pytest.mark.parametrize('folder', sorted(PUBLISHED))
+def test_recordings_cover_as_much_as_with_the_authors_calibration(shared_data, folder):
+    """The authors counted 67-69 of 72 equal-area bins occupied; the quick whitening must give
+    what the published calibration gives."""
+    name, delimiter, offset, matrix = PUBLISHED[folder]
+    raw = np.loadtxt(shared_data / folder / name, delimiter=delimiter, ndmin=2)
+    published = Calibration(np.asarray(offset), np.asarray(matrix), 1.0)
+    quick = direction_coverage(raw)
+    assert quick.fraction > 0.8
+    assert abs(quick.occupied - direction_coverage(raw, published).occupied) <= 2
+
+
+@pytest.mark.parametrize('unit', sorted(UNITS))
+def test_small_wobble_covers_little(unit):
+    rng = np.random.default_rng(22)
+    coverage = direction_coverage(in_unit(distorted(wobbled(rng, 300, 5.0), rng), unit))
+    assert coverage.fraction < 0.1
+    assert 'rotate' in coverage.hint
+
+
+def test_coverage_grows_with_the_rotation():
+    """Still, rocked by 5, 60, 120 degrees, tumbled: honest partial coverage in between."""
+    rng = np.random.default_rng(23)
+    fractions = []
+    for degrees in (0.0, 5.0, 60.0, 120.0):
+        fractions.append(direction_coverage(distorted(wobbled(rng, 400, degrees), rng)).fraction)
+    fractions.append(direction_coverage(distorted(unit_vectors(rng, 3000), rng)).fraction)
+    assert fractions[0] < 0.1 and fractions[1] < 0.1
+    assert 0.1 < fractions[2] < 0.5 < fractions[3] < fractions[4] == 1.0
+    assert fractions == sorted(fractions)
+
+
+@pytest.mark.parametrize('unit', sorted(UNITS))
+def test_yaw_only_covers_a_ring(unit):
+    """A ring of directions, not a sphere and not nothing; the hint asks for roll or pitch.
+
+    Without a calibration the ring's tilt (the field's inclination) is unknown, so it is centred
+    as a great circle: at most about 20 cells (16 on the equator). A calibration places it.
+    """
+    rng = np.random.default_rng(24)
+    raw_ut = distorted(rotation_about(2, rng.uniform(0, 2 * np.pi, 500)), rng)
+    coverage = direction_coverage(in_unit(raw_ut, unit))
+    assert 10 <= coverage.occupied <= 20
+    assert 'roll axis (x)' in coverage.hint and 'pitch axis (y)' in coverage.hint
+    ring = np.unique(cell_index(rotation_about(2, np.linspace(0, 2 * np.pi, 2000)))).size
+    good = Calibration(OFFSET, np.linalg.inv(SOFT), FIELD)
+    assert abs(direction_coverage(raw_ut, good).occupied - ring) <= 2
+
+
+def test_readings_off_any_shell_cover_nothing_and_say_why():
+    """Tumbling in a field that changes by tens of percent: no trustworthy directions."""
+    rng = np.random.default_rng(25)
+    directions = unit_vectors(rng, 1000)
+    raw = distorted(directions * rng.uniform(0.4, 1.6, (1000, 1)), rng)
+    coverage = direction_coverage(raw)
+    assert coverage.fraction == 0.0
+    assert coverage.hint == NOT_A_SHELL_HINT
+
+
+@pytest.mark.parametrize('unit', sorted(UNITS))
+@pytest.mark.parametrize('offset_fields', [0.0, 5.0])
+def test_fitting_still_data_fails_with_the_rotate_reason(unit, offset_fields):
+    rng = np.random.default_rng(26)
+    result = fit_calibration(in_unit(still(rng, 300, offset_fields, 0.5), unit))
+    assert not result.success
+    assert result.metrics.coverage == 0.0
+    assert result.reason == f'coverage 0 % is below 50 %: {STILL_HINT}'
+    assert result.metrics.coverage_hint == STILL_HINT
+
+
+def test_fitting_still_data_fails_even_without_the_coverage_gate():
+    rng = np.random.default_rng(27)
+    result = fit_calibration(still(rng, 300, 1.0, 0.5), FitOptions(min_coverage=0.0))
+    assert not result.success
