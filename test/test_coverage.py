@@ -14,6 +14,7 @@ from mag_calibrator_ros.calibration import (
     direction_coverage,
     fit_calibration,
 )
+from mag_calibrator_ros.calibration.buffer import SampleBuffer
 from mag_calibrator_ros.calibration.coverage import (
     CELL_COUNT,
     NOT_A_SHELL_HINT,
@@ -340,3 +341,29 @@ def test_fitting_still_data_fails_even_without_the_coverage_gate():
     rng = np.random.default_rng(27)
     result = fit_calibration(still(rng, 300, 1.0, 0.5), FitOptions(min_coverage=0.0))
     assert not result.success
+
+
+@pytest.mark.parametrize('unit', sorted(UNITS))
+@pytest.mark.parametrize('capacity', [50, 100, 200])
+def test_buffer_fed_a_still_sensor_reports_no_coverage(unit, capacity):
+    """The reported failure: the kNN buffer keeps the rim of the noise blob, a thin shell of a
+    few noise sigmas that centring and whitening (and the buffer's own provisional fit) turn into
+    70-99 % "coverage"."""
+    rng = np.random.default_rng(capacity)
+    buffer = SampleBuffer(capacity=capacity)
+    buffer.add_many(in_unit(still(rng, 4000, 1.0, 0.5), unit))
+    coverage = buffer.coverage()
+    assert coverage.fraction < 0.1
+    assert coverage.hint == STILL_HINT
+    assert direction_coverage(buffer.samples).fraction < 0.1
+    result = fit_calibration(buffer.samples, weights=buffer.counts)
+    assert not result.success
+    assert STILL_HINT in result.reason and 'residual' not in result.reason
+
+
+def test_buffer_fed_a_tumble_after_lying_still_covers_the_sphere():
+    rng = np.random.default_rng(28)
+    buffer = SampleBuffer(capacity=100)
+    buffer.add_many(still(rng, 2000, 1.0, 0.5))
+    buffer.add_many(distorted(unit_vectors(rng, 3000), rng))
+    assert buffer.coverage().fraction > 0.8

@@ -49,15 +49,20 @@ _WHITENING_OUTLIER_SIGMAS = 4.0
 _MAX_WHITENING_RATIO = 3.0
 """A whitening that stretches one axis more than 3x the others is not soft iron (real ratios are <
 1.5) but a plane of data: stretching its noise would fake coverage."""
+MAX_OFFSET_RATIO = 8.0
+"""Largest hard-iron offset, in field radii, of a shell taken as the field sphere (the design
+range is 5). The rim of a still sensor's noise that a kNN buffer keeps is a shell of a few noise
+sigmas sitting a whole field (plus offset) away from zero: 10-60 radii for noise of 0.5-3 % of
+the field."""
 SHELL_TOLERANCE = 0.15
 """Largest relative radial scatter (robust sigma of |v| / median |v| - 1) of centred, whitened
 readings that still describe a shell of field directions. Real sensors in real fields give 0.5-6 %
 (the shared recordings 0.7-5 %); a still sensor's noise blob gives about 40 % however it is fitted
 (the radii of a 3-D Gaussian cloud), as does a wobble of a few degrees (a flat noisy patch)."""
-STILL_SPREAD = 0.1
+STILL_SPREAD = 0.15
 """Readings scattering by less than this share of their magnitude barely change: a still sensor
-or a wobble of a few degrees (a tumble scatters by the field over field plus offset, >= 0.15 up to
-an offset of 5x the field)."""
+(its noise, or the rim of it a kNN buffer keeps: a few noise sigmas) or a small wobble. A tumble
+scatters by the field over the hard-iron offset: >= 0.2 up to an offset of 5x the field."""
 STILL_HINT = 'rotate the sensor through many orientations: the readings barely change'
 NOT_A_SHELL_HINT = (
     'the readings do not outline a sphere of field directions: rotate the sensor slowly through '
@@ -138,8 +143,11 @@ def shell_directions(
     """(unit directions (m, 3), '') when the readings describe a shell, else (empty, advice).
 
     Any centring and whitening fitted to the data themselves turns a still sensor's noise blob
-    into a ball of "directions" all round. So directions are trusted only when the centred,
-    whitened readings lie on a shell: relative radial scatter at most ``SHELL_TOLERANCE``.
+    into a ball of "directions" all round, and a kNN buffer fed that blob keeps its rim, a shell
+    of a few noise sigmas. So directions are trusted only when the centred, whitened readings lie
+    on a shell (relative radial scatter at most ``SHELL_TOLERANCE``) that is a field sphere, not a
+    noise rim: the raw zero reading lies within ``MAX_OFFSET_RATIO`` radii of its centre (the
+    hard-iron offset is at most that many times the field).
     """
     points = distinct_rows(finite_rows(samples))
     if len(points) == 0:
@@ -149,15 +157,17 @@ def shell_directions(
         return np.empty((0, 3)), STILL_HINT if readings_barely_change(points) else FEW_HINT
     with np.errstate(all='ignore'):
         if calibration is not None:
-            candidates = [calibration.apply(points)]
+            candidates = [(calibration.apply(points), calibration.apply(np.zeros(3)))]
         else:
             candidates = _quick_whitenings(points)
-        for vectors in candidates:
+        for vectors, zero in candidates:
             directions, radius = _unit_and_radius(vectors)
             if len(radius) == 0:
                 continue
-            deviation = radius / np.median(radius) - 1.0
-            if robust_sigma(deviation) > SHELL_TOLERANCE:
+            median = np.median(radius)
+            deviation = radius / median - 1.0
+            offset_ratio = np.max(np.abs(zero)) / median  # max norm: no overflow; >= |zero|/√3
+            if robust_sigma(deviation) > SHELL_TOLERANCE or not offset_ratio <= MAX_OFFSET_RATIO:
                 continue
             # spikes are no field direction: leave out gross radius outliers (> 10 sigma, > 10 %)
             window = max(GROSS_OUTLIER_SIGMAS * robust_sigma(deviation), 0.1)
@@ -177,8 +187,8 @@ def distinct_rows(points: np.ndarray) -> np.ndarray:
 def readings_barely_change(points: np.ndarray) -> bool:
     """True when the readings scatter by less than ``STILL_SPREAD`` of their magnitude.
 
-    Scale-free (any unit); a tumble scatters by about the field over at most the field plus the
-    hard-iron offset (0.15 at 5x the field), a still sensor by its noise (typically 0.1-4 %).
+    Scale-free (any unit): the median distance from the median reading over that reading's
+    magnitude; see ``STILL_SPREAD``.
     """
     norm = normalise(finite_rows(points))
     if norm is None:
@@ -196,8 +206,9 @@ def _unit_and_radius(vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return vectors / length[:, None], length * peak
 
 
-def _quick_whitenings(points: np.ndarray) -> list[np.ndarray]:
-    """Centred, whitened vectors without a calibration, most trusted first.
+def _quick_whitenings(points: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Centred, whitened vectors without a calibration, most trusted first, each with where the
+    raw zero reading lands.
 
     A trimmed algebraic ellipsoid (spikes do not move it) when its axis ratio is plausible; a
     bounded covariance whitening about the median (a ring from yawing); a sphere fit (few samples,
@@ -207,6 +218,7 @@ def _quick_whitenings(points: np.ndarray) -> list[np.ndarray]:
     if norm is None:
         return []
     y = norm.forward(points)  # the median is at the origin
+    zero = norm.forward(np.zeros((1, 3)))[0]
     candidates = []
     try:
         start = trimmed_start(y, quadric_least_squares, _WHITENING_OUTLIER_SIGMAS)
@@ -215,19 +227,20 @@ def _quick_whitenings(points: np.ndarray) -> list[np.ndarray]:
     if start is not None:
         eigenvalues = np.linalg.eigvalsh(start[1])
         if eigenvalues.max() <= _MAX_WHITENING_RATIO * eigenvalues.min():
-            candidates.append((y - start[0]) @ start[1])
+            candidates.append(((y - start[0]) @ start[1], (zero - start[0]) @ start[1]))
     if len(y) >= 4:
         eigenvalues, vectors = np.linalg.eigh(np.cov(y, rowvar=False))
         floor = eigenvalues.max() / _MAX_WHITENING_RATIO**2
         scales = 1.0 / np.sqrt(np.maximum(eigenvalues, max(floor, 1e-300)))
-        candidates.append(y @ (vectors * scales) @ vectors.T)
+        whitening = (vectors * scales) @ vectors.T
+        candidates.append((y @ whitening, zero @ whitening))
     if len(y) >= 2 * PARAMETER_COUNTS['sphere']:
         try:
             sphere = sphere_least_squares(y)
         except (np.linalg.LinAlgError, ValueError):
             sphere = None
         if sphere is not None:
-            candidates.append(y - sphere[0])
+            candidates.append((y - sphere[0], zero - sphere[0]))
     return candidates
 
 
