@@ -455,6 +455,9 @@ def _tilt_hint(rows: np.ndarray) -> str:
 def _coverage(rows: np.ndarray, fitted: EllipsoidFit, calibration: Calibration | None) -> Coverage:
     """3-D direction coverage, or heading coverage in the plane for ``planar``."""
     if fitted.headings is not None and fitted.plane_normal is not None:
+        directions = direction_coverage(rows[fitted.inliers])
+        if directions.occupied == 0:
+            return directions  # a flat noise blob (a still sensor) has headings all round too
         return heading_coverage(fitted.headings[fitted.inliers], fitted.plane_normal)
     return direction_coverage(rows[fitted.inliers], calibration)
 
