@@ -3,6 +3,9 @@
 from pathlib import Path
 import sys
 
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -300,19 +303,21 @@ def test_coverage_grows_with_the_rotation():
 
 
 @pytest.mark.parametrize('unit', sorted(UNITS))
-def test_yaw_only_covers_a_ring(unit):
+@pytest.mark.parametrize('offset', [OFFSET, np.array([0.0, 0.0, -250.0]), np.full(3, 150.0)])
+def test_yaw_only_covers_a_ring(unit, offset):
     """A ring of directions, not a sphere and not nothing; the hint asks for roll or pitch.
 
     Without a calibration the ring's tilt (the field's inclination) is unknown, so it is centred
     as a great circle: at most about 20 cells (16 on the equator). A calibration places it.
     """
     rng = np.random.default_rng(24)
-    raw_ut = distorted(rotation_about(2, rng.uniform(0, 2 * np.pi, 500)), rng)
+    directions = rotation_about(2, rng.uniform(0, 2 * np.pi, 500))
+    raw_ut = distorted(directions, rng) - OFFSET + offset  # the ring is far smaller than F
     coverage = direction_coverage(in_unit(raw_ut, unit))
     assert 10 <= coverage.occupied <= 20
     assert 'roll axis (x)' in coverage.hint and 'pitch axis (y)' in coverage.hint
     ring = np.unique(cell_index(rotation_about(2, np.linspace(0, 2 * np.pi, 2000)))).size
-    good = Calibration(OFFSET, np.linalg.inv(SOFT), FIELD)
+    good = Calibration(offset, np.linalg.inv(SOFT), FIELD)
     assert abs(direction_coverage(raw_ut, good).occupied - ring) <= 2
 
 
@@ -367,3 +372,32 @@ def test_buffer_fed_a_tumble_after_lying_still_covers_the_sphere():
     buffer.add_many(still(rng, 2000, 1.0, 0.5))
     buffer.add_many(distorted(unit_vectors(rng, 3000), rng))
     assert buffer.coverage().fraction > 0.8
+
+
+def test_fitting_a_flat_still_blob_fails_with_the_rotate_reason():
+    """One quiet axis makes a still sensor's noise flat: the planar model's headings of a flat
+    blob go all round, but it is still no rotation."""
+    rng = np.random.default_rng(29)
+    raw = np.array([20.0, -30.0, 40.0]) + rng.normal(0.0, 0.5, (600, 3)) * [1.0, 1.0, 0.02]
+    result = fit_calibration(raw)
+    assert result.metrics.model == 'planar'
+    assert not result.success
+    assert result.reason == f'coverage 0 % is below 50 %: {STILL_HINT}'
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    offset=arrays(float, 3, elements=st.floats(-5.0, 5.0)),
+    noise=st.floats(0.001, 0.03),
+    unit_scale=st.sampled_from([1e-6, 1.0, 1e-2, 1.0 / 0.15]),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_property_still_sensor_never_looks_rotated(offset, noise, unit_scale, seed):
+    """Any offset up to 5 F, noise 0.1-3 % of F, any unit: raw or through the buffer, < 10 %."""
+    rng = np.random.default_rng(seed)
+    direction = unit_vectors(rng, 1)
+    raw = (direction + offset + rng.normal(0.0, noise, (1500, 3))) * FIELD * unit_scale
+    assert direction_coverage(raw).fraction < 0.1
+    buffer = SampleBuffer(capacity=60)
+    buffer.add_many(raw)
+    assert buffer.coverage().fraction < 0.1

@@ -29,6 +29,7 @@ from mag_calibrator_ros.calibration.ellipsoid import (
     quadric_least_squares,
     robust_sigma,
     sphere_least_squares,
+    thickness,
     trimmed_start,
 )
 
@@ -54,11 +55,12 @@ MAX_OFFSET_RATIO = 8.0
 range is 5). The rim of a still sensor's noise that a kNN buffer keeps is a shell of a few noise
 sigmas sitting a whole field (plus offset) away from zero: 10-60 radii for noise of 0.5-3 % of
 the field."""
-SHELL_TOLERANCE = 0.15
+SHELL_TOLERANCE = 0.1
 """Largest relative radial scatter (robust sigma of |v| / median |v| - 1) of centred, whitened
-readings that still describe a shell of field directions. Real sensors in real fields give 0.5-6 %
-(the shared recordings 0.7-5 %); a still sensor's noise blob gives about 40 % however it is fitted
-(the radii of a 3-D Gaussian cloud), as does a wobble of a few degrees (a flat noisy patch)."""
+readings that still describe a shell of field directions: twice the fit's residual gate (5 %).
+Real sensors in real fields give 0.5-6 % (the shared recordings 0.7-5 %); a still sensor's noise
+blob about 40 % however it is fitted (the radii of a 3-D Gaussian cloud), as does a wobble of a
+few degrees (a flat noisy patch); the rim of such a blob that a kNN buffer keeps 7-20 %."""
 STILL_SPREAD = 0.15
 """Readings scattering by less than this share of their magnitude barely change: a still sensor
 (its noise, or the rim of it a kNN buffer keeps: a few noise sigmas) or a small wobble. A tumble
@@ -72,6 +74,8 @@ FEW_HINT = 'too few distinct readings yet: keep rotating the sensor through new 
 MIN_LEVELS = 8
 """Fewer distinct values than this on every axis (a still sensor read in counts, or the first few
 samples) describe no shell: any sphere fits a handful of quantisation steps exactly."""
+_RING_THICKNESS = 0.15
+"""FitOptions.planar_thickness's default: thinner data are a ring from turning about one axis."""
 _FEW_CELLS = 4
 """A wobble of a few degrees seen through a good calibration touches at most about 4 cells."""
 
@@ -156,10 +160,15 @@ def shell_directions(
         # a few quantisation steps (a still sensor read in counts): any shell fits them exactly
         return np.empty((0, 3)), STILL_HINT if readings_barely_change(points) else FEW_HINT
     with np.errstate(all='ignore'):
+        max_offset_ratio = MAX_OFFSET_RATIO
         if calibration is not None:
             candidates = [(calibration.apply(points), calibration.apply(np.zeros(3)))]
         else:
             candidates = _quick_whitenings(points)
+            if _is_ring(points):
+                # yawing: the ring's radius is the horizontal field only, which can be far below
+                # the field, and a noise rim is never flat, so the offset says nothing here
+                max_offset_ratio = np.inf
         for vectors, zero in candidates:
             directions, radius = _unit_and_radius(vectors)
             if len(radius) == 0:
@@ -167,12 +176,18 @@ def shell_directions(
             median = np.median(radius)
             deviation = radius / median - 1.0
             offset_ratio = np.max(np.abs(zero)) / median  # max norm: no overflow; >= |zero|/√3
-            if robust_sigma(deviation) > SHELL_TOLERANCE or not offset_ratio <= MAX_OFFSET_RATIO:
+            if robust_sigma(deviation) > SHELL_TOLERANCE or not offset_ratio <= max_offset_ratio:
                 continue
             # spikes are no field direction: leave out gross radius outliers (> 10 sigma, > 10 %)
             window = max(GROSS_OUTLIER_SIGMAS * robust_sigma(deviation), 0.1)
             return directions[np.abs(deviation) <= window], ''
     return np.empty((0, 3)), STILL_HINT if readings_barely_change(points) else NOT_A_SHELL_HINT
+
+
+def _is_ring(points: np.ndarray) -> bool:
+    """True when the readings lie near one plane (yaw only), as the fit's ``planar`` choice."""
+    norm = normalise(points)
+    return norm is not None and thickness(norm.forward(points))[0] < _RING_THICKNESS
 
 
 def distinct_rows(points: np.ndarray) -> np.ndarray:
