@@ -51,6 +51,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 import math
+import random
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -97,6 +98,15 @@ STALE_REFERENCE_SHARE = 0.5
 """If more than half of a window of samples are magnitude outliers, the reference no longer
 describes the sensor (moved, re-mounted, a stale file): it is dropped rather than starving the
 buffer of the data a new calibration needs."""
+
+READING_SAMPLE_SIZE = 256
+"""Readings kept as a random draw of the recent stream (``readings``): the evidence that the
+buffer's shell is the field sphere and not the rim of a still sensor's noise (see
+coverage.shell_directions). 256 tell a share of one half to within about 3 %."""
+
+READING_HORIZON = 2048
+"""The draw favours the last ~2,048 readings (each survives a geometric time of that mean), so
+after a change (a re-mounted sensor, a moved magnet) it soon describes the new situation."""
 
 _UPPER = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])  # 3x3 from the stored upper triangle
 _TRIU = np.triu_indices(3)
@@ -147,6 +157,9 @@ class SampleBuffer:
         self._projection: _MagnitudeScreen | None = None  # its latest, kept to place the means
         self._since_self_fit = 0
         self._self_fit_period = capacity
+        self._readings = np.zeros((READING_SAMPLE_SIZE, 3))
+        self._screened = 0  # readings that passed the screen: the draw's population
+        self._draw = random.Random(0)  # deterministic: the same stream, the same draw
 
     def _allocate(self, capacity: int, k: int) -> None:
         self._capacity = capacity
@@ -221,6 +234,16 @@ class SampleBuffer:
         return means
 
     @property
+    def readings(self) -> np.ndarray:
+        """A uniform random draw of recent screened readings (up to READING_SAMPLE_SIZE), a copy.
+
+        Unlike ``samples`` (the most spread-out ones), these show where the readings really
+        lie: on the field's sphere, or filling a still sensor's noise cloud whose rim the
+        uniqueness rule keeps. ``coverage()`` checks the shell against them.
+        """
+        return self._readings[: min(self._screened, READING_SAMPLE_SIZE)].copy()
+
+    @property
     def anchors(self) -> np.ndarray:
         """The samples that won their places, (fill, 3), a copy: what the uniqueness rule
         measures (``samples`` differ from them only by what was merged in)."""
@@ -267,8 +290,13 @@ class SampleBuffer:
         return _sphere_radius(self._points[: self._fill])
 
     def coverage(self) -> Coverage:
-        """Share of equal-area direction cells occupied, after centring/whitening (N-free)."""
-        return direction_coverage(self.samples, self.reference or self.provisional_reference)
+        """Share of equal-area direction cells occupied, after centring/whitening (N-free).
+
+        The shell is checked against ``readings``: a still sensor's noise rim is no coverage.
+        """
+        return direction_coverage(
+            self.samples, self.reference or self.provisional_reference, self.readings
+        )
 
     # -- feeding -------------------------------------------------------------------------------
 
@@ -283,12 +311,23 @@ class SampleBuffer:
         if reason is not None:
             self._rejects[reason] += 1
             return reason
+        self._record_reading(x)
         outcome = self._admit(x)
         if outcome != 'duplicate' and self.self_reference and self._fill == self._capacity:
             self._since_self_fit += 1
             if self._since_self_fit >= self._self_fit_period:  # amortised: <= 1 fit per N
                 self.refresh_provisional_reference()
         return outcome
+
+    def _record_reading(self, x: np.ndarray) -> None:
+        """Reservoir sampling (Algorithm R) over a population capped at READING_HORIZON."""
+        self._screened += 1
+        if self._screened <= READING_SAMPLE_SIZE:
+            self._readings[self._screened - 1] = x
+            return
+        slot = int(self._draw.random() * min(self._screened, READING_HORIZON))
+        if slot < READING_SAMPLE_SIZE:
+            self._readings[slot] = x
 
     def _admit(self, x: np.ndarray) -> str:
         """The brief's rule for a screened sample; a sample that is not unique is merged."""
@@ -510,6 +549,8 @@ class SampleBuffer:
         self._score.fill(np.inf)
         self._weakest, self._weakest_score = 0, math.inf
         self._seen = 0
+        self._screened = 0
+        self._draw = random.Random(0)
         self._rejects = dict.fromkeys(REJECT_REASONS, 0)
         self.evicted = 0
         self.merged = 0

@@ -16,6 +16,7 @@ perpendicular to ``a``.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,6 +26,7 @@ from mag_calibrator_ros.calibration.calibration import Calibration
 from mag_calibrator_ros.calibration.ellipsoid import (
     GROSS_OUTLIER_SIGMAS,
     PARAMETER_COUNTS,
+    Normalisation,
     normalise,
     quadric_least_squares,
     robust_sigma,
@@ -50,21 +52,30 @@ _WHITENING_OUTLIER_SIGMAS = 4.0
 _MAX_WHITENING_RATIO = 3.0
 """A whitening that stretches one axis more than 3x the others is not soft iron (real ratios are <
 1.5) but a plane of data: stretching its noise would fake coverage."""
-MAX_OFFSET_RATIO = 8.0
-"""Largest hard-iron offset, in field radii, of a shell taken as the field sphere (the design
-range is 5). The rim of a still sensor's noise that a kNN buffer keeps is a shell of a few noise
-sigmas sitting a whole field (plus offset) away from zero: 10-60 radii for noise of 0.5-3 % of
-the field."""
+MAX_OFFSET_RATIO = 50.0
+"""Without readings to check against (see ``shell_directions``), the largest hard-iron offset, in
+field radii, of a shell taken as the field sphere: a last, loose guard against the rim of a still
+sensor's noise that a kNN buffer keeps (10-60 radii from zero for noise of 0.5-3 % of the field,
+more with an offset). Real offsets reach 15 radii (300 uT on a 22 uT field; the AK09916's
+zero-field tolerance alone is +-300 uT), so the bound sits well above them."""
 SHELL_TOLERANCE = 0.1
 """Largest relative radial scatter (robust sigma of |v| / median |v| - 1) of centred, whitened
 readings that still describe a shell of field directions: twice the fit's residual gate (5 %).
 Real sensors in real fields give 0.5-6 % (the shared recordings 0.7-5 %); a still sensor's noise
 blob about 40 % however it is fitted (the radii of a 3-D Gaussian cloud), as does a wobble of a
 few degrees (a flat noisy patch); the rim of such a blob that a kNN buffer keeps 7-20 %."""
+ON_SHELL_WINDOW = 0.25
+"""A reading within 25 % of the shell's radius lies on it (the buffer refuses readings 30 % off a
+reference as gross outliers)."""
+MIN_ON_SHELL_SHARE = 0.5
+"""Share of the sensor's readings that must lie on a shell for it to be the field sphere. A real
+field puts every reading on its sphere (spikes aside), whatever the offset, unit or sample order;
+a still sensor's readings fill the inside of the rim of their noise cloud that a kNN buffer keeps
+(measured: 0-15 % of them within 25 % of the rim's radius)."""
 STILL_SPREAD = 0.15
-"""Readings scattering by less than this share of their magnitude barely change: a still sensor
-(its noise, or the rim of it a kNN buffer keeps: a few noise sigmas) or a small wobble. A tumble
-scatters by the field over the hard-iron offset: >= 0.2 up to an offset of 5x the field."""
+"""For the hint only (no gate): readings scattering by less than this share of their magnitude
+barely change, as a still sensor or a small wobble. A tumble with an offset of more than ~5x the
+field scatters less, but then it describes a shell and needs no hint."""
 STILL_HINT = 'rotate the sensor through many orientations: the readings barely change'
 NOT_A_SHELL_HINT = (
     'the readings do not outline a sphere of field directions: rotate the sensor slowly through '
@@ -131,27 +142,33 @@ def finite_rows(samples: ArrayLike) -> np.ndarray:
     return array[np.all(np.isfinite(array), axis=1)]
 
 
-def whitened_directions(samples: ArrayLike, calibration: Calibration | None = None) -> np.ndarray:
+def whitened_directions(
+    samples: ArrayLike, calibration: Calibration | None = None, readings: ArrayLike | None = None
+) -> np.ndarray:
     """Unit field directions (m, 3) in the sensor frame after centring and whitening.
 
     With a calibration: its corrected directions. Without: a quick trimmed algebraic ellipsoid fit
     when it is plausible, else a bounded covariance whitening or a sphere fit. Empty when the
     readings do not describe a shell of field directions (see ``shell_directions``).
     """
-    return shell_directions(samples, calibration)[0]
+    return shell_directions(samples, calibration, readings)[0]
 
 
 def shell_directions(
-    samples: ArrayLike, calibration: Calibration | None = None
+    samples: ArrayLike, calibration: Calibration | None = None, readings: ArrayLike | None = None
 ) -> tuple[np.ndarray, str]:
-    """(unit directions (m, 3), '') when the readings describe a shell, else (empty, advice).
+    """(unit directions (m, 3), '') when the samples describe a shell, else (empty, advice).
 
     Any centring and whitening fitted to the data themselves turns a still sensor's noise blob
     into a ball of "directions" all round, and a kNN buffer fed that blob keeps its rim, a shell
-    of a few noise sigmas. So directions are trusted only when the centred, whitened readings lie
-    on a shell (relative radial scatter at most ``SHELL_TOLERANCE``) that is a field sphere, not a
-    noise rim: the raw zero reading lies within ``MAX_OFFSET_RATIO`` radii of its centre (the
-    hard-iron offset is at most that many times the field).
+    of a few noise sigmas. So directions are trusted only when the centred, whitened samples lie
+    on a shell (relative radial scatter at most ``SHELL_TOLERANCE``) that is the field sphere, not
+    a noise rim. ``readings``, when given, are the sensor's own readings behind the samples (e.g.
+    ``SampleBuffer.readings``, a uniform draw of everything it was fed): a field puts them all on
+    its sphere, a noise rim has them inside it (``MIN_ON_SHELL_SHARE``). That test needs no noise
+    level, unit, offset bound or sample order. Without readings, raw readings are their own
+    evidence (a noise blob is no shell) and only the loose ``MAX_OFFSET_RATIO`` guards against a
+    rim passed in alone.
     """
     points = distinct_rows(finite_rows(samples))
     if len(points) == 0:
@@ -159,29 +176,49 @@ def shell_directions(
     if max(len(np.unique(column)) for column in points.T) < MIN_LEVELS:
         # a few quantisation steps (a still sensor read in counts): any shell fits them exactly
         return np.empty((0, 3)), STILL_HINT if readings_barely_change(points) else FEW_HINT
+    evidence = None if readings is None else finite_rows(readings)
+    if evidence is not None and len(evidence) == 0:
+        evidence = None
+    filled = False  # some shell was refused because the readings fill its inside
     with np.errstate(all='ignore'):
         max_offset_ratio = MAX_OFFSET_RATIO
         if calibration is not None:
-            candidates = [(calibration.apply(points), calibration.apply(np.zeros(3)))]
+            candidates = [calibration.apply]
         else:
             candidates = _quick_whitenings(points)
             if _is_ring(points):
                 # yawing: the ring's radius is the horizontal field only, which can be far below
                 # the field, and a noise rim is never flat, so the offset says nothing here
                 max_offset_ratio = np.inf
-        for vectors, zero in candidates:
-            directions, radius = _unit_and_radius(vectors)
+        for whiten in candidates:
+            directions, radius = _unit_and_radius(whiten(points))
             if len(radius) == 0:
                 continue
             median = np.median(radius)
             deviation = radius / median - 1.0
-            offset_ratio = np.max(np.abs(zero)) / median  # max norm: no overflow; >= |zero|/√3
-            if robust_sigma(deviation) > SHELL_TOLERANCE or not offset_ratio <= max_offset_ratio:
+            if not robust_sigma(deviation) <= SHELL_TOLERANCE:
                 continue
+            if evidence is not None:
+                if _on_shell_share(whiten(evidence), median) < MIN_ON_SHELL_SHARE:
+                    filled = True
+                    continue
+            else:
+                zero = whiten(np.zeros((1, 3)))[0]
+                if not np.max(np.abs(zero)) / median <= max_offset_ratio:  # max norm: no overflow
+                    continue
             # spikes are no field direction: leave out gross radius outliers (> 10 sigma, > 10 %)
             window = max(GROSS_OUTLIER_SIGMAS * robust_sigma(deviation), 0.1)
             return directions[np.abs(deviation) <= window], ''
-    return np.empty((0, 3)), STILL_HINT if readings_barely_change(points) else NOT_A_SHELL_HINT
+    still = filled or readings_barely_change(points if evidence is None else evidence)
+    return np.empty((0, 3)), STILL_HINT if still else NOT_A_SHELL_HINT
+
+
+def _on_shell_share(vectors: np.ndarray, radius: float) -> float:
+    """Share of whitened ``vectors`` whose length is within ``ON_SHELL_WINDOW`` of ``radius``."""
+    length = _unit_and_radius(vectors)[1]
+    if len(length) < len(vectors):  # zero or non-finite: a reading at the centre is inside
+        length = np.concatenate([length, np.zeros(len(vectors) - len(length))])
+    return float(np.mean(np.abs(length / radius - 1.0) <= ON_SHELL_WINDOW))
 
 
 def _is_ring(points: np.ndarray) -> bool:
@@ -221,9 +258,9 @@ def _unit_and_radius(vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return vectors / length[:, None], length * peak
 
 
-def _quick_whitenings(points: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Centred, whitened vectors without a calibration, most trusted first, each with where the
-    raw zero reading lands.
+def _quick_whitenings(points: np.ndarray) -> list[Callable[[np.ndarray], np.ndarray]]:
+    """Centrings and whitenings fitted without a calibration, most trusted first, each a map from
+    raw readings (n, 3) to whitened vectors.
 
     A trimmed algebraic ellipsoid (spikes do not move it) when its axis ratio is plausible; a
     bounded covariance whitening about the median (a ring from yawing); a sphere fit (few samples,
@@ -233,7 +270,6 @@ def _quick_whitenings(points: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]
     if norm is None:
         return []
     y = norm.forward(points)  # the median is at the origin
-    zero = norm.forward(np.zeros((1, 3)))[0]
     candidates = []
     try:
         start = trimmed_start(y, quadric_least_squares, _WHITENING_OUTLIER_SIGMAS)
@@ -242,21 +278,27 @@ def _quick_whitenings(points: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]
     if start is not None:
         eigenvalues = np.linalg.eigvalsh(start[1])
         if eigenvalues.max() <= _MAX_WHITENING_RATIO * eigenvalues.min():
-            candidates.append(((y - start[0]) @ start[1], (zero - start[0]) @ start[1]))
+            candidates.append(_affine(norm, start[0], start[1]))
     if len(y) >= 4:
         eigenvalues, vectors = np.linalg.eigh(np.cov(y, rowvar=False))
         floor = eigenvalues.max() / _MAX_WHITENING_RATIO**2
         scales = 1.0 / np.sqrt(np.maximum(eigenvalues, max(floor, 1e-300)))
-        whitening = (vectors * scales) @ vectors.T
-        candidates.append((y @ whitening, zero @ whitening))
+        candidates.append(_affine(norm, np.zeros(3), (vectors * scales) @ vectors.T))
     if len(y) >= 2 * PARAMETER_COUNTS['sphere']:
         try:
             sphere = sphere_least_squares(y)
         except (np.linalg.LinAlgError, ValueError):
             sphere = None
         if sphere is not None:
-            candidates.append((y - sphere[0], zero - sphere[0]))
+            candidates.append(_affine(norm, sphere[0], np.eye(3)))
     return candidates
+
+
+def _affine(
+    norm: Normalisation, centre: np.ndarray, whitening: np.ndarray
+) -> Callable[[np.ndarray], np.ndarray]:
+    """``x -> (norm.forward(x) - centre) @ whitening``, applicable to any raw readings."""
+    return lambda x: (norm.forward(np.atleast_2d(x)) - centre) @ whitening
 
 
 def occupied_cells(directions: np.ndarray) -> np.ndarray:
@@ -267,20 +309,24 @@ def occupied_cells(directions: np.ndarray) -> np.ndarray:
     return occupied
 
 
-def direction_coverage(samples: ArrayLike, calibration: Calibration | None = None) -> Coverage:
+def direction_coverage(
+    samples: ArrayLike, calibration: Calibration | None = None, readings: ArrayLike | None = None
+) -> Coverage:
     """Share of the 80 equal-area direction cells occupied, with a hint naming the missing
     rotation.
 
-    Readings that describe no shell of directions (a still sensor, a tiny wobble, a disturbed
-    field) cover nothing, and the hint says why.
+    Samples that describe no shell of field directions (a still sensor, a tiny wobble, a
+    disturbed field) cover nothing, and the hint says why. ``readings``: the sensor's readings
+    behind ``samples`` when these are a selection (a buffer), see ``shell_directions``.
     """
-    directions, problem = shell_directions(samples, calibration)
+    directions, problem = shell_directions(samples, calibration, readings)
     if problem:
         return Coverage(0.0, 0, CELL_COUNT, problem)
     occupied = occupied_cells(directions)
     count = int(occupied.sum())
     hint = missing_rotation_hint(occupied)
-    if 0 < count <= _FEW_CELLS and readings_barely_change(finite_rows(samples)):
+    evidence = finite_rows(samples if readings is None else readings)
+    if 0 < count <= _FEW_CELLS and readings_barely_change(evidence):
         hint = STILL_HINT  # e.g. a still sensor seen through a good calibration: one cell
     return Coverage(count / CELL_COUNT, count, CELL_COUNT, hint)
 

@@ -20,6 +20,7 @@ from mag_calibrator_ros.calibration.calibration import MODELS, Calibration, Cali
 from mag_calibrator_ros.calibration.coverage import (
     Coverage,
     direction_coverage,
+    finite_rows,
     heading_coverage,
     missing_rotation_hint,
     occupied_cells,
@@ -152,13 +153,19 @@ class FitResult:
 
 
 def fit_calibration(
-    samples: ArrayLike, options: FitOptions | None = None, weights: ArrayLike | None = None
+    samples: ArrayLike,
+    options: FitOptions | None = None,
+    weights: ArrayLike | None = None,
+    readings: ArrayLike | None = None,
 ) -> FitResult:
     """Fit ``options.model`` to (n, 3) raw samples; never raises on data, never returns NaN/Inf.
 
     ``weights`` (n,), optional: how many readings each row stands for (SampleBuffer.counts, when
     a row is the average of several), or any relative precision; finite and > 0. They weight the
     least squares only: residual metrics, outlier flags and the condition gate stay per row.
+    ``readings`` (m, 3), optional: the sensor's readings behind selected samples
+    (SampleBuffer.readings), so the coverage gate tells the field's sphere from the rim of a
+    still sensor's noise (see coverage.shell_directions).
     """
     options = options or FitOptions()
     rows, finite, problem = _usable_rows(samples)
@@ -200,7 +207,10 @@ def fit_calibration(
             if options.model != 'planar' and layer_thickness < options.planar_thickness:
                 reasons.append(_planar_reason(rows, options.model, layer_thickness, options))
             return _failure(options, '; '.join(reasons), finite, n, n_bad)
-        result = _judge(rows, finite, fitted, options, layer_thickness, n_bad, choice_note)
+        evidence = None if readings is None else finite_rows(readings) / unit
+        result = _judge(
+            rows, finite, fitted, options, layer_thickness, n_bad, choice_note, evidence
+        )
     return _in_input_units(result, unit)
 
 
@@ -317,6 +327,7 @@ def _judge(
     layer_thickness: float,
     n_bad: int,
     choice_note: str,
+    readings: np.ndarray | None = None,
 ) -> FitResult:
     inliers = fitted.inliers
     inlier_residuals = fitted.residuals[inliers]
@@ -339,7 +350,7 @@ def _judge(
             'ellipsoid (disturbed field or too little rotation)'
         )
     trusted = calibration if fitted.condition <= options.max_condition else None
-    coverage = _coverage(rows, fitted, trusted)
+    coverage = _coverage(rows, fitted, trusted, readings)
     n_inliers = int(inliers.sum())
     reasons = _gates(rows, fitted, options, layer_thickness, coverage, residual_rms) + reasons
     metrics = FitMetrics(
@@ -452,14 +463,20 @@ def _tilt_hint(rows: np.ndarray) -> str:
     return hint or 'tilt the sensor about its other axes'
 
 
-def _coverage(rows: np.ndarray, fitted: EllipsoidFit, calibration: Calibration | None) -> Coverage:
-    """3-D direction coverage, or heading coverage in the plane for ``planar``."""
+def _coverage(
+    rows: np.ndarray,
+    fitted: EllipsoidFit,
+    calibration: Calibration | None,
+    readings: np.ndarray | None = None,
+) -> Coverage:
+    """3-D direction coverage, or heading coverage in the plane for ``planar``; ``readings``:
+    the readings behind the rows (see fit_calibration)."""
     if fitted.headings is not None and fitted.plane_normal is not None:
-        directions = direction_coverage(rows[fitted.inliers])
+        directions = direction_coverage(rows[fitted.inliers], readings=readings)
         if directions.occupied == 0:
             return directions  # a flat noise blob (a still sensor) has headings all round too
         return heading_coverage(fitted.headings[fitted.inliers], fitted.plane_normal)
-    return direction_coverage(rows[fitted.inliers], calibration)
+    return direction_coverage(rows[fitted.inliers], calibration, readings)
 
 
 def _finite(value: float) -> float:
