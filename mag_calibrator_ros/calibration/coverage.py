@@ -49,6 +49,7 @@ _BAND_EDGES = 1.0 - 2.0 * np.cumsum((0,) + BAND_CELLS) / CELL_COUNT  # z from +1
 _BAND_FIRST_CELL = np.cumsum((0,) + BAND_CELLS)[:-1]
 _REACH_DEG = 12.0
 _WHITENING_OUTLIER_SIGMAS = 4.0
+_MAD_TO_SIGMA = 1.4826
 _MAX_WHITENING_RATIO = 3.0
 """A whitening that stretches one axis more than 3x the others is not soft iron (real ratios are <
 1.5) but a plane of data: stretching its noise would fake coverage."""
@@ -64,14 +65,6 @@ readings that still describe a shell of field directions: twice the fit's residu
 Real sensors in real fields give 0.5-6 % (the shared recordings 0.7-5 %); a still sensor's noise
 blob about 40 % however it is fitted (the radii of a 3-D Gaussian cloud), as does a wobble of a
 few degrees (a flat noisy patch); the rim of such a blob that a kNN buffer keeps 7-20 %."""
-ON_SHELL_WINDOW = 0.25
-"""A reading within 25 % of the shell's radius lies on it (the buffer refuses readings 30 % off a
-reference as gross outliers)."""
-MIN_ON_SHELL_SHARE = 0.5
-"""Share of the sensor's readings that must lie on a shell for it to be the field sphere. A real
-field puts every reading on its sphere (spikes aside), whatever the offset, unit or sample order;
-a still sensor's readings fill the inside of the rim of their noise cloud that a kNN buffer keeps
-(measured: 0-15 % of them within 25 % of the rim's radius)."""
 STILL_SPREAD = 0.15
 """For the hint only (no gate): readings scattering by less than this share of their magnitude
 barely change, as a still sensor or a small wobble. A tumble with an offset of more than ~5x the
@@ -164,11 +157,13 @@ def shell_directions(
     of a few noise sigmas. So directions are trusted only when the centred, whitened samples lie
     on a shell (relative radial scatter at most ``SHELL_TOLERANCE``) that is the field sphere, not
     a noise rim. ``readings``, when given, are the sensor's own readings behind the samples (e.g.
-    ``SampleBuffer.readings``, a uniform draw of everything it was fed): a field puts them all on
-    its sphere, a noise rim has them inside it (``MIN_ON_SHELL_SHARE``). That test needs no noise
-    level, unit, offset bound or sample order. Without readings, raw readings are their own
-    evidence (a noise blob is no shell) and only the loose ``MAX_OFFSET_RATIO`` guards against a
-    rim passed in alone.
+    ``SampleBuffer.readings``, a random draw of what it was fed): a field puts them all on its
+    sphere, so they scatter about the shell within ``SHELL_TOLERANCE`` as the samples do; a still
+    sensor's readings fill the inside of the rim of their noise cloud that a kNN buffer keeps
+    (measured: median radius 0.75-0.8 of the rim's, scatter about it 30-40 %). That test needs
+    no noise level, unit, offset bound or sample order. Without readings, raw readings are their
+    own evidence (a noise blob is no shell) and only the loose ``MAX_OFFSET_RATIO`` guards
+    against a rim passed in alone.
     """
     points = distinct_rows(finite_rows(samples))
     if len(points) == 0:
@@ -199,7 +194,7 @@ def shell_directions(
             if not robust_sigma(deviation) <= SHELL_TOLERANCE:
                 continue
             if evidence is not None:
-                if _on_shell_share(whiten(evidence), median) < MIN_ON_SHELL_SHARE:
+                if not _scatter_about(whiten(evidence), median) <= SHELL_TOLERANCE:
                     filled = True
                     continue
             else:
@@ -213,12 +208,13 @@ def shell_directions(
     return np.empty((0, 3)), STILL_HINT if still else NOT_A_SHELL_HINT
 
 
-def _on_shell_share(vectors: np.ndarray, radius: float) -> float:
-    """Share of whitened ``vectors`` whose length is within ``ON_SHELL_WINDOW`` of ``radius``."""
+def _scatter_about(vectors: np.ndarray, radius: float) -> float:
+    """Robust relative scatter of the lengths of ``vectors`` about ``radius`` (not about their
+    own median: readings inside the shell must count against it)."""
     length = _unit_and_radius(vectors)[1]
     if len(length) < len(vectors):  # zero or non-finite: a reading at the centre is inside
         length = np.concatenate([length, np.zeros(len(vectors) - len(length))])
-    return float(np.mean(np.abs(length / radius - 1.0) <= ON_SHELL_WINDOW))
+    return float(_MAD_TO_SIGMA * np.median(np.abs(length / radius - 1.0)))
 
 
 def _is_ring(points: np.ndarray) -> bool:
