@@ -661,3 +661,28 @@ def test_yaw_only_motion_never_gets_a_provisional_reference():
     assert buffer.provisional_reference is None
     assert buffer.merged == 0 and np.all(buffer.counts == 1.0)
     np.testing.assert_array_equal(buffer.samples, buffer.anchors)
+
+
+def test_readings_are_a_bounded_draw_of_recent_screened_readings():
+    """The evidence coverage() checks the shell against: where the readings really lie."""
+    from mag_calibrator_ros.calibration.buffer import READING_HORIZON, READING_SAMPLE_SIZE
+
+    rng = np.random.default_rng(40)
+    # no self-reference: its magnitude screen would refuse the moved readings for a while
+    buffer = SampleBuffer(capacity=30, full_scale=1000.0, self_reference=False)
+    first = rng.normal(0.0, 1.0, (10, 3)) + [100.0, 0.0, 0.0]
+    buffer.add_many(first)
+    np.testing.assert_array_equal(buffer.readings, first)
+    buffer.add([np.nan, 1.0, 2.0])
+    buffer.add([2000.0, 1.0, 2.0])  # saturated: refused, never evidence
+    assert len(buffer.readings) == 10
+    buffer.add_many(rng.normal(0.0, 1.0, (5000, 3)) + [100.0, 0.0, 0.0])
+    assert len(buffer.readings) == READING_SAMPLE_SIZE
+    # after a change (a moved magnet) the draw soon describes the new situation
+    buffer.add_many(rng.normal(0.0, 1.0, (3 * READING_HORIZON, 3)) + [0.0, 300.0, 0.0])
+    assert np.mean(buffer.readings[:, 1] > 150.0) > 0.9
+    again = SampleBuffer(capacity=30, full_scale=1000.0, self_reference=False)
+    again.add_many(np.vstack([first, [[np.nan, 1.0, 2.0]]]))
+    np.testing.assert_array_equal(again.readings, first)  # deterministic
+    buffer.clear()
+    assert buffer.readings.shape == (0, 3)
