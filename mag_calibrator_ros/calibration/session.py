@@ -317,9 +317,13 @@ class CalibrationSession:
 
     def calibrate(self) -> CalibrationAttempt:
         """Fit the buffer; apply on success, keep the previous calibration on failure."""
-        # counts: how many readings each buffered point averages (SampleBuffer merging)
+        # counts: how many readings each buffered point averages (SampleBuffer merging);
+        # readings: recent raw readings, so coverage can tell a noise rim from the field sphere
         result = fit_calibration(
-            self.buffer.samples, self.settings.fit_options(), weights=self.buffer.counts
+            self.buffer.samples,
+            self.settings.fit_options(),
+            weights=self.buffer.counts,
+            readings=self.buffer.readings,
         )
         metrics = result.metrics.as_dict()
         if result.success and result.calibration is not None:
