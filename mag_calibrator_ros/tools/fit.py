@@ -178,6 +178,8 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     """Read, fit, report, write; returns the exit status."""
     out = stdout if stdout is not None else sys.stdout
     options = fit_options(args)
+    if args.all and args.k is not None:
+        raise UsageError('--k sets the sample buffer; it has no effect with --all')
     buffer = None if args.all else make_buffer(args)
     progress = ProgressBar(sys.stderr, args.input)
 
@@ -389,7 +391,7 @@ def human_summary(summary: dict[str, Any]) -> str:
     lines = ['CALIBRATED' if summary['success']
              else 'NOT CALIBRATED: the fit failed a quality gate (best-effort result below, '
                   'do not use it)']
-    label = "not stated (label them with --units)" if units == 'input' else units
+    label = 'not stated (label them with --units)' if units == 'input' else units
     lines.append(f"input     {source['source']}: {source['rows']} rows from {source['layout']}; "
                  f'units {label}')
     skipped = describe_skips(source['skipped']) if source['skipped'] else 'none'
