@@ -407,7 +407,7 @@ def human_summary(summary: dict[str, Any]) -> str:
             f"{info['merged']} merged as not unique)")
     else:
         lines.append(f"mode      all: fitted every one of {metrics['n_samples']} samples")
-    how = f"   ({summary['reason']})" if summary['success'] else ''
+    how = f"   {summary['reason'].removeprefix('ok ')}" if summary['success'] else ''
     lines.append(f"model     {summary['model']}{how}")
     if summary['offset'] is not None:
         matrix = summary['matrix']
