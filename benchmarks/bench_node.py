@@ -28,7 +28,8 @@ import time
 import numpy as np
 
 SUT_READY_TIMEOUT_S = 30.0
-SETTLE_S = 2.0
+SETTLE_S = 1.0
+MATCH_TIMEOUT_S = 30.0
 DRAIN_S = 1.5
 
 
@@ -50,6 +51,13 @@ def _feeder(rate_hz: float, duration_s: float, start_delay_s: float) -> int:
     node = rclpy.create_node('bench_feeder')
     qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
     publisher = node.create_publisher(MagneticField, 'imu/mag', qos)
+    # Discovery under load can take seconds: start only once the system under test has matched.
+    deadline = time.monotonic() + MATCH_TIMEOUT_S
+    while publisher.get_subscription_count() < 1:
+        if time.monotonic() > deadline:
+            print('feeder: no subscriber matched imu/mag', file=sys.stderr)
+            return 1
+        time.sleep(0.05)
     time.sleep(start_delay_s)
     message = MagneticField()
     message.header.frame_id = 'imu_link'
