@@ -686,3 +686,19 @@ def test_weights_of_non_finite_rows_are_dropped_with_them():
     result = fit_calibration(raw, FitOptions(model='full'), weights=counts)
     assert result.success, result.reason
     assert result.metrics.n_non_finite == 2 and result.outliers[3] and result.outliers[7]
+
+
+def test_too_simple_model_fails_on_residual_not_on_coverage():
+    # Rotated soft iron that the axis-aligned model cannot represent: the data cover the sphere,
+    # so the honest reason is the residual (model error), never "rotate the sensor".
+    from mag_calibrator_ros.motion import body_field_samples
+
+    truth = body_field_samples('tumble', 3000, 50.0, 50.0, 60.0, seed=3)
+    soft_iron = np.array([[1.1, 0.15, -0.15], [0.15, 0.9, 0.15], [-0.15, 0.15, 1.05]])
+    noise = np.random.default_rng(0).normal(0.0, 0.5, truth.shape)
+    raw = truth @ soft_iron.T + np.array([200.0, -150.0, 90.0]) + noise
+    result = fit_calibration(raw, FitOptions(model='axis'))
+    assert not result.success
+    assert 'residual' in result.reason
+    assert 'rotat' not in result.reason
+    assert result.metrics.coverage > 0.8

@@ -476,7 +476,15 @@ def _coverage(
         if directions.occupied == 0:
             return directions  # a flat noise blob (a still sensor) has headings all round too
         return heading_coverage(fitted.headings[fitted.inliers], fitted.plane_normal)
-    return direction_coverage(rows[fitted.inliers], calibration, readings)
+    coverage = direction_coverage(rows[fitted.inliers], calibration, readings)
+    if coverage.occupied == 0 and calibration is not None:
+        # A model too simple for the data (e.g. `axis` under rotated soft iron) leaves a shell too
+        # thick to trust its directions; that is the residual gate's finding, not missing
+        # rotation. Coverage is a property of the data: judge it by their own whitening.
+        own = direction_coverage(rows[fitted.inliers], None, readings)
+        if own.occupied > 0:
+            return own
+    return coverage
 
 
 def _finite(value: float) -> float:
