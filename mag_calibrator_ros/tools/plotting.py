@@ -83,6 +83,7 @@ def calibration_figure(
 
     rows = 1 if calibration is None else 2
     figure = Figure(figsize=(21, 4.3 * rows + 0.6), layout='constrained')
+    figure.get_layout_engine().set(wspace=0.06)  # room for the 3-D z label (not laid out)
     FigureCanvasAgg(figure)
     if title:
         figure.suptitle(title)
