@@ -25,6 +25,7 @@ from mag_calibrator_ros.calibration.coverage import (
     cell_centres,
     cell_index,
     heading_coverage,
+    missing_rotation_hint,
     whitened_directions,
 )
 from mag_calibrator_ros.calibration.session import CalibrationSession
@@ -521,3 +522,14 @@ def test_a_noise_rim_is_told_apart_by_the_readings_behind_it():
     assert buffer.coverage() == judged
     tumble = distorted(unit_vectors(rng, 3000), rng)
     assert direction_coverage(tumble[::30], readings=tumble).fraction > 0.6
+
+
+def test_scattered_holes_do_not_name_every_axis():
+    # A few holes spread over an almost full sphere: every rotation reaches some of them, so the
+    # hint asks for new orientations and names the unseen direction, not all three axes at once.
+    occupied = np.ones(CELL_COUNT, dtype=bool)
+    occupied[[3, 17, 40, 58, 71]] = False
+    hint = missing_rotation_hint(occupied)
+    assert hint.startswith('keep rotating through new orientations')
+    assert 'roll axis' not in hint and 'the field has not yet pointed along' in hint
+    assert missing_rotation_hint(np.ones(CELL_COUNT, dtype=bool)) == ''

@@ -353,6 +353,12 @@ def missing_rotation_hint(occupied: np.ndarray) -> str:
     if not axes:
         axes = list(AXIS_NAMES)
     direction = _dominant_missing_direction(empty)
+    if len(axes) == len(AXIS_NAMES):
+        # every axis reaches the gaps equally (scattered holes): naming all three says nothing
+        return (
+            'keep rotating through new orientations; the field has not yet pointed along '
+            f'{direction}'
+        )
     rotation = ' and the '.join(axes)
     return f'keep rotating about the {rotation}; the field has not yet pointed along {direction}'
 

@@ -427,10 +427,11 @@ def _gates(
     if fitted.model != 'planar' and layer_thickness < options.planar_thickness:
         reasons.append(_planar_reason(rows, fitted.model, layer_thickness, options))
     if fitted.condition > options.max_condition:
+        simpler = '' if fitted.model == 'sphere' else ' or choose a simpler model (sphere)'
         reasons.append(
             f'ill-conditioned fit (condition number {_finite(fitted.condition):.3g} > '
             f'{options.max_condition:.3g}): the samples do not determine the {fitted.model} '
-            'model; rotate through more orientations or choose a simpler model (sphere)'
+            f'model; rotate through more orientations{simpler}'
         )
     ratio = fitted.axis_ratio
     if ratio > options.max_axis_ratio:
