@@ -4,12 +4,19 @@ import os
 from pathlib import Path
 import random
 
+from hypothesis import settings
 import pytest
 
 # Every test run gets its own DDS domain on localhost only, so parallel runs (CI, other sessions,
 # a robot on the LAN) never see each other's topics. Must be set before rclpy.init().
 os.environ.setdefault('ROS_DOMAIN_ID', str(random.SystemRandom().randint(1, 100)))
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+
+# CI explores the same examples every run (a failure there is reproducible, never a dice roll);
+# local runs keep exploring new ones. No deadlines anywhere: speed lives in the benchmarks.
+settings.register_profile('ci', derandomize=True, deadline=None, print_blob=True)
+settings.register_profile('dev', deadline=None, print_blob=True)
+settings.load_profile('ci' if os.environ.get('CI') else 'dev')
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get('MAG_SHARED_DATA', REPO_ROOT.parent / 'shared' / 'data'))
