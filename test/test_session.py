@@ -245,3 +245,20 @@ def test_diagnostic_values_report_rate_and_counters():
     assert values['buffer_fill'] == session.buffer.fill
     assert session.new_screen_rejects() == {'zero': 1}
     assert session.new_screen_rejects() == {}
+
+
+def test_online_tracking_ignores_a_still_sensor_next_to_a_disturbance():
+    # Five minutes standing still in a field 4 % off the calibration's: the readings all point one
+    # way, so they say nothing about the calibration and must not move it.
+    exact = Calibration(HARD_IRON_T, np.linalg.inv(SOFT_IRON), FIELD_T, 'full')
+    session = CalibrationSession(SessionSettings(online_tracking=True), calibration=exact)
+    still = motion.body_field_samples('still', 1, 50.0, FIELD_T, 60.0, 1)[0] * 1.04
+    rng = np.random.default_rng(0)
+    session.maybe_adopt_tracked(now=0.0)
+    for second in range(1, 301):
+        readings = SOFT_IRON @ still + HARD_IRON_T + rng.normal(0.0, 0.3e-6, (50, 3))
+        feed(session, readings, start_ns=second * 10**9)
+        session.maybe_adopt_tracked(now=float(second))
+    assert session.tracked_updates == 0
+    np.testing.assert_array_equal(session.calibration.offset, exact.offset)
+    np.testing.assert_array_equal(session.calibration.matrix, exact.matrix)

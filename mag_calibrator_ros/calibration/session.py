@@ -26,6 +26,7 @@ from mag_calibrator_ros.calibration.calibration_file import (
     load_calibration,
     save_calibration,
 )
+from mag_calibrator_ros.calibration.coverage import direction_coverage
 from mag_calibrator_ros.calibration.fitting import FitOptions, FitResult, fit_calibration
 from mag_calibrator_ros.calibration.tracker import OnlineTracker
 
@@ -41,6 +42,13 @@ FITTABLE_MODELS = tuple(MODELS)
 TRACKING_EVALUATION_SAMPLES = 200
 """Recent samples on which a tracked calibration must beat the one in force."""
 TRACKING_MIN_SAMPLES = 50
+TRACKING_MIN_SEPARATION_DEG = 6.0
+"""A reading teaches the tracker only when its corrected direction is at least this far from the
+last one that did (ArduPilot accepts samples about 6 deg apart). A robot standing still next to a
+disturbance would otherwise pull the calibration toward fitting that one direction."""
+TRACKING_MIN_COVERAGE = 0.25
+"""Share of direction cells the recent readings must span before a tracked calibration may be
+judged better: better in one corner of the sphere is not better."""
 
 
 def _engine_defaults() -> tuple[int, int, FitOptions]:
@@ -221,6 +229,7 @@ class CalibrationSession:
         self.tracker: OnlineTracker | None = None
         self.tracked_updates = 0
         self._recent: deque[np.ndarray] = deque(maxlen=TRACKING_EVALUATION_SAMPLES)
+        self._last_taught: np.ndarray | None = None  # corrected direction last fed to the tracker
         self._last_auto_attempt = -math.inf
         self._last_tracking_check: float | None = None
         self._reported_rejects = dict(self.screen_rejects)
@@ -280,10 +289,24 @@ class CalibrationSession:
         self.frame_id = frame_id
         self._last_stamp_ns = stamp_ns
         self.buffer.add(field_t)
-        if self.tracker is not None:
+        if self.tracker is not None and self._teaches_tracker(field_t):
             self.tracker.update(field_t)
             self._recent.append(field_t)
         return None
+
+    def _teaches_tracker(self, field_t: np.ndarray) -> bool:
+        """Whether this reading points somewhere new (see TRACKING_MIN_SEPARATION_DEG)."""
+        direction = self.calibration.apply(field_t)
+        norm = float(np.linalg.norm(direction))
+        if not norm > 0.0:
+            return False
+        direction /= norm
+        if self._last_taught is not None and float(direction @ self._last_taught) > math.cos(
+            math.radians(TRACKING_MIN_SEPARATION_DEG)
+        ):
+            return False
+        self._last_taught = direction
+        return True
 
     def correct(self, field_t: np.ndarray) -> np.ndarray | None:
         """The corrected field, or None while no calibration is in force."""
@@ -309,6 +332,7 @@ class CalibrationSession:
 
     def _restart_tracker(self) -> None:
         self._recent.clear()
+        self._last_taught = None
         self._last_tracking_check = None
         if self.settings.online_tracking and self.calibration is not None:
             self.tracker = OnlineTracker(self.calibration)
@@ -350,6 +374,7 @@ class CalibrationSession:
         self.frame_id = None
         self._last_stamp_ns = None
         self._recent.clear()
+        self._last_taught = None
 
     def maybe_auto_calibrate(self, now: float) -> CalibrationAttempt | None:
         """Calibrate by itself once the buffer looks ready, at most every auto_calibrate_period.
@@ -383,6 +408,8 @@ class CalibrationSession:
         if len(self._recent) < TRACKING_MIN_SAMPLES:
             return False
         recent = np.array(self._recent)
+        if direction_coverage(recent, self.calibration).fraction < TRACKING_MIN_COVERAGE:
+            return False
         current_residual = magnitude_residual_pct(self.calibration, recent)
         candidate = self.tracker.calibration
         candidate_residual = magnitude_residual_pct(candidate, recent)
