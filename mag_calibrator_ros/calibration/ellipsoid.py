@@ -41,6 +41,7 @@ from statistics import NormalDist
 
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 
 FIT_MODELS = ('sphere', 'axis', 'full', 'planar')
 PARAMETER_COUNTS = {'sphere': 4, 'axis': 6, 'full': 9, 'planar': 5}
@@ -623,6 +624,14 @@ def _fit_planar(
             return _planar_result(
                 points, in_3d, basis, norm, prior_offset, prior_matrix, False, weights
             )
+    if prior is None:  # tilts while turning may determine the offset along the normal
+        tilted = _planar_tilted(w, flat, outlier_threshold, weights)
+        if tilted is not None:
+            rotated, normal_std = tilted
+            return _planar_result(
+                points, rotated, basis, norm, prior_offset, prior_matrix, False, weights,
+                normal_std,
+            )  # fmt: skip
     block = np.eye(3)
     block[:2, :2] = flat.matrix / np.sqrt(np.linalg.det(flat.matrix))  # shape; scale set below
     if prior is not None:
@@ -681,6 +690,85 @@ def _planar_in_3d(
     )
 
 
+MAX_NORMAL_OFFSET_STD = 0.05
+"""The offset along the plane normal counts as observed when its 1-sigma is below 5 % of the
+field (2.5 µT at 50 µT): tilts of a few degrees while turning determine it to a few %, a level
+ring not at all (the fit then falls back to the 2-D ellipse and reports it unobserved)."""
+
+_TILTED = np.array([0, 1, 2, 3, 4, 6])
+"""Parameters [b_u, b_v, b_n, M_uu, M_uv, M_vv] of the 3-D model in the plane's frame."""
+
+
+def _planar_tilted(
+    w: np.ndarray, flat: _Refined, outlier_threshold: float, weights: np.ndarray | None = None
+) -> tuple[_Refined, float] | None:
+    """3-D fit of a turning robot that tilts a little; None when the tilts are too small.
+
+    Tilting by θ moves about V θ of the vertical field V into the plane and H θ of the
+    horizontal field H out of it, keeping the total constant; a 2-D fit sees its radius change by
+    tan(inclination) θ (10 % for 3° at 70°). In 3-D that is no error, and because the reading
+    along the normal changes with the tilt, the offset along it is determined as well. The
+    out-of-plane scale is held at the in-plane one (the cross terms at zero): a nearly constant
+    vertical component cannot tell them apart from the offset. The start is linear: with
+    ``q`` the shape-corrected in-plane radius and ``v`` the normal coordinate,
+    ``q² + (v - b)² = R²`` gives ``q² + v² = 2 b v + (R² - b²)``, whose sign of ``v - b`` comes
+    from how ``q`` shrinks as ``|v - b|`` grows. Returns the refined fit (``std`` without the
+    normal offset; the matrix std relative to the in-plane scale) and the normal offset's
+    1-sigma relative to the field.
+    """
+    inliers = flat.inliers
+    shape = flat.matrix / np.sqrt(np.linalg.det(flat.matrix))
+    q_sq = np.sum(((w[inliers, :2] - flat.centre) @ shape) ** 2, axis=1)
+    v = w[inliers, 2]
+    design = np.column_stack([2.0 * v, np.ones(len(v))])
+    target = q_sq + v**2
+    root = np.ones(len(v)) if weights is None else np.sqrt(weights[inliers])
+    solution, *_ = np.linalg.lstsq(design * root[:, None], target * root, rcond=None)
+    normal_offset = float(solution[0])
+    radius_sq = float(solution[1]) + normal_offset**2
+    if not (np.isfinite(radius_sq) and radius_sq > 0):
+        return None
+    _, start_std = _condition_and_std(design * root[:, None], (design @ solution - target) * root)
+    radius = np.sqrt(radius_sq)
+    # d(target)/db is 2 v; the radius' own variance aside, b's std relative to the field radius
+    if start_std is None or start_std[0] > 2.0 * MAX_NORMAL_OFFSET_STD * radius:
+        return None
+    matrix = np.zeros((3, 3))
+    matrix[:2, :2] = shape / radius
+    matrix[2, 2] = 1.0 / radius
+    centre = np.append(flat.centre, normal_offset)
+    refined = None
+    for _ in range(2):  # the held out-of-plane scale follows the in-plane one
+        refined = _refine(w, centre, matrix, False, outlier_threshold, _TILTED, weights)
+        centre, matrix = refined.centre, refined.matrix.copy()
+        in_plane = np.linalg.det(matrix[:2, :2])
+        if not in_plane > 0:
+            return None
+        matrix[2, 2] = np.sqrt(in_plane)
+    if np.linalg.eigvalsh(refined.matrix).min() <= 0 or refined.std is None:
+        return None
+    field_radius = 1.0 / np.sqrt(np.linalg.det(refined.matrix[:2, :2]))
+    normal_std = float(refined.std[2]) / field_radius
+    if not (np.isfinite(normal_std) and normal_std <= MAX_NORMAL_OFFSET_STD):
+        return None
+    # the normal reading must move with the tilts, not with the noise alone (which also gives a
+    # small but meaningless std: the regressor is then noise)
+    spread = float(np.std(w[refined.inliers, 2])) / field_radius
+    if spread < 1.5 * robust_sigma(refined.residuals[refined.inliers]):
+        return None
+    # determinacy of the in-plane parameters: the normal offset is judged by its std above
+    inlier_model = _Geometric(w[refined.inliers], spherical=False)
+    params = inlier_model.pack(refined.centre, refined.matrix)
+    jacobian = inlier_model.jacobian(params)[:, _IN_PLANE]
+    condition, _ = _condition_and_std(jacobian, refined.residuals[refined.inliers])
+    std = np.concatenate([refined.std[:2], refined.std[3:] * field_radius])
+    return (
+        _Refined(refined.centre, refined.matrix, refined.residuals, refined.inliers, condition,
+                 std),
+        normal_std,
+    )  # fmt: skip
+
+
 def _planar_result(
     points: np.ndarray,
     rotated: _Refined,
@@ -690,8 +778,12 @@ def _planar_result(
     prior_matrix: np.ndarray,
     rescale: bool,
     weights: np.ndarray | None = None,
+    normal_std: float | None = None,
 ) -> EllipsoidFit | None:
-    """From the plane's normalised frame back to input units, through the prior's correction."""
+    """From the plane's normalised frame back to input units, through the prior's correction.
+
+    ``normal_std`` (relative to the field) marks the offset along the normal as fitted.
+    """
     centre_u = norm.centre + norm.scale * (basis @ rotated.centre)
     correction = basis @ rotated.matrix @ basis.T / norm.scale
     matrix = _symmetric_polar_factor(correction @ prior_matrix)
@@ -705,6 +797,8 @@ def _planar_result(
         if not mean > 0:
             return None
         matrix = matrix / mean
+    if normal_std is not None:
+        matrix = _yaw_axis_on_body_axis(matrix, basis) @ matrix
     if not (np.all(np.isfinite(offset)) and np.all(np.isfinite(matrix))):
         return None
     std = None
@@ -713,14 +807,36 @@ def _planar_result(
             'offset_in_plane': (rotated.std[:2] * norm.scale).tolist(),
             'matrix_in_plane_relative': rotated.std[2:].tolist(),
         }
+        if normal_std is not None:
+            std['offset_normal_relative'] = [normal_std]
+    unobserved = ('offset_normal', 'matrix_normal') if normal_std is None else ('matrix_normal',)
     w = norm.forward((points - prior_offset) @ prior_matrix.T) @ basis
     unit = (w - rotated.centre) @ rotated.matrix
     return EllipsoidFit(
         'planar', offset, matrix, rotated.residuals, rotated.inliers, rotated.condition,
         _radius(matrix), _ratio(rotated.matrix[:2, :2]), std,
-        unobserved=('offset_normal', 'matrix_normal'), plane_normal=basis[:, 2],
+        unobserved=unobserved, plane_normal=basis[:, 2],
         headings=np.arctan2(unit[:, 1], unit[:, 0]),
     )  # fmt: skip
+
+
+def _yaw_axis_on_body_axis(matrix: np.ndarray, basis: np.ndarray) -> np.ndarray:
+    """The rotation putting the corrected plane's normal on the body axis nearest to it.
+
+    Turning about one axis cannot determine the soft-iron cross terms between the plane and its
+    normal, and with them where the corrected vertical points: a symmetric M leaves it along the
+    raw plane's normal, which soft iron tilts off the yaw axis by several degrees. With a vertical
+    component (tan(inclination) times the horizontal one) that tilt would leak into the heading
+    (15 deg at 70 deg inclination for 7 deg of tilt), so the yaw axis is put on the body axis
+    nearest to it, where a ground robot's sensor is mounted. Magnitudes are unchanged.
+    """
+    corrected_normal = np.cross(matrix @ basis[:, 0], matrix @ basis[:, 1])
+    corrected_normal /= np.linalg.norm(corrected_normal)
+    axis = np.zeros(3)
+    nearest = int(np.argmax(np.abs(corrected_normal)))
+    axis[nearest] = np.sign(corrected_normal[nearest])
+    rotation, _ = Rotation.align_vectors([axis], [corrected_normal])
+    return rotation.as_matrix()
 
 
 def _symmetric_polar_factor(matrix: np.ndarray) -> np.ndarray:
