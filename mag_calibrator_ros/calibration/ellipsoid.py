@@ -14,9 +14,11 @@ Models (all fits return an :class:`EllipsoidFit`):
   it measures the method.
 - ``full``: hard iron + symmetric soft iron (9 parameters), quadric least-squares start.
 - ``planar``: motion confined to a plane (a ground robot yawing). Without a prior: a 2-D ellipse in
-  the plane of the data, the offset along the normal at the data's mean. With a prior: the 3-D
-  residual with only the in-plane parameters free. Either way the normal terms are reported as
-  unobserved.
+  the plane of the data; when the robot tilts a few degrees while turning (every real floor does)
+  and that determines it, the 3-D residual with the in-plane parameters and the offset along the
+  normal free (see _planar_tilted), else the offset along the normal at the data's mean. With a
+  prior: the 3-D residual with only the in-plane parameters free. The normal terms not fitted
+  are reported as unobserved.
 
 Algebraic starts are least trimmed squares (fitted to the 60 % of points nearest the current
 surface, repeated until that set settles), so even a buffer holding many spikes starts well. The
@@ -41,7 +43,6 @@ from statistics import NormalDist
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
 FIT_MODELS = ('sphere', 'axis', 'full', 'planar')
 PARAMETER_COUNTS = {'sphere': 4, 'axis': 6, 'full': 9, 'planar': 5}
@@ -589,10 +590,11 @@ def _fit_planar(
     """Motion in one plane: fit what it determines, in the prior's corrected frame.
 
     The prior (identity without one) corrects the points first. Without a prior a 2-D ellipse is
-    fitted in the plane of the data (area-preserving shape and in-plane centre) and the offset
-    along the normal is the data's mean there: the corrected field lies in the plane, heading is
-    right, the vertical component is unknown. With a prior the 3-D residual is minimised with only
-    the in-plane parameters free, so the normal terms stay the prior's and tilts taken while
+    fitted in the plane of the data (area-preserving shape and in-plane centre); when tilts taken
+    while turning determine the offset along the normal, the 3-D fit of _planar_tilted replaces
+    it, else that offset is the data's mean there: the corrected field lies in the plane, heading
+    is right, the vertical component is unknown. With a prior the 3-D residual is minimised with
+    only the in-plane parameters free, so the normal terms stay the prior's and tilts taken while
     turning (which change the horizontal field by tan(inclination) x tilt: 5 % for ±3° at 60°)
     are explained instead of counted as error.
     """
@@ -625,7 +627,7 @@ def _fit_planar(
                 points, in_3d, basis, norm, prior_offset, prior_matrix, False, weights
             )
     if prior is None:  # tilts while turning may determine the offset along the normal
-        tilted = _planar_tilted(w, flat, outlier_threshold, weights)
+        tilted = _planar_tilted(w, basis, flat, outlier_threshold, weights)
         if tilted is not None:
             rotated, normal_std = tilted
             return _planar_result(
@@ -691,29 +693,46 @@ def _planar_in_3d(
 
 
 MAX_NORMAL_OFFSET_STD = 0.05
-"""The offset along the plane normal counts as observed when its 1-sigma is below 5 % of the
-field (2.5 µT at 50 µT): tilts of a few degrees while turning determine it to a few %, a level
-ring not at all (the fit then falls back to the 2-D ellipse and reports it unobserved)."""
+"""The offset along the plane normal counts as observed only when its 1-sigma is below 5 % of the
+field (2.5 µT at 50 µT) and the 3-D fit explains the data better than the 2-D ellipse by the
+information criterion (``TILT_EVIDENCE``); a level ring determines it not at all, and the fit
+then falls back to the 2-D ellipse and reports it unobserved."""
+
+TILT_EVIDENCE = 10.0
+"""BIC margin the 3-D (tilted) planar fit must win by: 'very strong' evidence on the usual scale,
+so noise alone (whose normal component the regression would otherwise fit) never frees the
+offset along the normal."""
 
 _TILTED = np.array([0, 1, 2, 3, 4, 6])
 """Parameters [b_u, b_v, b_n, M_uu, M_uv, M_vv] of the 3-D model in the plane's frame."""
 
 
 def _planar_tilted(
-    w: np.ndarray, flat: _Refined, outlier_threshold: float, weights: np.ndarray | None = None
+    w: np.ndarray,
+    basis: np.ndarray,
+    flat: _Refined,
+    outlier_threshold: float,
+    weights: np.ndarray | None = None,
 ) -> tuple[_Refined, float] | None:
-    """3-D fit of a turning robot that tilts a little; None when the tilts are too small.
+    """3-D fit of a turning robot that tilts a little; None when the tilts do not determine it.
 
     Tilting by θ moves about V θ of the vertical field V into the plane and H θ of the
     horizontal field H out of it, keeping the total constant; a 2-D fit sees its radius change by
     tan(inclination) θ (10 % for 3° at 70°). In 3-D that is no error, and because the reading
-    along the normal changes with the tilt, the offset along it is determined as well. The
-    out-of-plane scale is held at the in-plane one (the cross terms at zero): a nearly constant
-    vertical component cannot tell them apart from the offset. The start is linear: with
-    ``q`` the shape-corrected in-plane radius and ``v`` the normal coordinate,
-    ``q² + (v - b)² = R²`` gives ``q² + v² = 2 b v + (R² - b²)``, whose sign of ``v - b`` comes
-    from how ``q`` shrinks as ``|v - b|`` grows. Returns the refined fit (``std`` without the
-    normal offset; the matrix std relative to the in-plane scale) and the normal offset's
+    along the normal changes with the tilt, the offset along it is determined as well.
+
+    Held, as turning about one axis cannot determine them: the out-of-plane scale at the in-plane
+    one, and the cross terms such that the corrected plane is perpendicular to the body axis
+    nearest its normal (``M z ∥ n``: a sensor mounted with an axis along the yaw axis, as the
+    true symmetric soft iron does then). Cross terms of zero instead would leave the corrected
+    vertical along the raw plane's normal, which soft iron tilts off the yaw axis, and with a
+    vertical component of tan(inclination) times the horizontal one that tilt leaks into the
+    heading (15° at 70° inclination for a 7° tilt).
+
+    The start is linear: with ``q`` the shape-corrected in-plane radius and ``v`` the normal
+    coordinate, ``q² + (v - b)² = R²`` is ``q² + v² = 2 b v + (R² - b²)``; the sign of ``v - b``
+    comes from how ``q`` shrinks as ``|v - b|`` grows. Returns the refined fit (``std`` without
+    the normal offset, the matrix std relative to the in-plane scale) and the normal offset's
     1-sigma relative to the field.
     """
     inliers = flat.inliers
@@ -722,51 +741,58 @@ def _planar_tilted(
     v = w[inliers, 2]
     design = np.column_stack([2.0 * v, np.ones(len(v))])
     target = q_sq + v**2
-    root = np.ones(len(v)) if weights is None else np.sqrt(weights[inliers])
-    solution, *_ = np.linalg.lstsq(design * root[:, None], target * root, rcond=None)
+    solution = _weighted_lstsq(design, target, _part(weights, inliers))
     normal_offset = float(solution[0])
     radius_sq = float(solution[1]) + normal_offset**2
     if not (np.isfinite(radius_sq) and radius_sq > 0):
         return None
-    _, start_std = _condition_and_std(design * root[:, None], (design @ solution - target) * root)
     radius = np.sqrt(radius_sq)
-    # d(target)/db is 2 v; the radius' own variance aside, b's std relative to the field radius
-    if start_std is None or start_std[0] > 2.0 * MAX_NORMAL_OFFSET_STD * radius:
+    body_axis = basis.T[:, np.argmax(np.abs(basis[:, 2]))]  # in plane coordinates
+    if abs(body_axis[2]) < 0.5:  # the plane is far from every body plane: nothing to hold to
         return None
-    matrix = np.zeros((3, 3))
-    matrix[:2, :2] = shape / radius
-    matrix[2, 2] = 1.0 / radius
+    matrix = _held_out_of_plane(shape / radius, body_axis)
     centre = np.append(flat.centre, normal_offset)
-    refined = None
-    for _ in range(2):  # the held out-of-plane scale follows the in-plane one
+    for _ in range(3):  # the held terms follow the in-plane ones
         refined = _refine(w, centre, matrix, False, outlier_threshold, _TILTED, weights)
-        centre, matrix = refined.centre, refined.matrix.copy()
-        in_plane = np.linalg.det(matrix[:2, :2])
-        if not in_plane > 0:
+        if np.linalg.det(refined.matrix[:2, :2]) <= 0:
             return None
-        matrix[2, 2] = np.sqrt(in_plane)
-    if np.linalg.eigvalsh(refined.matrix).min() <= 0 or refined.std is None:
+        centre = refined.centre
+        matrix = _held_out_of_plane(refined.matrix[:2, :2], body_axis)
+    if refined.std is None or np.linalg.eigvalsh(refined.matrix).min() <= 0:
         return None
     field_radius = 1.0 / np.sqrt(np.linalg.det(refined.matrix[:2, :2]))
     normal_std = float(refined.std[2]) / field_radius
     if not (np.isfinite(normal_std) and normal_std <= MAX_NORMAL_OFFSET_STD):
         return None
-    # the normal reading must move with the tilts, not with the noise alone (which also gives a
-    # small but meaningless std: the regressor is then noise)
-    spread = float(np.std(w[refined.inliers, 2])) / field_radius
-    if spread < 1.5 * robust_sigma(refined.residuals[refined.inliers]):
+    # evidence: the same points' residuals in the same (normalised input) units, 2-D vs 3-D
+    common = flat.inliers & refined.inliers
+    flat_radius = 1.0 / np.sqrt(np.linalg.det(flat.matrix))
+    root = np.ones(len(w)) if weights is None else np.sqrt(weights)
+    flat_score = information_criterion((flat.residuals * flat_radius * root)[common], 5)
+    tilted_score = information_criterion((refined.residuals * field_radius * root)[common], 6)
+    if not tilted_score < flat_score - TILT_EVIDENCE:
         return None
-    # determinacy of the in-plane parameters: the normal offset is judged by its std above
+    # determinacy of the in-plane parameters (the 2-D fit's condition); the normal offset is
+    # judged by its std and the evidence above
     inlier_model = _Geometric(w[refined.inliers], spherical=False)
-    params = inlier_model.pack(refined.centre, refined.matrix)
-    jacobian = inlier_model.jacobian(params)[:, _IN_PLANE]
-    condition, _ = _condition_and_std(jacobian, refined.residuals[refined.inliers])
+    jacobian = inlier_model.jacobian(inlier_model.pack(refined.centre, refined.matrix))
+    condition, _ = _condition_and_std(jacobian[:, _IN_PLANE], refined.residuals[refined.inliers])
     std = np.concatenate([refined.std[:2], refined.std[3:] * field_radius])
-    return (
-        _Refined(refined.centre, refined.matrix, refined.residuals, refined.inliers, condition,
-                 std),
-        normal_std,
-    )  # fmt: skip
+    fitted = _Refined(
+        refined.centre, refined.matrix, refined.residuals, refined.inliers, condition, std
+    )
+    return fitted, normal_std
+
+
+def _held_out_of_plane(in_plane: np.ndarray, body_axis: np.ndarray) -> np.ndarray:
+    """M in plane coordinates from its in-plane block: ``M_nn`` the in-plane scale, the cross
+    terms ``c = -A z_uv / z_n`` so that ``M z`` lies along the normal (see _planar_tilted)."""
+    matrix = np.zeros((3, 3))
+    matrix[:2, :2] = in_plane
+    cross = -in_plane @ body_axis[:2] / body_axis[2]
+    matrix[:2, 2] = matrix[2, :2] = cross
+    matrix[2, 2] = np.sqrt(np.linalg.det(in_plane))
+    return matrix
 
 
 def _planar_result(
@@ -797,8 +823,6 @@ def _planar_result(
         if not mean > 0:
             return None
         matrix = matrix / mean
-    if normal_std is not None:
-        matrix = _yaw_axis_on_body_axis(matrix, basis) @ matrix
     if not (np.all(np.isfinite(offset)) and np.all(np.isfinite(matrix))):
         return None
     std = None
@@ -807,8 +831,9 @@ def _planar_result(
             'offset_in_plane': (rotated.std[:2] * norm.scale).tolist(),
             'matrix_in_plane_relative': rotated.std[2:].tolist(),
         }
-        if normal_std is not None:
-            std['offset_normal_relative'] = [normal_std]
+        if normal_std is not None:  # relative to the field radius -> input units
+            field_radius = 1.0 / np.sqrt(np.linalg.det(rotated.matrix[:2, :2]))
+            std['offset_normal'] = [normal_std * field_radius * norm.scale]
     unobserved = ('offset_normal', 'matrix_normal') if normal_std is None else ('matrix_normal',)
     w = norm.forward((points - prior_offset) @ prior_matrix.T) @ basis
     unit = (w - rotated.centre) @ rotated.matrix
@@ -818,25 +843,6 @@ def _planar_result(
         unobserved=unobserved, plane_normal=basis[:, 2],
         headings=np.arctan2(unit[:, 1], unit[:, 0]),
     )  # fmt: skip
-
-
-def _yaw_axis_on_body_axis(matrix: np.ndarray, basis: np.ndarray) -> np.ndarray:
-    """The rotation putting the corrected plane's normal on the body axis nearest to it.
-
-    Turning about one axis cannot determine the soft-iron cross terms between the plane and its
-    normal, and with them where the corrected vertical points: a symmetric M leaves it along the
-    raw plane's normal, which soft iron tilts off the yaw axis by several degrees. With a vertical
-    component (tan(inclination) times the horizontal one) that tilt would leak into the heading
-    (15 deg at 70 deg inclination for 7 deg of tilt), so the yaw axis is put on the body axis
-    nearest to it, where a ground robot's sensor is mounted. Magnitudes are unchanged.
-    """
-    corrected_normal = np.cross(matrix @ basis[:, 0], matrix @ basis[:, 1])
-    corrected_normal /= np.linalg.norm(corrected_normal)
-    axis = np.zeros(3)
-    nearest = int(np.argmax(np.abs(corrected_normal)))
-    axis[nearest] = np.sign(corrected_normal[nearest])
-    rotation, _ = Rotation.align_vectors([axis], [corrected_normal])
-    return rotation.as_matrix()
 
 
 def _symmetric_polar_factor(matrix: np.ndarray) -> np.ndarray:

@@ -101,7 +101,8 @@ class FitMetrics:
     """How good a fit is; every number finite (inf stands as the largest float).
 
     - residuals: ``|corrected|/F - 1`` over the inliers, in percent (for ``planar`` without a
-      prior: of the in-plane field).
+      prior: of the 3-D field when tilts while turning determined the offset along the normal,
+      else of the in-plane field).
     - ``n_samples``: finite rows used; ``n_non_finite``: rows dropped for NaN/Inf.
     - ``coverage``: share of the 80 direction cells (3-D models) or of the 36 heading sectors
       (``planar``); ``coverage_hint`` the rotation still missing ('' when complete).
@@ -110,8 +111,10 @@ class FitMetrics:
       when ``field_strength`` is None).
     - ``axis_ratio``: longest over shortest semi-axis (in the plane for ``planar``).
     - ``parameter_std``: 1-sigma of the output ``offset`` (input units) and ``matrix`` (row-major)
-      from the Jacobian; for ``planar`` ``offset_in_plane`` and the relative in-plane shape.
-    - ``unobserved``: what the data could not determine (``planar``: the normal terms).
+      from the Jacobian; for ``planar`` ``offset_in_plane``, the relative in-plane shape and,
+      when fitted, ``offset_normal``.
+    - ``unobserved``: what the data could not determine (``planar``: ``matrix_normal``, and
+      ``offset_normal`` unless tilts while turning determined it).
     """
 
     model: str
@@ -440,12 +443,48 @@ def _gates(
             'strong magnetic material near the sensor, a changing field, or a bad fit'
         )
     if residual_rms > options.max_residual_pct:
-        reasons.append(
-            f'residual {residual_rms:.2f} % of the field exceeds '
-            f'{options.max_residual_pct:.2f} %: the field was disturbed (nearby iron, motors, '
-            'currents) or the sensor is very noisy'
+        exceeds = (
+            f'residual {residual_rms:.2f} % of the field exceeds {options.max_residual_pct:.2f} %'
         )
+        tilt = _tilt_correlation(rows, fitted) if fitted.model == 'planar' else 0.0
+        if abs(tilt) >= TILT_CORRELATION:
+            held = 'the prior' if options.prior is not None else 'the data'
+            reasons.append(
+                f'{exceeds}: the robot tilts while turning (the residual follows the reading '
+                f'along the plane normal, correlation {tilt:.2f}): a tilt moves part of the '
+                f'vertical field into the plane, which the vertical offset from {held} does not '
+                'explain; tilt it a few degrees in every direction while turning (so the '
+                'vertical offset is fitted), calibrate on level ground, or tumble it for a full '
+                'calibration'
+            )
+        else:
+            reasons.append(
+                f'{exceeds}: the field was disturbed (nearby iron, motors, currents) or the '
+                'sensor is very noisy'
+            )
     return reasons
+
+
+TILT_CORRELATION = 0.5
+"""|correlation| between a planar fit's residuals and the reading along the plane normal beyond
+which the residual is put down to tilting, not to a disturbed field or noise: a tilt changes both
+together (the in-plane field by V θ, the normal reading by H θ), disturbances and noise do not."""
+
+
+def _tilt_correlation(rows: np.ndarray, fitted: EllipsoidFit) -> float:
+    """Correlation of the inlier residuals with the corrected reading along its least-spread
+    axis (the plane normal, whatever frame the fit's prior put the plane in); 0 when undefined."""
+    inliers = fitted.inliers
+    if inliers.sum() < 3:
+        return 0.0
+    corrected = (rows[inliers] - fitted.offset) @ fitted.matrix.T
+    centred = corrected - corrected.mean(axis=0)
+    normal = np.linalg.svd(centred, full_matrices=False)[2][-1]
+    along, residuals = centred @ normal, fitted.residuals[inliers]
+    if np.std(along) <= 0 or np.std(residuals) <= 0:
+        return 0.0
+    correlation = float(np.corrcoef(along, residuals)[0, 1])
+    return correlation if math.isfinite(correlation) else 0.0
 
 
 def _planar_reason(
