@@ -113,6 +113,21 @@ _TRIU = np.triu_indices(3)
 _CHUNK_ROWS = 64  # rows per block when recomputing many neighbour lists: bounded temporaries
 
 
+def reading_problem(x0: float, x1: float, x2: float, full_scale: float | None) -> str | None:
+    """Why one reading can never be a sample ('non_finite', 'zero', 'saturated'), or None.
+
+    All-zero is refused but one exact-zero component is a legitimate reading. Plain floats, as
+    this runs for every message.
+    """
+    if not (math.isfinite(x0) and math.isfinite(x1) and math.isfinite(x2)):
+        return 'non_finite'
+    if x0 == 0.0 and x1 == 0.0 and x2 == 0.0:
+        return 'zero'
+    if full_scale is not None and max(abs(x0), abs(x1), abs(x2)) >= full_scale:
+        return 'saturated'
+    return None
+
+
 class SampleBuffer:
     """Keeps the ``capacity`` most spread-out samples seen so far, screening bad input.
 
@@ -382,12 +397,9 @@ class SampleBuffer:
     def _screen(self, x: np.ndarray) -> str | None:
         """The first reject reason that applies to ``x``, or None. Plain floats: 3 values only."""
         x0, x1, x2 = x.tolist()
-        if not (math.isfinite(x0) and math.isfinite(x1) and math.isfinite(x2)):
-            return 'non_finite'
-        if x0 == 0.0 and x1 == 0.0 and x2 == 0.0:
-            return 'zero'
-        if self.full_scale is not None and max(abs(x0), abs(x1), abs(x2)) >= self.full_scale:
-            return 'saturated'
+        problem = reading_problem(x0, x1, x2, self.full_scale)
+        if problem is not None:
+            return problem
         outlier = False
         window = max(100, self._capacity)
         if self._external is not None:

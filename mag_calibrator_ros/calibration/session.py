@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 
-from mag_calibrator_ros.calibration.buffer import SampleBuffer
+from mag_calibrator_ros.calibration.buffer import SampleBuffer, reading_problem
 from mag_calibrator_ros.calibration.calibration import MODELS, Calibration, CalibrationError
 from mag_calibrator_ros.calibration.calibration_file import (
     CalibrationFileError,
@@ -81,6 +81,11 @@ class SessionSettings:
     """Adopt a tracked calibration only when its residual is below this share of the current."""
     tracking_max_change_rate: float = 0.01
     """Per second: offset change as a share of the field, matrix change as a relative norm."""
+
+    @property
+    def full_scale_limit(self) -> float | None:
+        """``full_scale`` as the buffer takes it: None when the check is off (0)."""
+        return self.full_scale if self.full_scale > 0.0 else None
 
     def problems(self) -> list[str]:
         """Every reason these settings cannot work, in words a user can act on."""
@@ -240,8 +245,9 @@ class CalibrationSession:
 
     @staticmethod
     def _new_buffer(settings: SessionSettings) -> SampleBuffer:
-        full_scale = settings.full_scale if settings.full_scale > 0.0 else None
-        return SampleBuffer(capacity=settings.buffer_size, k=settings.k, full_scale=full_scale)
+        return SampleBuffer(
+            capacity=settings.buffer_size, k=settings.k, full_scale=settings.full_scale_limit
+        )
 
     def reconfigure(self, settings: SessionSettings) -> None:
         """Adopt new settings; a resized buffer keeps its most unique samples."""
@@ -252,7 +258,7 @@ class CalibrationSession:
         self.settings = settings
         if (settings.buffer_size, settings.k) != (old.buffer_size, old.k):
             self.buffer.resize(settings.buffer_size, settings.k)
-        self.buffer.full_scale = settings.full_scale if settings.full_scale > 0.0 else None
+        self.buffer.full_scale = settings.full_scale_limit
         if settings.online_tracking != old.online_tracking:
             self._restart_tracker()
 
@@ -260,16 +266,13 @@ class CalibrationSession:
 
     def screen(self, stamp_ns: int, frame_id: str, field_t: np.ndarray) -> str | None:
         """Why this message is unusable (a SCREEN_REASONS entry), or None; counts the reason."""
-        reason = None
-        if field_t.shape != (3,) or not np.all(np.isfinite(field_t)):
+        if field_t.shape != (3,):
             reason = 'non_finite'
-        elif not np.any(field_t):
-            reason = 'zero'
-        elif 0.0 < self.settings.full_scale <= np.max(np.abs(field_t)):
-            reason = 'saturated'
-        elif self.frame_id is not None and frame_id != self.frame_id:
+        else:
+            reason = reading_problem(*field_t.tolist(), self.settings.full_scale_limit)
+        if reason is None and self.frame_id is not None and frame_id != self.frame_id:
             reason = 'frame_changed'
-        elif self._last_stamp_ns is not None and stamp_ns < self._last_stamp_ns:
+        if reason is None and self._last_stamp_ns is not None and stamp_ns < self._last_stamp_ns:
             reason = 'stamp_backwards'
         if reason is not None:
             self.screen_rejects[reason] += 1
