@@ -13,6 +13,7 @@ that failed its gates); 2 usage or input errors (one line on stderr, no tracebac
 from __future__ import annotations
 
 import argparse
+from collections import Counter
 from collections.abc import Sequence
 import json
 import math
@@ -29,6 +30,7 @@ from mag_calibrator_ros.calibration.buffer import (
     DEFAULT_K,
     REJECT_REASONS,
     SampleBuffer,
+    reading_problem,
 )
 from mag_calibrator_ros.calibration.calibration import MODELS, Calibration
 from mag_calibrator_ros.calibration.calibration_file import CalibrationFileError, save_calibration
@@ -284,13 +286,11 @@ def stream(buffer: SampleBuffer, samples: np.ndarray, progress: ProgressBar) -> 
 
 
 def screen_all(samples: np.ndarray, full_scale: float | None) -> tuple[np.ndarray, dict[str, int]]:
-    """--all: drop what the buffer would refuse outright (all-zero, saturated), counted."""
-    zero = np.all(samples == 0.0, axis=1)
-    saturated = np.zeros(len(samples), dtype=bool)
-    if full_scale is not None:
-        saturated = ~zero & (np.max(np.abs(samples), axis=1) >= full_scale)
-    keep = ~(zero | saturated)
-    return samples[keep], {'zero': int(zero.sum()), 'saturated': int(saturated.sum())}
+    """--all: drop what the buffer would refuse outright (the same rule), counted by reason."""
+    problems = [reading_problem(*row, full_scale) for row in samples.tolist()]
+    keep = np.array([problem is None for problem in problems], dtype=bool)
+    counts = Counter(problem for problem in problems if problem is not None)
+    return samples[keep], dict(counts)
 
 
 def write_plot(path: str, recording: Recording, fitted: np.ndarray,
