@@ -1,0 +1,283 @@
+"""Held-out evidence: readings no fit has seen, and the two judgements made on them.
+
+A calibration fitted to the buffer always looks good on the buffer. To know whether a new fit is
+really better than the calibration in force, and whether the calibration in force still fits the
+sensor, the session holds some readings back from the buffer (every ``HOLD_OUT_EVERY``-th) and
+judges on those:
+
+- ``compare_on_evidence``: is a candidate better than the calibration in force, by a margin beyond
+  noise? A paired test on the same readings (each reading's capped squared residual under both),
+  robust to the spikes and disturbances a live stream has.
+- ``MisfitMonitor``: does the calibration in force still fit? Recent evidence spanning directions
+  whose corrected magnitude is clearly off, for several seconds: another sensor's file, a new
+  payload, a re-mounted sensor -- not a magnet passing by.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+
+import numpy as np
+
+from mag_calibrator_ros.calibration.calibration import Calibration
+from mag_calibrator_ros.calibration.coverage import CELL_COUNT, cell_index, direction_coverage
+
+HOLD_OUT_EVERY = 8
+"""While a calibration is in force, one accepted reading in eight is evidence instead of a
+buffer sample: enough to judge on within seconds of moving, while the buffer keeps nearly all the
+data (before the first calibration nothing is held out: there is nothing to judge yet)."""
+
+READINGS_PER_CELL = 4
+"""Evidence is kept per direction cell (the latest four in each of the 80): a robot that stands
+still refreshes one cell and the rest stay, so judgements always span the directions seen."""
+
+MIN_EVIDENCE = 30
+"""Fewer held-out readings than this decide nothing."""
+
+MIN_EVIDENCE_SPAN = 0.25
+"""Share of direction cells the evidence must span (judged by its own shape, not through the
+calibration under test) before a candidate may replace the calibration in force: better in one
+corner of the sphere is not better."""
+
+SIGNIFICANCE = 3.0
+"""A candidate must beat the calibration in force by three standard errors of the paired
+difference (one-sided, about 1 in 700 by chance alone)."""
+
+MIN_GAIN = 0.02
+"""...and by at least 2 % of its residual, so that many readings of a tiny gain cause no churn."""
+
+GROSS_ERROR = 0.3
+"""A reading off by more than 30 % under both calibrations is a spike or a magnet: left out."""
+
+CAP_SIGMAS = 3.0
+"""Each reading's loss is its squared residual capped at three noise sigmas: a reading that
+neither calibration explains (a spike, a magnet passing) costs both the same and decides
+nothing, and no single reading can decide more than a cap's worth."""
+
+
+class HeldOutEvidence:
+    """Held-out readings, the latest few per direction cell, each with its stream time."""
+
+    def __init__(self, per_cell: int = READINGS_PER_CELL) -> None:
+        self._per_cell = per_cell
+        size = CELL_COUNT * per_cell
+        self._readings = np.zeros((size, 3))
+        self._times = np.full(size, -math.inf)
+        self._valid = np.zeros(size, dtype=bool)
+        self._next = np.zeros(CELL_COUNT, dtype=int)  # ring position within each cell
+
+    def add(self, reading: np.ndarray, direction: np.ndarray, time_s: float) -> None:
+        """Keep ``reading`` in the cell of ``direction`` (any non-zero vector)."""
+        cell = int(cell_index(direction.reshape(1, 3) / np.linalg.norm(direction))[0])
+        slot = cell * self._per_cell + int(self._next[cell])
+        self._next[cell] = (self._next[cell] + 1) % self._per_cell
+        self._readings[slot] = reading
+        self._times[slot] = time_s
+        self._valid[slot] = True
+
+    def __len__(self) -> int:
+        return int(self._valid.sum())
+
+    def readings(self, since_s: float = -math.inf) -> np.ndarray:
+        """Held-out readings (n, 3) no older than ``since_s`` (stream seconds), a copy."""
+        keep = self._valid & (self._times >= since_s)
+        return self._readings[keep].copy()
+
+    def forget_before(self, time_s: float) -> None:
+        """Drop what was held out before ``time_s``: it describes a situation that has ended."""
+        self._valid &= self._times >= time_s
+
+    def clear(self) -> None:
+        self._valid[:] = False
+
+
+def relative_errors(calibration: Calibration, readings: np.ndarray) -> np.ndarray:
+    """``|corrected| / F - 1`` for each reading."""
+    return np.linalg.norm(calibration.apply(readings), axis=1) / calibration.field_strength - 1.0
+
+
+def evidence_span(readings: np.ndarray, minimum: int = MIN_EVIDENCE) -> float:
+    """Share of direction cells the readings span, judged by their own shape (centred and
+    whitened by themselves), so a calibration that is badly off cannot hide their spread."""
+    if len(readings) < minimum:
+        return 0.0
+    return float(direction_coverage(readings, None, readings).fraction)
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """A candidate against the calibration in force on the same held-out readings."""
+
+    better: bool
+    current_pct: float
+    candidate_pct: float
+    readings: int
+    span: float
+    reason: str
+
+
+def compare_on_evidence(
+    current: Calibration, candidate: Calibration, evidence: np.ndarray
+) -> Comparison:
+    """Whether ``candidate`` fits ``evidence`` better than ``current`` by a margin beyond noise.
+
+    Residuals are ``|corrected|/F - 1``; readings off by more than GROSS_ERROR under both are left
+    out; each remaining reading contributes its squared residual capped at CAP_SIGMAS of the
+    better calibration's robust noise, under both, and the candidate wins when the mean paired
+    difference exceeds SIGNIFICANCE standard errors and MIN_GAIN of the current residual.
+    Residuals are reported as percent (square root of the mean capped loss: the RMS when nothing
+    is disturbed).
+    """
+    evidence = np.asarray(evidence, dtype=float).reshape(-1, 3)
+    now, new = relative_errors(current, evidence), relative_errors(candidate, evidence)
+    keep = (np.abs(now) <= GROSS_ERROR) | (np.abs(new) <= GROSS_ERROR)
+    now, new = now[keep], new[keep]
+    n = len(now)
+    span = evidence_span(evidence[keep])
+    if n < MIN_EVIDENCE:
+        return Comparison(False, math.nan, math.nan, n, span,
+                          f'{n} held-out readings, need {MIN_EVIDENCE}')
+    cap = (CAP_SIGMAS * max(min(_robust_sigma(now), _robust_sigma(new)), 1e-9)) ** 2
+    loss_now, loss_new = np.minimum(now**2, cap), np.minimum(new**2, cap)
+    current_pct = 100.0 * math.sqrt(float(loss_now.mean()))
+    candidate_pct = 100.0 * math.sqrt(float(loss_new.mean()))
+    if span < MIN_EVIDENCE_SPAN:
+        return Comparison(False, current_pct, candidate_pct, n, span,
+                          f'held-out readings span {100 * span:.0f} % of the directions, need '
+                          f'{100 * MIN_EVIDENCE_SPAN:.0f} %')
+    difference = loss_now - loss_new
+    margin = SIGNIFICANCE * float(difference.std(ddof=1)) / math.sqrt(n)
+    significant = float(difference.mean()) > margin
+    large_enough = candidate_pct <= (1.0 - MIN_GAIN) * current_pct
+    better = significant and large_enough
+    verdict = 'better' if better else 'not better beyond noise'
+    return Comparison(better, current_pct, candidate_pct, n, span,
+                      f'{verdict} on {n} held-out readings: residual {current_pct:.2f} % -> '
+                      f'{candidate_pct:.2f} %')
+
+
+def _robust_sigma(residuals: np.ndarray) -> float:
+    return 1.4826 * float(np.median(np.abs(residuals - np.median(residuals))))
+
+
+# --- does the calibration in force still fit? ------------------------------------------------
+
+MISFIT_WINDOW_S = 10.0
+"""Recent evidence judged: the last 10 s of the stream."""
+
+MISFIT_CONFIRM_S = 3.0
+"""The verdict 'off' must hold for 3 s of stream before it is reported."""
+
+MISFIT_MIN_READINGS = 20
+"""Recent held-out readings needed before the calibration in force is judged at all."""
+
+MISFIT_MIN_SPAN = 0.15
+"""The recent evidence must span 15 % of the directions (12 of 80 cells: a few seconds of turning)
+and lie on a shell: a still sensor next to a passing magnet traces no sphere."""
+
+MISFIT_FACTOR = 3.0
+"""'Clearly off': the median error is over three times what the calibration's own residual
+predicts (median |e| of noise alone is about 0.67 of its RMS)..."""
+
+MISFIT_FLOOR = 0.5
+"""...and over half the residual gate: the median |e| of a calibration whose offset is off by a
+tenth of the field is about 5 %. A median is unmoved by a disturbance that lasts less than half
+the window..."""
+
+MISFIT_EXPLAINED = 3.0
+"""...and over three times what remains once the corrected readings are re-centred on their own
+sphere: a calibration that no longer fits leaves errors a new offset explains (another board's
+file: 230 % -> 0.4 %), a field disturbed from moment to moment does not (a disturbed recording:
+7.8 % -> 4.5 %)."""
+
+
+@dataclass(frozen=True)
+class FitCheck:
+    """The calibration in force judged on recent evidence."""
+
+    judged: bool
+    off: bool
+    median_error_pct: float
+    measured_field: float
+    expected_field: float
+    span: float
+    explained_pct: float = math.nan
+    """The median error left once the corrected readings are re-centred on their own sphere."""
+
+
+def check_fit(calibration: Calibration, recent: np.ndarray, gate_pct: float) -> FitCheck:
+    """Judge ``calibration`` on ``recent`` held-out readings (see the MISFIT_* constants)."""
+    expected = calibration.field_strength
+    span = evidence_span(recent, MISFIT_MIN_READINGS)
+    if span < MISFIT_MIN_SPAN:
+        return FitCheck(False, False, math.nan, math.nan, expected, span)
+    corrected = calibration.apply(recent)
+    magnitudes = np.linalg.norm(corrected, axis=1)
+    median_error = float(np.median(np.abs(magnitudes / expected - 1.0)))
+    own = float(calibration.metadata.get('residual_rms_pct', 0.0) or 0.0) / 100.0
+    threshold = max(MISFIT_FLOOR * gate_pct / 100.0, MISFIT_FACTOR * 0.67 * own)
+    explained = _sphere_error(corrected)
+    off = median_error > threshold and median_error > MISFIT_EXPLAINED * explained
+    return FitCheck(True, off, 100.0 * median_error, float(np.median(magnitudes)), expected,
+                    span, 100.0 * explained)
+
+
+def _sphere_error(points: np.ndarray) -> float:
+    """Median relative distance from the least-squares sphere through ``points`` (inf when
+    they determine none)."""
+    scale = float(np.abs(points).max())
+    if not scale > 0.0:
+        return math.inf
+    unit = points / scale
+    design = np.column_stack([2.0 * unit, np.ones(len(unit))])
+    solution, *_ = np.linalg.lstsq(design, np.einsum('ij,ij->i', unit, unit), rcond=None)
+    squared = float(solution[3] + solution[:3] @ solution[:3])
+    if not (squared > 0.0 and math.isfinite(squared)):
+        return math.inf
+    radius = math.sqrt(squared)
+    return float(np.median(np.abs(np.linalg.norm(unit - solution[:3], axis=1) / radius - 1.0)))
+
+
+class MisfitMonitor:
+    """Turns a series of FitChecks into a confirmed misfit, and back once it fits again: each
+    verdict must hold for MISFIT_CONFIRM_S of judged checks before it changes the state."""
+
+    def __init__(self) -> None:
+        self.misfit = False
+        self.last: FitCheck | None = None
+        self._since: float | None = None  # start of the run of checks that disagree
+
+    def reset(self) -> None:
+        self.misfit = False
+        self.last = None
+        self._since = None
+
+    def update(self, now_s: float, check: FitCheck) -> str | None:
+        """'confirmed' or 'cleared' when the state changes, else None."""
+        self.last = check
+        if not check.judged:
+            return None
+        if check.off == self.misfit:
+            self._since = None
+            return None
+        if self._since is None:
+            self._since = now_s
+        if now_s - self._since < MISFIT_CONFIRM_S:
+            return None
+        self.misfit, self._since = check.off, None
+        return 'confirmed' if self.misfit else 'cleared'
+
+
+__all__ = [
+    'HOLD_OUT_EVERY',
+    'MIN_EVIDENCE',
+    'Comparison',
+    'FitCheck',
+    'HeldOutEvidence',
+    'MisfitMonitor',
+    'check_fit',
+    'compare_on_evidence',
+    'evidence_span',
+    'relative_errors',
+]
