@@ -1,0 +1,326 @@
+"""Fit jobs: a snapshot of the buffer in, a judged fit out, run inline or in a worker process.
+
+The session decides *when* to fit and what to do with the outcome; this module only runs the one
+recipe for each kind of job on a snapshot, so it can run anywhere. ``InlineRunner`` runs a job at
+once (``mag_calibrator_fit``, tests, benchmarks); ``ProcessRunner`` runs it in a worker process
+(``fit_worker``), so the fit never holds the interpreter lock the message callback needs: a fit
+of a few to tens of milliseconds in a thread delays messages by up to the interpreter's switch
+interval (5 ms) each time it runs. The two give identical results on the same job.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass, field, replace
+import math
+import os
+from queue import SimpleQueue
+import subprocess
+import sys
+import threading
+import time
+from typing import Any, Protocol
+
+import numpy as np
+
+from mag_calibrator_ros.calibration import fit_worker
+from mag_calibrator_ros.calibration.buffer import DEFAULT_MAGNITUDE_TOLERANCE
+from mag_calibrator_ros.calibration.calibration import Calibration
+from mag_calibrator_ros.calibration.coverage import Coverage, direction_coverage
+from mag_calibrator_ros.calibration.ellipsoid import robust_sigma
+from mag_calibrator_ros.calibration.evidence import Comparison, compare_on_evidence
+from mag_calibrator_ros.calibration.fitting import FitOptions, FitResult, fit_calibration
+
+JOB_KINDS = ('reference', 'calibrate', 'refine')
+"""reference: the buffer's own full fit, to screen and merge by; calibrate: a fit to put in force
+(automatic or on request); refine: a fit to put in force only if better on held-out evidence."""
+
+REFERENCE_OPTIONS = FitOptions(model='full')
+"""How the buffer is fitted for its reference: the default gates, model ``full``, the one that
+describes any magnetometer in a uniform field. A sphere or planar fit chosen because ``full`` was
+not yet determined misjudges unseen directions, refusing good readings and bending merged means."""
+
+
+@dataclass(frozen=True)
+class FitJob:
+    """Everything one fit needs, copied out of the session (picklable, immutable)."""
+
+    kind: str
+    samples: np.ndarray
+    weights: np.ndarray | None
+    readings: np.ndarray | None
+    options: FitOptions
+    metadata: dict[str, Any] = field(default_factory=dict)
+    """Stamped on a fitted calibration (frame_id, units ...), with the time of the fit."""
+    previous: Calibration | None = None
+    """reference: the reference in use, to tell whether the new one settled."""
+    current: Calibration | None = None
+    """refine and calibrate: the calibration in force, compared on ``evidence``."""
+    evidence: np.ndarray | None = None
+    """Held-out readings no fit has seen (see evidence.HeldOutEvidence)."""
+    ticket: int | None = None
+    """A request's number (``~/calibrate``), so its answer finds it."""
+    ready_coverage: float | None = None
+    """Automatic attempts: fit only if the buffer covers this share of directions (judged
+    through ``reference``, as SampleBuffer.coverage does); else report the coverage."""
+    reference: Calibration | None = None
+
+
+@dataclass(frozen=True)
+class ReferenceFit:
+    """A sane buffer fit to screen and merge by: its calibration and relative tolerance."""
+
+    calibration: Calibration
+    tolerance: float
+    settled: bool
+    """Whether it moved less than one reading's noise from the previous reference."""
+
+
+@dataclass(frozen=True)
+class JobOutcome:
+    """What a job produced: the fit, its reading as a reference, its comparison, or an error."""
+
+    job: FitJob
+    result: FitResult | None = None
+    reference: ReferenceFit | None = None
+    comparison: Comparison | None = None
+    coverage: Coverage | None = None
+    """The buffer's coverage, when a readiness check ran."""
+    error: str = ''
+    seconds: float = 0.0
+
+    @property
+    def fitted(self) -> bool:
+        return self.result is not None
+
+
+def run_job(job: FitJob) -> JobOutcome:
+    """The one recipe for every fit the live calibrator and ``mag_calibrator_fit`` make."""
+    started = time.perf_counter()
+    try:
+        outcome = _run(job)
+    except Exception as error:  # noqa: BLE001 - a worker must answer, never take the node down
+        outcome = JobOutcome(job, error=f'{type(error).__name__}: {error}')
+    return replace(outcome, seconds=time.perf_counter() - started)
+
+
+def _run(job: FitJob) -> JobOutcome:
+    if job.kind == 'reference':
+        result = fit_calibration(job.samples, job.options, weights=job.weights)
+        return JobOutcome(job, result, reference=reference_fit(result, job, job.previous))
+    coverage = None
+    if job.ready_coverage is not None:
+        coverage = direction_coverage(job.samples, job.reference, job.readings)
+        if coverage.fraction < job.ready_coverage:
+            return JobOutcome(job, coverage=coverage)
+    result = fit_calibration(job.samples, job.options, weights=job.weights, readings=job.readings)
+    if result.calibration is not None:
+        stamped = result.calibration.with_metadata(
+            time=time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()), **job.metadata
+        )
+        result = replace(result, calibration=stamped)
+    comparison = None
+    if (result.success and job.current is not None and job.evidence is not None
+            and len(job.evidence)):
+        comparison = compare_on_evidence(job.current, result.calibration, job.evidence)
+    return JobOutcome(job, result, comparison=comparison, coverage=coverage)
+
+
+def reference_fit(
+    result: FitResult, job: FitJob, previous: Calibration | None
+) -> ReferenceFit | None:
+    """The fit as a reference if it is sane, with the tolerance to screen by; else None.
+
+    Sane means determined and plausible (the condition and axis-ratio gates) and describing most
+    of the buffer (a majority of inliers), even if the coverage, sample-count or residual gates
+    fail: a reference only judges magnitudes. The tolerance is ``outlier_threshold`` sigmas,
+    capped at DEFAULT_MAGNITUDE_TOLERANCE: the robust sigma of one reading (a point averaging n
+    readings has sqrt(n) less noise) combined with the fit's own uncertainty, so an early fit
+    from part of the sphere does not refuse the good readings of a region it extrapolates to.
+    """
+    metrics, calibration, options = result.metrics, result.calibration, job.options
+    if calibration is None or not (
+        metrics.condition_number <= options.max_condition
+        and metrics.axis_ratio <= options.max_axis_ratio
+        and 2 * metrics.n_inliers > metrics.n_samples
+    ):
+        return None
+    relative = np.linalg.norm(calibration.apply(job.samples), axis=1) / calibration.field_strength
+    sigma = robust_sigma((relative - 1.0) * np.sqrt(job.weights))  # of one reading
+    spread = math.hypot(sigma, prediction_sigma(result))
+    tolerance = min(options.outlier_threshold * spread, DEFAULT_MAGNITUDE_TOLERANCE)
+    if not tolerance > 0.0:
+        return None
+    settled = previous is not None and not moved(previous, calibration, sigma)
+    return ReferenceFit(calibration, tolerance, settled)
+
+
+def prediction_sigma(result: FitResult) -> float:
+    """Rough 1-sigma of the relative magnitude a fit predicts (its parameter uncertainty).
+
+    |δ|u|| <= |δb| / R + ||δM|| R / F for unit-radius u; std norms stand in for the worst
+    direction. Infinite when the fit reported no standard deviations.
+    """
+    std, metrics = result.metrics.parameter_std, result.metrics
+    if not std or result.calibration is None or not metrics.mean_radius > 0.0:
+        return math.inf
+    offset = std.get('offset', std.get('offset_in_plane'))
+    if 'matrix' in std:
+        matrix = float(np.linalg.norm(std['matrix'])) * metrics.mean_radius
+        matrix /= result.calibration.field_strength
+    else:
+        matrix = float(np.linalg.norm(std.get('matrix_in_plane_relative', [math.inf])))
+    if offset is None:
+        return math.inf
+    return float(np.linalg.norm(offset)) / metrics.mean_radius + matrix
+
+
+def moved(old: Calibration, new: Calibration, tolerance: float) -> bool:
+    """Whether ``new`` judges magnitudes visibly differently from ``old`` (relative units)."""
+    radius = old.field_strength / float(np.linalg.det(old.matrix)) ** (1.0 / 3.0)
+    offset_shift = float(np.linalg.norm(new.offset - old.offset)) / radius
+    matrix_shift = float(np.linalg.norm(
+        new.matrix / new.field_strength - old.matrix / old.field_strength, ord=2
+    )) * radius
+    return not offset_shift + matrix_shift <= tolerance
+
+
+# --- runners ---------------------------------------------------------------------------------
+
+
+class FitRunner(Protocol):
+    """Runs one job at a time; the session submits, then polls until the outcome is there."""
+
+    @property
+    def busy(self) -> bool: ...
+
+    def submit(self, job: FitJob) -> None: ...
+
+    def poll(self) -> JobOutcome | None: ...
+
+    def close(self) -> None: ...
+
+
+class InlineRunner:
+    """Runs each job at once, in the caller's thread: deterministic and simple (CLI, tests)."""
+
+    def __init__(self) -> None:
+        self._outcome: JobOutcome | None = None
+
+    @property
+    def busy(self) -> bool:
+        return self._outcome is not None
+
+    def submit(self, job: FitJob) -> None:
+        if self._outcome is not None:
+            raise RuntimeError('a job is already waiting to be polled')
+        self._outcome = run_job(job)
+
+    def poll(self) -> JobOutcome | None:
+        outcome, self._outcome = self._outcome, None
+        return outcome
+
+    def close(self) -> None:
+        self._outcome = None
+
+
+_DIED = object()  # what the reader thread reports when the worker's pipe closes
+
+
+class ProcessRunner:
+    """Runs jobs in one worker process (``fit_worker``), started on the first ``start`` or
+    ``submit`` and restarted if it dies; a job it was running comes back as an error. A reader
+    thread waits on the worker's output, so ``poll`` never blocks."""
+
+    def __init__(self) -> None:
+        self._process: subprocess.Popen | None = None
+        self._outcomes: SimpleQueue = SimpleQueue()
+        self._job: FitJob | None = None
+        self.restarts = 0
+
+    @property
+    def busy(self) -> bool:
+        return self._job is not None
+
+    @property
+    def pid(self) -> int | None:
+        return None if self._process is None else self._process.pid
+
+    def start(self) -> None:
+        """Start the worker now, so the first fit does not wait for its imports."""
+        if self._process is not None and self._process.poll() is None:
+            return
+        environment = dict(os.environ)  # the worker imports what this process imports
+        environment['PYTHONPATH'] = os.pathsep.join(path for path in sys.path if path)
+        process = subprocess.Popen(
+            [sys.executable, '-m', 'mag_calibrator_ros.calibration.fit_worker'],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=environment, close_fds=True,
+        )
+        self._process, self._outcomes = process, SimpleQueue()
+        threading.Thread(target=self._read, args=(process, self._outcomes), daemon=True,
+                         name='fit worker reader').start()
+
+    @staticmethod
+    def _read(process: subprocess.Popen, outcomes: SimpleQueue) -> None:
+        while True:
+            try:
+                outcomes.put(fit_worker.receive(process.stdout))
+            except Exception:  # noqa: BLE001 - closed, killed or garbled: the worker is gone
+                outcomes.put(_DIED)
+                return
+
+    def submit(self, job: FitJob) -> None:
+        if self._job is not None:
+            raise RuntimeError('a job is already running')
+        self.start()
+        self._job = job
+        try:
+            fit_worker.send(self._process.stdin, job)
+        except OSError:
+            self._outcomes.put(_DIED)
+
+    def poll(self) -> JobOutcome | None:
+        if self._job is None or self._outcomes.empty():
+            return None
+        outcome, job = self._outcomes.get(), self._job
+        self._job = None
+        if outcome is _DIED:
+            code = self._stop()
+            self.restarts += 1
+            return JobOutcome(job, error=f'fit worker process ended (exit status {code}); a '
+                                         'new one starts with the next fit')
+        return outcome
+
+    def _stop(self, timeout_s: float = 2.0) -> int | None:
+        process, self._process = self._process, None
+        if process is None:
+            return None
+        for stream in (process.stdin, process.stdout):
+            with contextlib.suppress(OSError):
+                stream.close()
+        try:
+            return process.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            return process.wait()
+
+    def close(self) -> None:
+        """Stop the worker: it finishes a running fit's pipe read and exits on end of input."""
+        self._job = None
+        self._stop()
+
+
+__all__ = [
+    'JOB_KINDS',
+    'REFERENCE_OPTIONS',
+    'FitJob',
+    'FitRunner',
+    'InlineRunner',
+    'JobOutcome',
+    'ProcessRunner',
+    'ReferenceFit',
+    'moved',
+    'prediction_sigma',
+    'reference_fit',
+    'run_job',
+]

@@ -1,0 +1,139 @@
+"""Fit jobs: one recipe per kind, the same outcome inline and in the worker process, errors
+reported instead of raised, and a dead worker replaced."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+
+import numpy as np
+import pytest
+
+from mag_calibrator_ros import motion
+from mag_calibrator_ros.calibration.calibration import Calibration
+from mag_calibrator_ros.calibration.fitting import FitOptions
+from mag_calibrator_ros.calibration.jobs import (
+    REFERENCE_OPTIONS,
+    FitJob,
+    InlineRunner,
+    ProcessRunner,
+    run_job,
+)
+
+FIELD = 50.0
+SOFT = np.array([[1.1, 0.05, 0.0], [0.05, 0.93, 0.02], [0.0, 0.02, 1.0]])
+OFFSET = np.array([120.0, -40.0, 30.0])
+
+
+def tumble(n=300, seed=0, noise=0.3):
+    truth = motion.body_field_samples('tumble', n, 20.0, FIELD, 60.0, seed)
+    raw = truth @ SOFT.T + OFFSET
+    return raw + np.random.default_rng(seed).normal(0.0, noise, raw.shape)
+
+
+def job(kind='calibrate', **changes):
+    samples = tumble()
+    values = dict(kind=kind, samples=samples, weights=np.ones(len(samples)), readings=samples,
+                  options=REFERENCE_OPTIONS if kind == 'reference' else FitOptions(),
+                  metadata={'units': 'uT', 'frame_id': 'imu_link'})
+    values.update(changes)
+    return FitJob(**values)
+
+
+def wait(runner, timeout_s=60.0):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        outcome = runner.poll()
+        if outcome is not None:
+            return outcome
+        time.sleep(0.01)
+    raise AssertionError('the worker never answered')
+
+
+def test_calibrate_fits_and_stamps_the_metadata():
+    outcome = run_job(job())
+    assert outcome.result.success and not outcome.error
+    metadata = outcome.result.calibration.metadata
+    assert metadata['units'] == 'uT' and metadata['frame_id'] == 'imu_link'
+    assert metadata['time'].endswith('Z') and 'residual_rms_pct' in metadata
+    assert outcome.reference is None and outcome.comparison is None
+
+
+def test_an_automatic_attempt_fits_only_once_coverage_suffices():
+    corner = tumble()[:20]  # the first 20 readings: a corner of the sphere
+    outcome = run_job(job(samples=corner, weights=np.ones(20), readings=corner,
+                          ready_coverage=0.5))
+    assert outcome.result is None and not outcome.fitted
+    assert outcome.coverage.fraction < 0.5
+    assert run_job(job(ready_coverage=0.5)).fitted
+
+
+def test_refine_compares_the_fit_with_the_calibration_in_force_on_the_evidence():
+    evidence = tumble(400, seed=5)
+    current = Calibration(OFFSET + [4.0, 0.0, 0.0], np.linalg.inv(SOFT), FIELD)
+    outcome = run_job(job('refine', current=current, evidence=evidence))
+    assert outcome.comparison is not None and outcome.comparison.better
+
+
+def test_a_sane_reference_gets_a_tolerance_and_settles():
+    first = run_job(job('reference'))
+    reference = first.reference
+    assert reference is not None and not reference.settled
+    assert 0.0 < reference.tolerance <= 0.3
+    again = run_job(job('reference', previous=reference.calibration))
+    assert again.reference.settled
+
+
+def test_an_undetermined_reference_is_not_sane():
+    ring = motion.body_field_samples('yaw', 300, 20.0, FIELD, 60.0, 1) + OFFSET
+    outcome = run_job(job('reference', samples=ring, weights=np.ones(300), readings=ring))
+    assert outcome.reference is None
+
+
+def test_a_job_that_raises_comes_back_as_an_error():
+    outcome = run_job(job(weights=np.ones(3)))  # wrong length: fit_calibration says so...
+    assert outcome.result is not None and not outcome.result.success
+    broken = run_job(job(metadata={1: 'not a name'}))  # ...one that cannot run is an error
+    assert broken.error and broken.result is None
+
+
+def test_the_worker_process_gives_exactly_the_inline_outcome():
+    runner = ProcessRunner()
+    try:
+        inline = InlineRunner()
+        for kind in ('calibrate', 'reference'):
+            inline.submit(job(kind))
+            expected = inline.poll()
+            runner.submit(job(kind))
+            assert runner.busy
+            got = wait(runner)
+            assert not runner.busy and not got.error
+            if kind == 'reference':
+                expected, got = expected.reference, got.reference
+            else:
+                expected, got = expected.result, got.result
+            np.testing.assert_array_equal(got.calibration.offset, expected.calibration.offset)
+            np.testing.assert_array_equal(got.calibration.matrix, expected.calibration.matrix)
+        with pytest.raises(RuntimeError):
+            runner.submit(job())
+            runner.submit(job())
+        wait(runner)
+    finally:
+        runner.close()
+
+
+def test_a_dead_worker_is_reported_and_replaced():
+    runner = ProcessRunner()
+    try:
+        runner.submit(job())
+        wait(runner)
+        pid = runner.pid
+        runner.submit(job(samples=tumble(20000), weights=np.ones(20000)))
+        os.kill(pid, signal.SIGKILL)
+        outcome = wait(runner)
+        assert outcome.error and 'worker' in outcome.error and runner.restarts == 1
+        runner.submit(job())
+        assert wait(runner).result.success  # a new worker took over
+    finally:
+        runner.close()
