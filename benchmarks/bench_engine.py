@@ -33,6 +33,7 @@ from scipy.spatial import cKDTree
 from mag_calibrator_ros.calibration.buffer import SampleBuffer
 from mag_calibrator_ros.calibration.calibration import Calibration
 from mag_calibrator_ros.calibration.fitting import FitOptions, fit_calibration
+from mag_calibrator_ros.calibration.session import CalibrationSession, SessionSettings
 from mag_calibrator_ros.calibration.tracker import OnlineTracker
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the benchmark's own modules
@@ -138,9 +139,12 @@ class Buffered:
 
 
 def streamed_buffer(samples: np.ndarray, capacity: int = BUFFER_CAPACITY) -> Buffered:
-    """Every sample through SampleBuffer, as the node and ``mag_calibrator_fit --buffer`` do."""
-    buffer = SampleBuffer(capacity=capacity)
-    buffer.add_many(samples)
+    """Every sample through the live session's buffer (its own reference fits and merging, one
+    reading in eight held out), as the node and ``mag_calibrator_fit --buffer`` do."""
+    settings = SessionSettings(buffer_size=capacity, auto_calibrate=False, full_scale=0.0)
+    session = CalibrationSession(settings)
+    session.feed(samples)
+    buffer = session.buffer
     return Buffered(buffer.samples, buffer.counts, buffer.anchors)
 
 
@@ -174,8 +178,8 @@ SYNTHETIC_METHODS = (
 )
 METHOD_LEGEND = (
     'brief = brief_port: its kNN buffer (N=100, k=2, pre_scaler=F) + float32 axis fit; '
-    'axis buf / full buf = our fit on SampleBuffer(capacity=100) fed all samples, weighted by '
-    'its counts (readings merged into each point), as the node fits it; '
+    'axis buf / full buf = our fit of the live session buffer (N=100) fed all samples, '
+    'weighted by its counts (readings merged into each point), as the node fits it; '
     'tracker / tracker-n = OnlineTracker from identity, raw / magnitude-normalised input, '
     'one pass; full rnd = our fit on 100 random samples (what the buffer must beat); '
     'full all = our fit on every sample'
@@ -352,7 +356,7 @@ def recordings_section(data_dir: Path) -> tuple[list[Table], dict]:
         verdicts[recording.name] = (spreads['authors'], spreads['full all'], spreads['full buf'])
     table.notes = [
         "brief: N=100, k=2, pre_scaler = half the mean axis span (a user's field estimate); "
-        'full buf: SampleBuffer(capacity=100) then fit weighted by its counts; '
+        "full buf: the live session's buffer (N=100), then fit weighted by its counts; "
         'full all: every row; * = the method reported a problem (listed below)',
         *notes,
     ]
@@ -396,6 +400,8 @@ def cost_section(quick: bool) -> tuple[list[Table], dict]:
         warm = 2 * size  # past the fill, into steady replacement
         buffer = SampleBuffer(capacity=size)
         buffer.add_many(stream[:warm])
+        reference = fit_calibration(buffer.samples, FitOptions(model='full')).calibration
+        buffer.set_reference(reference, 0.1, merge=True)  # the session's steady state
         ours = time_calls(buffer.add, stream[warm:warm + measured_ours])
         outcomes = {}
         for sample in stream[warm + measured_ours:warm + measured_ours + 200]:

@@ -214,7 +214,7 @@ def test_end_to_end_direction_error_within_half_a_degree(live):
 
 def test_auto_calibrate_calibrates_and_saves_by_itself(live):
     auto = live['auto']
-    assert wait_for(lambda: auto.session.state == 'calibrated', timeout_s=30.0), (
+    assert wait_for(lambda: auto.session.state.startswith('calibrated'), timeout_s=30.0), (
         auto.session.progress_text())
     assert auto.session.last_attempt is not None and auto.session.last_attempt.success
     assert wait_for(live['auto_file'].is_file, timeout_s=2.0)
@@ -226,7 +226,7 @@ def test_auto_calibrate_calibrates_and_saves_by_itself(live):
 def test_diagnostics_report_state_coverage_rate_and_rejects(live):
     probe = live['probe']
     assert wait_for(lambda: any(
-        dict((kv.key, kv.value) for kv in s.values).get('state') == 'calibrated'
+        dict((kv.key, kv.value) for kv in s.values).get('state', '').startswith('calibrated')
         for s in probe.statuses('mag_calibrator: ')), timeout_s=5.0)
     status = probe.statuses('mag_calibrator: ')[-1]
     values = {kv.key: kv.value for kv in status.values}
@@ -260,7 +260,7 @@ def test_save_then_restart_gives_the_same_output_without_recalibrating(ros, live
     for attempt in ('file', 'file-again'):
         namespace = f'restart_{attempt.replace("-", "_")}'
         node = ros.calibrator(namespace, auto_calibrate=False, calibration_file=str(live['file']))
-        assert node.session.state == 'calibrated'
+        assert node.session.state.startswith('calibrated')
         probe = Probe(ros, namespace)
         out = send_and_collect(probe, node, [((x, 10 + i), {}) for i, x in enumerate(raw)], 2)
         np.testing.assert_allclose([vector(m) for m in out], expected, rtol=1e-9, atol=1e-15)
@@ -285,7 +285,7 @@ def test_params_file_restores_the_calibration(live, tmp_path):
     try:
         node = MagCalibratorNode(context=context, parameter_overrides=[
             Parameter('calibration_file', value=str(tmp_path / 'absent.yaml'))])
-        assert node.session.state == 'calibrated'
+        assert node.session.state.startswith('calibrated')
         np.testing.assert_allclose(node.session.calibration.offset, calibration.offset,
                                    rtol=1e-9)
         np.testing.assert_allclose(node.session.calibration.matrix, calibration.matrix,
@@ -425,7 +425,7 @@ def test_bad_messages_are_counted_and_never_published(ros, live):
     assert not np.any(out[0].magnetic_field_covariance)  # unknown stays unknown
     assert wait_for(lambda: any(s.level == DiagnosticStatus.WARN and 'refused' in s.message
                                 for s in probe.statuses('mag_calibrator: ')), timeout_s=3.0)
-    rejects = node.session.screen_rejects
+    rejects = node.session.rejects()
     for reason in ('non_finite', 'zero', 'saturated', 'stamp_backwards', 'frame_changed'):
         expected = 2 if reason == 'non_finite' else 1
         assert rejects[reason] == expected, (reason, rejects)

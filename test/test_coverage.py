@@ -17,7 +17,6 @@ from mag_calibrator_ros.calibration import (
     direction_coverage,
     fit_calibration,
 )
-from mag_calibrator_ros.calibration.buffer import SampleBuffer
 from mag_calibrator_ros.calibration.coverage import (
     CELL_COUNT,
     NOT_A_SHELL_HINT,
@@ -28,7 +27,7 @@ from mag_calibrator_ros.calibration.coverage import (
     missing_rotation_hint,
     whitened_directions,
 )
-from mag_calibrator_ros.calibration.session import CalibrationSession
+from mag_calibrator_ros.calibration.session import CalibrationSession, SessionSettings
 from mag_calibrator_ros.motion import body_field_samples
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -351,6 +350,15 @@ def test_fitting_still_data_fails_even_without_the_coverage_gate():
     assert not result.success
 
 
+def streamed_buffer(raw, capacity=100):
+    """The buffer as the live session keeps it: its own reference fits, merging, held-out
+    readings (the session never calibrates here, so the buffer is all there is)."""
+    settings = SessionSettings(buffer_size=capacity, auto_calibrate=False, full_scale=0.0)
+    session = CalibrationSession(settings)
+    session.feed(raw, rate_hz=50.0)
+    return session.buffer
+
+
 @pytest.mark.parametrize('unit', sorted(UNITS))
 @pytest.mark.parametrize('capacity', [50, 100, 200])
 def test_buffer_fed_a_still_sensor_reports_no_coverage(unit, capacity):
@@ -358,22 +366,19 @@ def test_buffer_fed_a_still_sensor_reports_no_coverage(unit, capacity):
     few noise sigmas that centring and whitening (and the buffer's own provisional fit) turn into
     70-99 % "coverage"."""
     rng = np.random.default_rng(capacity)
-    buffer = SampleBuffer(capacity=capacity)
-    buffer.add_many(in_unit(still(rng, 4000, 1.0, 0.5), unit))
+    buffer = streamed_buffer(in_unit(still(rng, 4000, 1.0, 0.5), unit), capacity)
     coverage = buffer.coverage()
     assert coverage.fraction < 0.1
     assert coverage.hint == STILL_HINT
-    assert direction_coverage(buffer.samples).fraction < 0.1
-    result = fit_calibration(buffer.samples, weights=buffer.counts)
+    result = fit_calibration(buffer.samples, weights=buffer.counts, readings=buffer.readings)
     assert not result.success
     assert STILL_HINT in result.reason and 'residual' not in result.reason
 
 
 def test_buffer_fed_a_tumble_after_lying_still_covers_the_sphere():
     rng = np.random.default_rng(28)
-    buffer = SampleBuffer(capacity=100)
-    buffer.add_many(still(rng, 2000, 1.0, 0.5))
-    buffer.add_many(distorted(unit_vectors(rng, 3000), rng))
+    buffer = streamed_buffer(np.vstack([still(rng, 2000, 1.0, 0.5),
+                                        distorted(unit_vectors(rng, 3000), rng)]))
     assert buffer.coverage().fraction > 0.8
 
 
@@ -401,8 +406,7 @@ def test_property_still_sensor_never_looks_rotated(offset, noise, unit_scale, se
     direction = unit_vectors(rng, 1)
     raw = (direction + offset + rng.normal(0.0, noise, (1500, 3))) * FIELD * unit_scale
     assert direction_coverage(raw).fraction < 0.1
-    buffer = SampleBuffer(capacity=60)
-    buffer.add_many(raw)
+    buffer = streamed_buffer(raw, capacity=60)
     assert buffer.coverage().fraction < 0.1
 
 
@@ -440,8 +444,7 @@ def test_tumble_with_a_large_offset_covers_the_sphere_and_calibrates(case, unit)
     recovered = result.calibration.offset / UNITS[unit]
     assert np.linalg.norm(recovered - offset * OFFSET_DIRECTION) < 0.02 * field
 
-    buffer = SampleBuffer()
-    buffer.add_many(raw)
+    buffer = streamed_buffer(raw)
     assert buffer.coverage().fraction > 0.75, buffer.coverage()
     weights = buffer.counts
     with_readings = fit_calibration(buffer.samples, weights=weights, readings=buffer.readings)
@@ -459,8 +462,7 @@ def test_still_sensor_with_a_large_offset_covers_nothing(case, unit, noise_share
     coverage = direction_coverage(raw)
     assert coverage.fraction == 0.0 and coverage.hint == STILL_HINT
     assert not fit_calibration(raw).success
-    buffer = SampleBuffer()
-    buffer.add_many(raw)
+    buffer = streamed_buffer(raw)
     coverage = buffer.coverage()
     assert coverage.fraction < 0.1 and coverage.hint == STILL_HINT
     fitted = fit_calibration(buffer.samples, weights=buffer.counts, readings=buffer.readings)
@@ -474,12 +476,10 @@ def test_session_calibrates_a_tumble_with_a_large_offset(case):
     """The node's logic (tesla): auto-calibration starts and succeeds."""
     field, offset = STRONG_OFFSETS[case]
     session = CalibrationSession()
-    for i, sample in enumerate(sensor_readings('tumble', field, offset) * 1e-6):
-        session.ingest(i * 20_000_000, 'imu_link', sample)
+    session.feed(sensor_readings('tumble', field, offset) * 1e-6, rate_hz=50.0)
     assert 'rotate' not in session.progress_text()
-    attempt = session.maybe_auto_calibrate(0.0)
-    assert attempt is not None and attempt.success, attempt and attempt.message
-    assert session.state == 'calibrated'
+    assert session.adoptions.get('auto') == 1, [e.message for e in session.take_events()]
+    assert session.state.startswith('calibrated')
     np.testing.assert_allclose(
         session.calibration.offset, offset * 1e-6 * OFFSET_DIRECTION, atol=0.02 * field * 1e-6
     )
@@ -489,11 +489,10 @@ def test_session_calibrates_a_tumble_with_a_large_offset(case):
 def test_session_fed_a_still_sensor_says_rotate_and_does_not_calibrate(case):
     field, offset = STRONG_OFFSETS[case]
     session = CalibrationSession()
-    for i, sample in enumerate(sensor_readings('still', field, offset) * 1e-6):
-        session.ingest(i * 20_000_000, 'imu_link', sample)
+    session.feed(sensor_readings('still', field, offset) * 1e-6, rate_hz=50.0)
     assert STILL_HINT in session.progress_text()
-    assert session.maybe_auto_calibrate(0.0) is None
-    assert not session.calibrate().success
+    assert session.calibration is None
+    assert not session.calibrate_now().success
     assert session.state == 'collecting'
 
 
@@ -502,24 +501,23 @@ def test_buffer_fed_a_small_wobble_covers_little(offset_fields):
     rng = np.random.default_rng(30)
     directions = wobbled(rng, 3000, 5.0)
     raw = FIELD * directions @ SOFT.T + offset_fields * FIELD * OFFSET_DIRECTION
-    buffer = SampleBuffer()
-    buffer.add_many(raw + rng.normal(0.0, 0.25, raw.shape))
+    buffer = streamed_buffer(raw + rng.normal(0.0, 0.25, raw.shape))
     coverage = buffer.coverage()
     assert coverage.fraction < 0.1
     assert 'rotate' in coverage.hint
 
 
 def test_a_noise_rim_is_told_apart_by_the_readings_behind_it():
-    """The rim a buffer keeps (merged means on its provisional surface: a thin shell near zero)
-    passes for a sphere when judged alone; the readings it was drawn from fill its inside."""
+    """The rim a buffer can keep of a still sensor's noise (merged means placed on a fitted
+    surface: a thin, smooth shell a few sigmas across) passes for a sphere when judged alone; the
+    readings it was drawn from fill its inside."""
     rng = np.random.default_rng(6)
-    buffer = SampleBuffer(capacity=50)
-    buffer.add_many(still(rng, 3000, 0.0, 1.0))
-    rim = buffer.samples
+    readings = still(rng, 3000, 0.0, 1.0)
+    centre, sigma = readings.mean(axis=0), readings.std(axis=0).mean()
+    rim = centre + 2.5 * sigma * unit_vectors(rng, 50)
     assert direction_coverage(rim).fraction > 0.3  # alone: only the loose offset guard
-    judged = direction_coverage(rim, buffer.provisional_reference, buffer.readings)
+    judged = direction_coverage(rim, None, readings)
     assert judged.fraction == 0.0 and judged.hint == STILL_HINT
-    assert buffer.coverage() == judged
     tumble = distorted(unit_vectors(rng, 3000), rng)
     assert direction_coverage(tumble[::30], readings=tumble).fraction > 0.6
 

@@ -13,9 +13,9 @@ from rosbags.rosbag2 import StoragePlugin
 from test_recordings import write_bag
 import yaml
 
-from mag_calibrator_ros.calibration.buffer import SampleBuffer
 from mag_calibrator_ros.calibration.calibration_file import load_calibration
 from mag_calibrator_ros.calibration.fitting import FitOptions, fit_calibration
+from mag_calibrator_ros.calibration.session import CalibrationSession, SessionSettings
 from mag_calibrator_ros.tools import fit
 from mag_calibrator_ros.tools.fit import main
 from mag_calibrator_ros.tools.recordings import read_recording
@@ -105,23 +105,27 @@ def test_disturbed_recordings_fail_the_default_residual_gate_and_write_nothing(
     assert not output.exists()
 
 
-def test_buffer_mode_fits_the_buffer_exactly_as_the_node_does(shared_data, capsys):
+@pytest.mark.parametrize('rate', [100.0, 20.0])
+def test_buffer_mode_streams_through_the_live_session_as_the_node_does(shared_data, capsys, rate):
+    """The recording replayed at --rate through the node's own session (its reference fits,
+    automatic calibration, refinement), then fitted as ~/calibrate does."""
     path = shared_data / 'fxos8700-mwrona' / 'mag-readings.txt'
-    code, summary, _ = run_json(capsys, [str(path), '--buffer', '60', '--k', '5'])
-    buffer = SampleBuffer(capacity=60, k=5)
-    buffer.add_many(read_recording(path).samples)
-    expected = fit_calibration(buffer.samples, FitOptions(), weights=buffer.counts,
-                               readings=buffer.readings)
+    code, summary, _ = run_json(capsys, [str(path), '--buffer', '60', '--k', '5',
+                                         '--rate', str(rate)])
+    session = CalibrationSession(SessionSettings(buffer_size=60, k=5, full_scale=0.0))
+    session.feed(read_recording(path).samples, rate_hz=rate)
+    expected = session.calibrate_now()
     assert code == 0
     assert expected.success
-    np.testing.assert_array_equal(summary['offset'], expected.calibration.offset)
-    np.testing.assert_array_equal(summary['matrix'], expected.calibration.matrix)
-    assert summary['buffer']['capacity'] == 60
-    assert summary['buffer']['k'] == 5
-    assert summary['buffer']['fill'] == buffer.fill
-    assert summary['buffer']['seen'] == 324
-    assert sum(summary['buffer']['outcomes'].values()) == 324
-    assert summary['metrics']['n_samples'] == buffer.fill
+    calibration = expected.outcome.result.calibration
+    np.testing.assert_array_equal(summary['offset'], calibration.offset)
+    np.testing.assert_array_equal(summary['matrix'], calibration.matrix)
+    info = summary['buffer']
+    assert (info['capacity'], info['k'], info['fill']) == (60, 5, session.buffer.fill)
+    assert info['accepted'] == 324 and info['held_out'] == 324 - session.buffer.seen
+    assert 0 < info['held_out'] < 324 // 8  # only once calibrated (automatically, live)
+    assert info['fits'] == session.jobs_run and info['live_state'] == session.state
+    assert summary['metrics']['n_samples'] == session.buffer.fill
 
 
 def test_all_mode_fits_every_sample(shared_data, capsys):
@@ -333,7 +337,10 @@ def test_columns_beyond_the_lines_leave_no_rows(shared_data, capsys):
     (['--buffer', '50', '--all'], ('not allowed with',)),
     (['--normalise', '--field-strength', '50'], ('not allowed with',)),
     (['--buffer', '1'], ('--buffer',)),
+    (['--buffer', '9'], ('--buffer', 'at least 10')),
     (['--buffer', '10', '--k', '10'], ('--k',)),
+    (['--rate', '0'], ('--rate',)),
+    (['--rate', 'nan'], ('--rate',)),
     (['--all', '--k', '4'], ('--k', '--all')),
     (['--field-strength', '-3'], ('--field-strength',)),
     (['--field-strength', 'nan'], ('--field-strength',)),

@@ -1,8 +1,9 @@
-"""A fixed-size buffer of well-spread magnetometer samples: the brief's kNN uniqueness rule, fixed.
+"""A fixed-size buffer of well-spread magnetometer samples: a kNN uniqueness rule, fixed.
 
-The brief's library (mag-calibrator-rs) keeps N samples and, once full, lets a new sample replace
-the buffered sample with the lowest mean distance to its k nearest neighbours when the new
-sample's own mean k-NN distance is higher. Its measured flaws, and what this module does instead:
+mag-calibrator-rs (P. Krull, 2023, github.com/peterkrull/mag-calibrator-rs) keeps N samples
+and, once full, lets a new sample replace the buffered sample with the lowest mean distance to its
+k nearest neighbours when the new sample's own mean k-NN distance is higher. Its flaws, and what
+this module does instead:
 
 - inconsistent scoring (buffered rows counted their zero self-distance, so every candidate won):
   every score here is the mean distance to k *other* points, the candidate's against the buffer;
@@ -11,40 +12,30 @@ sample's own mean k-NN distance is higher. Its measured flaws, and what this mod
 - an O(N² log N) recomputation per sample: each buffered point keeps its k nearest distances and
   indices; a sample that is not unique costs one O(N) distance pass, a replacement recomputes only
   the rows it touches (on average about 2k of them);
-- duplicates, zero components and spikes: exact duplicates and all-zero vectors are refused (one
-  zero component is a legitimate reading and kept), and once a reference calibration exists,
-  gross magnitude outliers are refused and evicted. Spikes are the most "unique" samples of all,
-  so without this they would be the last to leave.
+- duplicates and spikes: exact duplicates are refused, and once the buffer is given a reference
+  calibration, samples off its surface are refused and buffered ones evicted. Spikes are the most
+  "unique" samples of all, so without this they would be the last to leave.
 
-Two additions of ours, so that a buffer of N points calibrates about as well as a fit of every
-sample. Measured on the 12 synthetic scenarios of benchmarks/bench_engine.py (`full` fitted to a
-buffer of N = 100 fed 3,000 samples, weighted by ``counts``; direction error RMS, worst / mean):
-the brief's rule alone 96° / 17° (spikes take over the buffer; 0.32° worst without spikes), with
-the self-reference 0.43° / 0.26°, with merging as well 0.052° / 0.038° (fitting every sample:
-0.044° / 0.034°). Merging with plain means instead of means placed on the surface: 0.50° / 0.20°,
-worse than not merging; without passing a replaced point's readings on: 0.074° / 0.050°.
+The buffer stores, ranks and merges; it never fits and never decides when to. Its owner
+(:class:`~mag_calibrator_ros.calibration.session.CalibrationSession`) gives it a reference -- a
+full fit of the buffer itself, or the calibration in force -- with the tolerance to screen by,
+and takes it away when it no longer describes the sensor. With a reference that may merge (a full
+fit of the buffer):
 
-- self-reference: a reference calibration used to arrive only from outside (after a successful
-  calibration), so a spiky stream filled the buffer with spikes (73 of 100 at 3 % spikes) and no
-  fit ever succeeded to provide one. Now, once the buffer is full, it fits itself every
-  ``capacity`` samples (fewer once it settles; amortised about 10 µs per sample at N = 100-1000)
-  and a sane fit becomes the *provisional* reference: samples off its surface by more than
-  ``outlier_threshold`` sigmas (one reading's noise and the fit's own uncertainty) are refused,
-  buffered ones evicted;
-- merging: 100 samples of 0.5 µT noise on 50 µT cannot locate an ellipsoid to better than about
-  0.2° (Cramér-Rao), however well spread. Once a provisional reference exists, a sample that is
-  not unique adds its information to its nearest buffered point instead of being dropped: each
-  point keeps the count, sum and second moment of the readings it stands for (``counts``; fit
-  with them as weights), and a replaced point's readings join its nearest neighbour. A plain
-  mean of readings spread over a patch of a curved surface lies inside it (by d²/2R over a patch
-  of size d) and, with unequal counts, would distort the shape; so ``samples`` places each mean
-  back on the surface along its direction, using the readings' spread and the latest provisional
+- merging: a sample that is not unique adds its information to its nearest buffered point
+  instead of being dropped: each point keeps the count, sum and second moment of the readings it
+  stands for (``counts``: fit with them as weights), and a replaced point's readings join its
+  nearest neighbour. A fit of N single readings cannot beat the Cramér-Rao bound of N readings;
+  merged points carry every reading's information. A plain mean of readings spread over a patch
+  of a curved surface lies inside it (by d²/2R over a patch of size d), so ``samples`` places each
+  mean back on the surface along its direction, using the readings' spread and the latest
   reference (second order, see ``_MagnitudeScreen.on_surface_mean``). Placing them at read time
-  rather than when merging means an early, rougher reference bends nothing for good. The
-  buffered point keeps its original position (its *anchor*) for the uniqueness rule, which is
-  unchanged.
+  rather than when merging means an early, rougher reference bends nothing for good. The buffered
+  point keeps its original position (its *anchor*) for the uniqueness rule, which is unchanged.
 
-Memory is fixed: every array is allocated once for the configured capacity.
+Input must already be screened (finite, not all-zero, not saturated): see
+:mod:`~mag_calibrator_ros.calibration.screening`. Memory is fixed: every array is allocated once
+for the configured capacity.
 """
 
 from __future__ import annotations
@@ -58,14 +49,9 @@ from numpy.typing import ArrayLike
 
 from mag_calibrator_ros.calibration.calibration import Calibration
 from mag_calibrator_ros.calibration.coverage import Coverage, direction_coverage
-from mag_calibrator_ros.calibration.ellipsoid import robust_sigma
-from mag_calibrator_ros.calibration.fitting import FitOptions, FitResult, fit_calibration
 
-REJECT_REASONS = ('non_finite', 'zero', 'saturated', 'duplicate', 'magnitude_outlier')
-"""Why :meth:`SampleBuffer.add` refused a sample (each one counted in ``rejects``)."""
-
-OUTCOMES = ('added', 'replaced', 'not_unique', *REJECT_REASONS)
-"""Everything :meth:`SampleBuffer.add` can return."""
+OUTCOMES = ('added', 'replaced', 'not_unique', 'duplicate', 'magnitude_outlier')
+"""Everything :meth:`SampleBuffer.add` can return; the last two are refusals."""
 
 DEFAULT_CAPACITY = 100
 """About ten samples per parameter of the full model (offset 3 + symmetric matrix 6), small enough
@@ -73,31 +59,13 @@ that a sample costs microseconds and a fit milliseconds."""
 
 DEFAULT_K = 6
 """The six nearest neighbours are the first ring around a point on an evenly covered sphere, so
-the score measures local crowding rather than the distance to one twin. Measured (12 'strong'
-synthetic tumbles of benchmarks/scenarios.py, N = 100, a plain algebraic full fit of the buffer):
-mean direction error 0.213 / 0.210 / 0.197 / 0.215 deg for k = 2 / 4 / 6 / 8 (random 100-sample
-subsets: 0.218 deg). The differences are small; k = 6 was best and costs little (the replacement
-work grows with k)."""
+the score measures local crowding rather than the distance to one twin (benchmarks/bench_engine.py
+compares k = 2 to 8; the differences are small and 6 was best)."""
 
 DEFAULT_MAGNITUDE_TOLERANCE = 0.3
 """A sample whose corrected magnitude is off the reference field by more than 30 % is a gross
 outlier (a spike or a magnet nearby). Good data under a calibration that passed the fit gates stays
 within a few per cent, so this never rejects it."""
-
-SELF_REFERENCE_OPTIONS = FitOptions(model='full')
-"""How the buffer fits itself for its provisional reference: the default gates, model ``full``,
-the one that describes any magnetometer in a uniform field. A sphere or planar fit chosen because
-``full`` was not yet determined judged unseen directions by up to 20 % and 110 % wrong (measured
-on an early hand-tumble buffer), refusing good readings and bending merged means."""
-
-MAX_SELF_FIT_PERIOD = 8
-"""Once successive self-fits agree to within one reading's noise, the period between them
-doubles up to 8 x capacity samples: the reference has settled, refitting mostly costs time."""
-
-STALE_REFERENCE_SHARE = 0.5
-"""If more than half of a window of samples are magnitude outliers, the reference no longer
-describes the sensor (moved, re-mounted, a stale file): it is dropped rather than starving the
-buffer of the data a new calibration needs."""
 
 READING_SAMPLE_SIZE = 256
 """Readings kept as a random draw of the recent stream (``readings``): the evidence that the
@@ -113,67 +81,26 @@ _TRIU = np.triu_indices(3)
 _CHUNK_ROWS = 64  # rows per block when recomputing many neighbour lists: bounded temporaries
 
 
-def reading_problem(x0: float, x1: float, x2: float, full_scale: float | None) -> str | None:
-    """Why one reading can never be a sample ('non_finite', 'zero', 'saturated'), or None.
-
-    All-zero is refused but one exact-zero component is a legitimate reading. Plain floats, as
-    this runs for every message.
-    """
-    if not (math.isfinite(x0) and math.isfinite(x1) and math.isfinite(x2)):
-        return 'non_finite'
-    if x0 == 0.0 and x1 == 0.0 and x2 == 0.0:
-        return 'zero'
-    if full_scale is not None and max(abs(x0), abs(x1), abs(x2)) >= full_scale:
-        return 'saturated'
-    return None
-
-
 class SampleBuffer:
-    """Keeps the ``capacity`` most spread-out samples seen so far, screening bad input.
+    """Keeps the ``capacity`` most spread-out samples seen so far.
 
-    ``add`` returns what happened: 'added' (buffer not yet full), 'replaced', 'not_unique', or a
-    reason from :data:`REJECT_REASONS`.
+    ``add`` returns what happened: 'added' (buffer not yet full), 'replaced', 'not_unique'
+    (merged into its nearest point when a reference exists), 'duplicate' or 'magnitude_outlier'.
     """
 
-    def __init__(
-        self,
-        capacity: int = DEFAULT_CAPACITY,
-        k: int = DEFAULT_K,
-        full_scale: float | None = None,
-        magnitude_tolerance: float = DEFAULT_MAGNITUDE_TOLERANCE,
-        self_reference: bool = True,
-    ) -> None:
+    def __init__(self, capacity: int = DEFAULT_CAPACITY, k: int = DEFAULT_K) -> None:
         capacity, k = _checked_size(capacity, k)
-        if full_scale is not None and not (math.isfinite(full_scale) and full_scale > 0.0):
-            raise ValueError(
-                f'full_scale must be a positive finite number or None, got {full_scale}'
-            )
-        if not (math.isfinite(magnitude_tolerance) and magnitude_tolerance > 0.0):
-            raise ValueError(
-                f'magnitude_tolerance must be a positive finite number, got {magnitude_tolerance}'
-            )
-        self.full_scale = None if full_scale is None else float(full_scale)
-        self.magnitude_tolerance = float(magnitude_tolerance)
-        self.self_reference = bool(self_reference)
-        """Fit the buffer now and then for a provisional reference, and merge (see above)."""
         self._allocate(capacity, k)
         self._seen = 0
-        self._rejects = dict.fromkeys(REJECT_REASONS, 0)
         self.evicted = 0
         """Buffered samples removed because a new reference showed them to be outliers."""
-        self.reference_drops = 0
-        """How often a reference was dropped as stale (see :data:`STALE_REFERENCE_SHARE`)."""
         self.merged = 0
         """Samples that were not unique and were folded into their nearest buffered point."""
-        self.self_fits = 0
-        """Fits the buffer made of itself for a provisional reference (sane or not)."""
-        self._external: _MagnitudeScreen | None = None  # set_reference()
-        self._provisional: _MagnitudeScreen | None = None  # the buffer's own fit
-        self._projection: _MagnitudeScreen | None = None  # its latest, kept to place the means
-        self._since_self_fit = 0
-        self._self_fit_period = capacity
+        self._reference: _MagnitudeScreen | None = None  # set_reference(): screens
+        self._merging = False  # the reference may also merge (a full fit of the buffer itself)
+        self._projection: _MagnitudeScreen | None = None  # the latest that merged: places means
         self._readings = np.zeros((READING_SAMPLE_SIZE, 3))
-        self._screened = 0  # readings that passed the screen: the draw's population
+        self._recorded = 0  # readings offered: the draw's population
         self._draw = random.Random(0)  # deterministic: the same stream, the same draw
 
     def _allocate(self, capacity: int, k: int) -> None:
@@ -213,19 +140,27 @@ class SampleBuffer:
         return self._seen
 
     @property
-    def rejects(self) -> dict[str, int]:
-        """Refused samples per reason (a copy; keys are :data:`REJECT_REASONS`)."""
-        return dict(self._rejects)
-
-    @property
     def reference(self) -> Calibration | None:
-        """The calibration given to :meth:`set_reference`, if any (and not dropped as stale)."""
-        return None if self._external is None else self._external.calibration
+        """The calibration given to :meth:`set_reference` (screens and merges), if any."""
+        return None if self._reference is None else self._reference.calibration
 
     @property
-    def provisional_reference(self) -> Calibration | None:
-        """The buffer's own latest sane fit, used to refuse outliers and to merge, if any."""
-        return None if self._provisional is None else self._provisional.calibration
+    def merging(self) -> bool:
+        """Whether samples that are not unique merge (a reference that may merge is set)."""
+        return self._merging
+
+    @property
+    def tolerance(self) -> float | None:
+        """Largest relative magnitude error the reference accepts, if a reference is set."""
+        return None if self._reference is None else self._reference.tolerance
+
+    @property
+    def reference_checks(self) -> tuple[int, int]:
+        """(samples judged, magnitude outliers among them) since the reference was set: the
+        owner tells from these when the reference no longer describes the sensor."""
+        if self._reference is None:
+            return 0, 0
+        return self._reference.checked, self._reference.outliers
 
     @property
     def samples(self) -> np.ndarray:
@@ -256,7 +191,7 @@ class SampleBuffer:
         lie: on the field's sphere, or filling a still sensor's noise cloud whose rim the
         uniqueness rule keeps. ``coverage()`` checks the shell against them.
         """
-        return self._readings[: min(self._screened, READING_SAMPLE_SIZE)].copy()
+        return self._readings[: min(self._recorded, READING_SAMPLE_SIZE)].copy()
 
     @property
     def anchors(self) -> np.ndarray:
@@ -297,7 +232,7 @@ class SampleBuffer:
 
         Returns 0.0 when it cannot be told (fewer than two distinct samples).
         """
-        reference = self.reference or self.provisional_reference
+        reference = self.reference
         if reference is not None:
             # |M (x - b)| = F on the ellipsoid; its mean radius in raw units is F / det(M)^(1/3).
             det = float(np.linalg.det(reference.matrix))
@@ -309,38 +244,38 @@ class SampleBuffer:
 
         The shell is checked against ``readings``: a still sensor's noise rim is no coverage.
         """
-        return direction_coverage(
-            self.samples, self.reference or self.provisional_reference, self.readings
-        )
+        return direction_coverage(self.samples, self.reference, self.readings)
 
     # -- feeding -------------------------------------------------------------------------------
 
     def add(self, sample: ArrayLike) -> str:
-        """Offer one sample (3,); returns the outcome (see :data:`OUTCOMES`)."""
+        """Offer one screened reading (3,); returns the outcome (see :data:`OUTCOMES`).
+
+        Raises ValueError for a malformed, non-finite or all-zero sample: screening is the
+        caller's job (:mod:`~mag_calibrator_ros.calibration.screening`), done once per message.
+        """
         x = np.asarray(sample, dtype=float)
         if x.size != 3:
             raise ValueError(f'a sample has 3 components, got shape {x.shape}')
         x = x.reshape(3)
+        x0, x1, x2 = x.tolist()
+        if not (math.isfinite(x0) and math.isfinite(x1) and math.isfinite(x2)) or not (
+                x0 or x1 or x2):
+            raise ValueError(f'a sample must be finite and not all zero, got {x.tolist()}; '
+                             'screen readings before buffering them')
         self._seen += 1
-        reason = self._screen(x)
-        if reason is not None:
-            self._rejects[reason] += 1
-            return reason
+        if self._reference is not None and self._reference.check((x0, x1, x2)):
+            return 'magnitude_outlier'
         self._record_reading(x)
-        outcome = self._admit(x)
-        if outcome != 'duplicate' and self.self_reference and self._fill == self._capacity:
-            self._since_self_fit += 1
-            if self._since_self_fit >= self._self_fit_period:  # amortised: <= 1 fit per N
-                self.refresh_provisional_reference()
-        return outcome
+        return self._admit(x)
 
     def _record_reading(self, x: np.ndarray) -> None:
         """Reservoir sampling (Algorithm R) over a population capped at READING_HORIZON."""
-        self._screened += 1
-        if self._screened <= READING_SAMPLE_SIZE:
-            self._readings[self._screened - 1] = x
+        self._recorded += 1
+        if self._recorded <= READING_SAMPLE_SIZE:
+            self._readings[self._recorded - 1] = x
             return
-        slot = int(self._draw.random() * min(self._screened, READING_HORIZON))
+        slot = int(self._draw.random() * min(self._recorded, READING_HORIZON))
         if slot < READING_SAMPLE_SIZE:
             self._readings[slot] = x
 
@@ -356,7 +291,6 @@ class SampleBuffer:
         distances = np.sqrt(np.einsum('ij,ij->i', diff, diff))
         nearest = int(distances.argmin())
         if distances[nearest] == 0.0 and np.array_equal(self._points[nearest], x):
-            self._rejects['duplicate'] += 1
             return 'duplicate'
         if n < self._capacity:
             self._place(n, x, distances)
@@ -367,7 +301,7 @@ class SampleBuffer:
         if own_score > self._weakest_score:
             self._place(self._weakest, x, distances)
             return 'replaced'
-        if self._provisional is not None:
+        if self._merging:
             self._merge(nearest, x)
             self.merged += 1
         return 'not_unique'
@@ -394,105 +328,35 @@ class SampleBuffer:
             counts[self.add(row)] += 1
         return counts
 
-    def _screen(self, x: np.ndarray) -> str | None:
-        """The first reject reason that applies to ``x``, or None. Plain floats: 3 values only."""
-        x0, x1, x2 = x.tolist()
-        problem = reading_problem(x0, x1, x2, self.full_scale)
-        if problem is not None:
-            return problem
-        outlier = False
-        window = max(100, self._capacity)
-        if self._external is not None:
-            verdict = self._external.check((x0, x1, x2), window)
-            if verdict is None:  # stale: the sensor no longer matches it
-                self.reference_drops += 1
-                self._external = None
-            outlier = bool(verdict)
-        if self._provisional is not None:
-            verdict = self._provisional.check((x0, x1, x2), window)
-            if verdict is None:
-                self._provisional = None
-                self._since_self_fit = 0
-                self._self_fit_period = self._capacity
-            outlier = outlier or bool(verdict)
-        return 'magnitude_outlier' if outlier else None
-
-    # -- the provisional reference ----------------------------------------------------------------
-
-    def refresh_provisional_reference(self) -> FitResult | None:
-        """Fit the buffer (weighted by counts) and adopt a sane result as provisional reference.
-
-        ``add`` calls this once the buffer is full, every ``capacity`` samples while the result
-        keeps moving, less often (up to :data:`MAX_SELF_FIT_PERIOD` x ``capacity``) once it has
-        settled; callers may call it too. Sane means determined and plausible (the condition and
-        axis-ratio gates of :data:`SELF_REFERENCE_OPTIONS`) and describing most of the buffer (a
-        majority of inliers), even if the coverage, sample-count or residual gates fail: it
-        only judges magnitudes, with a tolerance that grows with its residual (a uniqueness
-        buffer keeps the noisiest readings, so at 4 % noise its residual alone exceeds the 5 %
-        gate). The tolerance is ``outlier_threshold`` sigmas, capped at ``magnitude_tolerance``:
-        the robust sigma of one reading (a point of count n has sqrt(n) less noise) combined
-        with the fit's own uncertainty, so an early fit from part of the sphere does not refuse
-        the good readings of a region it extrapolates to (measured: 19 good readings of 3,000
-        refused in one benchmark scenario without it, none with it). Buffered points it
-        refuses are evicted. Returns the fit, or None when the buffer is too small to fit.
-        """
-        self._since_self_fit = 0
-        if self._fill < max(2 * self._k, 10):
-            return None
-        options = SELF_REFERENCE_OPTIONS
-        self.self_fits += 1
-        counts = self.counts
-        result = fit_calibration(self.samples, options, weights=counts)
-        metrics, calibration = result.metrics, result.calibration
-        sane = (
-            calibration is not None
-            and metrics.condition_number <= options.max_condition
-            and metrics.axis_ratio <= options.max_axis_ratio
-            and 2 * metrics.n_inliers > metrics.n_samples
-        )
-        if not sane:
-            self._self_fit_period = self._capacity
-            return result
-        screen = _MagnitudeScreen(calibration, self.magnitude_tolerance)
-        deviation = screen.relative(self.samples) - 1.0
-        sigma = robust_sigma(deviation * np.sqrt(counts))  # of one reading
-        spread = math.hypot(sigma, _prediction_sigma(result))
-        screen.tolerance = min(options.outlier_threshold * spread, self.magnitude_tolerance)
-        previous = self._provisional
-        if previous is not None:
-            screen.carry_window(previous)
-        settled = previous is not None and not _moved(previous.calibration, calibration, sigma)
-        self._self_fit_period = (
-            min(2 * self._self_fit_period, MAX_SELF_FIT_PERIOD * self._capacity)
-            if settled else self._capacity
-        )  # fmt: skip
-        self._provisional = self._projection = screen
-        self._evict_outliers(screen)
-        return result
-
     # -- reference, size, reset ----------------------------------------------------------------
 
-    def set_reference(self, calibration: Calibration | None) -> int:
-        """Use ``calibration`` to refuse gross magnitude outliers (None: stop doing so).
+    def set_reference(
+        self,
+        calibration: Calibration | None,
+        tolerance: float = DEFAULT_MAGNITUDE_TOLERANCE,
+        merge: bool = False,
+    ) -> int:
+        """Screen by ``calibration`` (None: stop); returns how many points it evicted.
 
-        Buffered samples that the new reference shows to be outliers are evicted at once, so a
-        spike that got in before any calibration existed does not survive; returns how many.
-        When most of the buffer disagrees with the reference, nothing is evicted: the buffer
-        and the reference describe different situations, and new samples decide (see
-        :data:`STALE_REFERENCE_SHARE`). A reference that moved little (online tracking) keeps
-        the outlier statistics gathered under the previous one. Independent of the provisional
-        reference the buffer makes itself (both screen).
+        A sample whose corrected magnitude is off ``F`` by more than ``tolerance`` (relative) is
+        refused, and buffered points it shows to be outliers are evicted at once, so a spike that
+        got in before any reference existed does not survive. When most of the buffer disagrees
+        with the reference nothing is evicted: the two describe different situations and the
+        owner decides (``reference_checks``). ``merge``: samples that are not unique merge into
+        their nearest point, placed on this reference's surface -- only for a reference that
+        describes every direction (a full fit of the buffer), or the means would bend.
         """
-        previous = self._external
         if calibration is None:
-            self._external = None
+            self._reference = None
+            self._merging = False
             return 0
-        screen = _MagnitudeScreen(calibration, self.magnitude_tolerance)
-        if previous is not None and not _moved(
-            previous.calibration, calibration, 0.5 * self.magnitude_tolerance
-        ):
-            screen.carry_window(previous)
-        self._external = screen
+        if not (math.isfinite(tolerance) and tolerance > 0.0):
+            raise ValueError(f'tolerance must be a positive finite number, got {tolerance}')
+        screen = _MagnitudeScreen(calibration, float(tolerance))
+        self._reference = screen
+        self._merging = bool(merge)
+        if merge:
+            self._projection = screen
         return self._evict_outliers(screen)
 
     def _evict_outliers(self, screen: _MagnitudeScreen) -> int:
@@ -502,7 +366,7 @@ class SampleBuffer:
         relative = screen.relative(self.samples)
         keep = np.abs(relative - 1.0) <= screen.tolerance
         removed = int(self._fill - np.count_nonzero(keep))
-        if removed == 0 or removed > STALE_REFERENCE_SHARE * self._fill:
+        if removed == 0 or 2 * removed > self._fill:
             return 0
         self._keep_rows(keep)
         self.evicted += removed
@@ -531,8 +395,6 @@ class SampleBuffer:
             self._remove(self._weakest)
         if self._capacity != capacity:
             self._reallocate(capacity, k)
-        self._since_self_fit = 0
-        self._self_fit_period = self._capacity
 
     def _per_point(self) -> tuple[np.ndarray, ...]:
         """Every per-point array but the neighbour lists (those are rebuilt)."""
@@ -548,30 +410,21 @@ class SampleBuffer:
         self._refresh_all()
 
     def clear(self) -> None:
-        """Forget every sample and counter; keeps capacity, k, full scale and the reference.
-
-        The provisional reference goes too: it described the samples forgotten.
-        """
+        """Forget every sample, reading and the reference; keeps capacity and k."""
         self._fill = 0
         self._counts.fill(0.0)
-        self._projection = None
+        self._reference = self._projection = None
+        self._merging = False
         self._nbr_dist.fill(np.inf)
         self._nbr_index.fill(-1)
         self._kth.fill(np.inf)
         self._score.fill(np.inf)
         self._weakest, self._weakest_score = 0, math.inf
         self._seen = 0
-        self._screened = 0
+        self._recorded = 0
         self._draw = random.Random(0)
-        self._rejects = dict.fromkeys(REJECT_REASONS, 0)
         self.evicted = 0
         self.merged = 0
-        self.self_fits = 0
-        self._provisional = None
-        self._since_self_fit = 0
-        self._self_fit_period = self._capacity
-        if self._external is not None:
-            self._external.carry_window(None)
 
     # -- neighbour bookkeeping -----------------------------------------------------------------
 
@@ -594,7 +447,7 @@ class SampleBuffer:
             rebuild = np.flatnonzero(lost)
         else:
             rebuild = np.array([slot])
-        if slot < n_before and self._provisional is not None:
+        if slot < n_before and self._merging:
             self._fold_displaced(slot)
         self._store(slot, x)
         self._fill = n_after
@@ -689,7 +542,7 @@ class SampleBuffer:
 
 class _MagnitudeScreen:
     """Refuses readings whose corrected magnitude is off a reference by more than ``tolerance``
-    (relative), and tells when most of a window of readings disagree (the reference is stale)."""
+    (relative), counting how many it judged and refused."""
 
     def __init__(self, calibration: Calibration, tolerance: float) -> None:
         self.calibration = calibration
@@ -702,11 +555,6 @@ class _MagnitudeScreen:
         self.tolerance = tolerance
         self.checked = 0
         self.outliers = 0
-
-    def carry_window(self, previous: _MagnitudeScreen | None) -> None:
-        """Continue the previous screen's window (None: start a new one)."""
-        self.checked = 0 if previous is None else previous.checked
-        self.outliers = 0 if previous is None else previous.outliers
 
     def whiten(self, x: Sequence[float]) -> list[float]:
         """``M (x - b) / F`` in plain floats (numpy costs microseconds per call on 3-vectors)."""
@@ -737,37 +585,12 @@ class _MagnitudeScreen:
         """|corrected| / F for each row of ``points``."""
         return np.linalg.norm((points - self.offset) @ self.matrix.T, axis=1)
 
-    def check(self, x: Sequence[float], window: int) -> bool | None:
-        """True for an outlier, False if not, None once a window shows the reference is stale."""
+    def check(self, x: Sequence[float]) -> bool:
+        """True when ``x`` is a magnitude outlier (counted)."""
         outlier = not abs(math.hypot(*self.whiten(x)) - 1.0) <= self.tolerance
         self.checked += 1
         self.outliers += outlier
-        if self.checked >= window:
-            stale = self.outliers > STALE_REFERENCE_SHARE * self.checked
-            self.checked = self.outliers = 0
-            if stale:
-                return None
         return outlier
-
-
-def _prediction_sigma(result: FitResult) -> float:
-    """Rough 1-sigma of the relative magnitude a fit predicts (its parameter uncertainty).
-
-    |δ|u|| <= |δb| / R + ||δM|| R / F for unit-radius u; std norms stand in for the worst
-    direction. Infinite when the fit reported no standard deviations.
-    """
-    std, metrics = result.metrics.parameter_std, result.metrics
-    if not std or result.calibration is None or not metrics.mean_radius > 0.0:
-        return math.inf
-    offset = std.get('offset', std.get('offset_in_plane'))
-    if 'matrix' in std:
-        matrix = float(np.linalg.norm(std['matrix'])) * metrics.mean_radius
-        matrix /= result.calibration.field_strength
-    else:
-        matrix = float(np.linalg.norm(std.get('matrix_in_plane_relative', [math.inf])))
-    if offset is None:
-        return math.inf
-    return float(np.linalg.norm(offset)) / metrics.mean_radius + matrix
 
 
 def _checked_size(capacity: int, k: int) -> tuple[int, int]:
@@ -776,18 +599,6 @@ def _checked_size(capacity: int, k: int) -> tuple[int, int]:
     if isinstance(k, bool) or int(k) != k or not 1 <= k < capacity:
         raise ValueError(f'k must be an integer in [1, capacity - 1], got {k!r}')
     return int(capacity), int(k)
-
-
-def _moved(old: Calibration | None, new: Calibration | None, tolerance: float) -> bool:
-    """Whether ``new`` judges magnitudes visibly differently from ``old`` (relative units)."""
-    if old is None or new is None:
-        return old is not new
-    radius = old.field_strength / float(np.linalg.det(old.matrix)) ** (1.0 / 3.0)
-    offset_shift = float(np.linalg.norm(new.offset - old.offset)) / radius
-    matrix_shift = float(np.linalg.norm(
-        new.matrix / new.field_strength - old.matrix / old.field_strength, ord=2
-    )) * radius
-    return not offset_shift + matrix_shift <= tolerance
 
 
 def _sphere_radius(points: np.ndarray) -> float:

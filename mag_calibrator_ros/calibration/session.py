@@ -1,54 +1,93 @@
 """The live calibrator's decisions, kept apart from ROS so they can be tested without a graph.
 
-A ``CalibrationSession`` owns everything the ``mag_calibrator`` node decides per message and per
-second: which messages are usable (screening, with counters), what goes into the sample buffer,
-the state (uncalibrated / collecting / calibrated), when to calibrate by itself, whether a
-calibration tracked online is clearly better and how far it may move per second, and the
-progress text a user reads. The node only turns ROS messages, parameters and services into calls
-here. Units are tesla throughout (REP-103); the engine itself is unit-free.
+A :class:`CalibrationSession` takes one call per message, ``process(stamp, frame, field)``, and
+returns the corrected field. Behind it, and nowhere else, it decides:
+
+- which messages are usable (``screening``: one set of counters, stamps and frames confirmed);
+- what the buffer keeps and the reference it screens and merges by (its own fit, else the
+  calibration in force), and when that reference no longer describes the sensor;
+- every fit (``scheduler``): the buffer's reference, automatic calibration, refinement, requested
+  fits. Fits run in a ``FitRunner`` (a worker process in the node, inline offline) on a snapshot;
+  while one runs, readings are held and fed to the buffer afterwards in order, so the result is
+  the same whether the fit took a microsecond or a second: node and ``mag_calibrator_fit`` agree
+  on the same stream;
+- whether a new fit replaces the calibration in force: automatically only while uncalibrated or
+  after a misfit, by refinement only when it is better on held-out readings (``evidence``) and
+  covers no less; on request whenever it passes the gates;
+- whether the calibration in force still fits the sensor (``evidence.MisfitMonitor``);
+- online tracking (``tracker``), judged on the same held-out readings.
+
+What it decided comes out as ``SessionEvent``s for the node to log and act on (auto-save,
+service answers). Units are the caller's (tesla in the node); the engine is unit-free.
 """
 
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 import math
-from pathlib import Path
 import time
+from typing import NamedTuple
 
 import numpy as np
 
-from mag_calibrator_ros.calibration.buffer import SampleBuffer, reading_problem
+from mag_calibrator_ros.calibration.buffer import SampleBuffer
 from mag_calibrator_ros.calibration.calibration import MODELS, Calibration, CalibrationError
-from mag_calibrator_ros.calibration.calibration_file import (
-    CalibrationFileError,
-    load_calibration,
-    save_calibration,
+from mag_calibrator_ros.calibration.coverage import Coverage
+from mag_calibrator_ros.calibration.evidence import (
+    HOLD_OUT_EVERY,
+    MIN_EVIDENCE,
+    MISFIT_WINDOW_S,
+    HeldOutEvidence,
+    MisfitMonitor,
+    check_fit,
+    compare_on_evidence,
 )
-from mag_calibrator_ros.calibration.coverage import direction_coverage
-from mag_calibrator_ros.calibration.fitting import FitOptions, FitResult, fit_calibration
+from mag_calibrator_ros.calibration.fitting import FitOptions
+from mag_calibrator_ros.calibration.jobs import (
+    REFERENCE_OPTIONS,
+    FitJob,
+    FitRunner,
+    InlineRunner,
+    JobOutcome,
+)
+from mag_calibrator_ros.calibration.scheduler import FitScheduler, Situation, StreamClock
+from mag_calibrator_ros.calibration.screening import SCREEN_REASONS, ReadingScreen
 from mag_calibrator_ros.calibration.tracker import OnlineTracker
 
 TESLA_TO_MICROTESLA = 1e6
 AK09916_FULL_SCALE_T = 32752 * 0.15e-6
-"""The ICM-20948's magnetometer saturates at +-32752 LSB x 0.15 uT (DESIGN.md section 5)."""
+"""The ICM-20948's magnetometer saturates at +-32752 LSB x 0.15 uT."""
 
-SCREEN_REASONS = ('non_finite', 'zero', 'saturated', 'stamp_backwards', 'frame_changed')
-"""Why a message is refused before it reaches the buffer or the corrected topic."""
+REFUSAL_REASONS = (*SCREEN_REASONS, 'duplicate', 'magnitude_outlier')
+"""Every reason a reading is not used: screening, then the buffer's own two."""
 
-STATES = ('uncalibrated', 'collecting', 'calibrated')
+STATES = ('uncalibrated', 'collecting', 'calibrated', 'calibrated-refining',
+          'calibrated-converged', 'calibrated-misfit')
 FITTABLE_MODELS = tuple(MODELS)
-TRACKING_EVALUATION_SAMPLES = 200
-"""Recent samples on which a tracked calibration must beat the one in force."""
-TRACKING_MIN_SAMPLES = 50
+
+HOLD_LIMIT = 5000
+"""Readings held while a fit runs; beyond this (a worker far too slow for the rate) the oldest
+are fed to the buffer at once and the run is no longer exactly reproducible (counted)."""
+
+DRAIN_PER_MESSAGE = 8
+"""Held readings fed per incoming message once a fit is done: bounded work per callback."""
+
+STALE_SHARE = 0.5
+"""When the buffer's reference refuses more than half of a window of readings it no longer
+describes the sensor (moved, re-mounted, another sensor's file): it is set aside rather than
+starving the buffer of the data a new calibration needs."""
+
+PERIODIC_S = 1.0
+"""Stream seconds between the checks on recent evidence (misfit, online tracking)."""
+
 TRACKING_MIN_SEPARATION_DEG = 6.0
 """A reading teaches the tracker only when its corrected direction is at least this far from the
 last one that did (ArduPilot accepts samples about 6 deg apart). A robot standing still next to a
 disturbance would otherwise pull the calibration toward fitting that one direction."""
-TRACKING_MIN_COVERAGE = 0.25
-"""Share of direction cells the recent readings must span before a tracked calibration may be
-judged better: better in one corner of the sphere is not better."""
+
+MAX_EVENTS = 1000
 
 
 def _engine_defaults() -> tuple[int, int, FitOptions]:
@@ -68,14 +107,19 @@ class SessionSettings:
     k: int = _DEFAULT_K
     model: str = 'auto'
     field_strength: float = 0.0
-    """Tesla; 0 keeps the fitted mean radius (magnitude preserved)."""
+    """Input units (tesla in the node); 0 keeps the fitted mean radius (magnitude preserved)."""
     min_coverage: float = float(_DEFAULT_FIT.min_coverage)
     max_residual_pct: float = float(_DEFAULT_FIT.max_residual_pct)
     full_scale: float = AK09916_FULL_SCALE_T
-    """Tesla; a component at or beyond it is saturated. 0 disables the check."""
+    """A component at or beyond it is saturated. 0 disables the check."""
     auto_calibrate: bool = True
     auto_calibrate_period: float = 2.0
-    """Seconds between automatic attempts, so a failing fit does not run on every tick."""
+    """Stream seconds between automatic fits that failed, so a failing fit does not run on
+    every check."""
+    refine: bool = True
+    """Keep fitting after the first calibration; adopt a fit only when better on held-out data."""
+    refine_period: float = 10.0
+    """Stream seconds between refinement fits (doubling up to 8x once converged)."""
     online_tracking: bool = False
     tracking_improvement: float = 0.8
     """Adopt a tracked calibration only when its residual is below this share of the current."""
@@ -84,7 +128,7 @@ class SessionSettings:
 
     @property
     def full_scale_limit(self) -> float | None:
-        """``full_scale`` as the buffer takes it: None when the check is off (0)."""
+        """``full_scale`` as the screen takes it: None when the check is off (0)."""
         return self.full_scale if self.full_scale > 0.0 else None
 
     def problems(self) -> list[str]:
@@ -100,20 +144,18 @@ class SessionSettings:
                 f"model must be one of {', '.join(FITTABLE_MODELS)}, got {self.model!r}"
             )
         if not math.isfinite(self.field_strength) or self.field_strength < 0.0:
-            problems.append(f'field_strength must be >= 0 tesla (0 = fitted radius), '
+            problems.append(f'field_strength must be >= 0 (0 = fitted radius), '
                             f'got {self.field_strength}')
         if not 0.0 <= self.min_coverage <= 1.0:
             problems.append(f'min_coverage must be a fraction in [0, 1], got {self.min_coverage}')
         if not math.isfinite(self.max_residual_pct) or self.max_residual_pct <= 0.0:
             problems.append(f'max_residual_pct must be > 0, got {self.max_residual_pct}')
         if not math.isfinite(self.full_scale) or self.full_scale < 0.0:
-            problems.append(
-                f'full_scale must be >= 0 tesla (0 = no check), got {self.full_scale}'
-            )
-        if not math.isfinite(self.auto_calibrate_period) or self.auto_calibrate_period <= 0.0:
-            problems.append(
-                f'auto_calibrate_period must be > 0 s, got {self.auto_calibrate_period}'
-            )
+            problems.append(f'full_scale must be >= 0 (0 = no check), got {self.full_scale}')
+        for name in ('auto_calibrate_period', 'refine_period'):
+            value = getattr(self, name)
+            if not math.isfinite(value) or value <= 0.0:
+                problems.append(f'{name} must be > 0 s, got {value}')
         if not 0.0 < self.tracking_improvement < 1.0:
             problems.append(f'tracking_improvement must be in (0, 1), got '
                             f'{self.tracking_improvement}')
@@ -132,13 +174,41 @@ class SessionSettings:
         )
 
 
+class Processed(NamedTuple):
+    """What ``process`` made of one message."""
+
+    accepted: bool
+    corrected: np.ndarray | None
+    """The corrected field, None while uncalibrated (or when refused)."""
+    calibration: Calibration | None
+    """The calibration that corrected it (for the covariance)."""
+
+
+_REFUSED = Processed(False, None, None)
+
+
 @dataclass(frozen=True)
 class CalibrationAttempt:
     """The outcome of one fit, phrased for a service answer or a log line."""
 
     success: bool
     message: str
-    result: FitResult | None = None
+    outcome: JobOutcome | None = None
+
+
+@dataclass(frozen=True)
+class SessionEvent:
+    """Something the session decided, for the log (``level``: 'info', 'warning' or 'debug').
+
+    ``adopted``: a new calibration is in force (auto_save applies); ``ticket``: the answer to
+    ``request_calibration``.
+    """
+
+    level: str
+    message: str
+    adopted: bool = False
+    ticket: int | None = None
+    attempt: CalibrationAttempt | None = None
 
 
 @dataclass
@@ -165,7 +235,7 @@ def magnitude_residual_pct(calibration: Calibration, samples: np.ndarray) -> flo
     return float(100.0 * np.sqrt(np.mean((magnitudes / calibration.field_strength - 1.0) ** 2)))
 
 
-def transform_covariance(matrix: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+def transform_covariance(matrix: np.ndarray, covariance: Sequence[float]) -> np.ndarray:
     """``M C M^T`` for a known covariance; all-zero (unknown) and -1 (not reported) pass as is."""
     covariance = np.asarray(covariance, dtype=float).reshape(3, 3)
     if not np.any(covariance) or covariance[0, 0] == -1.0:
@@ -199,107 +269,477 @@ def bounded_step(current: Calibration, target: Calibration, max_change: float) -
     )
 
 
-def calibration_summary(calibration: Calibration, metrics: Mapping[str, object] | None) -> str:
-    """One line for the ``~/calibrate`` answer: model, offset in uT, residual %, coverage %."""
-    offset = ', '.join(f'{v * TESLA_TO_MICROTESLA:.2f}' for v in calibration.offset)
-    text = f'model {calibration.model}, offset [{offset}] uT'
-    if metrics:
-        text += (f", residual {float(metrics['residual_rms_pct']):.2f} %"
-                 f", coverage {100.0 * float(metrics['coverage']):.0f} %"
-                 f", {int(metrics['n_samples'])} samples")
+def calibration_summary(calibration: Calibration, units: str = 'T') -> str:
+    """One line: model, offset, residual % and coverage % (when the fit recorded them)."""
+    offset = ', '.join(format_field(v, units, unit=False) for v in calibration.offset)
+    text = f'model {calibration.model}, offset [{offset}] {display_units(units)}'
+    metadata = calibration.metadata
+    if 'residual_rms_pct' in metadata:
+        text += f", residual {float(metadata['residual_rms_pct']):.2f} %"
+    if 'coverage' in metadata:
+        text += f", coverage {100.0 * float(metadata['coverage']):.0f} %"
+    if 'samples' in metadata:
+        text += f", {int(metadata['samples'])} samples"
     return text
 
 
+def display_units(units: str) -> str:
+    return 'uT' if units == 'T' else units
+
+
+def format_field(value: float, units: str, unit: bool = True) -> str:
+    """A field value for people: microtesla for tesla input, else as given."""
+    text = f'{value * TESLA_TO_MICROTESLA:.2f}' if units == 'T' else f'{value:.6g}'
+    return f'{text} {display_units(units)}' if unit else text
+
+
+def coverage_kept(current: Calibration, candidate: Calibration) -> bool:
+    """A candidate may not cover less than the calibration in force: no fewer directions, and
+    never a planar fit in place of a 3-D one (a 3-D fit in place of a planar one is an upgrade).
+    """
+    if candidate.model == 'planar' and current.model != 'planar':
+        return current.model == 'identity'
+    if current.model == 'planar' and candidate.model != 'planar':
+        return True
+    before, after = current.metadata.get('coverage'), candidate.metadata.get('coverage')
+    if before is None:
+        return True
+    return after is not None and float(after) >= float(before) - 1e-9
+
+
 class CalibrationSession:
-    """The calibrator's state between messages: buffer, calibration in force, counters, tracker."""
+    """The calibrator's state between messages: buffer, evidence, calibration in force, fits."""
 
     def __init__(
         self,
         settings: SessionSettings | None = None,
         calibration: Calibration | None = None,
+        runner: FitRunner | None = None,
+        metadata: Mapping[str, object] | None = None,
     ) -> None:
         self.settings = settings or SessionSettings()
         problems = self.settings.problems()
         if problems:
             raise ValueError('; '.join(problems))
-        self.buffer = self._new_buffer(self.settings)
-        self.screen_rejects = dict.fromkeys(SCREEN_REASONS, 0)
+        self.runner = runner or InlineRunner()
+        self.metadata = {'units': 'T', **(metadata or {})}
+        """Stamped on every fitted calibration (units, source ...)."""
+        self.units = str(self.metadata['units'])
+        self.buffer = SampleBuffer(self.settings.buffer_size, self.settings.k)
+        self.screen = ReadingScreen(self.settings.full_scale_limit)
+        self.evidence = HeldOutEvidence()
+        self.scheduler = FitScheduler(self.settings.buffer_size)
+        self.misfit = MisfitMonitor()
+        self.clock = StreamClock()
+        self.refusals = dict.fromkeys(REFUSAL_REASONS[len(SCREEN_REASONS):], 0)
         self.accepted = 0
         self.input_rate = _RateMeter()
-        self.frame_id: str | None = None
-        self._last_stamp_ns: int | None = None
         self.calibration: Calibration | None = None
         self.last_attempt: CalibrationAttempt | None = None
-        self.last_residual_pct: float | None = None
+        self.adoptions: dict[str, int] = {}
+        """How often a calibration went in force, by source (auto, refine, request, file ...)."""
+        self.jobs_run: dict[str, int] = {}
+        self.hold_overflows = 0
         self.tracker: OnlineTracker | None = None
         self.tracked_updates = 0
-        self._recent: deque[np.ndarray] = deque(maxlen=TRACKING_EVALUATION_SAMPLES)
         self._last_taught: np.ndarray | None = None  # corrected direction last fed to the tracker
-        self._last_auto_attempt = -math.inf
         self._last_tracking_check: float | None = None
-        self._reported_rejects = dict(self.screen_rejects)
+        self._reference_source: str | None = None  # 'fit' or 'calibration': the buffer's
+        self._provisional: Calibration | None = None  # the latest sane reference fit
+        self._reference_window = (0, 0)
+        self._centre: np.ndarray | None = None  # the field's centre in raw units, for evidence
+        self._held: deque[tuple[np.ndarray, int]] = deque()
+        self._job: FitJob | None = None
+        self._job_epoch = 0
+        self._epoch = 0  # bumped by reset(): outcomes of older jobs are stale
+        self._requests: deque[int] = deque()
+        self._next_ticket = 1
+        self._ingested = 0
+        self._next_periodic = 0.0
+        self._events: deque[SessionEvent] = deque(maxlen=MAX_EVENTS)
+        self._reported_rejects = dict(self.screen.counts)
         if calibration is not None:
-            self.apply_calibration(calibration)
+            self.apply_calibration(calibration, 'given')
 
     # -- configuration -------------------------------------------------------------------------
-
-    @staticmethod
-    def _new_buffer(settings: SessionSettings) -> SampleBuffer:
-        return SampleBuffer(
-            capacity=settings.buffer_size, k=settings.k, full_scale=settings.full_scale_limit
-        )
 
     def reconfigure(self, settings: SessionSettings) -> None:
         """Adopt new settings; a resized buffer keeps its most unique samples."""
         problems = settings.problems()
         if problems:
             raise ValueError('; '.join(problems))
-        old = self.settings
-        self.settings = settings
+        old, self.settings = self.settings, settings
         if (settings.buffer_size, settings.k) != (old.buffer_size, old.k):
             self.buffer.resize(settings.buffer_size, settings.k)
-        self.buffer.full_scale = settings.full_scale_limit
+            self.scheduler.capacity = settings.buffer_size
+        self.screen.full_scale = settings.full_scale_limit
         if settings.online_tracking != old.online_tracking:
             self._restart_tracker()
 
+    def close(self) -> None:
+        """Stop the fit worker (the node calls this on shutdown)."""
+        self.runner.close()
+
     # -- per message ---------------------------------------------------------------------------
 
-    def screen(self, stamp_ns: int, frame_id: str, field_t: np.ndarray) -> str | None:
-        """Why this message is unusable (a SCREEN_REASONS entry), or None; counts the reason."""
-        if field_t.shape != (3,):
-            reason = 'non_finite'
-        else:
-            reason = reading_problem(*field_t.tolist(), self.settings.full_scale_limit)
-        if reason is None and self.frame_id is not None and frame_id != self.frame_id:
-            reason = 'frame_changed'
-        if reason is None and self._last_stamp_ns is not None and stamp_ns < self._last_stamp_ns:
-            reason = 'stamp_backwards'
-        if reason is not None:
-            self.screen_rejects[reason] += 1
-        return reason
-
-    def ingest(self, stamp_ns: int, frame_id: str, field_t: np.ndarray) -> str | None:
-        """Screen one message and feed it to the buffer and tracker; returns the reject reason.
-
-        The first accepted message fixes the frame: a calibration belongs to one sensor frame.
-        """
+    def process(self, stamp_ns: int, frame_id: str, field: Sequence[float]) -> Processed:
+        """Screen one message, learn from it, and correct it with the calibration in force."""
         self.input_rate.count += 1
-        field_t = np.asarray(field_t, dtype=float)
-        reason = self.screen(stamp_ns, frame_id, field_t)
+        try:
+            x0, x1, x2 = (float(value) for value in field)
+        except (TypeError, ValueError):
+            x0 = x1 = x2 = math.nan
+        reason = self.screen.screen(stamp_ns, frame_id, x0, x1, x2)
+        if self.screen.changes:
+            for change in self.screen.take_changes():
+                self._event('warning' if change.kind == 'frame' else 'info', change.message)
         if reason is not None:
-            return reason
+            return _REFUSED
         self.accepted += 1
-        self.frame_id = frame_id
-        self._last_stamp_ns = stamp_ns
-        self.buffer.add(field_t)
-        if self.tracker is not None and self._teaches_tracker(field_t):
-            self.tracker.update(field_t)
-            self._recent.append(field_t)
-        return None
+        reading = np.array((x0, x1, x2))
+        self._advance()
+        if self._job is None and not self._held:
+            self._ingest(reading, stamp_ns)
+        else:
+            self._hold(reading, stamp_ns)
+        calibration = self.calibration
+        if calibration is None:
+            return Processed(True, None, None)
+        return Processed(True, calibration.apply(reading), calibration)
 
-    def _teaches_tracker(self, field_t: np.ndarray) -> bool:
+    def poll(self) -> None:
+        """Take a finished fit's outcome and feed held readings; the node calls this on a timer
+        (messages call it too), so answers arrive even when no message does."""
+        self._advance(budget=HOLD_LIMIT)
+
+    def _advance(self, budget: int = DRAIN_PER_MESSAGE) -> None:
+        if self._job is not None:
+            outcome = self.runner.poll()
+            if outcome is None:
+                return
+            self._job = None
+            self._complete(outcome)
+        while self._held and self._job is None and budget > 0:
+            reading, stamp_ns = self._held.popleft()
+            self._ingest(reading, stamp_ns)
+            budget -= 1
+        if self._job is None and not self._held and self._requests:
+            self._submit('request')
+
+    def _hold(self, reading: np.ndarray, stamp_ns: int) -> None:
+        if len(self._held) >= HOLD_LIMIT:
+            self.hold_overflows += 1
+            self._ingest(*self._held.popleft())
+        self._held.append((reading, stamp_ns))
+
+    def _ingest(self, reading: np.ndarray, stamp_ns: int) -> None:
+        """Everything a reading teaches, in stream order (the held ones after the fit)."""
+        now = self.clock.advance(stamp_ns)
+        if self.calibration is not None:  # evidence judges a calibration: none yet, none needed
+            self._ingested += 1
+        if self.calibration is not None and self._ingested % HOLD_OUT_EVERY == 0:
+            self.evidence.add(reading, self._direction(reading), now)
+        else:
+            outcome = self.buffer.add(reading)
+            if outcome in self.refusals:
+                self.refusals[outcome] += 1
+            else:
+                self.scheduler.sample_added(self.buffer.fill == self.buffer.capacity)
+            if self._reference_source is not None:
+                self._check_reference()
+            if self.tracker is not None and self._teaches_tracker(reading):
+                self.tracker.update(reading)
+        if now >= self._next_periodic:
+            self._next_periodic = now + PERIODIC_S
+            self._update_centre()
+            self._check_fit(now)
+            self._check_tracking(now)
+        if self._job is None:
+            kind = self.scheduler.due(self._situation(now))
+            if kind is not None:
+                self._submit(kind)
+
+    def _direction(self, reading: np.ndarray) -> np.ndarray:
+        """Where a reading points from the field's centre, for filing it as evidence. The centre
+        comes from the buffer (its own fit, else the mean of its spread-out samples), never from
+        the calibration in force: a wrong calibration must not make all evidence look alike."""
+        if self._centre is None:
+            return reading
+        direction = reading - self._centre
+        return direction if np.any(direction) else reading
+
+    def _update_centre(self) -> None:
+        if self._reference_source == 'fit':
+            self._centre = self.buffer.reference.offset
+        elif self.buffer.fill >= 10:
+            self._centre = self.buffer.anchors.mean(axis=0)
+        else:
+            self._centre = None
+
+    def _situation(self, now: float) -> Situation:
+        settings = self.settings
+        return Situation(
+            now=now,
+            buffer_full=self.buffer.fill == self.buffer.capacity,
+            buffer_fill=self.buffer.fill,
+            calibrated=self.calibration is not None,
+            misfit=self.misfit.misfit,
+            auto_calibrate=settings.auto_calibrate,
+            auto_calibrate_period=settings.auto_calibrate_period,
+            refine=settings.refine,
+            refine_period=settings.refine_period,
+            min_samples=min(_DEFAULT_FIT.min_samples, settings.buffer_size),
+            request_waiting=bool(self._requests),
+        )
+
+    # -- fits ----------------------------------------------------------------------------------
+
+    def _submit(self, kind: str) -> None:
+        ticket = self._requests.popleft() if kind == 'request' else None
+        job = self._make_job(kind, ticket)
+        self.jobs_run[job.kind] = self.jobs_run.get(job.kind, 0) + 1
+        self._job, self._job_epoch = job, self._epoch
+        self.runner.submit(job)
+        outcome = self.runner.poll()  # an inline runner has it already
+        if outcome is not None:
+            self._job = None
+            self._complete(outcome)
+
+    def _make_job(self, kind: str, ticket: int | None) -> FitJob:
+        buffer = self.buffer
+        samples, weights, readings = buffer.samples, buffer.counts, buffer.readings
+        if kind == 'reference':
+            return FitJob('reference', samples, weights, readings, REFERENCE_OPTIONS,
+                          previous=self._provisional)
+        metadata = {**self.metadata, 'frame_id': self.screen.frame_id or ''}
+        evidence = self.evidence.readings() if self.calibration is not None else None
+        return FitJob(
+            'refine' if kind == 'refine' else 'calibrate', samples, weights, readings,
+            self.settings.fit_options(), metadata=metadata, current=self.calibration,
+            evidence=evidence, ticket=ticket,
+            ready_coverage=self.settings.min_coverage if kind == 'calibrate' else None,
+            reference=buffer.reference,
+        )
+
+    def _complete(self, outcome: JobOutcome) -> None:
+        job = outcome.job
+        if self._job_epoch != self._epoch:  # fitted to a buffer since reset
+            if job.ticket is not None:
+                self._answer(job.ticket, CalibrationAttempt(
+                    False, 'calibration abandoned: the buffer was reset while it ran', outcome))
+            return
+        if job.kind == 'reference':
+            self._reference_done(outcome)
+        elif job.ticket is not None:
+            self._request_done(outcome)
+        elif job.kind == 'calibrate':
+            self._auto_done(outcome)
+        else:
+            self._refine_done(outcome)
+
+    def _reference_done(self, outcome: JobOutcome) -> None:
+        fit = outcome.reference
+        self.scheduler.reference_done(fit is not None and fit.settled)
+        if fit is None:
+            return
+        self._provisional = fit.calibration
+        self._set_reference(fit.calibration, fit.tolerance, 'fit')
+
+    def _request_done(self, outcome: JobOutcome) -> None:
+        result = outcome.result
+        kept = ('; the previous calibration stays in force' if self.calibration is not None
+                else '; still uncalibrated')
+        if outcome.error or result is None:
+            attempt = CalibrationAttempt(False, f'calibration failed: {outcome.error}{kept}',
+                                         outcome)
+        elif result.success:
+            message = calibration_summary(result.calibration, self.units)
+            if outcome.comparison is not None and outcome.comparison.readings >= MIN_EVIDENCE:
+                comparison = outcome.comparison
+                message += (f'; on held-out readings {comparison.current_pct:.2f} % before, '
+                            f'{comparison.candidate_pct:.2f} % now')
+            attempt = CalibrationAttempt(True, message, outcome)
+            self._adopt(result.calibration, 'request')
+        else:
+            attempt = CalibrationAttempt(False, f'calibration failed: {result.reason}{kept}',
+                                         outcome)
+        self.last_attempt = attempt
+        self._answer(outcome.job.ticket, attempt)
+
+    def _answer(self, ticket: int, attempt: CalibrationAttempt) -> None:
+        level = 'info' if attempt.success else 'warning'
+        text = f'calibrated: {attempt.message}' if attempt.success else attempt.message
+        self._event(level, text, adopted=attempt.success, ticket=ticket, attempt=attempt)
+
+    def _auto_done(self, outcome: JobOutcome) -> None:
+        settings = self.settings
+        self.scheduler.calibrate_done(self.clock.now, outcome.fitted or bool(outcome.error),
+                                      settings.auto_calibrate_period)
+        if outcome.error:
+            self._event('warning', f'automatic calibration failed: {outcome.error}')
+            return
+        result = outcome.result
+        if result is None:
+            return  # not ready: coverage below min_coverage
+        if not result.success:
+            attempt = CalibrationAttempt(False, f'calibration failed: {result.reason}', outcome)
+            self.last_attempt = attempt
+            self._event('info', f'automatic calibration not yet: {result.reason}')
+            return
+        if self.calibration is not None and not self.misfit.misfit:
+            return  # calibrated meanwhile (a request or a file): refinement takes over
+        anew = self.calibration is not None
+        attempt = CalibrationAttempt(True, calibration_summary(result.calibration, self.units),
+                                     outcome)
+        self.last_attempt = attempt
+        self._adopt(result.calibration, 'auto')
+        what = 'recalibrated automatically' if anew else 'calibrated automatically'
+        self._event('info', f'{what}: {attempt.message}', adopted=True, attempt=attempt)
+
+    def _refine_done(self, outcome: JobOutcome) -> None:
+        result, comparison = outcome.result, outcome.comparison
+        current = self.calibration
+        judged = comparison is not None and math.isfinite(comparison.current_pct) and (
+            comparison.readings >= MIN_EVIDENCE)
+        adopted = False
+        if outcome.error:
+            self._event('warning', f'refinement failed: {outcome.error}')
+        elif (result is not None and result.success and comparison is not None
+              and comparison.better and current is outcome.job.current
+              and coverage_kept(current, result.calibration)):
+            candidate = result.calibration
+            before = _coverage_pct(current)
+            after = _coverage_pct(candidate)
+            self._adopt(candidate, 'refine')
+            adopted = True
+            self._event('info', f'refined: residual {comparison.current_pct:.2f} % -> '
+                                f'{comparison.candidate_pct:.2f} % on {comparison.readings} '
+                                f'held-out readings, coverage {before} -> {after} '
+                                f'({candidate.model})', adopted=True)
+        elif comparison is not None:
+            self._event('debug', f'refinement kept the calibration: {comparison.reason}')
+        self.scheduler.refine_done(judged, adopted)
+
+    def request_calibration(self) -> int:
+        """Ask for a fit of the buffer now (``~/calibrate``); the answer comes as an event with
+        this ticket. A fit that passes the gates goes in force."""
+        ticket = self._next_ticket
+        self._next_ticket += 1
+        self._requests.append(ticket)
+        self._advance()
+        return ticket
+
+    def calibrate_now(self, timeout_s: float = 60.0) -> CalibrationAttempt:
+        """Request a fit and wait for it (offline use: ``mag_calibrator_fit``, tests)."""
+        ticket = self.request_calibration()
+        deadline = time.monotonic() + timeout_s
+        while True:
+            for event in self._events:
+                if event.ticket == ticket and event.attempt is not None:
+                    return event.attempt
+            if time.monotonic() > deadline:
+                return CalibrationAttempt(False, f'calibration did not finish in {timeout_s} s')
+            time.sleep(0.001)
+            self.poll()
+
+    # -- the calibration in force --------------------------------------------------------------
+
+    def apply_calibration(self, calibration: Calibration, source: str = 'file') -> None:
+        """Put a calibration in force at once (a file, parameters)."""
+        self._adopt(calibration, source)
+
+    def _adopt(self, calibration: Calibration, source: str) -> None:
+        self.calibration = calibration
+        self.adoptions[source] = self.adoptions.get(source, 0) + 1
+        self.misfit.reset()
+        self.scheduler.calibration_changed()
+        if self._reference_source != 'fit':
+            self._set_reference(calibration, None, 'calibration')
+        self._restart_tracker()
+
+    def _set_reference(self, calibration: Calibration | None, tolerance: float | None,
+                       source: str | None) -> None:
+        if calibration is None:
+            self.buffer.set_reference(None)
+        elif tolerance is None:
+            self.buffer.set_reference(calibration)
+        else:
+            self.buffer.set_reference(calibration, tolerance, merge=source == 'fit')
+        self._reference_source = source if calibration is not None else None
+        self._reference_window = (0, 0)
+
+    def _check_reference(self) -> None:
+        """Set the buffer's reference aside once it refuses most of a window of readings."""
+        checked, outliers = self.buffer.reference_checks
+        start_checked, start_outliers = self._reference_window
+        window = checked - start_checked
+        if window < max(100, self.buffer.capacity):
+            return
+        refused = outliers - start_outliers
+        self._reference_window = (checked, outliers)
+        if refused <= STALE_SHARE * window:
+            return
+        source = self._reference_source
+        self._set_reference(None, None, None)
+        if source == 'fit':
+            self._provisional = None
+            self.scheduler.reference_done(False)
+        what = 'its own fit' if source == 'fit' else 'the calibration in force'
+        self._event('info', f'the buffer stopped screening by {what}: it refused {refused} of '
+                            f'the last {window} readings, so it no longer describes the sensor; '
+                            'collecting without it')
+
+    def _check_fit(self, now: float) -> None:
+        """Does the calibration in force still fit recent held-out readings?"""
+        calibration = self.calibration
+        if calibration is None:
+            return
+        recent = self.evidence.readings(since_s=now - MISFIT_WINDOW_S)
+        check = check_fit(calibration, recent, self.settings.max_residual_pct)
+        verdict = self.misfit.update(now, check)
+        if verdict == 'confirmed':
+            self._event('warning', self.misfit_text())
+            if self.settings.auto_calibrate:
+                self._collect_anew(now)
+        elif verdict == 'cleared':
+            self._event('info', f'the calibration in force fits the live data again (median '
+                                f'error {check.median_error_pct:.1f} %)')
+
+    def misfit_text(self) -> str:
+        """Why the calibration in force does not fit, and what happens about it."""
+        check = self.misfit.last
+        if check is None or not check.judged:
+            return ''
+        measured = format_field(check.measured_field, self.units)
+        expected = format_field(check.expected_field, self.units)
+        action = ('collecting to calibrate anew (auto_calibrate)' if self.settings.auto_calibrate
+                  else 'call ~/reset then ~/calibrate, or set auto_calibrate')
+        return (f'calibration does not fit the live data: |B| {measured} vs {expected} '
+                f'expected (median error {check.median_error_pct:.1f} % over the last '
+                f'{MISFIT_WINDOW_S:.0f} s, {100 * check.span:.0f} % of the directions) - other '
+                f'sensor, new payload, or a magnet nearby? {action}')
+
+    def _collect_anew(self, now: float) -> None:
+        """After a misfit: forget samples and evidence from before it, keep the calibration."""
+        self.buffer.clear()
+        self.evidence.forget_before(now - MISFIT_WINDOW_S)
+        self.scheduler.reset()
+        self._provisional = None
+        self._set_reference(None, None, None)
+
+    # -- online tracking -----------------------------------------------------------------------
+
+    def _restart_tracker(self) -> None:
+        self._last_taught = None
+        self._last_tracking_check = None
+        if self.settings.online_tracking and self.calibration is not None:
+            self.tracker = OnlineTracker(self.calibration)
+        else:
+            self.tracker = None
+
+    def _teaches_tracker(self, reading: np.ndarray) -> bool:
         """Whether this reading points somewhere new (see TRACKING_MIN_SEPARATION_DEG)."""
-        direction = self.calibration.apply(field_t)
+        direction = self.calibration.apply(reading)
         norm = float(np.linalg.norm(direction))
         if not norm > 0.0:
             return False
@@ -311,157 +751,98 @@ class CalibrationSession:
         self._last_taught = direction
         return True
 
-    def correct(self, field_t: np.ndarray) -> np.ndarray | None:
-        """The corrected field, or None while no calibration is in force."""
-        if self.calibration is None:
-            return None
-        return self.calibration.apply(field_t)
+    def _check_tracking(self, now: float) -> None:
+        """Step towards the tracked calibration when it is better on held-out readings."""
+        if self.tracker is None or self.calibration is None:
+            return
+        last, self._last_tracking_check = self._last_tracking_check, now
+        if last is None or now <= last:
+            return
+        candidate = self.tracker.calibration
+        comparison = compare_on_evidence(self.calibration, candidate, self.evidence.readings())
+        if not (comparison.better and comparison.candidate_pct
+                < self.settings.tracking_improvement * comparison.current_pct):
+            return
+        try:
+            stepped = bounded_step(
+                self.calibration, candidate, self.settings.tracking_max_change_rate * (now - last)
+            )
+        except CalibrationError:
+            return
+        self.calibration = stepped
+        self.tracked_updates += 1
+        if self._reference_source == 'calibration':
+            self._set_reference(stepped, None, 'calibration')
 
-    # -- state and calibration -----------------------------------------------------------------
+    # -- state, reset --------------------------------------------------------------------------
 
     @property
     def state(self) -> str:
-        if self.calibration is not None:
+        if self.calibration is None:
+            return 'collecting' if self.buffer.fill > 0 else 'uncalibrated'
+        if self.misfit.misfit:
+            return 'calibrated-misfit'
+        if not self.settings.refine:
             return 'calibrated'
-        return 'collecting' if self.buffer.fill > 0 else 'uncalibrated'
+        return 'calibrated-converged' if self.scheduler.converged else 'calibrated-refining'
 
-    def apply_calibration(self, calibration: Calibration) -> None:
-        """Put a calibration in force at once (fit, file or parameters)."""
-        self.calibration = calibration
-        self.buffer.set_reference(calibration)
-        residual = calibration.metadata.get('residual_rms_pct')
-        self.last_residual_pct = float(residual) if residual is not None else None
-        self._restart_tracker()
-
-    def _restart_tracker(self) -> None:
-        self._recent.clear()
-        self._last_taught = None
-        self._last_tracking_check = None
-        if self.settings.online_tracking and self.calibration is not None:
-            self.tracker = OnlineTracker(self.calibration)
-        else:
-            self.tracker = None
-
-    def calibrate(self) -> CalibrationAttempt:
-        """Fit the buffer; apply on success, keep the previous calibration on failure."""
-        # counts: how many readings each buffered point averages (SampleBuffer merging);
-        # readings: recent raw readings, so coverage can tell a noise rim from the field sphere
-        result = fit_calibration(
-            self.buffer.samples,
-            self.settings.fit_options(),
-            weights=self.buffer.counts,
-            readings=self.buffer.readings,
-        )
-        metrics = result.metrics.as_dict()
-        if result.success and result.calibration is not None:
-            calibration = result.calibration.with_metadata(
-                residual_rms_pct=float(result.metrics.residual_rms_pct),
-                coverage=float(result.metrics.coverage),
-                time=time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()),
-                frame_id=self.frame_id or '',
-                units='T',
-            )
-            self.apply_calibration(calibration)
-            attempt = CalibrationAttempt(True, calibration_summary(calibration, metrics), result)
-        else:
-            kept = ('; the previous calibration stays in force' if self.calibration is not None
-                    else '; still uncalibrated')
-            message = f'calibration failed: {result.reason}{kept}'
-            attempt = CalibrationAttempt(False, message, result)
-        self.last_attempt = attempt
-        return attempt
+    @property
+    def last_residual_pct(self) -> float | None:
+        residual = None if self.calibration is None else self.calibration.metadata.get(
+            'residual_rms_pct')
+        return None if residual is None else float(residual)
 
     def reset(self) -> None:
-        """Empty the buffer and forget the stream's frame and stamps (a new sensor may follow)."""
+        """Empty the buffer and evidence, forget the stream's frame and stamps (a new sensor may
+        follow); the calibration in force stays. A fit running now is abandoned."""
         self.buffer.clear()
-        self.frame_id = None
-        self._last_stamp_ns = None
-        self._recent.clear()
-        self._last_taught = None
+        self.evidence.clear()
+        self.screen.reset()
+        self.scheduler.reset()
+        self.misfit.reset()
+        self._held.clear()
+        self._epoch += 1
+        self._provisional = None
+        self._set_reference(self.calibration, None, 'calibration' if self.calibration else None)
+        self._restart_tracker()
 
-    def maybe_auto_calibrate(self, now: float) -> CalibrationAttempt | None:
-        """Calibrate by itself once the buffer looks ready, at most every auto_calibrate_period.
-
-        Only while uncalibrated: a calibration in force is changed by ~/calibrate or, slowly, by
-        online tracking, never replaced behind the user's back.
-        """
-        settings = self.settings
-        if not settings.auto_calibrate or self.calibration is not None:
-            return None
-        if now - self._last_auto_attempt < settings.auto_calibrate_period:
-            return None
-        if self.buffer.fill < min(_DEFAULT_FIT.min_samples, settings.buffer_size):
-            return None
-        if self.buffer.coverage().fraction < settings.min_coverage:
-            return None
-        self._last_auto_attempt = now
-        return self.calibrate()
-
-    def maybe_adopt_tracked(self, now: float) -> bool:
-        """Adopt the tracker's calibration if clearly better on recent data, by a bounded step."""
-        if self.tracker is None or self.calibration is None:
-            return False
-        if self._last_tracking_check is None:
-            self._last_tracking_check = now
-            return False
-        elapsed = now - self._last_tracking_check
-        if elapsed <= 0.0:
-            return False
-        self._last_tracking_check = now
-        if len(self._recent) < TRACKING_MIN_SAMPLES:
-            return False
-        recent = np.array(self._recent)
-        if direction_coverage(recent, self.calibration).fraction < TRACKING_MIN_COVERAGE:
-            return False
-        current_residual = magnitude_residual_pct(self.calibration, recent)
-        candidate = self.tracker.calibration
-        candidate_residual = magnitude_residual_pct(candidate, recent)
-        if not candidate_residual < self.settings.tracking_improvement * current_residual:
-            return False
-        try:
-            stepped = bounded_step(
-                self.calibration, candidate, self.settings.tracking_max_change_rate * elapsed
-            )
-        except CalibrationError:
-            return False
-        self.calibration = stepped
-        self.buffer.set_reference(stepped)
-        self.last_residual_pct = magnitude_residual_pct(stepped, recent)
-        self.tracked_updates += 1
-        return True
-
-    # -- persistence ---------------------------------------------------------------------------
-
-    def load(self, path: str | Path) -> str:
-        """Load and apply the file; raises CalibrationFileError (message names the problem)."""
-        calibration = load_calibration(Path(path).expanduser())
-        self.apply_calibration(calibration)
-        return f'loaded {Path(path).expanduser()}: {calibration_summary(calibration, None)}'
-
-    def save(self, path: str | Path) -> str:
-        """Write the calibration in force atomically; raises ValueError/OSError when impossible."""
-        if self.calibration is None:
-            raise ValueError('nothing to save: no calibration in force (call ~/calibrate first)')
-        target = Path(path).expanduser()
-        save_calibration(target, self.calibration)
-        return f'saved to {target}'
+    def feed(self, samples: np.ndarray, rate_hz: float = 100.0, start_ns: int = 0,
+             frame_id: str = '') -> None:
+        """Stream recorded rows through ``process`` with stamps at ``rate_hz`` (offline use)."""
+        step = 1e9 / rate_hz
+        for index, row in enumerate(np.asarray(samples, dtype=float).tolist()):
+            self.process(start_ns + round(index * step), frame_id, row)
 
     # -- reporting -----------------------------------------------------------------------------
 
-    def rejects(self) -> dict[str, int]:
-        """Screening counters plus the buffer's own (duplicates, magnitude outliers)."""
-        counts = dict(self.screen_rejects)
-        for reason, count in self.buffer.rejects.items():
-            counts[reason] = counts.get(reason, 0) + int(count)
-        return counts
+    def take_events(self) -> list[SessionEvent]:
+        """What the session decided since the last call, oldest first."""
+        events = list(self._events)
+        self._events.clear()
+        return events
 
-    def progress_text(self) -> str:
+    def _event(self, level: str, message: str, **kwargs) -> None:
+        self._events.append(SessionEvent(level, message, **kwargs))
+
+    @property
+    def has_events(self) -> bool:
+        return bool(self._events)
+
+    def rejects(self) -> dict[str, int]:
+        """Every refusal by reason: screening, then duplicates and magnitude outliers."""
+        return {**self.screen.counts, **self.refusals}
+
+    def coverage(self) -> Coverage:
+        """The buffer's direction coverage now (milliseconds: call at the reporting rate)."""
+        return self.buffer.coverage()
+
+    def progress_text(self, coverage: Coverage | None = None) -> str:
         """What to do next, e.g. 'coverage 63 % - keep rotating about the pitch axis (y)'."""
-        coverage = self.buffer.coverage()
+        coverage = coverage or self.coverage()
         fill = f'buffer {self.buffer.fill}/{self.buffer.capacity}'
         text = f'coverage {100.0 * coverage.fraction:.0f} %'
         if self.calibration is not None:
-            return f'calibrated ({self.calibration.model}); {text}, {fill}'
+            return f'{self.state} ({self.calibration.model}); {text}, {fill}'
         if coverage.fraction < self.settings.min_coverage:
             hint = coverage.hint or 'keep rotating the sensor through every orientation'
             return f'{text} \u2014 {hint}; {fill}'
@@ -470,52 +851,73 @@ class CalibrationSession:
         return f'{text}, {fill} \u2014 enough to calibrate: call ~/calibrate'
 
     def new_screen_rejects(self) -> dict[str, int]:
-        """Messages refused since the previous call, by reason (only reasons that occurred)."""
+        """Messages refused by screening since the previous call, by reason (those that
+        occurred)."""
+        counts = self.screen.counts
         new = {reason: count - self._reported_rejects[reason]
-               for reason, count in self.screen_rejects.items()
-               if count > self._reported_rejects[reason]}
-        self._reported_rejects = dict(self.screen_rejects)
+               for reason, count in counts.items() if count > self._reported_rejects[reason]}
+        self._reported_rejects = dict(counts)
         return new
 
-    def diagnostic_values(self, now: float) -> dict[str, object]:
-        """Key/values for /diagnostics; read once per diagnostics period (updates the rate)."""
-        coverage = self.buffer.coverage()
+    def diagnostic_values(self, now: float, coverage: Coverage | None = None
+                          ) -> dict[str, object]:
+        """Key/values for /diagnostics, plain numbers and strings; read once per diagnostics
+        period (updates the input rate)."""
+        coverage = coverage or self.coverage()
+        calibration = self.calibration
         values: dict[str, object] = {
             'state': self.state,
-            'coverage_pct': round(100.0 * coverage.fraction, 1),
+            'coverage_pct': round(100.0 * float(coverage.fraction), 1),
             'coverage_hint': coverage.hint,
-            'buffer_fill': self.buffer.fill,
-            'buffer_capacity': self.buffer.capacity,
-            'relative_knn_distance': float(self.buffer.relative_knn_distance),
+            'buffer_fill': int(self.buffer.fill),
+            'buffer_capacity': int(self.buffer.capacity),
+            'relative_knn_distance': round(float(self.buffer.relative_knn_distance), 5),
+            'held_out_readings': len(self.evidence),
             'input_rate_hz': round(self.input_rate.read(now), 2),
-            'messages_accepted': self.accepted,
-            'frame_id': self.frame_id or '',
+            'messages_accepted': int(self.accepted),
+            'frame_id': self.screen.frame_id or '',
             'last_residual_pct': ('' if self.last_residual_pct is None
                                   else round(self.last_residual_pct, 3)),
             'last_calibrate': '' if self.last_attempt is None else self.last_attempt.message,
+            'fits': ', '.join(f'{kind} {count}' for kind, count in sorted(self.jobs_run.items())),
+            'adopted': ', '.join(f'{source} {count}'
+                                 for source, count in sorted(self.adoptions.items())),
         }
-        values.update({f'rejected_{k}': v for k, v in self.rejects().items()})
-        if self.calibration is not None:
-            values['model'] = self.calibration.model
-            values['offset_uT'] = [round(v * TESLA_TO_MICROTESLA, 3)
-                                   for v in self.calibration.offset]
-            values['field_strength_uT'] = round(
-                self.calibration.field_strength * TESLA_TO_MICROTESLA, 3)
+        values.update({f'rejected_{k}': int(v) for k, v in self.rejects().items()})
+        check = self.misfit.last
+        if check is not None and check.judged:
+            values['live_median_error_pct'] = round(check.median_error_pct, 2)
+        if calibration is not None:
+            scale = TESLA_TO_MICROTESLA if self.units == 'T' else 1.0
+            unit = display_units(self.units)
+            values['model'] = calibration.model
+            values[f'offset_{unit}'] = [round(float(v) * scale, 3) for v in calibration.offset]
+            values[f'field_strength_{unit}'] = round(float(calibration.field_strength) * scale, 3)
         if self.tracker is not None:
             values['tracked_updates'] = self.tracked_updates
+        if self.hold_overflows:
+            values['hold_overflows'] = self.hold_overflows
         return values
+
+
+def _coverage_pct(calibration: Calibration) -> str:
+    coverage = calibration.metadata.get('coverage')
+    return '?' if coverage is None else f'{100.0 * float(coverage):.0f} %'
 
 
 __all__ = [
     'AK09916_FULL_SCALE_T',
+    'REFUSAL_REASONS',
     'SCREEN_REASONS',
     'STATES',
     'CalibrationAttempt',
-    'CalibrationFileError',
     'CalibrationSession',
+    'Processed',
+    'SessionEvent',
     'SessionSettings',
     'bounded_step',
     'calibration_summary',
+    'coverage_kept',
     'magnitude_residual_pct',
     'transform_covariance',
 ]

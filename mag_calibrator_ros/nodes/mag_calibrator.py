@@ -1,28 +1,34 @@
 """``mag_calibrator`` node: raw ``imu/mag`` in, ``imu/mag_corrected`` out, services to calibrate.
 
-Wiring only: parameters, the subscription, the publisher, four std_srvs/Trigger services and the
-diagnostics timer. Every decision (screening, buffer, fits, auto-calibration, online tracking,
-progress text) lives in :class:`~mag_calibrator_ros.calibration.session.CalibrationSession`.
+Wiring only: parameters, the subscription, the publisher, four std_srvs/Trigger services, a poll
+timer and the diagnostics timer. Every decision (screening, buffer, when to fit and whether to
+adopt, misfit detection, online tracking, progress text) lives in
+:class:`~mag_calibrator_ros.calibration.session.CalibrationSession`; its fits run in a worker
+process (``ProcessRunner``) and file I/O on a thread, so the message callback never waits for
+either.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import fields
 import math
 from pathlib import Path
+from queue import SimpleQueue
 import time
 
-import numpy as np
 from rcl_interfaces.msg import (
     FloatingPointRange,
     IntegerRange,
     ParameterDescriptor,
     SetParametersResult,
 )
+from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
+from rclpy.task import Future
 from sensor_msgs.msg import MagneticField
 from std_srvs.srv import Trigger
 
@@ -30,11 +36,16 @@ from mag_calibrator_ros.calibration.calibration import Calibration, CalibrationE
 from mag_calibrator_ros.calibration.calibration_file import (
     CalibrationFileError,
     calibration_from_parameters,
+    load_calibration,
+    save_calibration,
 )
+from mag_calibrator_ros.calibration.coverage import Coverage
+from mag_calibrator_ros.calibration.jobs import ProcessRunner
 from mag_calibrator_ros.calibration.session import (
     FITTABLE_MODELS,
     CalibrationSession,
     SessionSettings,
+    calibration_summary,
     transform_covariance,
 )
 from mag_calibrator_ros.nodes.diagnostics import (
@@ -49,6 +60,11 @@ from mag_calibrator_ros.nodes.runtime import spin_node
 NODE_NAME = 'mag_calibrator'
 DEFAULT_CALIBRATION_FILE = '~/.ros/mag_calibrator/calibration.yaml'
 DIAGNOSTICS_PERIOD_S = 1.0
+POLL_PERIOD_S = 0.05
+"""How often finished fits and file operations are collected (service answers wait at most
+about this long once the work is done)."""
+AUTO_SAVE_MIN_INTERVAL_S = 10.0
+"""auto_save writes at most this often; a calibration adopted meanwhile is saved afterwards."""
 INPUT_QOS = QoSProfile(
     history=qos_profile_sensor_data.history,
     depth=100,  # sensor-data QoS (best effort, REP-2003) with room for bursts at 1 kHz
@@ -89,11 +105,19 @@ PARAMETERS: dict[str, tuple[object, str, dict]] = {
                    'Tesla; a component at or beyond it is saturated and refused (0 = no check).',
                    {'floating_point_range': _float_range(0.0, 1.0)}),
     'auto_calibrate': (DEFAULTS.auto_calibrate,
-                       'While uncalibrated, calibrate by itself once coverage and fit pass the '
-                       'gates.', {}),
+                       'Calibrate by itself while uncalibrated, and anew when the calibration in '
+                       'force no longer fits the live data.', {}),
     'auto_calibrate_period': (DEFAULTS.auto_calibrate_period,
-                              'Seconds between automatic calibration attempts.',
+                              'Seconds (of message stamps) between automatic fits that failed '
+                              'their gates.',
                               {'floating_point_range': _float_range(0.5, 3600.0)}),
+    'refine': (DEFAULTS.refine,
+               'After calibrating, keep fitting and adopt a fit only when it is better on '
+               'held-out readings and covers no fewer directions.', {}),
+    'refine_period': (DEFAULTS.refine_period,
+                      'Seconds (of message stamps) between refinement fits; doubles up to 8x '
+                      'once the calibration has converged.',
+                      {'floating_point_range': _float_range(1.0, 3600.0)}),
     'online_tracking': (DEFAULTS.online_tracking,
                         'After a calibration, follow slow drift; a tracked calibration is adopted '
                         'only when clearly better, by bounded steps.', {}),
@@ -108,7 +132,8 @@ PARAMETERS: dict[str, tuple[object, str, dict]] = {
     'publish_uncalibrated': (False,
                              'Publish imu/mag_corrected as the raw field while no calibration '
                              'exists.', {}),
-    'auto_save': (False, 'Save to calibration_file after every successful calibration.', {}),
+    'auto_save': (False, 'Save to calibration_file whenever a new calibration goes in force '
+                         '(at most every 10 s; atomic).', {}),
     'calibration_file': (DEFAULT_CALIBRATION_FILE,
                          'Calibration YAML (ROS params format): loaded at start-up and by ~/load, '
                          'written by ~/save.', {}),
@@ -141,9 +166,18 @@ class MagCalibratorNode(Node):
                 name, default, ParameterDescriptor(description=description, **extras)
             )
         startup_calibration = self._declare_calibration_parameters()
-        self.session = CalibrationSession(self._settings_from(self._current_values()))
+        runner = ProcessRunner()
+        runner.start()  # the worker imports the fitting stack while the node starts up
+        self.session = CalibrationSession(self._settings_from(self._current_values()),
+                                          runner=runner)
+        self._io = ThreadPoolExecutor(max_workers=1, thread_name_prefix='mag_calibrator_io')
+        self._io_results: SimpleQueue = SimpleQueue()  # (rclpy Future, result) from the I/O thread
+        self._requests: dict[int, Future] = {}  # ~/calibrate tickets waiting for their answer
         self._problem: str | None = None  # a calibration file/parameter error, shown as ERROR
         self._last_progress_log = -math.inf
+        self._save_wanted = False
+        self._saving = False
+        self._last_auto_save = -math.inf
         self._startup(startup_calibration)
 
         self.add_on_set_parameters_callback(self._validate_parameters)
@@ -152,12 +186,21 @@ class MagCalibratorNode(Node):
             MagneticField, 'imu/mag_corrected', QoSProfile(depth=10)
         )
         self.create_subscription(MagneticField, 'imu/mag', self._on_mag, INPUT_QOS)
-        self.create_service(Trigger, '~/calibrate', self._on_calibrate)
-        self.create_service(Trigger, '~/save', self._on_save)
-        self.create_service(Trigger, '~/reset', self._on_reset)
-        self.create_service(Trigger, '~/load', self._on_load)
+        # The services wait for the fit worker and the I/O thread without blocking the executor;
+        # a waiting service must not hold the default (mutually exclusive) group, or the poll
+        # timer that completes it could never run.
+        waiting = ReentrantCallbackGroup()
+        for name, callback in (('~/calibrate', self._on_calibrate), ('~/save', self._on_save),
+                               ('~/reset', self._on_reset), ('~/load', self._on_load)):
+            self.create_service(Trigger, name, callback, callback_group=waiting)
         self._diagnostics = DiagnosticsPublisher(self)
+        self.create_timer(POLL_PERIOD_S, self._on_poll)
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._on_tick)
+
+    def destroy_node(self) -> None:
+        self.session.close()
+        self._io.shutdown(wait=True)
+        super().destroy_node()
 
     # -- parameters ------------------------------------------------------------------------------
 
@@ -219,20 +262,19 @@ class MagCalibratorNode(Node):
             except (CalibrationError, ValueError, TypeError) as error:
                 self._report_problem(f'calibration.* parameters unusable: {error}')
             else:
-                self.session.apply_calibration(calibration)
+                self.session.apply_calibration(calibration, 'parameters')
                 self.get_logger().info(
-                    f'calibration from parameters: model {calibration.model}, offset '
-                    f'{np.round(calibration.offset * 1e6, 2).tolist()} uT'
-                )
+                    f'calibration from parameters: {calibration_summary(calibration)}')
             return
         path = self._calibration_file()
-        if not path.exists():
+        loaded = _read_calibration(path)
+        if loaded is None:
             self.get_logger().info(
                 f'no calibration file at {path} yet: uncalibrated until ~/calibrate '
                 f'(auto_calibrate={self.get_parameter("auto_calibrate").value})'
             )
             return
-        self._load_file()
+        self._loaded(path, loaded)
 
     @staticmethod
     def _calibration_from(parameters: dict[str, object]) -> Calibration:
@@ -249,13 +291,14 @@ class MagCalibratorNode(Node):
             metadata=metadata,
         )
 
-    def _load_file(self) -> tuple[bool, str]:
-        try:
-            message = self.session.load(self._calibration_file())
-        except (CalibrationFileError, CalibrationError, OSError) as error:
+    def _loaded(self, path: Path, loaded: Calibration | Exception) -> tuple[bool, str]:
+        """Put a calibration read from ``path`` in force, or report why it could not be."""
+        if isinstance(loaded, Exception):
             return False, self._report_problem(
-                f'{error}; the calibration in force is unchanged (state {self.session.state})')
+                f'{loaded}; the calibration in force is unchanged (state {self.session.state})')
+        self.session.apply_calibration(loaded, 'file')
         self._problem = None
+        message = f'loaded {path}: {calibration_summary(loaded)}'
         self.get_logger().info(message)
         return True, message
 
@@ -267,52 +310,100 @@ class MagCalibratorNode(Node):
     # -- stream ----------------------------------------------------------------------------------
 
     def _on_mag(self, msg: MagneticField) -> None:
-        field = np.array([msg.magnetic_field.x, msg.magnetic_field.y, msg.magnetic_field.z])
+        field = msg.magnetic_field
         stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-        if self.session.ingest(stamp_ns, msg.header.frame_id, field) is not None:
-            return
-        corrected = self.session.correct(field)
-        if corrected is None:
-            if self.get_parameter('publish_uncalibrated').value:
-                self._publisher.publish(msg)
-            return
-        out = MagneticField(header=msg.header)
-        out.magnetic_field.x, out.magnetic_field.y, out.magnetic_field.z = corrected.tolist()
-        out.magnetic_field_covariance = transform_covariance(
-            self.session.calibration.matrix, msg.magnetic_field_covariance
-        )
-        self._publisher.publish(out)
+        frame = msg.header.frame_id
+        processed = self.session.process(stamp_ns, frame, (field.x, field.y, field.z))
+        if processed.corrected is not None:
+            out = MagneticField(header=msg.header)
+            out.magnetic_field.x, out.magnetic_field.y, out.magnetic_field.z = (
+                processed.corrected.tolist())
+            out.magnetic_field_covariance = transform_covariance(
+                processed.calibration.matrix, msg.magnetic_field_covariance
+            )
+            self._publisher.publish(out)
+        elif processed.accepted and self.get_parameter('publish_uncalibrated').value:
+            self._publisher.publish(msg)
+        if self.session.has_events:
+            self._handle_events()
+
+    # -- what the session decided -----------------------------------------------------------------
+
+    def _on_poll(self) -> None:
+        """Collect finished fits and file operations; answer waiting services; auto-save."""
+        self.session.poll()
+        while not self._io_results.empty():
+            future, result = self._io_results.get()
+            future.set_result(result)
+        if self.session.has_events:
+            self._handle_events()
+        if self._save_wanted and not self._saving and (
+                time.monotonic() - self._last_auto_save >= AUTO_SAVE_MIN_INTERVAL_S):
+            self._save_wanted = False
+            self._last_auto_save = time.monotonic()
+            self._saving = True
+            self._run_io(self._save_file).add_done_callback(
+                lambda future: self._auto_saved(future.result()))
+
+    def _handle_events(self) -> None:
+        logger = self.get_logger()
+        for event in self.session.take_events():
+            log = {'info': logger.info, 'warning': logger.warning}.get(event.level, logger.debug)
+            log(event.message)
+            if event.adopted:
+                self._problem = None
+                self._save_wanted = bool(self.get_parameter('auto_save').value)
+            request = self._requests.pop(event.ticket, None)
+            if request is not None:
+                request.set_result(event.attempt)
+
+    def _run_io(self, work: Callable[[], object]) -> Future:
+        """Run ``work`` on the I/O thread; the Future completes on the executor thread (from the
+        poll timer) with its result, or with the exception it raised."""
+        future = Future()
+
+        def run() -> None:
+            try:
+                result = work()
+            except Exception as error:  # noqa: BLE001 - reported, never raised into the executor
+                result = error
+            self._io_results.put((future, result))
+
+        self._io.submit(run)
+        return future
 
     # -- services --------------------------------------------------------------------------------
 
-    def _on_calibrate(self, request: Trigger.Request, response: Trigger.Response):
-        attempt = self.session.calibrate()
+    async def _on_calibrate(self, request: Trigger.Request, response: Trigger.Response):
+        waiting = Future()
+        self._requests[self.session.request_calibration()] = waiting
+        self._handle_events()  # an immediate answer (nothing to wait for)
+        attempt = await waiting
         response.success, response.message = attempt.success, attempt.message
-        if attempt.success:
-            self._problem = None
-            self.get_logger().info(f'calibrated: {attempt.message}')
-            response.message += self._auto_save()
-        else:
-            self.get_logger().warning(attempt.message)
         return response
 
-    def _auto_save(self) -> str:
-        if not self.get_parameter('auto_save').value:
-            return ''
-        success, message = self._save()
-        return f'; {message}' if success else f'; auto_save failed: {message}'
+    def _save_file(self) -> str:
+        """On the I/O thread: write the calibration in force (it is immutable)."""
+        calibration = self.session.calibration
+        if calibration is None:
+            raise ValueError('nothing to save: no calibration in force (call ~/calibrate first)')
+        path = self._calibration_file()
+        save_calibration(path, calibration)
+        return f'saved to {path}'
 
-    def _save(self) -> tuple[bool, str]:
-        try:
-            message = self.session.save(self._calibration_file())
-        except (ValueError, OSError) as error:
-            self.get_logger().warning(f'save failed: {error}')
-            return False, str(error)
-        self.get_logger().info(message)
-        return True, message
+    def _auto_saved(self, result: object) -> None:
+        self._saving = False
+        if isinstance(result, Exception):
+            self.get_logger().warning(f'auto_save failed: {result}')
+        else:
+            self.get_logger().info(f'auto_save: {result}')
 
-    def _on_save(self, request: Trigger.Request, response: Trigger.Response):
-        response.success, response.message = self._save()
+    async def _on_save(self, request: Trigger.Request, response: Trigger.Response):
+        result = await self._run_io(self._save_file)
+        response.success = not isinstance(result, Exception)
+        response.message = str(result)
+        (self.get_logger().info if response.success else self.get_logger().warning)(
+            response.message if response.success else f'save failed: {result}')
         return response
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response):
@@ -323,42 +414,34 @@ class MagCalibratorNode(Node):
         self.get_logger().info(response.message)
         return response
 
-    def _on_load(self, request: Trigger.Request, response: Trigger.Response):
+    async def _on_load(self, request: Trigger.Request, response: Trigger.Response):
         path = self._calibration_file()
-        if not path.exists():
+        loaded = await self._run_io(lambda: _read_calibration(path))
+        if loaded is None:
             response.success = False
             response.message = f'no calibration file at {path}; the calibration in force stays'
-            return response
-        response.success, response.message = self._load_file()
+        else:
+            response.success, response.message = self._loaded(path, loaded)
         return response
 
     # -- once per second -------------------------------------------------------------------------
 
     def _on_tick(self) -> None:
         now = time.monotonic()
-        attempt = self.session.maybe_auto_calibrate(now)
-        if attempt is not None:
-            if attempt.success:
-                self._problem = None
-                self.get_logger().info(f'calibrated automatically: {attempt.message}'
-                                       f'{self._auto_save()}')
-            else:
-                self.get_logger().info(f'automatic calibration not yet: {attempt.message}')
-        if self.session.maybe_adopt_tracked(now):
-            self.get_logger().debug('adopted a step of the online-tracked calibration')
-        self._log_progress(now)
-        self._publish_diagnostics(now)
+        coverage = self.session.coverage()
+        self._log_progress(now, coverage)
+        self._publish_diagnostics(now, coverage)
 
-    def _log_progress(self, now: float) -> None:
+    def _log_progress(self, now: float, coverage: Coverage) -> None:
         period = float(self.get_parameter('progress_log_period').value)
         if period <= 0.0 or self.session.calibration is not None:
             return
         if now - self._last_progress_log >= period:
             self._last_progress_log = now
-            self.get_logger().info(self.session.progress_text())
+            self.get_logger().info(self.session.progress_text(coverage))
 
-    def _publish_diagnostics(self, now: float) -> None:
-        values = self.session.diagnostic_values(now)
+    def _publish_diagnostics(self, now: float, coverage: Coverage) -> None:
+        values = self.session.diagnostic_values(now, coverage)
         values['calibration_file'] = str(self._calibration_file())
         state = self.session.state
         if self._problem is not None:
@@ -366,17 +449,30 @@ class MagCalibratorNode(Node):
         elif refused := self.session.new_screen_rejects():
             counts = ', '.join(f'{reason} {count}' for reason, count in refused.items())
             level, message = WARN, f'{state}: input messages refused since last report: {counts}'
-        elif state == 'calibrated':
-            level, message = OK, self.session.progress_text()
+        elif state == 'calibrated-misfit':
+            level, message = WARN, self.session.misfit_text()
+        elif state.startswith('calibrated'):
+            level, message = OK, self.session.progress_text(coverage)
         elif values['input_rate_hz'] == 0.0:
             level, message = WARN, f'{state}: no input on {self.resolve_topic_name("imu/mag")}'
         else:
-            level, message = WARN, f'{state}: {self.session.progress_text()}'
-        hardware_id = self.session.frame_id or self.get_fully_qualified_name()
+            level, message = WARN, f'{state}: {self.session.progress_text(coverage)}'
+        hardware_id = self.session.screen.frame_id or self.get_fully_qualified_name()
         self._diagnostics.publish([
             diagnostic_status(f'{self.get_name()}: calibration', hardware_id, level, message,
                               values)
         ])
+
+
+def _read_calibration(path: Path) -> Calibration | Exception | None:
+    """Load a calibration file: None when there is none, any failure as the exception
+    (reported, never raised)."""
+    try:
+        if not path.exists():
+            return None
+        return load_calibration(path)
+    except (CalibrationFileError, CalibrationError, OSError, ValueError) as error:
+        return error
 
 
 def main(args: Sequence[str] | None = None) -> int:

@@ -1,9 +1,10 @@
 """``mag_calibrator_fit``: calibrate a magnetometer offline from a recording.
 
 The recording (text or rosbag2, see :mod:`mag_calibrator_ros.tools.recordings`) is streamed through
-a :class:`SampleBuffer` and the buffer is fitted exactly as the calibrator node does on
-``~/calibrate`` (so an offline result predicts what the robot will get), or, with ``--all``,
-every sample is fitted. The calibration is in the recording's own units.
+the calibrator node's own :class:`CalibrationSession` (sample buffer, its reference fits,
+automatic calibration and refinement, at the same readings as the node) and the buffer is then
+fitted as the node does on ``~/calibrate``, so an offline result predicts what the robot gets;
+or, with ``--all``, every sample is fitted. The calibration is in the recording's own units.
 
 Exit codes: 0 calibrated; 1 the fit failed a quality gate (the best-effort numbers are printed,
 marked NOT passing, and no calibration file is written: a robot must never load a calibration
@@ -20,21 +21,20 @@ import math
 import os
 from pathlib import Path
 import sys
-import time
 from typing import Any, NoReturn, TextIO
 
 import numpy as np
 
-from mag_calibrator_ros.calibration.buffer import (
-    DEFAULT_CAPACITY,
-    DEFAULT_K,
-    REJECT_REASONS,
-    SampleBuffer,
-    reading_problem,
-)
+from mag_calibrator_ros.calibration.buffer import DEFAULT_CAPACITY, DEFAULT_K
 from mag_calibrator_ros.calibration.calibration import MODELS, Calibration
 from mag_calibrator_ros.calibration.calibration_file import CalibrationFileError, save_calibration
-from mag_calibrator_ros.calibration.fitting import FitOptions, FitResult, fit_calibration
+from mag_calibrator_ros.calibration.fitting import FitOptions, FitResult
+from mag_calibrator_ros.calibration.jobs import FitJob, run_job
+from mag_calibrator_ros.calibration.screening import VALUE_REASONS, reading_problem
+from mag_calibrator_ros.calibration.session import (
+    CalibrationSession,
+    SessionSettings,
+)
 from mag_calibrator_ros.tools.recordings import (
     Recording,
     RecordingError,
@@ -53,6 +53,7 @@ PROGRESS_MIN_ROWS = 20_000
 """Streaming fewer rows than this through the buffer takes well under a second: no bar."""
 PROGRESS_MIN_BYTES = 1 << 20
 PROGRESS_CHUNK = 2048
+DEFAULT_RATE_HZ = 100.0
 REJECT_WORDS = {
     'non_finite': 'NaN/Inf',
     'zero': 'all-zero',
@@ -117,8 +118,9 @@ def build_parser() -> argparse.ArgumentParser:
                         '(chosen by an information criterion; default)')
     mode = parser.add_mutually_exclusive_group()
     mode.add_argument('--buffer', type=int, metavar='N', default=None,
-                      help='stream every sample through a sample buffer of N points and fit the '
-                      f'buffer, exactly as the node does (the default mode; N={DEFAULT_CAPACITY})')
+                      help='stream every sample through the live session with a buffer of N '
+                      'points and fit the buffer, exactly as the node does (the default mode; '
+                      f'N={DEFAULT_CAPACITY})')
     mode.add_argument('--all', action='store_true',
                       help='fit every sample instead of the buffer')
     parser.add_argument('--k', type=int, default=None,
@@ -128,6 +130,9 @@ def build_parser() -> argparse.ArgumentParser:
                           help='|corrected| = F in input units (default: the fitted mean radius)')
     strength.add_argument('--normalise', '--normalize', action='store_true',
                           help="F = 1 (unit-length corrected field, as the brief's library)")
+    parser.add_argument('--rate', type=float, metavar='HZ', default=DEFAULT_RATE_HZ,
+                        help='sample rate of the recording: the live session times its fits by '
+                        f'message stamps, replayed here at HZ (default {DEFAULT_RATE_HZ:g})')
     parser.add_argument('--full-scale', type=float, metavar='V', default=None,
                         help='refuse readings with a component at or beyond V (saturated), in '
                         'input units (default: no check)')
@@ -182,38 +187,35 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     options = fit_options(args)
     if args.all and args.k is not None:
         raise UsageError('--k sets the sample buffer; it has no effect with --all')
-    buffer = None if args.all else make_buffer(args)
+    settings = None if args.all else session_settings(args, options)
     progress = ProgressBar(sys.stderr, args.input)
 
     recording = read_recording(args.input, columns=args.columns, topic=args.topic,
                                min_rows=options.min_samples, progress=progress.reading)
     progress.finish()
     units = input_units(args, recording)
-    if buffer is not None:
-        outcomes = stream(buffer, recording.samples, progress)
-        result = fit_calibration(buffer.samples, options, weights=buffer.counts,
-                                 readings=buffer.readings)
+    metadata = {
+        'units': units,
+        'source': str(Path(recording.source).resolve()) if recording.source != 'stdin'
+        else 'stdin',
+        'mode': 'all' if settings is None else f'buffer {settings.buffer_size}',
+    }
+    session = None
+    if settings is not None:
+        session = CalibrationSession(settings, metadata=metadata)
+        stream(session, recording.samples, args.rate, progress)
+        attempt = session.calibrate_now()
+        if attempt.outcome is None or attempt.outcome.result is None:
+            raise UsageError(attempt.message)
+        result = attempt.outcome.result
         fitted = recording.samples  # plot the whole recording, corrected by the buffer's fit
         screening = None
     else:
-        outcomes = None
         fitted, screening = screen_all(recording.samples, args.full_scale)
-        result = fit_calibration(fitted, options)
+        result = run_job(FitJob('calibrate', fitted, None, None, options, metadata)).result
     progress.finish()
 
     calibration = result.calibration
-    if calibration is not None:
-        calibration = calibration.with_metadata(
-            residual_rms_pct=float(result.metrics.residual_rms_pct),
-            coverage=float(result.metrics.coverage),
-            samples=int(result.metrics.n_inliers),
-            units=units,
-            source=str(Path(recording.source).resolve()) if recording.source != 'stdin'
-            else 'stdin',
-            mode='all' if buffer is None else f'buffer {buffer.capacity}',
-            time=time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()),
-        )
-
     written = None
     if result.success and calibration is not None and args.output:
         save_calibration(args.output, calibration)
@@ -222,8 +224,8 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     if args.plot:
         plotted = write_plot(args.plot, recording, fitted, calibration, result, units)
 
-    summary = build_summary(args, recording, units, result, calibration, buffer, outcomes,
-                            screening, written, plotted)
+    summary = build_summary(args, recording, units, result, calibration, session, screening,
+                            written, plotted)
     if args.json:
         json.dump(summary, out, indent=2, allow_nan=False)
         out.write('\n')
@@ -254,15 +256,22 @@ def fit_options(args: argparse.Namespace) -> FitOptions:
         raise UsageError(str(error)) from error
 
 
-def make_buffer(args: argparse.Namespace) -> SampleBuffer:
+def session_settings(args: argparse.Namespace, options: FitOptions) -> SessionSettings:
+    """The node's defaults with this run's buffer, model and gates, in the input's units."""
     capacity = DEFAULT_CAPACITY if args.buffer is None else args.buffer
     k = DEFAULT_K if args.k is None else args.k
-    if args.buffer is not None and args.buffer < 2:
-        raise UsageError(f'--buffer must be at least 2, got {args.buffer}')
+    if args.buffer is not None and args.buffer < 10:
+        raise UsageError(f'--buffer must be at least 10, got {args.buffer}')
     if not 1 <= k < capacity:
         raise UsageError(f'--k must be between 1 and the buffer size - 1 ({capacity - 1}), '
                          f'got {k}')
-    return SampleBuffer(capacity=capacity, k=k, full_scale=args.full_scale)
+    if not (math.isfinite(args.rate) and args.rate > 0.0):
+        raise UsageError(f'--rate must be a positive number of Hz, got {args.rate}')
+    return SessionSettings(
+        buffer_size=capacity, k=k, model=options.model,
+        field_strength=options.field_strength or 0.0, min_coverage=options.min_coverage,
+        max_residual_pct=options.max_residual_pct, full_scale=args.full_scale or 0.0,
+    )
 
 
 def input_units(args: argparse.Namespace, recording: Recording) -> str:
@@ -274,15 +283,15 @@ def input_units(args: argparse.Namespace, recording: Recording) -> str:
     return args.units if args.units is not None else 'input'
 
 
-def stream(buffer: SampleBuffer, samples: np.ndarray, progress: ProgressBar) -> dict[str, int]:
-    """Offer every sample in order, as the node does with each incoming message."""
-    totals: dict[str, int] = {}
+def stream(session: CalibrationSession, samples: np.ndarray, rate_hz: float,
+           progress: ProgressBar) -> None:
+    """Offer every sample in order, stamped at ``rate_hz``, as the node receives messages."""
     total = len(samples)
+    step_ns = 1e9 / rate_hz
     for start in range(0, total, PROGRESS_CHUNK):
-        for outcome, count in buffer.add_many(samples[start:start + PROGRESS_CHUNK]).items():
-            totals[outcome] = totals.get(outcome, 0) + count
+        session.feed(samples[start:start + PROGRESS_CHUNK], rate_hz, round(start * step_ns))
+        session.take_events()
         progress.fitting(min(start + PROGRESS_CHUNK, total), total)
-    return totals
 
 
 def screen_all(samples: np.ndarray, full_scale: float | None) -> tuple[np.ndarray, dict[str, int]]:
@@ -330,9 +339,8 @@ def _finite(value: Any) -> Any:
 
 def build_summary(
     args: argparse.Namespace, recording: Recording, units: str, result: FitResult,
-    calibration: Calibration | None, buffer: SampleBuffer | None,
-    outcomes: dict[str, int] | None, screening: dict[str, int] | None,
-    written: str | None, plotted: str | None,
+    calibration: Calibration | None, session: CalibrationSession | None,
+    screening: dict[str, int] | None, written: str | None, plotted: str | None,
 ) -> dict[str, Any]:
     """Everything the run found, as plain JSON-able data (the --json output)."""
     summary: dict[str, Any] = {
@@ -356,26 +364,29 @@ def build_summary(
             'notes': list(recording.notes),
             'description': recording.describe(),
         },
-        'mode': 'all' if buffer is None else 'buffer',
+        'mode': 'all' if session is None else 'buffer',
         'outputs': {'calibration': written, 'plot': plotted},
     }
-    if buffer is not None:
+    if session is not None:
+        buffer = session.buffer
         summary['buffer'] = {
             'capacity': buffer.capacity,
             'k': buffer.k,
             'fill': buffer.fill,
             'seen': buffer.seen,
+            'accepted': session.accepted,
+            'held_out': session.accepted - buffer.seen,
             'readings_held': int(round(float(np.sum(buffer.counts)))),
-            'outcomes': outcomes,
-            'rejects': dict(buffer.rejects),
             'merged': buffer.merged,
             'evicted': buffer.evicted,
-            'self_fits': buffer.self_fits,
+            'fits': dict(session.jobs_run),
+            'live_state': session.state,
+            'live_adoptions': dict(session.adoptions),
         }
-        summary['rejects'] = dict(buffer.rejects)
+        summary['rejects'] = session.rejects()
     else:
         summary['rejects'] = {reason: (screening or {}).get(reason, 0)
-                              for reason in REJECT_REASONS}
+                              for reason in (*VALUE_REASONS, 'duplicate', 'magnitude_outlier')}
     return _finite(summary)
 
 
@@ -399,12 +410,12 @@ def human_summary(summary: dict[str, Any]) -> str:
     lines.extend(f'          note: {note}' for note in source['notes'])
     if summary['mode'] == 'buffer':
         info = summary['buffer']
-        outcomes = info['outcomes']
+        fits = ', '.join(f'{count} {kind}' for kind, count in info['fits'].items()) or 'none'
         lines.append(
             f"mode      buffer N={info['capacity']} k={info['k']} (as the node): "
-            f"{info['seen']} offered, {info['fill']} points kept standing for "
-            f"{info['readings_held']} readings ({outcomes.get('replaced', 0)} replacements, "
-            f"{info['merged']} merged as not unique)")
+            f"{info['accepted']} accepted ({info['held_out']} held out to judge fits), "
+            f"{info['fill']} points kept standing for {info['readings_held']} readings "
+            f"({info['merged']} merged as not unique); live fits: {fits}")
     else:
         lines.append(f"mode      all: fitted every one of {metrics['n_samples']} samples")
     how = f"   {summary['reason'].removeprefix('ok ')}" if summary['success'] else ''
