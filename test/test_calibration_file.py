@@ -6,7 +6,6 @@ import re
 import stat
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 
@@ -232,17 +231,6 @@ def test_an_unwritable_place_gives_a_clear_error(tmp_path):
 # -- saving only where it belongs (issue 9) -------------------------------------------------------
 
 
-@pytest.fixture
-def never_written(monkeypatch):
-    """Fails the test at once if a save gets as far as writing or renaming anything."""
-
-    def refuse(*args, **kwargs):
-        raise AssertionError('a write was attempted')
-
-    monkeypatch.setattr(tempfile, 'mkstemp', refuse)
-    monkeypatch.setattr(os, 'replace', refuse)
-
-
 @pytest.mark.parametrize('device', ['/dev/full', '/dev/null'])
 def test_save_never_replaces_a_device(tmp_path, device, never_written):
     """As root, ``calibration_file:=/dev/full`` + save turned the device into a regular file."""
@@ -344,6 +332,12 @@ GOOD = """mag_calibrator:
       model: "full"
 """
 
+BILLION_LAUGHS = 'a: &a ["lol","lol","lol","lol","lol","lol","lol","lol","lol"]\n' + ''.join(
+    f'{chr(98 + i)}: &{chr(98 + i)} [' + ','.join([f'*{chr(97 + i)}'] * 9) + ']\n'
+    for i in range(8)
+)
+WITH_METADATA = GOOD + '      {}\n'
+
 
 @pytest.mark.parametrize(
     ('content', 'message'),
@@ -370,6 +364,34 @@ GOOD = """mag_calibrator:
         (GOOD.replace('50.0', '-50.0'), 'field_strength must be a positive finite number'),
         (GOOD.replace('50.0', '"strong"'), 'field_strength must be a number'),
         (GOOD.replace('"full"', '"banana"'), 'model must be one of'),
+        pytest.param(WITH_METADATA.format('n: ' + '1' * 5000).replace(
+            '[1.0, 2.0, 3.0]', '[' + '9' * 5000 + ', 2.0, 3.0]'),
+            "offset must contain numbers only, got '99999", id='5000-digit integer'),
+        pytest.param('mag_calibrator: &x\n  ros__parameters: *x\n', 'anchors and aliases',
+                     id='self-referencing alias'),
+        pytest.param(BILLION_LAUGHS, 'anchors and aliases', id='billion laughs'),
+        pytest.param('mag_calibrator: ' + '[' * 5000 + ']' * 5000, 'nested deeper than',
+                     id='5000-deep nesting'),
+        pytest.param('mag_calibrator:\n  ros__parameters:\n    calibration:\n      offset: ['
+                     + ', '.join(['1.0'] * 5000) + ']\n', f'more than {MAX_NODES} values',
+                     id='100 MB list file, in small'),
+        pytest.param(WITH_METADATA.format('time: !!timestamp 2026-13-45'), 'explicit YAML tags',
+                     id='tagged date'),
+        pytest.param('mag_calibrator:\n  ros__parameters: 5\n', 'no ros__parameters',
+                     id='parameters a number'),
+        pytest.param('mag_calibrator:\n  ros__parameters:\n    calibration: [1, 2]\n',
+                     'calibration must be a mapping of parameters', id='calibration a list'),
+        pytest.param(GOOD.replace('[1.0, 2.0, 3.0]', '"oops"'),
+                     "offset must be a list of 3 numbers, got 'oops'", id='offset a string'),
+        pytest.param(GOOD.replace('[1.0, 2.0, 3.0]', '{x: 1}'),
+                     'offset must be a list of 3 numbers', id='offset a mapping'),
+        pytest.param(GOOD.replace('"full"', '[1]'), 'model must be one of', id='model a list'),
+        pytest.param('1: {ros__parameters: {}}\n', 'top key 1 is not a valid node name',
+                     id='top key a number'),
+        pytest.param('"/robot*/x": {ros__parameters: {}}\n', 'params-file would refuse',
+                     id='top key with a partial wildcard'),
+        pytest.param('? ' + '/**' * 3000 + '/x\n: {ros__parameters: {}}\n',
+                     'no calibration parameters', id='3000 ** wildcards'),  # recursion, once
     ],
 )
 def test_every_kind_of_corrupt_file_is_named(tmp_path, content, message):
@@ -378,6 +400,7 @@ def test_every_kind_of_corrupt_file_is_named(tmp_path, content, message):
     with pytest.raises(CalibrationFileError, match=message) as error:
         load_calibration(path)
     assert str(error.value).startswith(f'{path}: ')
+    assert len(str(error.value)) < 400  # one readable line, whatever the file held
 
 
 def test_binary_garbage_is_not_a_text_file(tmp_path):
@@ -411,54 +434,6 @@ def test_load_accepts_what_ros_accepts(tmp_path):
 
 # -- hostile files: every failure a CalibrationFileError naming file and problem (issue 9) --------
 
-BILLION_LAUGHS = 'a: &a ["lol","lol","lol","lol","lol","lol","lol","lol","lol"]\n' + ''.join(
-    f'{chr(98 + i)}: &{chr(98 + i)} [' + ','.join([f'*{chr(97 + i)}'] * 9) + ']\n'
-    for i in range(8)
-)
-WITH_METADATA = GOOD + '      {}\n'
-
-
-@pytest.mark.parametrize(
-    ('content', 'message'),
-    [
-        pytest.param(WITH_METADATA.format('n: ' + '1' * 5000).replace(
-            '[1.0, 2.0, 3.0]', '[' + '9' * 5000 + ', 2.0, 3.0]'),
-            "offset must contain numbers only, got '99999", id='5000-digit integer'),
-        pytest.param('mag_calibrator: &x\n  ros__parameters: *x\n', 'anchors and aliases',
-                     id='self-referencing alias'),
-        pytest.param(BILLION_LAUGHS, 'anchors and aliases', id='billion laughs'),
-        pytest.param('mag_calibrator: ' + '[' * 5000 + ']' * 5000, 'nested deeper than',
-                     id='5000-deep nesting'),
-        pytest.param('mag_calibrator:\n  ros__parameters:\n    calibration:\n      offset: ['
-                     + ', '.join(['1.0'] * 5000) + ']\n', f'more than {MAX_NODES} values',
-                     id='100 MB list file, in small'),
-        pytest.param(WITH_METADATA.format('time: !!timestamp 2026-13-45'), 'explicit YAML tags',
-                     id='tagged date'),
-        pytest.param('mag_calibrator:\n  ros__parameters: 5\n', 'no ros__parameters',
-                     id='parameters a number'),
-        pytest.param('mag_calibrator:\n  ros__parameters:\n    calibration: [1, 2]\n',
-                     'calibration must be a mapping of parameters', id='calibration a list'),
-        pytest.param(GOOD.replace('[1.0, 2.0, 3.0]', '"oops"'),
-                     "offset must be a list of 3 numbers, got 'oops'", id='offset a string'),
-        pytest.param(GOOD.replace('[1.0, 2.0, 3.0]', '{x: 1}'),
-                     'offset must be a list of 3 numbers', id='offset a mapping'),
-        pytest.param(GOOD.replace('"full"', '[1]'), 'model must be one of', id='model a list'),
-        pytest.param('1: {ros__parameters: {}}\n', 'top key 1 is not a valid node name',
-                     id='top key a number'),
-        pytest.param('"/robot*/x": {ros__parameters: {}}\n', 'params-file would refuse',
-                     id='top key with a partial wildcard'),
-        pytest.param('/**/**/**/**/**/**/**/**/**/**/**/**/**/**/**/**/**/**/**/**/**/x:\n'
-                     '  ros__parameters: {}\n', 'no calibration parameters',
-                     id='many ** wildcards'),
-    ],
-)
-def test_hostile_files_are_refused_clearly(tmp_path, content, message):
-    path = tmp_path / 'hostile.yaml'
-    path.write_text(content)
-    with pytest.raises(CalibrationFileError, match=message) as error:
-        load_calibration(path)
-    assert str(error.value).startswith(f'{path}: ')
-    assert len(str(error.value)) < 400  # one readable line, whatever the file held
 
 
 @pytest.mark.parametrize(

@@ -7,7 +7,6 @@ import socket
 import stat
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 
@@ -34,17 +33,6 @@ def unix_socket(tmp_path):
     server.bind(str(path))
     yield path
     server.close()
-
-
-@pytest.fixture
-def never_written(monkeypatch):
-    """Fails the test at once if anything is about to be written or replaced."""
-
-    def refuse(*args, **kwargs):
-        raise AssertionError('a write was attempted')
-
-    monkeypatch.setattr(tempfile, 'mkstemp', refuse)
-    monkeypatch.setattr(os, 'replace', refuse)
 
 
 # -- path resolution ------------------------------------------------------------------------------
