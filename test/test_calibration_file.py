@@ -21,6 +21,7 @@ from mag_calibrator_ros.calibration.calibration_file import (
     MAX_FILE_BYTES,
     MAX_NODES,
     CalibrationFileError,
+    CalibrationFileMissingError,
     calibration_from_parameters,
     calibration_yaml,
     default_calibration_path,
@@ -411,9 +412,14 @@ def test_binary_garbage_is_not_a_text_file(tmp_path):
 
 
 def test_missing_file_and_directory(tmp_path):
-    with pytest.raises(CalibrationFileError, match='no such file') as error:
+    with pytest.raises(CalibrationFileMissingError, match='no such file') as error:
         load_calibration(tmp_path / 'nowhere.yaml')
     assert 'nowhere.yaml' in str(error.value)
+    assert isinstance(error.value, CalibrationFileError)  # one except clause catches both
+    (tmp_path / 'dir').mkdir()
+    with pytest.raises(CalibrationFileError) as error:
+        load_calibration(tmp_path / 'dir' / '..' / 'dir')
+    assert not isinstance(error.value, CalibrationFileMissingError)
     with pytest.raises(CalibrationFileError, match='is a directory'):
         load_calibration(tmp_path)
 
@@ -564,7 +570,8 @@ def test_integers_stand_for_doubles(offset, matrix, strength):
      ({'model': None}, 'model must be one of'),
      ({'metadata': {'rotation': [1, 0, 0, 0, 1, 0, 0, 0, -1]}}, 'a reflection, not a rotation'),
      ({'metadata': {'rotation': [1, 0.1, 0, 0, 1, 0, 0, 0, 1]}}, 'rotation is not orthonormal'),
-     ({'metadata': {'rotation': 'identity'}}, 'rotation must be a list of 9 numbers')],
+     ({'metadata': {'rotation': 'identity'}}, 'rotation must be a list of 9 numbers'),
+     ({'metadata': ['samples', 3]}, 'metadata must be a mapping')],
 )
 def test_wrong_parameter_types_are_a_calibration_error(kwargs, message):
     arguments = {'offset': [0.0, 0.0, 0.0], 'matrix': np.eye(3).reshape(9), 'field_strength': 1.0,

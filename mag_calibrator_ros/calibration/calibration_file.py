@@ -55,6 +55,7 @@ from mag_calibrator_ros.calibration.params_yaml import (
 )
 from mag_calibrator_ros.calibration.safe_file import (
     FileAccessError,
+    FileMissingError,
     read_regular_file,
     remove_stale_temporaries,
     resolve_path,
@@ -82,7 +83,8 @@ _COMMENTS = (
 
 __all__ = [
     'DEFAULT_NODE_NAME', 'FILE_MODELS', 'LEGACY_DEFAULT_PATH', 'MAX_DEPTH', 'MAX_FILE_BYTES',
-    'MAX_NODES', 'ROTATION_TOLERANCE', 'CalibrationFileError', 'LoadedCalibration',
+    'MAX_NODES', 'ROTATION_TOLERANCE', 'CalibrationFileError', 'CalibrationFileMissingError',
+    'LoadedCalibration',
     'calibration_from_parameters', 'calibration_yaml', 'default_calibration_path',
     'default_load_path', 'load_calibration', 'read_calibration_file', 'remove_stale_temporaries',
     'resolve_calibration_path', 'save_calibration', 'section_matches',
@@ -91,6 +93,10 @@ __all__ = [
 
 class CalibrationFileError(ValueError):
     """A calibration file cannot be read or written; the message names the file and the problem."""
+
+
+class CalibrationFileMissingError(CalibrationFileError):
+    """The calibration file does not exist: a first start, not a fault (no exists() race)."""
 
 
 @dataclass(frozen=True)
@@ -218,6 +224,9 @@ def calibration_from_parameters(
     strength = _number(field_strength, 'field_strength', problems)
     if not isinstance(model, str) or model not in FILE_MODELS:
         problems.append(f'model must be one of {", ".join(FILE_MODELS)}, got {short_repr(model)}')
+    if metadata is not None and not isinstance(metadata, Mapping):
+        problems.append(f'metadata must be a mapping, got {short_repr(metadata)}')
+        metadata = None
     extra, _dropped = _savable_metadata(metadata or {})
     if ROTATION_KEY in extra:
         extra[ROTATION_KEY] = _rotation(extra[ROTATION_KEY], problems)
@@ -410,6 +419,8 @@ def read_calibration_file(
     shown = shown_name(path, resolved)
     try:
         data = read_regular_file(resolved, MAX_FILE_BYTES, shown)
+    except FileMissingError as error:
+        raise CalibrationFileMissingError(str(error)) from None
     except FileAccessError as error:
         raise CalibrationFileError(str(error)) from None
     try:

@@ -33,6 +33,10 @@ class FileAccessError(ValueError):
     """A file cannot be read or written; the message starts with the file and says why."""
 
 
+class FileMissingError(FileAccessError):
+    """The file to read does not exist (a first start, not a fault)."""
+
+
 def resolve_path(path: str | os.PathLike[str]) -> Path:
     """The one place a user's file name becomes a file, for reading and writing alike.
 
@@ -73,7 +77,7 @@ def read_regular_file(resolved: Path, max_bytes: int, shown: str | None = None) 
         _check_readable(os.stat(resolved), max_bytes, shown)  # before open: FIFOs never opened
         descriptor = os.open(resolved, flags)
     except FileNotFoundError:
-        raise FileAccessError(f'{shown}: no such file') from None
+        raise FileMissingError(f'{shown}: no such file') from None
     except OSError as error:
         raise FileAccessError(f'{shown}: cannot read: {reason(error)}') from None
     try:
