@@ -3,6 +3,7 @@
 import os
 from pathlib import Path
 import random
+import tempfile
 
 from hypothesis import settings
 import pytest
@@ -28,3 +29,15 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.fail(f'shared recordings not found at {SHARED_DATA} (set MAG_SHARED_DATA)')
     return SHARED_DATA
+
+
+@pytest.fixture
+def never_written(monkeypatch):
+    """Fails a test at once if it gets as far as creating or renaming a file (tests that must
+    never write through a device node, e.g. /dev/full, even when the code under test is wrong)."""
+
+    def refuse(*args, **kwargs):
+        raise AssertionError('a write was attempted')
+
+    monkeypatch.setattr(tempfile, 'mkstemp', refuse)
+    monkeypatch.setattr(os, 'replace', refuse)

@@ -1,38 +1,41 @@
-"""The calibration file: a ROS 2 parameters YAML (DESIGN.md §3), saved atomically, validated.
+"""The calibration file: a ROS 2 parameters YAML (DESIGN.md §3), saved atomically, read bounded.
 
 ::
 
-    mag_calibrator:
+    /robot1/mag_calibrator:            # the saving node's fully qualified name (or /**, ...)
       ros__parameters:
         calibration:
           offset: [1.0e-06, -2.0e-06, 3.0e-06]
-          matrix: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]   # row-major
+          matrix: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]   # M, row-major
+          rotation: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0] # R, optional: identity
           field_strength: 5.0e-05
           model: "full"
           residual_rms_pct: 0.8        # metadata: any further keys
           time: "2026-01-01T00:00:00Z"
 
-The same file is a ``--params-file`` for the node, so the writer is strict about YAML types:
-every double carries a decimal point or an exponent (``1`` would be an integer and ROS refuses a
-parameter whose type changes), every string is double-quoted (``on``, ``y``, ``1e5`` or ``0x10``
-unquoted would become a bool or a number), and values YAML cannot type (None, empty lists) are
-left out. Saving is atomic: a crash mid-write leaves the previous file as it was.
+The same file is a ``--params-file`` for the node (the YAML is typed strictly:
+``params_yaml``). A file may come from a user, another robot or an attacker: reading takes
+regular files of at most ``MAX_FILE_BYTES`` only and parses within fixed limits (``safe_file``,
+``params_yaml``), so a load of anything finishes in milliseconds or fails with a
+:class:`CalibrationFileError` naming the file and the problem. Saving is atomic, writes only a
+regular file or a new path, and never writes what loading would refuse. Save and load share
+:func:`resolve_calibration_path`.
+
+The functions keep no state between calls and are thread-safe, so a node can run loads and saves
+on a worker thread, off its message path.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
-import json
+from dataclasses import dataclass
 import math
 import os
 from pathlib import Path
-import re
-import tempfile
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
-import yaml
 
 from mag_calibrator_ros.calibration.calibration import (
     MODELS,
@@ -40,21 +43,160 @@ from mag_calibrator_ros.calibration.calibration import (
     CalibrationError,
     calibration_problems,
 )
+from mag_calibrator_ros.calibration.params_yaml import (
+    MAX_DEPTH,
+    MAX_FILE_BYTES,
+    MAX_NODES,
+    NAME_TOKEN,
+    ParamsYamlError,
+    params_yaml,
+    parse_params_yaml,
+    short_repr,
+)
+from mag_calibrator_ros.calibration.safe_file import (
+    FileAccessError,
+    FileMissingError,
+    read_regular_file,
+    remove_stale_temporaries,
+    resolve_path,
+    shown_name,
+    write_atomically,
+)
 
 DEFAULT_NODE_NAME = 'mag_calibrator'
 SECTION = 'calibration'
 REQUIRED_KEYS = ('offset', 'matrix', 'field_strength')
+ROTATION_KEY = 'rotation'
 RESERVED_KEYS = (*REQUIRED_KEYS, 'model')
 FILE_MODELS = (*MODELS, 'identity')
 """Models a file may name: the fit models and 'identity' (:meth:`Calibration.identity`)."""
+ROTATION_TOLERANCE = 1e-4
+"""Largest |R^T R - I| element and |det R - 1| accepted for ``calibration.rotation``."""
+LEGACY_DEFAULT_PATH = '~/.ros/mag_calibrator/calibration.yaml'
+"""The default file before per-node defaults; still read by ``/mag_calibrator`` (see
+:func:`default_load_path`)."""
+_COMMENTS = (
+    'Magnetometer calibration: corrected = R @ M @ (raw - b); M = matrix (row-major),',
+    'b = offset, R = rotation (identity when absent), |corrected| ~ field_strength.',
+    'A ROS 2 parameters file (--params-file).',
+)
 
-_NAME_TOKEN = re.compile(r'^[A-Za-z_][A-Za-z0-9_]*$')
-_NODE_NAME = re.compile(r'^/?([A-Za-z_][A-Za-z0-9_]*/)*[A-Za-z_][A-Za-z0-9_]*$')
-_INDENT = '  '
+__all__ = [
+    'DEFAULT_NODE_NAME', 'FILE_MODELS', 'LEGACY_DEFAULT_PATH', 'MAX_DEPTH', 'MAX_FILE_BYTES',
+    'MAX_NODES', 'ROTATION_TOLERANCE', 'CalibrationFileError', 'CalibrationFileMissingError',
+    'LoadedCalibration',
+    'calibration_from_parameters', 'calibration_yaml', 'default_calibration_path',
+    'default_load_path', 'load_calibration', 'read_calibration_file', 'remove_stale_temporaries',
+    'resolve_calibration_path', 'save_calibration', 'section_matches',
+]
 
 
 class CalibrationFileError(ValueError):
     """A calibration file cannot be read or written; the message names the file and the problem."""
+
+
+class CalibrationFileMissingError(CalibrationFileError):
+    """The calibration file does not exist: a first start, not a fault (no exists() race)."""
+
+
+@dataclass(frozen=True)
+class LoadedCalibration:
+    """What :func:`read_calibration_file` found.
+
+    ``sections``: the top keys the calibration came from (several matching sections are merged
+    in file order, later values winning, exactly as ``--params-file`` merges them). ``notes``:
+    things the user should know, e.g. a section written for another node, metadata dropped.
+    """
+
+    calibration: Calibration
+    path: Path
+    sections: tuple[str, ...]
+    notes: tuple[str, ...] = ()
+
+
+# -- paths and names ------------------------------------------------------------------------------
+
+
+def resolve_calibration_path(path: str | os.PathLike[str]) -> Path:
+    """The one path resolution of save and load: ``~`` expanded, absolute, symlinks followed.
+
+    ``..`` is applied after symlinks (``os.path.realpath``; past a missing directory, to the name),
+    so a save lands exactly where a load then looks. Raises :class:`CalibrationFileError`.
+    """
+    try:
+        return resolve_path(path)
+    except FileAccessError as error:
+        raise CalibrationFileError(str(error)) from None
+
+
+def default_calibration_path(fully_qualified_name: str) -> Path:
+    """The node's own calibration file: ``$ROS_HOME/mag_calibrator/<namespace>__<name>.yaml``.
+
+    ``/robot1/mag_calibrator`` -> ``~/.ros/mag_calibrator/robot1__mag_calibrator.yaml``,
+    ``/mag_calibrator`` -> ``~/.ros/mag_calibrator/mag_calibrator.yaml`` (``ROS_HOME`` defaults to
+    ``~/.ros``), so calibrators in different namespaces never share a file.
+    """
+    name = _fully_qualified(fully_qualified_name)
+    ros_home = Path(os.environ.get('ROS_HOME') or '~/.ros').expanduser()
+    return ros_home / 'mag_calibrator' / ('__'.join(name.strip('/').split('/')) + '.yaml')
+
+
+def default_load_path(fully_qualified_name: str) -> Path:
+    """The file to read at start-up when ``calibration_file`` is left at its default.
+
+    The node's own :func:`default_calibration_path`; for ``/mag_calibrator`` (the single-robot
+    set-up the old default served) the old shared :data:`LEGACY_DEFAULT_PATH` while its own file
+    does not exist yet. Namespaced nodes never read the shared file: it may be another robot's.
+    """
+    own = default_calibration_path(fully_qualified_name)
+    if _fully_qualified(fully_qualified_name) != '/' + DEFAULT_NODE_NAME:
+        return own
+    legacy = Path(LEGACY_DEFAULT_PATH).expanduser()
+    try:
+        if not own.exists() and legacy.is_file():
+            return legacy
+    except (OSError, ValueError):
+        pass
+    return own
+
+
+def _fully_qualified(node_name: str) -> str:
+    """``node_name`` as ``/namespace/name`` (a bare name is in the root namespace, as in rcl)."""
+    if not isinstance(node_name, str) or not all(
+        NAME_TOKEN.match(token) for token in node_name.removeprefix('/').split('/')
+    ):
+        raise CalibrationFileError(
+            f'{node_name!r} is not a valid node name (letters, digits, _; optional /namespace/)'
+        )
+    return '/' + node_name.removeprefix('/')
+
+
+def _check_section_key(key: str) -> None:
+    """A top key rcl accepts: a node name, optionally with ``*`` / ``**`` tokens (``/**``)."""
+    if not isinstance(key, str) or not all(
+        token in ('*', '**') or NAME_TOKEN.match(token)
+        for token in key.removeprefix('/').split('/')
+    ):
+        raise CalibrationFileError(
+            f'{key!r} is not a valid node name (letters, digits, _; optional /namespace/; '
+            f'* or ** wildcards)'
+        )
+
+
+def section_matches(key: str, fully_qualified_name: str) -> bool:
+    """Whether ``--params-file`` applies section ``key`` to the node: rcl's rules.
+
+    A key without a leading ``/`` is in the root namespace; ``*`` stands for one name token,
+    ``**`` for any number (``/**`` matches every node, ``/**/mag_calibrator`` that name anywhere).
+    """
+    name = fully_qualified_name.removeprefix('/').split('/')
+    matched = {0}  # how many tokens of the name the key's tokens so far can cover
+    for token in key.removeprefix('/').split('/'):
+        if token == '**':
+            matched = set(range(min(matched), len(name) + 1)) if matched else set()
+        else:
+            matched = {n + 1 for n in matched if n < len(name) and token in ('*', name[n])}
+    return len(name) in matched
 
 
 # -- from parameter values ------------------------------------------------------------------------
@@ -67,34 +209,57 @@ def calibration_from_parameters(
     model: str = 'full',
     metadata: Mapping[str, Any] | None = None,
 ) -> Calibration:
-    """A :class:`Calibration` from the node's parameter values (``matrix`` 9 values, row-major).
+    """A :class:`Calibration` from parameter values (``--params-file`` or a loaded file).
 
-    Raises :class:`CalibrationError` naming every problem (shape, type, finiteness, definiteness).
+    Integers are accepted wherever doubles are expected (``matrix: [1, 0, 0, ...]``,
+    ``field_strength: 1``): a hand-written params file types them as integers. ``matrix`` is 9
+    values row-major (or 3x3 nested). ``metadata['rotation']``, when present, must be a proper
+    rotation (9 values row-major, orthonormal, det +1) and comes back as 9 floats. Metadata keys
+    that are not ROS parameter names are dropped (they could never be saved). Raises
+    :class:`CalibrationError` naming every problem (type, shape, finiteness, definiteness).
     """
-    problems = []
+    problems: list[str] = []
     offset_values = _numbers(offset, 'offset', 3, problems)
     matrix_values = _numbers(matrix, 'matrix', 9, problems)
-    if isinstance(field_strength, bool) or not isinstance(field_strength, (int, float, np.number)):
-        problems.append(f'field_strength must be a number, got {field_strength!r}')
-        strength = math.nan
-    else:
-        strength = float(field_strength)
+    strength = _number(field_strength, 'field_strength', problems)
     if not isinstance(model, str) or model not in FILE_MODELS:
-        problems.append(f'model must be one of {", ".join(FILE_MODELS)}, got {model!r}')
+        problems.append(f'model must be one of {", ".join(FILE_MODELS)}, got {short_repr(model)}')
+    if metadata is not None and not isinstance(metadata, Mapping):
+        problems.append(f'metadata must be a mapping, got {short_repr(metadata)}')
+        metadata = None
+    extra, _dropped = _savable_metadata(metadata or {})
+    if ROTATION_KEY in extra:
+        extra[ROTATION_KEY] = _rotation(extra[ROTATION_KEY], problems)
     if not problems:
         problems = calibration_problems(offset_values, np.reshape(matrix_values, (3, 3)), strength)
     if problems:
         raise CalibrationError('; '.join(problems))
     return Calibration(
-        np.array(offset_values), np.reshape(matrix_values, (3, 3)), strength, model,
-        dict(metadata or {}),
+        np.array(offset_values), np.reshape(matrix_values, (3, 3)), strength, model, extra
     )
 
 
+_REAL = (int, float, np.integer, np.floating)
+
+
+def _number(value: Any, name: str, problems: list[str]) -> float:
+    if isinstance(value, bool) or not isinstance(value, _REAL):
+        problems.append(f'{name} must be a number, got {short_repr(value)}')
+        return math.nan
+    try:
+        return float(value)
+    except OverflowError:  # an integer beyond the double range
+        problems.append(f'{name} is out of range: {short_repr(value)}')
+        return math.nan
+
+
 def _numbers(values: Any, name: str, count: int, problems: list[str]) -> list[float]:
-    """``values`` as ``count`` floats (a 3x3 nested list counts as 9); problems appended."""
+    """``values`` as ``count`` finite floats (a 3x3 nested list counts as 9); problems appended."""
     if isinstance(values, np.ndarray):
-        values = values.tolist()
+        if values.size != count:
+            problems.append(f'{name} must have {count} numbers, got {values.size}')
+            return []
+        values = values.reshape(-1).tolist()
     elif isinstance(values, Iterable) and not isinstance(values, (str, bytes, Mapping)):
         values = list(values)  # rclpy hands double arrays over as array.array('d')
     if isinstance(values, (list, tuple)) and values and all(
@@ -102,186 +267,124 @@ def _numbers(values: Any, name: str, count: int, problems: list[str]) -> list[fl
     ):
         values = [value for row in values for value in row]
     if not isinstance(values, (list, tuple)):
-        problems.append(f'{name} must be a list of {count} numbers, got {values!r}')
+        problems.append(f'{name} must be a list of {count} numbers, got {short_repr(values)}')
         return []
     if len(values) != count:
         problems.append(f'{name} must have {count} numbers, got {len(values)}')
         return []
-    bad = [value for value in values if isinstance(value, bool)
-           or not isinstance(value, (int, float, np.number))]
+    bad = [value for value in values if isinstance(value, bool) or not isinstance(value, _REAL)]
     if bad:
-        problems.append(f'{name} must contain numbers only, got {bad[0]!r}')
+        problems.append(f'{name} must contain numbers only, got {short_repr(bad[0])}')
         return []
-    numbers = [float(value) for value in values]
+    numbers = [_number(value, name, problems) for value in values]
     if not all(math.isfinite(value) for value in numbers):
         problems.append(f'{name} has non-finite values: {numbers}')
         return []
     return numbers
 
 
-# -- writing --------------------------------------------------------------------------------------
+def _rotation(value: Any, problems: list[str]) -> list[float]:
+    """``calibration.rotation``: a proper rotation, row-major; R^T R = I and det R = +1."""
+    values = _numbers(value, ROTATION_KEY, 9, problems)
+    if not values:
+        return []
+    rotation = np.reshape(values, (3, 3))
+    error = float(np.max(np.abs(rotation.T @ rotation - np.eye(3))))
+    determinant = float(np.linalg.det(rotation))
+    if error > ROTATION_TOLERANCE:
+        problems.append(
+            f'rotation is not orthonormal (R^T R differs from identity by {error:.2g}, '
+            f'tolerance {ROTATION_TOLERANCE:g})'
+        )
+    elif abs(determinant - 1.0) > ROTATION_TOLERANCE:
+        problems.append(
+            f'rotation has determinant {determinant:.6g}: a reflection, not a rotation'
+        )
+    return values
+
+
+def _savable_metadata(
+    metadata: Mapping[Any, Any], prefix: str = f'{SECTION}.', depth: int = 0
+) -> tuple[dict[str, Any], list[str]]:
+    """Metadata without the entries a params file cannot hold, and their dotted names.
+
+    A ROS parameter name token is letters, digits and ``_`` (not starting with a digit); any
+    other key loads (rcl is lenient) but would make every later save fail, so it is dropped, as
+    is nesting deeper than a file may hold.
+    """
+    kept: dict[str, Any] = {}
+    dropped: list[str] = []
+    for key, value in metadata.items():
+        name = f'{prefix}{short_repr(key, 40) if not isinstance(key, str) else key[:40]}'
+        if not isinstance(key, str) or not NAME_TOKEN.match(key):
+            dropped.append(name)
+        elif isinstance(value, Mapping):
+            if depth >= MAX_DEPTH:
+                dropped.append(name)
+                continue
+            kept[key], inner = _savable_metadata(value, f'{name}.', depth + 1)
+            dropped += inner
+        else:
+            kept[key] = value
+    return kept, dropped
 
 
 def calibration_yaml(calibration: Calibration, node_name: str = DEFAULT_NODE_NAME) -> str:
-    """The file's text: a ROS 2 parameters YAML for node ``node_name``."""
-    _check_node_name(node_name)
+    """The file's text: a ROS 2 parameters YAML whose top key is ``node_name``.
+
+    ``node_name``: the node's fully qualified name (``/robot1/mag_calibrator``: what
+    ``ros2 param dump`` writes, applied by ``--params-file`` to that node only), a wildcard key
+    (``/**`` every node, ``/**/mag_calibrator`` that name in any namespace), or a bare name
+    (``mag_calibrator``: rcl reads it as ``/mag_calibrator``, the root namespace only).
+    Raises :class:`CalibrationFileError` for metadata no parameters file can hold.
+    """
+    _check_section_key(node_name)
     fields: dict[str, Any] = {
         'offset': [float(value) for value in calibration.offset],
         'matrix': [float(value) for value in calibration.matrix.reshape(9)],
-        'field_strength': float(calibration.field_strength),
-        'model': str(calibration.model),
     }
-    for key, value in calibration.metadata.items():
-        if key in RESERVED_KEYS:
+    metadata = dict(calibration.metadata)
+    for key in RESERVED_KEYS:
+        if key in metadata:
             raise CalibrationFileError(f'metadata key {key!r} would overwrite the calibration')
-        fields[key] = value
-    lines = [
-        '# Magnetometer calibration: corrected = M @ (raw - b), M = matrix (row-major),',
-        '# b = offset, |corrected| ~ field_strength. A ROS 2 parameters file (--params-file).',
-        f'{node_name}:',
-        f'{_INDENT}ros__parameters:',
-        f'{_INDENT * 2}{SECTION}:',
-    ]
-    lines += _mapping_lines(fields, depth=3, path=SECTION)
-    return '\n'.join(lines) + '\n'
-
-
-def _mapping_lines(mapping: Mapping[str, Any], depth: int, path: str) -> list[str]:
-    lines = []
-    for key, value in mapping.items():
-        if not isinstance(key, str) or not _NAME_TOKEN.match(key):
-            raise CalibrationFileError(
-                f'{path}: {key!r} is not a valid ROS parameter name (letters, digits, _)'
-            )
-        prefix = f'{_INDENT * depth}{key}:'
-        if isinstance(value, Mapping):
-            nested = _mapping_lines(value, depth + 1, f'{path}.{key}')
-            if nested:
-                lines += [prefix, *nested]
-            continue
-        scalar = _yaml_value(value)
-        if scalar is not None:
-            lines.append(f'{prefix} {scalar}')
-    return lines
-
-
-def _yaml_value(value: Any) -> str | None:
-    """One parameter value as YAML text of an unambiguous type; None: not representable."""
-    if isinstance(value, np.ndarray):
-        value = value.tolist()
-    elif isinstance(value, np.generic):
-        value = value.item()
-    if value is None:
-        return None
-    if isinstance(value, (list, tuple)):
-        items = [item.item() if isinstance(item, np.generic) else item for item in value]
-        items = [item for item in items if item is not None]
-        if not items:
-            return None  # ROS cannot type an empty array
-        if all(isinstance(item, bool) for item in items):
-            return '[' + ', '.join(_scalar(item) for item in items) + ']'
-        if all(isinstance(item, int) and not isinstance(item, bool) for item in items):
-            return '[' + ', '.join(_scalar(item) for item in items) + ']'
-        if all(isinstance(item, (int, float)) and not isinstance(item, bool) for item in items):
-            return '[' + ', '.join(_double(float(item)) for item in items) + ']'
-        return '[' + ', '.join(_quoted(str(item)) for item in items) + ']'
-    return _scalar(value)
-
-
-def _scalar(value: Any) -> str:
-    if isinstance(value, bool):
-        return 'true' if value else 'false'
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, float):
-        return _double(value)
-    return _quoted(str(value))
-
-
-def _quoted(text: str) -> str:
-    """A double-quoted YAML scalar: JSON escapes, plus \\u escapes for anything unprintable."""
-    quoted = json.dumps(text, ensure_ascii=False)
-    return ''.join(char if char.isprintable() else _escape(char) for char in quoted)
-
-
-def _escape(char: str) -> str:
-    code = ord(char)
-    return f'\\u{code:04x}' if code <= 0xFFFF else f'\\U{code:08x}'
-
-
-def _double(value: float) -> str:
-    """A double YAML and ROS both read as a double: ``1.0``, ``5.0e-05``, ``.nan``, ``-.inf``."""
-    if math.isnan(value):
-        return '.nan'
-    if math.isinf(value):
-        return '.inf' if value > 0 else '-.inf'
-    text = repr(value)  # always has a '.' or an 'e', and round-trips exactly
-    if '.' not in text:
-        text = text.replace('e', '.0e', 1)  # 1e-06 is a string to YAML 1.1; 1.0e-06 is not
-    return text
+    if ROTATION_KEY in metadata:
+        problems: list[str] = []
+        fields[ROTATION_KEY] = _rotation(metadata.pop(ROTATION_KEY), problems)
+        if problems:
+            raise CalibrationFileError('; '.join(problems))
+    fields['field_strength'] = float(calibration.field_strength)
+    fields['model'] = str(calibration.model)
+    fields.update(metadata)
+    try:
+        return params_yaml(node_name, {SECTION: fields}, _COMMENTS)
+    except ParamsYamlError as error:
+        raise CalibrationFileError(str(error)) from None
 
 
 def save_calibration(
     path: str | os.PathLike[str], calibration: Calibration, node_name: str = DEFAULT_NODE_NAME
-) -> None:
-    """Write the calibration file atomically, creating directories as needed.
+) -> Path:
+    """Write the calibration file atomically, creating directories; returns the file written.
 
-    The text goes to a temporary file in the same directory, is flushed to disk, then renamed
-    over the target (and the directory entry flushed), so readers see the old file or the new
-    one, never a torn one. Raises :class:`CalibrationFileError` naming the file on any failure.
+    ``node_name``: the top key (:func:`calibration_yaml`); pass the node's fully qualified name
+    so ``--params-file`` applies the file to that node in its namespace. Only a regular file or
+    a new path is written: a device node, FIFO, socket or directory at the path (or behind a
+    symlink) is refused and left as it was. The text is checked to load back first. Temporary
+    files of earlier interrupted saves of the same file are removed. Raises
+    :class:`CalibrationFileError` naming the file and the problem.
     """
-    path = Path(path).expanduser()
-    data = calibration_yaml(calibration, node_name).encode('utf-8')
-    target = Path(os.path.realpath(path))  # through a symlink, replace what it points to
-    temporary = None
+    target = resolve_calibration_path(path)
+    shown = shown_name(path, target)
     try:
-        target.parent.mkdir(parents=True, exist_ok=True)
-        mode = target.stat().st_mode & 0o777 if target.exists() else 0o644
-        descriptor, temporary = tempfile.mkstemp(
-            prefix=f'.{target.name}.', suffix='.tmp', dir=target.parent
-        )
-        try:
-            view = memoryview(data)
-            while view:
-                view = view[os.write(descriptor, view):]
-            os.fchmod(descriptor, mode)
-            os.fsync(descriptor)
-        finally:
-            os.close(descriptor)
-        os.replace(temporary, target)
-        temporary = None
-        _fsync_directory(target.parent)
-    except OSError as error:
-        raise CalibrationFileError(
-            f'{path}: cannot write the calibration file: {error.strerror or error}'
-        ) from error
-    finally:
-        if temporary is not None:
-            try:
-                os.unlink(temporary)
-            except OSError:
-                pass
-
-
-def _fsync_directory(directory: Path) -> None:
-    """Make the rename itself durable; some file systems cannot, which is not an error."""
+        text = calibration_yaml(calibration, node_name)
+        _section_calibration(_parse(text, shown), '/' + DEFAULT_NODE_NAME, shown)
+    except CalibrationFileError as error:
+        raise CalibrationFileError(f'{shown}: cannot save: {error}') from None
     try:
-        descriptor = os.open(directory, os.O_RDONLY | getattr(os, 'O_DIRECTORY', 0))
-    except OSError:
-        return
-    try:
-        os.fsync(descriptor)
-    except OSError:
-        pass
-    finally:
-        os.close(descriptor)
-
-
-def _check_node_name(node_name: str) -> None:
-    if not isinstance(node_name, str) or not _NODE_NAME.match(node_name):
-        raise CalibrationFileError(
-            f'{node_name!r} is not a valid node name (letters, digits, _; optional /namespace/)'
-        )
+        write_atomically(target, text.encode('utf-8'), shown)
+    except FileAccessError as error:
+        raise CalibrationFileError(str(error)) from None
+    return target
 
 
 # -- reading --------------------------------------------------------------------------------------
@@ -290,95 +393,174 @@ def _check_node_name(node_name: str) -> None:
 def load_calibration(
     path: str | os.PathLike[str], node_name: str = DEFAULT_NODE_NAME
 ) -> Calibration:
+    """The calibration in a file, for node ``node_name``: :func:`read_calibration_file`."""
+    return read_calibration_file(path, node_name).calibration
+
+
+def read_calibration_file(
+    path: str | os.PathLike[str], node_name: str = DEFAULT_NODE_NAME
+) -> LoadedCalibration:
     """Read and validate a calibration file written by :func:`save_calibration` (or by hand).
 
-    Accepts the node's section as ``node_name``, ``/node_name`` or ``/**``, parameters nested or
-    dotted (``calibration.offset``), integers where doubles are expected. Everything under
-    ``calibration`` other than the four calibration keys comes back as metadata. Raises
-    :class:`CalibrationFileError` saying which file and exactly what is wrong.
+    ``node_name``: the reading node's fully qualified name (a bare name is in the root
+    namespace). The sections ``--params-file`` would apply to that node are used (its fully
+    qualified name, ``/**``, ``/robot1/*`` ...; several are merged in file order). When none
+    does, a file with exactly one calibration is still accepted — users copy files between
+    robots and older versions keyed every file ``mag_calibrator:`` — and a note names the
+    section; with several, the file is refused rather than one guessed. Parameters may be nested
+    or dotted (``calibration.offset``), integers stand for doubles, ``calibration.rotation`` is
+    optional. Everything under ``calibration`` other than the calibration keys comes back as
+    metadata; keys that are not ROS parameter names are dropped with a note, so a loaded
+    calibration always saves. Raises :class:`CalibrationFileError` saying which file and exactly
+    what is wrong.
     """
-    path = Path(path).expanduser()
-    _check_node_name(node_name)
+    fully_qualified = _fully_qualified(node_name)
+    resolved = resolve_calibration_path(path)
+    shown = shown_name(path, resolved)
     try:
-        text = path.read_text(encoding='utf-8')
-    except FileNotFoundError:
-        raise CalibrationFileError(f'{path}: no such file') from None
-    except IsADirectoryError:
-        raise CalibrationFileError(f'{path}: is a directory, not a calibration file') from None
+        data = read_regular_file(resolved, MAX_FILE_BYTES, shown)
+    except FileMissingError as error:
+        raise CalibrationFileMissingError(str(error)) from None
+    except FileAccessError as error:
+        raise CalibrationFileError(str(error)) from None
+    try:
+        text = data.decode('utf-8')
     except UnicodeDecodeError:
-        raise CalibrationFileError(f'{path}: not a text (UTF-8) file') from None
-    except OSError as error:
-        raise CalibrationFileError(f'{path}: cannot read: {error.strerror or error}') from None
+        raise CalibrationFileError(f'{shown}: not a text (UTF-8) file') from None
+    calibration, sections, notes = _section_calibration(_parse(text, shown), fully_qualified,
+                                                        shown)
+    return LoadedCalibration(calibration, resolved, sections, notes)
+
+
+def _parse(text: str, shown: str) -> Any:
     try:
-        document = yaml.safe_load(text)
-    except yaml.YAMLError as error:
-        where = getattr(error, 'problem_mark', None)
-        line = f' at line {where.line + 1}, column {where.column + 1}' if where else ''
-        problem = getattr(error, 'problem', None) or str(error)
-        raise CalibrationFileError(f'{path}: not valid YAML{line}: {problem}') from None
-    section = _calibration_section(document, node_name, path)
+        return parse_params_yaml(text)
+    except ParamsYamlError as error:
+        raise CalibrationFileError(f'{shown}: {error}') from None
+
+
+# -- the calibration in a document ----------------------------------------------------------------
+
+
+def _section_calibration(
+    document: Any, fully_qualified: str, shown: str
+) -> tuple[Calibration, tuple[str, ...], tuple[str, ...]]:
+    """The calibration the document holds for the node, the sections used, and notes."""
+    if document is None:
+        raise CalibrationFileError(f'{shown}: the file is empty')
+    if not isinstance(document, dict):
+        raise CalibrationFileError(
+            f'{shown}: expected a mapping of node names to ros__parameters, got a '
+            f'{type(document).__name__}'
+        )
+    for key in document:
+        try:
+            _check_section_key(key)
+        except CalibrationFileError as error:
+            raise CalibrationFileError(
+                f'{shown}: top key {error} (--params-file would refuse the file)'
+            ) from None
+    matching = [key for key in document if section_matches(key, fully_qualified)]
+    notes: list[str] = []
+    calibrated = {key: _calibration_parameters(document[key], key, shown, key in matching)
+                  for key in document}
+    calibrated = {key: parameters for key, parameters in calibrated.items() if parameters}
+    used = [key for key in matching if key in calibrated]
+    if not used:
+        if len(calibrated) != 1:
+            found = _listing(calibrated or document) or 'nothing'
+            what = 'calibrations for' if calibrated else 'sections'
+            raise CalibrationFileError(
+                f'{shown}: no {SECTION} parameters for {fully_qualified} ({what} {found}'
+                f'{"; keep the one to use" if len(calibrated) > 1 else ""})'
+            )
+        used = list(calibrated)
+        notes.append(
+            f'used section {used[0]!r}, written for another node (--params-file would not apply '
+            f'it to {fully_qualified}; save again to rewrite it for this node)'
+        )
+    elif len(used) > 1:
+        notes.append(f'merged sections {_listing(used)} in file order, as --params-file does')
+    merged: dict[str, Any] = {}
+    for key in used:
+        merged.update(calibrated[key])
+    section = _unflatten(merged, notes)
     missing = [key for key in REQUIRED_KEYS if key not in section]
     if missing:
         raise CalibrationFileError(
-            f'{path}: {SECTION} is missing {", ".join(f"{SECTION}.{key}" for key in missing)}'
+            f'{shown}: {SECTION} is missing {", ".join(f"{SECTION}.{key}" for key in missing)}'
         )
-    metadata = {key: value for key, value in section.items() if key not in RESERVED_KEYS}
+    metadata, dropped = _savable_metadata(
+        {key: value for key, value in section.items() if key not in RESERVED_KEYS})
+    if dropped:
+        notes.append(f'dropped {_listing(dropped, quote=False)}: not ROS parameter names '
+                     f'(letters, digits, _), they could never be saved')
     try:
-        return calibration_from_parameters(
-            section['offset'],
-            section['matrix'],
-            section['field_strength'],
-            section.get('model', 'full'),
-            metadata,
+        calibration = calibration_from_parameters(
+            section['offset'], section['matrix'], section['field_strength'],
+            section.get('model', 'full'), metadata,
         )
     except CalibrationError as error:
-        raise CalibrationFileError(f'{path}: {error}') from None
+        raise CalibrationFileError(f'{shown}: {error}') from None
+    return calibration, tuple(used), tuple(notes)
 
 
-def _calibration_section(document: Any, node_name: str, path: Path) -> dict[str, Any]:
-    """The ``calibration`` parameters of the node's section, as one nested mapping."""
-    if document is None:
-        raise CalibrationFileError(f'{path}: the file is empty')
-    if not isinstance(document, dict):
+def _calibration_parameters(node: Any, key: str, shown: str, strict: bool) -> dict[str, Any]:
+    """The section's ``calibration.*`` parameters, flat (``offset``, ``nested.a`` ...).
+
+    ``strict`` (a section for this node): a malformed section is an error; otherwise it is
+    simply not a calibration.
+    """
+    parameters = node.get('ros__parameters') if isinstance(node, dict) else None
+    if not isinstance(parameters, dict):
+        if strict:
+            raise CalibrationFileError(f'{shown}: section {key!r} has no ros__parameters mapping')
+        return {}
+    flat: dict[str, Any] = {}
+    _flatten(parameters, '', flat)
+    prefix = SECTION + '.'
+    section = {name[len(prefix):]: value for name, value in flat.items()
+               if name.startswith(prefix)}
+    if not section and strict and SECTION in flat:
         raise CalibrationFileError(
-            f'{path}: expected a mapping with a {node_name!r} section, '
-            f'got a {type(document).__name__}'
-        )
-    bare = node_name.lstrip('/')
-    candidates = [key for key in (node_name, bare, '/' + bare, '/**') if key in document]
-    if not candidates:
-        found = ', '.join(repr(key) for key in document) or 'nothing'
-        raise CalibrationFileError(f'{path}: no {bare!r} section (found {found})')
-    node = document[candidates[0]]
-    if not isinstance(node, dict) or not isinstance(node.get('ros__parameters'), dict):
-        raise CalibrationFileError(
-            f'{path}: section {candidates[0]!r} has no ros__parameters mapping'
-        )
-    parameters = _nested(node['ros__parameters'], path)
-    section = parameters.get(SECTION)
-    if not isinstance(section, dict):
-        raise CalibrationFileError(
-            f'{path}: no {SECTION} parameters under {candidates[0]}.ros__parameters'
+            f'{shown}: {key}.ros__parameters.{SECTION} must be a mapping of parameters, got '
+            f'{short_repr(flat[SECTION])}'
         )
     return section
 
 
-def _nested(parameters: dict[Any, Any], path: Path) -> dict[str, Any]:
-    """ROS allows ``a: {b: 1}`` and ``a.b: 1`` alike; fold both into nested mappings."""
+def _flatten(tree: Mapping[Any, Any], prefix: str, flat: dict[str, Any]) -> None:
+    """ROS allows ``a: {b: 1}`` and ``a.b: 1`` alike: both become ``a.b``."""
+    for key, value in tree.items():
+        name = f'{prefix}{key}'
+        if isinstance(value, dict) and value:
+            _flatten(value, name + '.', flat)
+        else:
+            flat[name] = value
+
+
+def _unflatten(flat: Mapping[str, Any], notes: list[str]) -> dict[str, Any]:
     tree: dict[str, Any] = {}
-    for key, value in parameters.items():
-        if not isinstance(key, str):
-            raise CalibrationFileError(f'{path}: parameter name {key!r} is not a string')
-        if isinstance(value, dict):
-            value = _nested(value, path)
+    clashes = []
+    for name, value in flat.items():
         node = tree
-        *parents, leaf = key.split('.')
+        *parents, leaf = name.split('.')
         for part in parents:
             node = node.setdefault(part, {})
             if not isinstance(node, dict):
-                raise CalibrationFileError(f'{path}: parameter {key!r} clashes with a value')
-        if isinstance(node.get(leaf), dict) and isinstance(value, dict):
-            node[leaf].update(value)
-        else:
-            node[leaf] = value
+                break
+        if not isinstance(node, dict) or isinstance(node.get(leaf), dict):
+            clashes.append(f'{SECTION}.{name[:60]}')
+            continue
+        node[leaf] = value
+    if clashes:
+        notes.append(f'dropped {_listing(clashes, quote=False)}: clashes with a value of the '
+                     f'same name')
     return tree
+
+
+def _listing(names: Iterable[Any], quote: bool = True, shown: int = 5) -> str:
+    """'a', 'b', 'c' and 4 more: a message names a few, never thousands."""
+    names = list(names)
+    text = ', '.join(short_repr(name, 40) if quote else str(name) for name in names[:shown])
+    return text + (f' and {len(names) - shown} more' if len(names) > shown else '')
