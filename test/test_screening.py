@@ -31,12 +31,13 @@ def test_every_value_reason_is_counted():
              ((4.9e-3, 0.0, 0.0), 'saturated'), ((1e-6, -5e-3, 0.0), 'saturated')]
     for field, reason in cases:
         assert screen.screen(0, 'imu_link', *field) == reason
-    assert screen.counts == {'non_finite': 2, 'zero': 2, 'saturated': 2, 'stamp_backwards': 0,
-                             'stamp_jump': 0, 'frame_changed': 0}
+    assert screen.counts == {'non_finite': 2, 'zero': 2, 'saturated': 2, 'out_of_range': 0,
+                             'stamp_backwards': 0, 'stamp_jump': 0, 'frame_changed': 0}
     assert set(screen.counts) == set(SCREEN_REASONS)
     assert screen.frame_id is None  # nothing accepted yet: no frame fixed by a refused message
     assert screen.screen(0, 'imu_link', 0.0, 2e-5, 1e-5) is None  # one zero component is fine
-    assert reading_problem(1e30, 0.0, 1.0, None) is None  # no full scale: no saturation check
+    assert reading_problem(1e11, 0.0, 1.0, None) is None  # no full scale: no saturation check
+    assert reading_problem(1e150, 1e150, 1e150, None) == 'out_of_range'  # but never garbage
 
 
 def test_equal_stamps_are_accepted():

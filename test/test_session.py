@@ -509,6 +509,9 @@ def test_transform_covariance():
     covariance = np.diag([1.0, 2.0, 3.0])
     np.testing.assert_allclose(transform_covariance(matrix, covariance.reshape(9)),
                                (matrix @ covariance @ matrix.T).reshape(9))
+    for bad in (math.nan, math.inf, 1e308):  # unknown, never NaN/Inf on the corrected topic
+        broken = np.diag([1.0, bad, 3.0]).reshape(9)
+        assert not np.any(transform_covariance(1e10 * matrix, broken))
 
 
 def test_settings_validation_and_reconfigure_keep_samples():

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+import math
 from typing import Any
 
 import numpy as np
@@ -88,6 +89,17 @@ class Calibration:
             self.model,
             self.metadata,
         )
+
+    def metadata_number(self, key: str) -> float | None:
+        """Metadata ``key`` as a finite float, or None: a hand-edited file may hold anything."""
+        value = self.metadata.get(key)
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+            return None
+        try:
+            number = float(value)
+        except OverflowError:
+            return None
+        return number if math.isfinite(number) else None
 
     def with_metadata(self, **metadata: Any) -> Calibration:
         """A copy with metadata entries added or replaced."""

@@ -215,7 +215,7 @@ def check_fit(calibration: Calibration, recent: np.ndarray, gate_pct: float) -> 
     corrected = calibration.apply(recent)
     magnitudes = np.linalg.norm(corrected, axis=1)
     median_error = float(np.median(np.abs(magnitudes / expected - 1.0)))
-    own = float(calibration.metadata.get('residual_rms_pct', 0.0) or 0.0) / 100.0
+    own = (calibration.metadata_number('residual_rms_pct') or 0.0) / 100.0
     threshold = max(MISFIT_FLOOR * gate_pct / 100.0, MISFIT_FACTOR * 0.67 * own)
     explained = _sphere_error(corrected)
     off = median_error > threshold and median_error > MISFIT_EXPLAINED * explained

@@ -13,7 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 import math
 
-VALUE_REASONS = ('non_finite', 'zero', 'saturated')
+VALUE_REASONS = ('non_finite', 'zero', 'saturated', 'out_of_range')
 STREAM_REASONS = ('stamp_backwards', 'stamp_jump', 'frame_changed')
 SCREEN_REASONS = VALUE_REASONS + STREAM_REASONS
 """Why a message is refused before it reaches the sample buffer or the corrected topic."""
@@ -30,9 +30,14 @@ messages. Shorter pauses (a driver re-initialising) pass at once."""
 MAX_CONFIRM_STEP_NS = 1_000_000_000
 """Messages confirm a new timeline only when each is at most 1 s after the one before."""
 
+MAX_READING = 1e12
+"""No magnetometer reads beyond this in any unit (1e12 nT is 1000 T; 16-bit counts stay below
+1e5): such a value is garbage, refused even with the saturation check off, so that no later
+computation (squares, whitening) can overflow."""
+
 
 def reading_problem(x0: float, x1: float, x2: float, full_scale: float | None) -> str | None:
-    """Why one reading can never be a sample ('non_finite', 'zero', 'saturated'), or None.
+    """Why one reading can never be a sample (a VALUE_REASONS entry), or None.
 
     All-zero is refused but one exact-zero component is a legitimate reading. Plain floats, as
     this runs for every message.
@@ -41,8 +46,11 @@ def reading_problem(x0: float, x1: float, x2: float, full_scale: float | None) -
         return 'non_finite'
     if x0 == 0.0 and x1 == 0.0 and x2 == 0.0:
         return 'zero'
-    if full_scale is not None and max(abs(x0), abs(x1), abs(x2)) >= full_scale:
+    largest = max(abs(x0), abs(x1), abs(x2))
+    if full_scale is not None and largest >= full_scale:
         return 'saturated'
+    if largest > MAX_READING:
+        return 'out_of_range'
     return None
 
 

@@ -236,11 +236,16 @@ def magnitude_residual_pct(calibration: Calibration, samples: np.ndarray) -> flo
 
 
 def transform_covariance(matrix: np.ndarray, covariance: Sequence[float]) -> np.ndarray:
-    """``M C M^T`` for a known covariance; all-zero (unknown) and -1 (not reported) pass as is."""
+    """``M C M^T`` for a known covariance; all-zero (unknown) and -1 (not reported) pass as is,
+    and a covariance with NaN/Inf (or one that overflows) becomes all-zero: unknown (REP-145)."""
     covariance = np.asarray(covariance, dtype=float).reshape(3, 3)
+    if not np.all(np.isfinite(covariance)):
+        return np.zeros(9)
     if not np.any(covariance) or covariance[0, 0] == -1.0:
         return covariance.reshape(9).copy()
-    return (matrix @ covariance @ matrix.T).reshape(9)
+    with np.errstate(all='ignore'):
+        transformed = (matrix @ covariance @ matrix.T).reshape(9)
+    return transformed if np.all(np.isfinite(transformed)) else np.zeros(9)
 
 
 def bounded_step(current: Calibration, target: Calibration, max_change: float) -> Calibration:
@@ -273,13 +278,14 @@ def calibration_summary(calibration: Calibration, units: str = 'T') -> str:
     """One line: model, offset, residual % and coverage % (when the fit recorded them)."""
     offset = ', '.join(format_field(v, units, unit=False) for v in calibration.offset)
     text = f'model {calibration.model}, offset [{offset}] {display_units(units)}'
-    metadata = calibration.metadata
-    if 'residual_rms_pct' in metadata:
-        text += f", residual {float(metadata['residual_rms_pct']):.2f} %"
-    if 'coverage' in metadata:
-        text += f", coverage {100.0 * float(metadata['coverage']):.0f} %"
-    if 'samples' in metadata:
-        text += f", {int(metadata['samples'])} samples"
+    residual, coverage, samples = (calibration.metadata_number(key)
+                                   for key in ('residual_rms_pct', 'coverage', 'samples'))
+    if residual is not None:
+        text += f', residual {residual:.2f} %'
+    if coverage is not None:
+        text += f', coverage {100.0 * coverage:.0f} %'
+    if samples is not None:
+        text += f', {samples:.0f} samples'
     return text
 
 
@@ -301,10 +307,10 @@ def coverage_kept(current: Calibration, candidate: Calibration) -> bool:
         return current.model == 'identity'
     if current.model == 'planar' and candidate.model != 'planar':
         return True
-    before, after = current.metadata.get('coverage'), candidate.metadata.get('coverage')
+    before, after = (c.metadata_number('coverage') for c in (current, candidate))
     if before is None:
         return True
-    return after is not None and float(after) >= float(before) - 1e-9
+    return after is not None and after >= before - 1e-9
 
 
 class CalibrationSession:
@@ -788,9 +794,9 @@ class CalibrationSession:
 
     @property
     def last_residual_pct(self) -> float | None:
-        residual = None if self.calibration is None else self.calibration.metadata.get(
-            'residual_rms_pct')
-        return None if residual is None else float(residual)
+        if self.calibration is None:
+            return None
+        return self.calibration.metadata_number('residual_rms_pct')
 
     def reset(self) -> None:
         """Empty the buffer and evidence, forget the stream's frame and stamps (a new sensor may
@@ -901,8 +907,8 @@ class CalibrationSession:
 
 
 def _coverage_pct(calibration: Calibration) -> str:
-    coverage = calibration.metadata.get('coverage')
-    return '?' if coverage is None else f'{100.0 * float(coverage):.0f} %'
+    coverage = calibration.metadata_number('coverage')
+    return '?' if coverage is None else f'{100.0 * coverage:.0f} %'
 
 
 __all__ = [

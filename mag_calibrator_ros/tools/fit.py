@@ -54,10 +54,14 @@ PROGRESS_MIN_ROWS = 20_000
 PROGRESS_MIN_BYTES = 1 << 20
 PROGRESS_CHUNK = 2048
 DEFAULT_RATE_HZ = 100.0
+OUTPUT_SECTION = '/**'
+"""--output files apply to any node they are given to with --params-file (any name, any
+namespace): which robot a recording came from is the user's to say, by the file they pass."""
 REJECT_WORDS = {
     'non_finite': 'NaN/Inf',
     'zero': 'all-zero',
     'saturated': 'at or beyond --full-scale',
+    'out_of_range': 'beyond any magnetometer (|value| > 1e12)',
     'duplicate': 'exact duplicates of a buffered sample',
     'magnitude_outlier': 'magnitude outliers',
 }
@@ -218,7 +222,7 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     calibration = result.calibration
     written = None
     if result.success and calibration is not None and args.output:
-        save_calibration(args.output, calibration)
+        save_calibration(args.output, calibration, node_name=OUTPUT_SECTION)
         written = args.output
     plotted = None
     if args.plot:
