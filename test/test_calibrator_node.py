@@ -271,19 +271,22 @@ def test_save_then_restart_gives_the_same_output_without_recalibrating(ros, live
 def parameters_from_file(path: Path) -> list[Parameter]:
     """The saved file as parameter overrides, as ``--params-file`` would give them."""
     document = yaml.safe_load(path.read_text())
-    calibration = document['mag_calibrator']['ros__parameters']['calibration']
+    (section,) = document.values()  # one node's calibration, keyed by its full name
+    calibration = section['ros__parameters']['calibration']
     return [Parameter(f'calibration.{key}', value=value) for key, value in calibration.items()]
 
 
 def test_params_file_restores_the_calibration(live, tmp_path):
     calibration = live['calibrator'].session.calibration
     assert live['probe'].call('mag_calibrator/save').success
+    assert '/live/mag_calibrator:' in live['file'].read_text()  # the saving node's full name
     # The real command-line path: rclpy.init(args=[... --params-file FILE]) in a fresh context,
-    # with no calibration_file on disk so only the parameters can provide the calibration.
+    # with no calibration_file on disk so only the parameters can provide the calibration; the
+    # file's section applies to the node of that name in that namespace.
     context = Context()
     rclpy.init(args=['--ros-args', '--params-file', str(live['file'])], context=context)
     try:
-        node = MagCalibratorNode(context=context, parameter_overrides=[
+        node = MagCalibratorNode(context=context, namespace='live', parameter_overrides=[
             Parameter('calibration_file', value=str(tmp_path / 'absent.yaml'))])
         assert node.session.state.startswith('calibrated')
         np.testing.assert_allclose(node.session.calibration.offset, calibration.offset,

@@ -427,8 +427,7 @@ def test_console_script_runs_and_keeps_stdout_clean(shared_data, tmp_path):
     summary = json.loads(result.stdout)
     assert summary['success'] is True
     document = yaml.safe_load(output.read_text())
-    assert document['mag_calibrator']['ros__parameters']['calibration']['offset'] == \
-        summary['offset']
+    assert document['/**']['ros__parameters']['calibration']['offset'] == summary['offset']
     missing = subprocess.run([str(script), str(tmp_path / 'missing.txt')], capture_output=True,
                              text=True, timeout=120, check=False)
     assert missing.returncode == 2

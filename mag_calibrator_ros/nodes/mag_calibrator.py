@@ -13,10 +13,12 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import fields
+import inspect
 import math
 from pathlib import Path
 from queue import SimpleQueue
 import time
+import traceback
 
 from rcl_interfaces.msg import (
     FloatingPointRange,
@@ -35,8 +37,13 @@ from std_srvs.srv import Trigger
 from mag_calibrator_ros.calibration.calibration import Calibration, CalibrationError
 from mag_calibrator_ros.calibration.calibration_file import (
     CalibrationFileError,
+    CalibrationFileMissingError,
+    LoadedCalibration,
     calibration_from_parameters,
-    load_calibration,
+    default_calibration_path,
+    default_load_path,
+    read_calibration_file,
+    resolve_calibration_path,
     save_calibration,
 )
 from mag_calibrator_ros.calibration.coverage import Coverage
@@ -55,10 +62,14 @@ from mag_calibrator_ros.nodes.diagnostics import (
     DiagnosticsPublisher,
     diagnostic_status,
 )
+from mag_calibrator_ros.nodes.parameters import (
+    ConfigurationError,
+    declare_checked,
+    refuse_to_start,
+)
 from mag_calibrator_ros.nodes.runtime import spin_node
 
 NODE_NAME = 'mag_calibrator'
-DEFAULT_CALIBRATION_FILE = '~/.ros/mag_calibrator/calibration.yaml'
 DIAGNOSTICS_PERIOD_S = 1.0
 POLL_PERIOD_S = 0.05
 """How often finished fits and file operations are collected (service answers wait at most
@@ -134,9 +145,10 @@ PARAMETERS: dict[str, tuple[object, str, dict]] = {
                              'exists.', {}),
     'auto_save': (False, 'Save to calibration_file whenever a new calibration goes in force '
                          '(at most every 10 s; atomic).', {}),
-    'calibration_file': (DEFAULT_CALIBRATION_FILE,
+    'calibration_file': ('',
                          'Calibration YAML (ROS params format): loaded at start-up and by ~/load, '
-                         'written by ~/save.', {}),
+                         'written by ~/save. Default: one file per node, '
+                         '$ROS_HOME/mag_calibrator/<namespace>__<name>.yaml.', {}),
     'progress_log_period': (5.0, 'Seconds between progress log lines while uncalibrated '
                                  '(0 = silent).',
                             {'floating_point_range': _float_range(0.0, 3600.0)}),
@@ -147,11 +159,11 @@ CALIBRATION_METADATA_KEYS = (
     'plane_normal', 'unobserved',
 )
 """Metadata the fit and the node write into a saved file (declared so --params-file keeps it)."""
-CALIBRATION_PARAMETERS: dict[str, tuple[Parameter.Type, str]] = {
-    'calibration.offset': (Parameter.Type.DOUBLE_ARRAY, 'Hard-iron offset b [3], tesla.'),
-    'calibration.matrix': (Parameter.Type.DOUBLE_ARRAY, 'Soft-iron matrix M [9], row-major.'),
-    'calibration.field_strength': (Parameter.Type.DOUBLE, '|corrected| target F, tesla.'),
-    'calibration.model': (Parameter.Type.STRING, 'Model that produced the calibration.'),
+CALIBRATION_PARAMETERS: dict[str, str] = {
+    'calibration.offset': 'Hard-iron offset b [3], tesla.',
+    'calibration.matrix': 'Soft-iron matrix M [9], row-major.',
+    'calibration.field_strength': '|corrected| target F, tesla.',
+    'calibration.model': 'Model that produced the calibration.',
 }
 
 
@@ -161,10 +173,17 @@ class MagCalibratorNode(Node):
     def __init__(self, **node_kwargs) -> None:
         node_kwargs.setdefault('node_name', NODE_NAME)
         super().__init__(**node_kwargs)
+        self._default_file = default_calibration_path(self.get_fully_qualified_name())
+        problems: list[str] = []
         for name, (default, description, extras) in PARAMETERS.items():
-            self.declare_parameter(
-                name, default, ParameterDescriptor(description=description, **extras)
-            )
+            if name == 'calibration_file':
+                default = str(self._default_file)
+            declare_checked(self, name, default,
+                            ParameterDescriptor(description=description, **extras), problems)
+        problems += self._problems(self._current_values())
+        if problems:
+            Node.destroy_node(self)  # nothing else was created yet
+            refuse_to_start(self, problems)
         startup_calibration = self._declare_calibration_parameters()
         runner = ProcessRunner()
         runner.start()  # the worker imports the fitting stack while the node starts up
@@ -192,7 +211,8 @@ class MagCalibratorNode(Node):
         waiting = ReentrantCallbackGroup()
         for name, callback in (('~/calibrate', self._on_calibrate), ('~/save', self._on_save),
                                ('~/reset', self._on_reset), ('~/load', self._on_load)):
-            self.create_service(Trigger, name, callback, callback_group=waiting)
+            self.create_service(Trigger, name, self._answering(name, callback),
+                                callback_group=waiting)
         self._diagnostics = DiagnosticsPublisher(self)
         self.create_timer(POLL_PERIOD_S, self._on_poll)
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._on_tick)
@@ -216,23 +236,35 @@ class MagCalibratorNode(Node):
         for parameter in parameters:
             if parameter.name in PARAMETERS:
                 values[parameter.name] = parameter.value
-        problems = self._settings_from(values).problems()
-        if not str(values['calibration_file']).strip():
-            problems.append('calibration_file must not be empty')
+        problems = self._problems(values)
         if problems:
             return SetParametersResult(successful=False, reason='; '.join(problems))
         return SetParametersResult(successful=True)
+
+    def _problems(self, values: dict[str, object]) -> list[str]:
+        """Everything wrong with these parameter values (the same at start-up and at run time)."""
+        problems = self._settings_from(values).problems()
+        try:
+            resolve_calibration_path(str(values['calibration_file']))
+        except CalibrationFileError as error:
+            problems.append(f'calibration_file: {error}')
+        return problems
 
     def _apply_parameters(self, parameters: list[Parameter]) -> None:
         self.session.reconfigure(self._settings_from(self._current_values()))
 
     def _declare_calibration_parameters(self) -> dict[str, object]:
-        """Declare ``calibration.*`` (read-only, start-up): a saved file works as --params-file."""
+        """Declare ``calibration.*`` (read-only, start-up): a saved file works as --params-file.
+
+        Dynamically typed, so a hand-written file with integers (``matrix: [1, 0, 0, ...]``) or
+        a wrong type reaches calibration_from_parameters, which converts or says what is wrong,
+        instead of rclpy refusing the whole node.
+        """
         given = {}
-        for name, (kind, description) in CALIBRATION_PARAMETERS.items():
-            value = self.declare_parameter(
-                name, kind, ParameterDescriptor(description=description, read_only=True)
-            ).value
+        for name, description in CALIBRATION_PARAMETERS.items():
+            descriptor = ParameterDescriptor(description=description, read_only=True,
+                                             dynamic_typing=True)
+            value = self.declare_parameter(name, None, descriptor).value
             if value is not None:
                 given[name] = value
         for key in CALIBRATION_METADATA_KEYS:
@@ -252,7 +284,7 @@ class MagCalibratorNode(Node):
     # -- start-up --------------------------------------------------------------------------------
 
     def _calibration_file(self) -> Path:
-        return Path(str(self.get_parameter('calibration_file').value)).expanduser()
+        return resolve_calibration_path(str(self.get_parameter('calibration_file').value))
 
     def _startup(self, parameters: dict[str, object]) -> None:
         """Parameters given with --params-file win; else the file; else run uncalibrated."""
@@ -267,7 +299,9 @@ class MagCalibratorNode(Node):
                     f'calibration from parameters: {calibration_summary(calibration)}')
             return
         path = self._calibration_file()
-        loaded = _read_calibration(path)
+        if path == resolve_calibration_path(self._default_file):  # the per-node default,
+            path = default_load_path(self.get_fully_qualified_name())  # or the old shared file
+        loaded = _read_calibration(path, self.get_fully_qualified_name())
         if loaded is None:
             self.get_logger().info(
                 f'no calibration file at {path} yet: uncalibrated until ~/calibrate '
@@ -291,14 +325,16 @@ class MagCalibratorNode(Node):
             metadata=metadata,
         )
 
-    def _loaded(self, path: Path, loaded: Calibration | Exception) -> tuple[bool, str]:
+    def _loaded(self, path: Path, loaded: LoadedCalibration | Exception) -> tuple[bool, str]:
         """Put a calibration read from ``path`` in force, or report why it could not be."""
         if isinstance(loaded, Exception):
             return False, self._report_problem(
                 f'{loaded}; the calibration in force is unchanged (state {self.session.state})')
-        self.session.apply_calibration(loaded, 'file')
+        for note in loaded.notes:
+            self.get_logger().warning(f'{loaded.path}: {note}')
+        self.session.apply_calibration(loaded.calibration, 'file')
         self._problem = None
-        message = f'loaded {path}: {calibration_summary(loaded)}'
+        message = f'loaded {loaded.path}: {calibration_summary(loaded.calibration)}'
         self.get_logger().info(message)
         return True, message
 
@@ -374,6 +410,22 @@ class MagCalibratorNode(Node):
 
     # -- services --------------------------------------------------------------------------------
 
+    def _answering(self, name: str, callback: Callable) -> Callable:
+        """A service callback that always answers: an unexpected error fails the call with its
+        text (and the traceback in the log) instead of leaving the client waiting forever."""
+
+        async def answer(request: Trigger.Request, response: Trigger.Response):
+            try:
+                result = callback(request, response)
+                return await result if inspect.isawaitable(result) else result
+            except Exception as error:  # noqa: BLE001 - reported to the caller and the log
+                self.get_logger().error(f'{name} failed:\n{traceback.format_exc()}')
+                response.success = False
+                response.message = f'{name} failed: {type(error).__name__}: {error}'
+                return response
+
+        return answer
+
     async def _on_calibrate(self, request: Trigger.Request, response: Trigger.Response):
         waiting = Future()
         self._requests[self.session.request_calibration()] = waiting
@@ -387,9 +439,9 @@ class MagCalibratorNode(Node):
         calibration = self.session.calibration
         if calibration is None:
             raise ValueError('nothing to save: no calibration in force (call ~/calibrate first)')
-        path = self._calibration_file()
-        save_calibration(path, calibration)
-        return f'saved to {path}'
+        written = save_calibration(self._calibration_file(), calibration,
+                                   node_name=self.get_fully_qualified_name())
+        return f'saved to {written}'
 
     def _auto_saved(self, result: object) -> None:
         self._saving = False
@@ -416,7 +468,8 @@ class MagCalibratorNode(Node):
 
     async def _on_load(self, request: Trigger.Request, response: Trigger.Response):
         path = self._calibration_file()
-        loaded = await self._run_io(lambda: _read_calibration(path))
+        name = self.get_fully_qualified_name()
+        loaded = await self._run_io(lambda: _read_calibration(path, name))
         if loaded is None:
             response.success = False
             response.message = f'no calibration file at {path}; the calibration in force stays'
@@ -464,20 +517,24 @@ class MagCalibratorNode(Node):
         ])
 
 
-def _read_calibration(path: Path) -> Calibration | Exception | None:
-    """Load a calibration file: None when there is none, any failure as the exception
-    (reported, never raised)."""
+def _read_calibration(path: Path, node_name: str) -> LoadedCalibration | Exception | None:
+    """Read a calibration file for ``node_name``: None when there is none, any failure as the
+    exception (reported, never raised)."""
     try:
-        if not path.exists():
-            return None
-        return load_calibration(path)
-    except (CalibrationFileError, CalibrationError, OSError, ValueError) as error:
+        return read_calibration_file(path, node_name)
+    except CalibrationFileMissingError:
+        return None
+    except (CalibrationFileError, CalibrationError) as error:
         return error
 
 
 def main(args: Sequence[str] | None = None) -> int:
-    """Console script ``mag_calibrator`` (also ``ros2 run mag_calibrator_ros mag_calibrator``)."""
-    return spin_node(MagCalibratorNode, args)
+    """Console script ``mag_calibrator`` (also ``ros2 run mag_calibrator_ros mag_calibrator``):
+    exit 0 on a normal stop, 2 on invalid parameters."""
+    try:
+        return spin_node(MagCalibratorNode, args)
+    except ConfigurationError:
+        return 2  # already logged as FATAL with every problem
 
 
 if __name__ == '__main__':
