@@ -1,8 +1,10 @@
 """Test-wide settings: isolate ROS 2 traffic and locate the shared recordings."""
 
+import atexit
 import os
 from pathlib import Path
 import random
+import shutil
 import tempfile
 
 from hypothesis import settings
@@ -12,6 +14,9 @@ import pytest
 # a robot on the LAN) never see each other's topics. Must be set before rclpy.init().
 os.environ.setdefault('ROS_DOMAIN_ID', str(random.SystemRandom().randint(1, 100)))
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+# Nodes keep their calibration files under ROS_HOME: tests never touch the user's ~/.ros.
+os.environ['ROS_HOME'] = tempfile.mkdtemp(prefix='mag_calibrator_tests_ros_home_')
+atexit.register(shutil.rmtree, os.environ['ROS_HOME'], ignore_errors=True)
 
 # CI explores the same examples every run (a failure there is reproducible, never a dice roll);
 # local runs keep exploring new ones. No deadlines anywhere: speed lives in the benchmarks.

@@ -8,6 +8,7 @@ each test has its own namespace, so streams never mix.
 from __future__ import annotations
 
 from collections.abc import Callable
+import json
 import math
 from pathlib import Path
 import threading
@@ -484,3 +485,91 @@ def test_saved_file_is_loadable_and_in_tesla(live):
     assert 30e-6 < calibration.field_strength < 70e-6
     np.testing.assert_allclose(calibration.offset, np.array(HARD_IRON_UT) * 1e-6, atol=2e-6)
 
+
+
+def test_the_subscription_callback_never_runs_a_fit(ros, monkeypatch):
+    """Every fit and judgement (fits, coverage, evidence checks) is recorded with whether it ran
+    inside the imu/mag callback: the node calibrates by itself, and none ever did."""
+    from mag_calibrator_ros.calibration import buffer, coverage, evidence, fitting, jobs
+    from mag_calibrator_ros.nodes import mag_calibrator
+
+    inside = threading.local()
+    calls: list[tuple[str, bool]] = []
+
+    def recorded(module, name):
+        original = getattr(module, name)
+
+        def wrapper(*args, **kwargs):
+            calls.append((name, getattr(inside, 'active', False)))
+            return original(*args, **kwargs)
+
+        monkeypatch.setattr(module, name, wrapper)
+
+    for module, name in ((fitting, 'fit_calibration'), (jobs, 'fit_calibration'),
+                         (jobs, 'run_job'), (jobs, 'check_fit'), (evidence, 'check_fit'),
+                         (jobs, 'compare_on_evidence'), (coverage, 'direction_coverage'),
+                         (buffer, 'direction_coverage'), (evidence, 'direction_coverage'),
+                         (jobs, 'direction_coverage')):
+        recorded(module, name)
+    on_mag = mag_calibrator.MagCalibratorNode._on_mag
+
+    def instrumented(self, msg):
+        inside.active = True
+        try:
+            on_mag(self, msg)
+        finally:
+            inside.active = False
+
+    monkeypatch.setattr(mag_calibrator.MagCalibratorNode, '_on_mag', instrumented)
+    driver = ros.driver('no_fit_in_callback', **{
+        'sim.hard_iron_ut': HARD_IRON_UT, 'sim.soft_iron': SOFT_IRON, 'sim.motion': 'tumble',
+        'sim.seed': 5})
+    node = ros.calibrator('no_fit_in_callback', progress_log_period=0.0, refine_period=1.0)
+    assert wait_for(lambda: node.session.adoptions.get('auto'), timeout_s=60.0), (
+        node.session.progress_text())
+    assert wait_for(lambda: node.session.jobs_run.get('check', 0) >= 2, timeout_s=30.0)
+    assert node.session.jobs_run.get('reference', 0) >= 1
+    assert not [name for name, in_callback in calls if in_callback], calls
+    assert ('direction_coverage', False) in calls  # the test sees calls outside it (diagnostics)
+    for n in (node, driver):
+        ros.remove(n)
+
+
+def test_node_and_mag_calibrator_fit_agree_on_the_same_stream(ros, shared_data, capsys):
+    """A recording sent message by message (stamped at 100 Hz) to the node, then ~/calibrate,
+    gives exactly what mag_calibrator_fit gives on the file."""
+    from mag_calibrator_ros.tools import fit
+    from mag_calibrator_ros.tools.recordings import read_recording
+
+    path = shared_data / 'fxos8700-mwrona' / 'mag-readings.txt'
+    rows = read_recording(path).samples
+    node = ros.calibrator('agree', full_scale=0.0, publish_uncalibrated=True,
+                          progress_log_period=0.0)
+    probe = Probe(ros, 'agree')
+    assert wait_for(lambda: probe.connected_to(node))
+    step = 10_000_000
+    for i, row in enumerate(rows):
+        stamp = 1_000_000_000_000 + i * step
+
+        def arrived(stamp=stamp):
+            with probe._lock:
+                return any(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec == stamp
+                           for m in probe.corrected)
+
+        sec, nanosec = divmod(stamp, 10**9)
+        for _ in range(5):  # best effort: a message lost on the way is sent again
+            probe.send(row, sec, nanosec)
+            if wait_for(arrived, timeout_s=2.0, step_s=0.002):
+                break
+        assert arrived(), f'message {i} never came back'
+    assert node.session.accepted == len(rows)
+    response = probe.call('mag_calibrator/calibrate')
+    assert response.success, response.message
+    assert fit.main([str(path), '--json', '--rate', '100']) == 0
+    summary = json.loads(capsys.readouterr().out)
+    np.testing.assert_array_equal(node.session.calibration.offset, summary['offset'])
+    np.testing.assert_array_equal(node.session.calibration.matrix.reshape(-1),
+                                  np.reshape(summary['matrix'], -1))
+    assert summary['buffer']['fits'] == node.session.jobs_run
+    for n in (probe, node):
+        ros.remove(n)

@@ -137,3 +137,17 @@ def test_a_dead_worker_is_reported_and_replaced():
         assert wait(runner).result.success  # a new worker took over
     finally:
         runner.close()
+
+
+def test_the_outcome_carries_the_submitted_job_itself():
+    """The session tells by identity whether a judged calibration is still in force: a copy
+    that came back through the pipe would never be."""
+    submitted = job('refine', current=Calibration(OFFSET, np.linalg.inv(SOFT), FIELD),
+                    evidence=tumble(200, seed=6))
+    for runner in (InlineRunner(), ProcessRunner()):
+        try:
+            runner.submit(submitted)
+            outcome = wait(runner)
+            assert outcome.job is submitted and outcome.job.current is submitted.current
+        finally:
+            runner.close()

@@ -6,6 +6,7 @@ from dataclasses import replace
 import math
 
 from mag_calibrator_ros.calibration.scheduler import (
+    CHECK_FIT_PERIOD_S,
     CHECK_PERIOD_S,
     CONVERGED_AFTER,
     MAX_STEP_S,
@@ -73,7 +74,7 @@ def test_automatic_attempts_check_often_and_fit_at_most_every_period():
 def test_refinement_runs_every_period_and_slows_down_once_converged():
     scheduler = FitScheduler(capacity=100)
     calibrated = replace(IDLE, calibrated=True, buffer_fill=100)
-    assert scheduler.due(calibrated) is None  # the first period starts with the calibration
+    assert scheduler.due(calibrated) != 'refine'  # the first period starts with the calibration
     times, now = [], 0.0
     while len(times) < CONVERGED_AFTER + 4:
         now += 0.5
@@ -86,7 +87,7 @@ def test_refinement_runs_every_period_and_slows_down_once_converged():
     assert gaps[-1] == 10.0 * REFINE_MAX_FACTOR
     scheduler.refine_done(judged=True, adopted=True)
     assert not scheduler.converged
-    assert scheduler.due(replace(calibrated, now=now + 1.0)) is None
+    assert scheduler.due(replace(calibrated, now=now + 1.0)) != 'refine'
     assert scheduler.due(replace(calibrated, now=now + 11.0)) == 'refine'
 
 
@@ -101,4 +102,13 @@ def test_a_misfit_switches_from_refining_to_calibrating():
     scheduler = FitScheduler(capacity=100)
     misfit = replace(IDLE, calibrated=True, misfit=True, buffer_fill=50, now=100.0)
     assert scheduler.due(misfit) == 'calibrate'
-    assert scheduler.due(replace(misfit, auto_calibrate=False)) is None
+    assert scheduler.due(replace(misfit, auto_calibrate=False)) == 'check'  # still watched
+
+
+def test_the_calibration_in_force_is_checked_every_stream_second():
+    scheduler = FitScheduler(capacity=100)
+    calibrated = replace(IDLE, calibrated=True, refine=False, buffer_fill=100)
+    checks = [t / 10 for t in range(100)
+              if scheduler.due(replace(calibrated, now=t / 10)) == 'check']
+    assert checks == [float(t) * CHECK_FIT_PERIOD_S for t in range(10)]
+    assert scheduler.due(replace(IDLE, now=100.0)) is None  # nothing to check uncalibrated

@@ -131,8 +131,9 @@ def test_held_out_readings_never_enter_the_buffer():
     assert len(uncalibrated.evidence) == 0
     calibrated = CalibrationSession(SessionSettings(auto_calibrate=False), calibration=EXACT)
     stream(calibrated, distorted('tumble', 800))
-    assert calibrated.buffer.seen == 800 - 800 // HOLD_OUT_EVERY
-    assert len(calibrated.evidence) > 0
+    held_out = 800 - calibrated.buffer.seen
+    assert 0.5 * 800 / HOLD_OUT_EVERY < held_out < 1.5 * 800 / HOLD_OUT_EVERY
+    assert 0.8 * held_out <= len(calibrated.evidence) <= held_out  # the latest few per cell
 
 
 # -- calibrating by itself ------------------------------------------------------------------------
@@ -226,7 +227,7 @@ def test_spikes_are_refused_and_evicted_with_no_calibration_given():
     spike_rows = set(map(tuple, raw[spikes]))
     assert not {tuple(row) for row in session.buffer.anchors} & spike_rows
     refused = session.rejects()['magnitude_outlier']
-    assert 0.6 * spikes.sum() * (1 - 1 / HOLD_OUT_EVERY) <= refused <= spikes.sum() + 5
+    assert 0.6 * spikes.sum() <= refused <= spikes.sum() + 5
     assert session.calibrate_now().success
     assert direction_error_deg(session.calibration) < 0.3
 
@@ -304,6 +305,27 @@ def test_while_a_fit_runs_readings_are_held_and_the_result_is_the_same():
     np.testing.assert_array_equal(held.calibration.matrix, inline.calibration.matrix)
 
 
+def test_a_request_made_while_readings_wait_fits_them_all():
+    """~/calibrate fits the buffer with every reading received before the call, even those
+    still held behind a running fit."""
+    raw = distorted('tumble', 600, seed=32)
+    inline = CalibrationSession(SessionSettings(auto_calibrate=False))
+    stream(inline, raw)
+    expected = inline.calibrate_now()
+    runner = ManualRunner()
+    held = CalibrationSession(SessionSettings(auto_calibrate=False), runner=runner)
+    for i, reading in enumerate(raw):
+        held.process(round(i * 1e9 / RATE_HZ), 'imu_link', reading)
+    assert held._held  # the buffer's reference fit (at 100 samples) is still running
+    ticket = held.request_calibration()
+    while runner.busy:
+        runner.release()
+        held.poll()
+    (answer,) = [e for e in held.take_events() if e.ticket == ticket]
+    assert answer.attempt.success and expected.success
+    np.testing.assert_array_equal(held.calibration.offset, inline.calibration.offset)
+
+
 def test_a_reset_while_a_fit_runs_abandons_it_and_answers_the_request():
     runner = ManualRunner()
     session = CalibrationSession(SessionSettings(auto_calibrate=False), runner=runner)
@@ -355,7 +377,7 @@ def test_refinement_replaces_a_calibration_that_is_measurably_off():
     assert '->' in refined[0] and 'coverage 50 % ->' in refined[0]
     assert session.adoptions['refine'] >= 1
     assert session.calibration.metadata['coverage'] >= 0.5
-    assert direction_error_deg(session.calibration) < 0.1 < direction_error_deg(rough)
+    assert direction_error_deg(session.calibration) < 0.2 < 0.2 * direction_error_deg(rough)
 
 
 def test_a_good_calibration_is_kept_and_converges():
@@ -593,3 +615,23 @@ def test_a_job_made_by_the_session_is_a_complete_snapshot():
     assert len(job.evidence) == len(session.evidence)
     job.samples[:] = 0.0  # a copy: the buffer is untouched
     assert np.all(session.buffer.samples != 0.0)
+
+
+def test_with_the_worker_process_refinement_and_misfits_are_decided_too():
+    """The node's own runner: outcomes judged against the calibration in force (regression: a
+    job copied back through the pipe discarded every refinement and check)."""
+    from mag_calibrator_ros.calibration.jobs import ProcessRunner
+
+    runner = ProcessRunner()
+    try:
+        session = CalibrationSession(calibration=other_robots_calibration(), runner=runner)
+        for i, reading in enumerate(distorted('tumble', 3000, seed=43)):
+            session.process(round(i * 1e9 / RATE_HZ), 'imu_link', reading)
+        while runner.busy or session._held:
+            session.poll()
+        events = session.take_events()
+        assert any('does not fit' in m for m in messages(events, level='warning'))
+        assert session.adoptions.get('auto') == 1
+        assert direction_error_deg(session.calibration) < 0.5
+    finally:
+        runner.close()

@@ -36,6 +36,8 @@ def receive(stream: BinaryIO) -> object:
 
 
 def serve(jobs: BinaryIO, outcomes: BinaryIO) -> None:
+    from dataclasses import replace
+
     from mag_calibrator_ros.calibration.jobs import run_job  # the fitting stack, imported once
 
     while True:
@@ -43,7 +45,7 @@ def serve(jobs: BinaryIO, outcomes: BinaryIO) -> None:
             job = receive(jobs)
         except EOFError:
             return
-        send(outcomes, run_job(job))
+        send(outcomes, replace(run_job(job), job=None))  # the parent still holds the job
 
 
 def main() -> None:

@@ -28,12 +28,19 @@ from mag_calibrator_ros.calibration.buffer import DEFAULT_MAGNITUDE_TOLERANCE
 from mag_calibrator_ros.calibration.calibration import Calibration
 from mag_calibrator_ros.calibration.coverage import Coverage, direction_coverage
 from mag_calibrator_ros.calibration.ellipsoid import robust_sigma
-from mag_calibrator_ros.calibration.evidence import Comparison, compare_on_evidence
+from mag_calibrator_ros.calibration.evidence import (
+    Comparison,
+    FitCheck,
+    check_fit,
+    compare_on_evidence,
+)
 from mag_calibrator_ros.calibration.fitting import FitOptions, FitResult, fit_calibration
 
-JOB_KINDS = ('reference', 'calibrate', 'refine')
+JOB_KINDS = ('reference', 'calibrate', 'refine', 'check')
 """reference: the buffer's own full fit, to screen and merge by; calibrate: a fit to put in force
-(automatic or on request); refine: a fit to put in force only if better on held-out evidence."""
+(automatic or on request); refine: a fit to put in force only if better on held-out evidence;
+check: no fit, the calibration in force judged on recent evidence (does it still fit? is the
+online-tracked calibration better?)."""
 
 REFERENCE_OPTIONS = FitOptions(model='full')
 """How the buffer is fitted for its reference: the default gates, model ``full``, the one that
@@ -64,6 +71,10 @@ class FitJob:
     """Automatic attempts: fit only if the buffer covers this share of directions (judged
     through ``reference``, as SampleBuffer.coverage does); else report the coverage."""
     reference: Calibration | None = None
+    recent: np.ndarray | None = None
+    """check: the held-out readings of the last MISFIT_WINDOW_S."""
+    tracked: Calibration | None = None
+    """check: the online tracker's calibration, compared with ``current`` on ``evidence``."""
 
 
 @dataclass(frozen=True)
@@ -86,6 +97,8 @@ class JobOutcome:
     comparison: Comparison | None = None
     coverage: Coverage | None = None
     """The buffer's coverage, when a readiness check ran."""
+    fit_check: FitCheck | None = None
+    """check: the calibration in force judged on the recent evidence."""
     error: str = ''
     seconds: float = 0.0
 
@@ -105,6 +118,12 @@ def run_job(job: FitJob) -> JobOutcome:
 
 
 def _run(job: FitJob) -> JobOutcome:
+    if job.kind == 'check':
+        fit_check = check_fit(job.current, job.recent, job.options.max_residual_pct)
+        comparison = None
+        if job.tracked is not None:
+            comparison = compare_on_evidence(job.current, job.tracked, job.evidence)
+        return JobOutcome(job, comparison=comparison, fit_check=fit_check)
     if job.kind == 'reference':
         result = fit_calibration(job.samples, job.options, weights=job.weights)
         return JobOutcome(job, result, reference=reference_fit(result, job, job.previous))
@@ -189,7 +208,9 @@ def moved(old: Calibration, new: Calibration, tolerance: float) -> bool:
 
 
 class FitRunner(Protocol):
-    """Runs one job at a time; the session submits, then polls until the outcome is there."""
+    """Runs one job at a time; the session submits, then polls until the outcome is there.
+    The outcome's ``job`` is the very object submitted (the session compares its calibrations
+    with the one in force by identity)."""
 
     @property
     def busy(self) -> bool: ...
@@ -289,7 +310,7 @@ class ProcessRunner:
             self.restarts += 1
             return JobOutcome(job, error=f'fit worker process ended (exit status {code}); a '
                                          'new one starts with the next fit')
-        return outcome
+        return replace(outcome, job=job)  # the submitted job itself: callers compare by identity
 
     def _stop(self, timeout_s: float = 2.0) -> int | None:
         process, self._process = self._process, None

@@ -4,7 +4,7 @@ Every decision is a function of the accepted readings and their stamps (stream t
 the wall clock, so a recording replayed through ``mag_calibrator_fit`` triggers the same fits at
 the same readings as the node that received it live, at any replay speed.
 
-Four kinds of work, in priority order:
+Five kinds of work, in priority order:
 
 - a requested fit (``~/calibrate``);
 - the buffer's reference: once the buffer is full, a full fit every ``capacity`` new samples,
@@ -12,10 +12,13 @@ Four kinds of work, in priority order:
 - automatic calibration, while uncalibrated or after the calibration in force was found not to
   fit: a readiness check every CHECK_PERIOD_S (coverage, which is cheap), a fit at most every
   ``auto_calibrate_period`` once ready;
-- refinement, while calibrated: a fit every ``refine_period``, judged on held-out readings;
-  after CONVERGED_AFTER judged attempts in a row that changed nothing the calibration counts as
-  converged and the period doubles up to REFINE_MAX_FACTOR x (NXP's sensor fusion re-solves
-  every 300 s; a converged calibration here is re-checked every 80 s by default).
+- refinement, while calibrated: a fit judged on held-out readings REFINE_FIRST_S after a new
+  calibration, then at doubling intervals up to ``refine_period`` (a first calibration from
+  half the sphere is improved within seconds of more turning); after CONVERGED_AFTER judged
+  attempts in a row that changed nothing the calibration counts as converged and the period
+  doubles on up to REFINE_MAX_FACTOR x (NXP's sensor fusion re-solves every 300 s; a converged
+  calibration here is re-checked every 80 s by default);
+- a check of the calibration in force on recent held-out readings, every CHECK_FIT_PERIOD_S.
 """
 
 from __future__ import annotations
@@ -25,6 +28,13 @@ import math
 
 CHECK_PERIOD_S = 0.25
 """Stream seconds between readiness checks while uncalibrated (a coverage check, no fit)."""
+
+CHECK_FIT_PERIOD_S = 1.0
+"""Stream seconds between checks that the calibration in force still fits (and online
+tracking's comparison)."""
+
+REFINE_FIRST_S = 1.0
+"""Stream seconds from a new calibration to the first refinement."""
 
 REFERENCE_MAX_FACTOR = 8
 CONVERGED_AFTER = 3
@@ -81,6 +91,8 @@ class FitScheduler:
         self._next_check = -math.inf
         self._next_auto_fit = -math.inf
         self._next_refine: float | None = None
+        self._refine_interval = REFINE_FIRST_S
+        self._next_fit_check = -math.inf
         self._refine_factor = 1
         self.unimproved = 0
         """Judged refinements in a row that did not change the calibration."""
@@ -95,7 +107,7 @@ class FitScheduler:
             self._since_reference += 1
 
     def due(self, situation: Situation) -> str | None:
-        """'request', 'reference', 'calibrate' or 'refine' when one is due, else None.
+        """'request', 'reference', 'calibrate', 'refine' or 'check' when one is due, else None.
 
         'calibrate' is automatic: the job checks readiness (coverage) first and fits only then.
         """
@@ -104,16 +116,20 @@ class FitScheduler:
             return 'request'
         if s.buffer_full and self._since_reference >= self._reference_factor * self.capacity:
             return 'reference'
-        if s.auto_calibrate and (not s.calibrated or s.misfit):
-            if s.buffer_fill < s.min_samples:
-                return None
-            return 'calibrate' if s.now >= max(self._next_check, self._next_auto_fit) else None
+        if s.auto_calibrate and (not s.calibrated or s.misfit) and (
+                s.buffer_fill >= s.min_samples
+                and s.now >= max(self._next_check, self._next_auto_fit)):
+            return 'calibrate'
         if s.calibrated and s.refine and not s.misfit:
-            if self._next_refine is None:  # the first period starts with the calibration
-                self._next_refine = s.now + s.refine_period
+            if self._next_refine is None:  # the first interval starts with the calibration
+                self._next_refine = s.now + min(self._refine_interval, s.refine_period)
             if s.now >= self._next_refine:
-                self._next_refine = s.now + self._refine_factor * s.refine_period
+                self._refine_interval = min(2.0 * self._refine_interval, s.refine_period)
+                self._next_refine = s.now + self._refine_factor * self._refine_interval
                 return 'refine'
+        if s.calibrated and s.now >= self._next_fit_check:
+            self._next_fit_check = s.now + CHECK_FIT_PERIOD_S
+            return 'check'
         return None
 
     def reference_done(self, settled: bool) -> None:
@@ -138,10 +154,11 @@ class FitScheduler:
                 self._refine_factor = min(2 * self._refine_factor, REFINE_MAX_FACTOR)
 
     def calibration_changed(self) -> None:
-        """A new calibration is in force: refine it from the base period again."""
+        """A new calibration is in force: refine it from the first interval again."""
         self.unimproved = 0
         self._refine_factor = 1
+        self._refine_interval = REFINE_FIRST_S
         self._next_refine = None
 
 
-__all__ = ['CHECK_PERIOD_S', 'FitScheduler', 'Situation', 'StreamClock']
+__all__ = ['CHECK_FIT_PERIOD_S', 'CHECK_PERIOD_S', 'FitScheduler', 'Situation', 'StreamClock']

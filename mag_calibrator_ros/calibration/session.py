@@ -27,6 +27,7 @@ from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 import math
+import random
 import time
 from typing import NamedTuple
 
@@ -39,10 +40,9 @@ from mag_calibrator_ros.calibration.evidence import (
     HOLD_OUT_EVERY,
     MIN_EVIDENCE,
     MISFIT_WINDOW_S,
+    Comparison,
     HeldOutEvidence,
     MisfitMonitor,
-    check_fit,
-    compare_on_evidence,
 )
 from mag_calibrator_ros.calibration.fitting import FitOptions
 from mag_calibrator_ros.calibration.jobs import (
@@ -80,7 +80,7 @@ describes the sensor (moved, re-mounted, another sensor's file): it is set aside
 starving the buffer of the data a new calibration needs."""
 
 PERIODIC_S = 1.0
-"""Stream seconds between the checks on recent evidence (misfit, online tracking)."""
+"""Stream seconds between updates of the field's centre (for filing evidence by direction)."""
 
 TRACKING_MIN_SEPARATION_DEG = 6.0
 """A reading teaches the tracker only when its corrected direction is at least this far from the
@@ -358,9 +358,10 @@ class CalibrationSession:
         self._job: FitJob | None = None
         self._job_epoch = 0
         self._epoch = 0  # bumped by reset(): outcomes of older jobs are stale
-        self._requests: deque[int] = deque()
+        self._requests: deque[tuple[int, int]] = deque()  # (ticket, readings accepted before)
+        self._ingested = 0  # accepted readings fed to the buffer or the evidence so far
         self._next_ticket = 1
-        self._ingested = 0
+        self._hold_out = random.Random(0)
         self._next_periodic = 0.0
         self._events: deque[SessionEvent] = deque(maxlen=MAX_EVENTS)
         self._reported_rejects = dict(self.screen.counts)
@@ -441,9 +442,10 @@ class CalibrationSession:
     def _ingest(self, reading: np.ndarray, stamp_ns: int) -> None:
         """Everything a reading teaches, in stream order (the held ones after the fit)."""
         now = self.clock.advance(stamp_ns)
-        if self.calibration is not None:  # evidence judges a calibration: none yet, none needed
-            self._ingested += 1
-        if self.calibration is not None and self._ingested % HOLD_OUT_EVERY == 0:
+        self._ingested += 1
+        # Evidence judges a calibration: none yet, none needed. The draw is pseudo-random (and
+        # deterministic), so a recording replayed again holds out other readings.
+        if self.calibration is not None and self._hold_out.random() * HOLD_OUT_EVERY < 1.0:
             self.evidence.add(reading, self._direction(reading), now)
         else:
             outcome = self.buffer.add(reading)
@@ -458,8 +460,6 @@ class CalibrationSession:
         if now >= self._next_periodic:
             self._next_periodic = now + PERIODIC_S
             self._update_centre()
-            self._check_fit(now)
-            self._check_tracking(now)
         if self._job is None:
             kind = self.scheduler.due(self._situation(now))
             if kind is not None:
@@ -495,13 +495,13 @@ class CalibrationSession:
             refine=settings.refine,
             refine_period=settings.refine_period,
             min_samples=min(_DEFAULT_FIT.min_samples, settings.buffer_size),
-            request_waiting=bool(self._requests),
+            request_waiting=bool(self._requests) and self._requests[0][1] <= self._ingested,
         )
 
     # -- fits ----------------------------------------------------------------------------------
 
     def _submit(self, kind: str) -> None:
-        ticket = self._requests.popleft() if kind == 'request' else None
+        ticket = self._requests.popleft()[0] if kind == 'request' else None
         job = self._make_job(kind, ticket)
         self.jobs_run[job.kind] = self.jobs_run.get(job.kind, 0) + 1
         self._job, self._job_epoch = job, self._epoch
@@ -517,6 +517,12 @@ class CalibrationSession:
         if kind == 'reference':
             return FitJob('reference', samples, weights, readings, REFERENCE_OPTIONS,
                           previous=self._provisional)
+        if kind == 'check':
+            recent = self.evidence.readings(since_s=self.clock.now - MISFIT_WINDOW_S)
+            tracked = None if self.tracker is None else self.tracker.calibration
+            return FitJob('check', np.empty((0, 3)), None, None, self.settings.fit_options(),
+                          current=self.calibration, evidence=self.evidence.readings(),
+                          recent=recent, tracked=tracked)
         metadata = {**self.metadata, 'frame_id': self.screen.frame_id or ''}
         evidence = self.evidence.readings() if self.calibration is not None else None
         return FitJob(
@@ -536,6 +542,8 @@ class CalibrationSession:
             return
         if job.kind == 'reference':
             self._reference_done(outcome)
+        elif job.kind == 'check':
+            self._check_done(outcome)
         elif job.ticket is not None:
             self._request_done(outcome)
         elif job.kind == 'calibrate':
@@ -627,11 +635,12 @@ class CalibrationSession:
         self.scheduler.refine_done(judged, adopted)
 
     def request_calibration(self) -> int:
-        """Ask for a fit of the buffer now (``~/calibrate``); the answer comes as an event with
-        this ticket. A fit that passes the gates goes in force."""
+        """Ask for a fit of the buffer (``~/calibrate``) once every reading received so far is
+        in it (some may wait while another fit runs); the answer comes as an event with this
+        ticket. A fit that passes the gates goes in force."""
         ticket = self._next_ticket
         self._next_ticket += 1
-        self._requests.append(ticket)
+        self._requests.append((ticket, self.accepted))  # after every reading received so far
         self._advance()
         return ticket
 
@@ -695,21 +704,24 @@ class CalibrationSession:
                             f'the last {window} readings, so it no longer describes the sensor; '
                             'collecting without it')
 
-    def _check_fit(self, now: float) -> None:
-        """Does the calibration in force still fit recent held-out readings?"""
-        calibration = self.calibration
-        if calibration is None:
+    def _check_done(self, outcome: JobOutcome) -> None:
+        """The calibration in force judged on recent evidence: misfit, and online tracking."""
+        if outcome.error:
+            self._event('warning', f'checking the calibration failed: {outcome.error}')
             return
-        recent = self.evidence.readings(since_s=now - MISFIT_WINDOW_S)
-        check = check_fit(calibration, recent, self.settings.max_residual_pct)
-        verdict = self.misfit.update(now, check)
+        if outcome.job.current is not self.calibration:
+            return  # judged a calibration no longer in force
+        now = self.clock.now
+        verdict = self.misfit.update(now, outcome.fit_check)
         if verdict == 'confirmed':
             self._event('warning', self.misfit_text())
             if self.settings.auto_calibrate:
                 self._collect_anew(now)
         elif verdict == 'cleared':
             self._event('info', f'the calibration in force fits the live data again (median '
-                                f'error {check.median_error_pct:.1f} %)')
+                                f'error {outcome.fit_check.median_error_pct:.1f} %)')
+        if outcome.comparison is not None:
+            self._track(now, outcome.job.tracked, outcome.comparison)
 
     def misfit_text(self) -> str:
         """Why the calibration in force does not fit, and what happens about it."""
@@ -757,15 +769,11 @@ class CalibrationSession:
         self._last_taught = direction
         return True
 
-    def _check_tracking(self, now: float) -> None:
+    def _track(self, now: float, candidate: Calibration, comparison: Comparison) -> None:
         """Step towards the tracked calibration when it is better on held-out readings."""
-        if self.tracker is None or self.calibration is None:
-            return
         last, self._last_tracking_check = self._last_tracking_check, now
         if last is None or now <= last:
             return
-        candidate = self.tracker.calibration
-        comparison = compare_on_evidence(self.calibration, candidate, self.evidence.readings())
         if not (comparison.better and comparison.candidate_pct
                 < self.settings.tracking_improvement * comparison.current_pct):
             return
@@ -807,6 +815,7 @@ class CalibrationSession:
         self.scheduler.reset()
         self.misfit.reset()
         self._held.clear()
+        self._ingested = self.accepted  # what was held is dropped: requests need not wait for it
         self._epoch += 1
         self._provisional = None
         self._set_reference(self.calibration, None, 'calibration' if self.calibration else None)

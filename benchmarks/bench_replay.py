@@ -1,0 +1,322 @@
+#!/usr/bin/env python3
+"""The live calibrator on recordings it never saw: replayed through the node over real DDS.
+
+(a) Every shared recording, and a synthetic tumble, published message by message on ``imu/mag``
+    (stamped at --rate, 100 Hz) to a ``mag_calibrator`` node with its defaults (auto_calibrate and
+    refine on, no service call), three passes each. Reported: the magnitude spread (std/mean of
+    |corrected|) of what the node published in the last pass, against the spread of a fit of
+    every row of the recording; the message at which the first corrected message came out; the
+    message at which the node counted itself converged.
+(b) The wrong file: the simulated ICM-20948 tumbling, the calibrator started with another
+    board's calibration. Seconds from the first message until the node warns that the
+    calibration does not fit, and until it has recalibrated by itself.
+
+    python benchmarks/bench_replay.py --data ../shared/data
+    python benchmarks/bench_replay.py --data ../shared/data --speed 10   # same numbers, faster
+
+Stream time comes from the message stamps, so --speed (publishing faster than the stamps say)
+changes no decision of the node: only how long the benchmark takes. Recordings in µT or counts
+are replayed with the node's saturation check off (full_scale 0): the engine is unit-free.
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass
+import os
+from pathlib import Path
+import random
+import sys
+import tempfile
+import threading
+import time
+
+import numpy as np
+
+os.environ.setdefault('ROS_DOMAIN_ID', str(random.SystemRandom().randint(101, 149)))
+os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+
+import rclpy  # noqa: E402
+from rclpy.context import Context  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
+from sensor_msgs.msg import MagneticField  # noqa: E402
+
+from mag_calibrator_ros import motion  # noqa: E402
+from mag_calibrator_ros.calibration.calibration import Calibration  # noqa: E402
+from mag_calibrator_ros.calibration.calibration_file import save_calibration  # noqa: E402
+from mag_calibrator_ros.calibration.fitting import FitOptions, fit_calibration  # noqa: E402
+from mag_calibrator_ros.nodes.icm20948_driver import Icm20948DriverNode  # noqa: E402
+from mag_calibrator_ros.nodes.mag_calibrator import MagCalibratorNode  # noqa: E402
+from mag_calibrator_ros.nodes.runtime import NodeThreads  # noqa: E402
+from mag_calibrator_ros.tools.recordings import read_recording  # noqa: E402
+
+TARGET_SPREAD_RATIO = 1.03
+WARN_TARGET_S = 10.0
+RECALIBRATED_TARGET_S = 30.0
+
+
+@dataclass(frozen=True)
+class Replay:
+    name: str
+    path: str | None  # under --data; None: synthetic
+    columns: str | None = None
+
+
+REPLAYS = (
+    Replay('gd-notebook long', 'gd-notebook/mag_raw_data_long.txt'),
+    Replay('gd-notebook short', 'gd-notebook/mag_raw_data.txt'),
+    Replay('gd deployment 1', 'gd-notebook/deployment/validation_data_step1en1.txt', '3,4,5'),
+    Replay('gd deployment 2', 'gd-notebook/deployment/validation_data_step1en2.txt', '3,4,5'),
+    Replay('gd deployment 3', 'gd-notebook/deployment/validation_data_step1en3.txt', '3,4,5'),
+    Replay('fxos8700', 'fxos8700-mwrona/mag-readings.txt'),
+    Replay('bno055', 'bno055-jremington/bno055_mag.csv'),
+    Replay('lsm303dlhc', 'lsm303dlhc-altimu10v3/mag_2.txt'),
+    Replay('lsm303dlhc log', 'lsm303dlhc-altimu10v3/cal_output_2.log', '3,4,5'),
+    Replay('synthetic tumble', None),
+)
+
+
+def synthetic_rows(n: int = 3000) -> np.ndarray:
+    """A hand tumble at 100 Hz in tesla: 120 uT hard iron, strong soft iron, 0.3 uT noise."""
+    truth = motion.body_field_samples('tumble', n, 100.0, 50e-6, 60.0, seed=11)
+    soft = np.array([[1.15, 0.10, -0.08], [0.10, 0.85, 0.12], [-0.08, 0.12, 1.00]])
+    raw = truth @ soft.T + np.array([120e-6, -80e-6, 60e-6])
+    return raw + np.random.default_rng(11).normal(0.0, 0.3e-6, raw.shape)
+
+
+def spread_pct(corrected: np.ndarray) -> float:
+    magnitudes = np.linalg.norm(corrected, axis=1)
+    return float(100.0 * magnitudes.std() / magnitudes.mean()) if len(magnitudes) else np.nan
+
+
+class Feeder(Node):
+    """Publishes rows on imu/mag and records what comes back on imu/mag_corrected."""
+
+    def __init__(self, context: Context, namespace: str) -> None:
+        super().__init__('replay_feeder', namespace=namespace, context=context)
+        reliable = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
+        self.publisher = self.create_publisher(MagneticField, 'imu/mag', reliable)
+        self.create_subscription(MagneticField, 'imu/mag_corrected', self._on_corrected, 1000)
+        self._lock = threading.Lock()
+        self.corrected: dict[int, np.ndarray] = {}  # message index -> corrected field
+
+    def _on_corrected(self, msg: MagneticField) -> None:
+        index = (msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec) // self.step_ns
+        with self._lock:
+            self.corrected[int(index)] = np.array(
+                [msg.magnetic_field.x, msg.magnetic_field.y, msg.magnetic_field.z])
+
+    def play(self, rows: np.ndarray, passes: int, rate: float, speed: float,
+             on_message=None) -> None:
+        self.step_ns = int(round(1e9 / rate))
+        message = MagneticField()
+        message.header.frame_id = 'imu_link'
+        period = 1.0 / (rate * speed)
+        next_send = time.perf_counter()
+        index = 0
+        for _ in range(passes):
+            for row in rows:
+                now = time.perf_counter()
+                if now < next_send:
+                    time.sleep(next_send - now)
+                next_send += period
+                message.header.stamp.sec, message.header.stamp.nanosec = divmod(
+                    index * self.step_ns, 10**9)
+                message.magnetic_field.x, message.magnetic_field.y, message.magnetic_field.z = (
+                    float(v) for v in row)
+                self.publisher.publish(message)
+                if on_message is not None:
+                    on_message(index)
+                index += 1
+
+
+def wait(condition, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(0.02)
+    return condition()
+
+
+def replay(threads: NodeThreads, context: Context, directory: Path, number: int, spec: Replay,
+           rows: np.ndarray, args: argparse.Namespace) -> dict:
+    namespace = f'replay{number}'
+    overrides = [Parameter('calibration_file', value=str(directory / f'{namespace}.yaml')),
+                 Parameter('progress_log_period', value=0.0)]
+    if spec.path is not None:
+        overrides.append(Parameter('full_scale', value=0.0))
+    node = threads.add(MagCalibratorNode(namespace=namespace, context=context,
+                                         parameter_overrides=overrides))
+    feeder = threads.add(Feeder(context, namespace))
+    assert wait(lambda: feeder.publisher.get_subscription_count() >= 1
+                and feeder.count_publishers(f'/{namespace}/imu/mag_corrected') >= 1, 30.0)
+    time.sleep(0.5)
+    converged: list[int] = []
+
+    def watch(index: int) -> None:
+        state = getattr(node.session, 'state', '')
+        if not converged and state == 'calibrated-converged':
+            converged.append(index)
+
+    feeder.play(rows, args.passes, args.rate, args.speed, watch)
+    wait(lambda: len(feeder.corrected) >= len(rows) * args.passes - 5, 5.0)
+    time.sleep(0.5)
+    with feeder._lock:
+        corrected = dict(feeder.corrected)
+    session = node.session
+    result = {
+        'rows': len(rows),
+        'first': min(corrected) if corrected else None,
+        'converged': converged[0] if converged else None,
+        'received': len(corrected),
+        'adoptions': dict(getattr(session, 'adoptions', {})),
+        'state': getattr(session, 'state', '?'),
+    }
+    last_pass = [corrected[i] for i in range(len(rows) * (args.passes - 1),
+                                             len(rows) * args.passes) if i in corrected]
+    result['live_spread'] = spread_pct(np.array(last_pass)) if last_pass else np.nan
+    result['last_pass_outputs'] = len(last_pass)
+    threads.remove(feeder)
+    threads.remove(node)
+    return result
+
+
+def all_rows_spread(rows: np.ndarray) -> float:
+    """The spread a fit of every row of the recording reaches (best effort, as offline)."""
+    calibration = fit_calibration(rows, FitOptions()).calibration
+    return spread_pct(calibration.apply(rows))
+
+
+def recordings_section(threads, context, directory, args) -> tuple[list[list[str]], bool]:
+    table, passed = [], True
+    for number, spec in enumerate(REPLAYS):
+        if spec.path is None:
+            rows = synthetic_rows()
+        else:
+            rows = read_recording(args.data / spec.path, columns=spec.columns).samples
+        reference = all_rows_spread(rows)
+        result = replay(threads, context, directory, number, spec, rows, args)
+        ratio = result['live_spread'] / reference
+        ok = bool(ratio <= TARGET_SPREAD_RATIO)
+        passed &= ok
+        adoptions = ', '.join(f'{k} {v}' for k, v in sorted(result['adoptions'].items()))
+        table.append([
+            spec.name, str(result['rows']), f"{result['received']}/{len(rows) * args.passes}",
+            f'{reference:.3f}', f"{result['live_spread']:.3f}", f'{ratio:.3f}',
+            'PASS' if ok else 'FAIL', str(result['first']), str(result['converged']),
+            adoptions or '-', result['state'],
+        ])
+        print(f"  {spec.name}: live {result['live_spread']:.3f} % vs all rows {reference:.3f} %"
+              f' ({ratio:.3f}x), first corrected message {result["first"]}, converged at '
+              f"{result['converged']}, {adoptions}", file=sys.stderr)
+    return table, passed
+
+
+def wrong_file_section(threads, context, directory, args) -> tuple[list[list[str]], bool]:
+    """The sim tumbling at 100 Hz; the calibrator starts with another board's calibration."""
+    table, passed = [], True
+    other = Calibration(np.array([260e-6, -140e-6, 80e-6]), np.diag([0.9, 1.1, 1.0]), 50e-6,
+                        'full', {'residual_rms_pct': 0.5, 'coverage': 0.9})
+    for seed in range(args.wrong_file_runs):
+        namespace = f'wrong{seed}'
+        path = directory / f'{namespace}.yaml'
+        save_calibration(path, other, node_name='/**')
+        driver = threads.add(Icm20948DriverNode(namespace=namespace, context=context,
+                                                parameter_overrides=[
+            Parameter('backend', value='sim'), Parameter('rate_hz', value=100),
+            Parameter('sim.motion', value='tumble'), Parameter('sim.seed', value=seed),
+            Parameter('sim.hard_iron_ut', value=[120.0, -80.0, 60.0]),
+            Parameter('sim.soft_iron', value=[1.15, 0.10, -0.08, 0.10, 0.85, 0.12, -0.08, 0.12,
+                                              1.00])]))
+        started = time.monotonic()
+        node = threads.add(MagCalibratorNode(namespace=namespace, context=context,
+                                             parameter_overrides=[
+            Parameter('calibration_file', value=str(path)),
+            Parameter('progress_log_period', value=0.0)]))
+        wait(lambda calibrator=node: calibrator.session.accepted > 0, 30.0)
+        first = time.monotonic()
+        warned = recalibrated = None
+        deadline = first + 90.0
+        while time.monotonic() < deadline and recalibrated is None:
+            state = node.session.state
+            if warned is None and state == 'calibrated-misfit':
+                warned = time.monotonic() - first
+            if node.session.adoptions.get('auto'):
+                recalibrated = time.monotonic() - first
+            time.sleep(0.02)
+        ok = (warned is not None and warned <= WARN_TARGET_S and recalibrated is not None
+              and recalibrated <= RECALIBRATED_TARGET_S)
+        passed &= ok
+        table.append([str(seed), f'{first - started:.1f}',
+                      '-' if warned is None else f'{warned:.1f}',
+                      '-' if recalibrated is None else f'{recalibrated:.1f}',
+                      'PASS' if ok else 'FAIL'])
+        threads.remove(node)
+        threads.remove(driver)
+    return table, passed
+
+
+def print_table(title: str, header: list[str], rows: list[list[str]], markdown: bool) -> None:
+    print(f'\n{title}')
+    if markdown:
+        print('| ' + ' | '.join(header) + ' |')
+        print('|' + '---|' * len(header))
+        for row in rows:
+            print('| ' + ' | '.join(row) + ' |')
+        return
+    widths = [max(len(h), *(len(r[i]) for r in rows)) for i, h in enumerate(header)]
+    print('  '.join(h.ljust(w) for h, w in zip(header, widths, strict=True)))
+    for row in rows:
+        print('  '.join(c.ljust(w) for c, w in zip(row, widths, strict=True)))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--data', type=Path, default=Path(__file__).resolve().parents[2]
+                        / 'shared' / 'data')
+    parser.add_argument('--passes', type=int, default=3)
+    parser.add_argument('--rate', type=float, default=100.0, help='stamp rate, Hz')
+    parser.add_argument('--speed', type=float, default=1.0,
+                        help='publish this many times faster than the stamps (same decisions)')
+    parser.add_argument('--wrong-file-runs', type=int, default=3)
+    parser.add_argument('--skip-recordings', action='store_true')
+    parser.add_argument('--markdown', action='store_true')
+    args = parser.parse_args(argv)
+    context = Context()
+    rclpy.init(args=[], context=context)
+    threads = NodeThreads(context)
+    passed = True
+    started = time.monotonic()
+    try:
+        with tempfile.TemporaryDirectory() as directory:
+            os.environ['ROS_HOME'] = directory  # nothing written to the user's ~/.ros
+            if not args.skip_recordings:
+                rows, ok = recordings_section(threads, context, Path(directory), args)
+                passed &= ok
+                print_table(
+                    f'(a) live node, defaults, {args.passes} passes at {args.rate:.0f} Hz: '
+                    'magnitude spread std/mean of |corrected|, %',
+                    ['recording', 'rows', 'received', 'all-rows fit', 'live, last pass',
+                     'ratio', f'<= {TARGET_SPREAD_RATIO}', 'first corrected msg',
+                     'converged at msg', 'adopted', 'final state'], rows, args.markdown)
+            rows, ok = wrong_file_section(threads, context, Path(directory), args)
+            passed &= ok
+            print_table('(b) wrong calibration file (another board), sim tumbling at 100 Hz: '
+                        'seconds from the first message',
+                        ['run', 'node start s', 'WARN after s', 'recalibrated after s',
+                         f'<= {WARN_TARGET_S:.0f} / {RECALIBRATED_TARGET_S:.0f} s'],
+                        rows, args.markdown)
+    finally:
+        threads.shutdown()
+        rclpy.try_shutdown(context=context)
+    verdict = 'PASS' if passed else 'FAIL'
+    print(f'\ntargets: {verdict} (run time {time.monotonic() - started:.0f} s, '
+          f'ROS_DOMAIN_ID={os.environ["ROS_DOMAIN_ID"]})')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
