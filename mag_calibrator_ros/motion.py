@@ -91,6 +91,14 @@ class Trajectory:
         return self.state(t).linear_acceleration
 
 
+def _checked_time(t: float) -> float:
+    """One time, checked (the per-sample path: no array round trip)."""
+    t = float(t)
+    if not math.isfinite(t) or t < 0.0:
+        raise ValueError('trajectory times must be finite and >= 0 seconds')
+    return t
+
+
 def _checked_times(times: np.ndarray) -> np.ndarray:
     times = np.atleast_1d(np.asarray(times, dtype=float))
     if times.ndim != 1:
@@ -117,7 +125,7 @@ class StillTrajectory(Trajectory):
         return Rotation.from_quat(np.tile(self._quat, (len(times), 1)))
 
     def state(self, t: float) -> MotionState:
-        _checked_times(t)
+        _checked_time(t)
         return self._state
 
 
@@ -157,7 +165,7 @@ class YawTrajectory(Trajectory):
     def state(self, t: float) -> MotionState:
         """Analytic: Z-Y-X Euler angles and their rates mapped to the body rate; the IMU sits on
         the turning axis, so there is no linear acceleration."""
-        t = float(_checked_times(t)[0])
+        t = _checked_time(t)
         mod = self._yaw_mod_freq * t + self._yaw_mod_phase
         yaw = self._yaw0 + self._yaw_rate * t + float(np.sum(self._yaw_mod * np.sin(mod)))
         yaw_rate = self._yaw_rate + float(np.sum(self._yaw_mod * self._yaw_mod_freq * np.cos(mod)))
@@ -282,11 +290,11 @@ class TumbleTrajectory(Trajectory):
 
     def position(self, t: float) -> np.ndarray:
         """World-frame displacement (3,) in metres of the hand's translation at time ``t``."""
-        t = float(_checked_times(t)[0])
+        t = _checked_time(t)
         return np.sum(self._shake_amp * np.sin(self._shake_freq * t + self._shake_phase), axis=1)
 
     def state(self, t: float) -> MotionState:
-        t = float(_checked_times(t)[0])
+        t = _checked_time(t)
         position = t * self.KNOT_HZ
         knot = math.floor(position)
         while knot >= self._first + len(self._rotvecs):

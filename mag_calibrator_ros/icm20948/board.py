@@ -68,7 +68,7 @@ class BoardModel:
 
     def magnetometer(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """(sensed field in µT with distortion and noise, true earth field in T), chip frame."""
-        earth_chip_ut = self.trajectory.orientation(max(t, 0.0)).T @ self._earth_ut
+        earth_chip_ut = self.trajectory.state(max(t, 0.0)).rotation.T @ self._earth_ut
         sensed = self.config.soft_iron_matrix @ earth_chip_ut + self.config.hard_iron
         if self.config.noise_ut > 0.0:
             sensed = sensed + self._mag_rng.normal(0.0, self.config.noise_ut, 3)

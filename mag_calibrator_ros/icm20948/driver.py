@@ -177,6 +177,7 @@ def temperature_counts(celsius: float) -> int:
 
 _IMU_WORDS = struct.Struct('>7h')
 _MAG_WORDS = struct.Struct('<3h')
+_TESLA_PER_COUNT = np.asarray(reg.AXIS_SIGNS) * reg.TESLA_PER_LSB
 
 
 class Icm20948:
@@ -484,11 +485,12 @@ class Icm20948:
         overrun = bool(st1 & reg.ST1_DOR)
         if overrun:
             self.overruns += 1
-        counts = np.array(_MAG_WORDS.unpack(bytes(raw[:6])), dtype=np.int64)
-        if raw[-1] & reg.ST2_HOFL or np.any(np.abs(counts) > reg.MEASUREMENT_LIMIT):
+        words = _MAG_WORDS.unpack(bytes(raw[:6]))
+        if raw[-1] & reg.ST2_HOFL or max(abs(w) for w in words) > reg.MEASUREMENT_LIMIT:
             self.overflows += 1
             return None
-        return MagReading(field_tesla=counts_to_tesla(counts), counts=counts, overrun=overrun)
+        counts = np.array(words, dtype=np.int64)
+        return MagReading(field_tesla=counts * _TESLA_PER_COUNT, counts=counts, overrun=overrun)
 
     def _release_mag_data(self) -> None:
         """A data read that broke off before ST2 leaves the AK09916's data protected (no new

@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 import errno
 import math
 import os
+import struct
 import threading
 import time
 
@@ -54,6 +55,24 @@ IDENTITY = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
 ACCEL_NOISE_DENSITY = 2.26e-3  # (m/s^2)/sqrt(Hz)
 GYRO_NOISE_DENSITY = 2.62e-4  # (rad/s)/sqrt(Hz)
 IMU_DATA = range(reg.ACCEL_XOUT_H, reg.TEMP_OUT_L + 1)
+_IMU_WORDS = struct.Struct('>7h')
+
+
+@dataclass(frozen=True)
+class _ImuConfig:
+    """What the bank-2 registers say, decoded once per write (not once per transaction)."""
+
+    odr_hz: float
+    accel_range_g: int
+    gyro_range_dps: int
+    accel_scale: float  # SI units per LSB
+    gyro_scale: float
+    accel_noise_bandwidth_hz: float
+    gyro_noise_bandwidth_hz: float
+
+
+def _int16(value: float) -> int:
+    return min(max(round(value), reg.INT16_MIN), reg.INT16_MAX)
 
 
 def _nack(what: str) -> OSError:
@@ -231,6 +250,7 @@ class SimulatedIcm20948Bus:
         self._banks[2][reg.GYRO_CONFIG_1] = reg.GYRO_CONFIG_1_RESET_VALUE
         self._banks[2][reg.ACCEL_CONFIG] = reg.ACCEL_CONFIG_RESET_VALUE
         self._icm_ready_at = -math.inf
+        self._imu_config = self._decode_imu_config()
         self._imu_origin: float | None = None  # sample clock start (None: not sampling)
         self._imu_index = -1  # newest sample index latched since the origin
         self._imu_ready = False
@@ -384,6 +404,7 @@ class SimulatedIcm20948Bus:
             reg.GYRO_SMPLRT_DIV, reg.GYRO_CONFIG_1, reg.ACCEL_SMPLRT_DIV_1,
             reg.ACCEL_SMPLRT_DIV_2, reg.ACCEL_CONFIG,
         ):
+            self._imu_config = self._decode_imu_config()
             self._restart_sampling(startup=False)
 
     # --- ICM-20948 sampling ----------------------------------------------------------------------
@@ -406,8 +427,8 @@ class SimulatedIcm20948Bus:
             self._imu_origin = max(self._now(), self._imu_origin)
         self._imu_index = -1
 
-    def _imu_config(self) -> tuple[float, int, int, int]:
-        """(ODR in Hz, accel range g, gyro range dps, DLPFCFG) from the bank-2 registers."""
+    def _decode_imu_config(self) -> _ImuConfig:
+        """ODR, ranges and DLPF from the bank-2 registers (accel and gyro share the divider)."""
         bank2 = self._banks[2]
         gyro_config, accel_config = bank2[reg.GYRO_CONFIG_1], bank2[reg.ACCEL_CONFIG]
         dlpf = (gyro_config >> reg.CONFIG_DLPF_SHIFT) & 0x07
@@ -418,7 +439,12 @@ class SimulatedIcm20948Bus:
             (accel_config >> reg.CONFIG_FS_SHIFT) & 0x03]
         gyro_range = {code: d for d, (code, _) in reg.GYRO_RANGES_DPS.items()}[
             (gyro_config >> reg.CONFIG_FS_SHIFT) & 0x03]
-        return reg.INTERNAL_RATE_HZ / (1 + divider), accel_range, gyro_range, dlpf
+        bandwidth = dlpf if dlpf in reg.DLPF_SETTINGS else 1
+        return _ImuConfig(
+            reg.INTERNAL_RATE_HZ / (1 + divider), accel_range, gyro_range,
+            accel_scale(accel_range), gyro_scale(gyro_range),
+            reg.ACCEL_DLPF_HZ[bandwidth][1], reg.GYRO_DLPF_HZ[bandwidth][1],
+        )
 
     def _advance_imu(self) -> None:
         """Latch the newest accel/gyro/temperature sample due by now (older ones are lost)."""
@@ -427,23 +453,19 @@ class SimulatedIcm20948Bus:
         elapsed = self._now() - self._imu_origin
         if elapsed < 0.0:
             return
-        odr, accel_range, gyro_range, dlpf = self._imu_config()
-        due = int(math.floor(elapsed * odr + 1e-9))
+        config = self._imu_config
+        due = int(math.floor(elapsed * config.odr_hz + 1e-9))
         if due <= self._imu_index:
             return
         self._imu_index = due
-        sample_time = self._imu_origin + due / odr
-        bandwidths = (reg.ACCEL_DLPF_HZ.get(dlpf, reg.ACCEL_DLPF_HZ[1])[1],
-                      reg.GYRO_DLPF_HZ.get(dlpf, reg.GYRO_DLPF_HZ[1])[1])
-        accel, gyro, truth = self.board.inertial(sample_time, *bandwidths)
-        words = np.concatenate([
-            np.rint(accel / accel_scale(accel_range)),
-            np.rint(gyro / gyro_scale(gyro_range)),
-        ])
-        words = np.clip(words, reg.INT16_MIN, reg.INT16_MAX).astype(np.int64)
-        counts = (*(int(w) for w in words), temperature_counts(truth.temperature_c))
-        self._banks[0][reg.ACCEL_XOUT_H:reg.TEMP_OUT_L + 1] = np.asarray(
-            counts, dtype='>i2').tobytes()
+        sample_time = self._imu_origin + due / config.odr_hz
+        accel, gyro, truth = self.board.inertial(
+            sample_time, config.accel_noise_bandwidth_hz, config.gyro_noise_bandwidth_hz)
+        a, g = config.accel_scale, config.gyro_scale
+        counts = (_int16(accel[0] / a), _int16(accel[1] / a), _int16(accel[2] / a),
+                  _int16(gyro[0] / g), _int16(gyro[1] / g), _int16(gyro[2] / g),
+                  temperature_counts(truth.temperature_c))
+        _IMU_WORDS.pack_into(self._banks[0], reg.ACCEL_XOUT_H, *counts)
         self._imu_ready = True
         self._sample_id += 1
         self._imu_latched_id = self._sample_id
@@ -451,21 +473,23 @@ class SimulatedIcm20948Bus:
         key = counts[:6]
         self._imu_truth[key] = truth
         self._imu_truth.move_to_end(key)
-        while len(self._imu_truth) > IMU_TRUTH_LOG_SIZE:
+        if len(self._imu_truth) > IMU_TRUTH_LOG_SIZE:
             self._imu_truth.popitem(last=False)
 
     def _note_data_read(self, i2c_addr: int, register: int, length: int) -> None:
         """Count a read of sensor data: a new sample, or one that was already read."""
-        registers = range(register, register + length)
+        last = register + length - 1
         if i2c_addr == self.config.address and self._bank == 0:
-            if self._imu_latched_id is not None and any(r in IMU_DATA for r in registers):
+            if self._imu_latched_id is not None and (
+                register <= reg.TEMP_OUT_L and last >= reg.ACCEL_XOUT_H
+            ):
                 if self._imu_latched_id == self._imu_last_read_id:
                     self.imu_repeated_reads += 1
                 else:
                     self.imu_samples_read += 1
                     self._imu_last_read_id = self._imu_latched_id
-        elif i2c_addr == reg.AK09916_ADDRESS and self._mag_latched_id is not None and any(
-            reg.HXL <= r <= reg.TMPS for r in registers
+        elif i2c_addr == reg.AK09916_ADDRESS and self._mag_latched_id is not None and (
+            register <= reg.TMPS and last >= reg.HXL
         ):
             if self._mag_latched_id == self._mag_last_read_id:
                 self.mag_repeated_reads += 1
@@ -587,9 +611,9 @@ class SimulatedIcm20948Bus:
         """The error-free values behind a published inertial sample (converted back to counts
         with the ranges configured now), or None if not (or no longer) in the log. Readings with
         identical counts map to the newest."""
-        _, accel_range, gyro_range, _ = self._imu_config()
-        key = (*(int(round(v / accel_scale(accel_range))) for v in linear_acceleration),
-               *(int(round(v / gyro_scale(gyro_range))) for v in angular_velocity))
+        config = self._imu_config
+        key = (*(round(float(v) / config.accel_scale) for v in linear_acceleration),
+               *(round(float(v) / config.gyro_scale) for v in angular_velocity))
         return self._imu_truth.get(key)
 
     @_locked

@@ -7,7 +7,7 @@ say. ``step()`` does whatever is due at the injected clock's "now" and returns t
 ``run()`` loops ``step()`` on a thread until stopped. Tests drive ``step()`` with a fake clock.
 
 Polling: each data-ready flag is checked ``POLLS_PER_SAMPLE`` times per sample period; both
-sensors hold a sample until the next one arrives, so a poll may be up to half a period late
+sensors hold a sample until the next one arrives, so a poll may come a third of a period late
 before anything is lost, while an idle poll costs one byte of payload (ST1 / INT_STATUS_1).
 """
 
