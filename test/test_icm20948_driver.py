@@ -3,6 +3,7 @@ against the simulated chip; the accel/gyro side is in test_icm20948_imu.py."""
 
 import errno
 
+from icm20948_fakes import FakeClock, RecordingBus
 import numpy as np
 import pytest
 
@@ -15,40 +16,6 @@ from mag_calibrator_ros.icm20948.driver import (
     tesla_to_counts,
 )
 from mag_calibrator_ros.icm20948.simulator import SimConfig, SimulatedIcm20948Bus
-
-
-class FakeClock:
-    """Deterministic time for the simulator; ``sleep`` advances it instead of waiting."""
-
-    def __init__(self, start: float = 1000.0) -> None:
-        self.now = start
-
-    def __call__(self) -> float:
-        return self.now
-
-    def sleep(self, seconds: float) -> None:
-        self.now += seconds
-
-
-class RecordingBus:
-    """Forwards to the simulator and records each transaction with the fake time."""
-
-    def __init__(self, bus: SimulatedIcm20948Bus, clock: FakeClock) -> None:
-        self.bus, self.clock, self.log = bus, clock, []
-
-    def read_byte_data(self, addr, register):
-        value = self.bus.read_byte_data(addr, register)
-        self.log.append((self.clock.now, 'r', addr, register, value))
-        return value
-
-    def write_byte_data(self, addr, register, value):
-        self.bus.write_byte_data(addr, register, value)
-        self.log.append((self.clock.now, 'w', addr, register, value))
-
-    def read_i2c_block_data(self, addr, register, length):
-        values = self.bus.read_i2c_block_data(addr, register, length)
-        self.log.append((self.clock.now, 'rb', addr, register, tuple(values)))
-        return values
 
 
 def make(config: SimConfig | None = None, address: int = 0x69):
@@ -100,8 +67,7 @@ def test_initialise_sequence_and_waits():
     bus = RecordingBus(sim, clock)
     driver = Icm20948(bus, address=0x69, sleep=clock.sleep, clock=clock)
     driver.initialise(mag_rate_hz=50)  # magnetometer only: accel and gyro powered down
-    writes = [(kind, addr, register, value) for _, kind, addr, register, value in bus.log
-              if kind == 'w']
+    writes = [(e.kind, e.address, e.register, e.value) for e in bus.log if e.kind == 'w']
     order = [
         ('w', 0x69, reg.REG_BANK_SEL, 0),
         ('w', 0x69, reg.PWR_MGMT_1, reg.PWR_MGMT_1_DEVICE_RESET),
@@ -115,7 +81,7 @@ def test_initialise_sequence_and_waits():
     ]
     positions = [writes.index(step) for step in order]
     assert positions == sorted(positions)
-    times = {(e[1], e[2], e[3], e[4]): e[0] for e in bus.log if e[1] == 'w'}
+    times = {(e.kind, e.address, e.register, e.value): e.time for e in bus.log if e.kind == 'w'}
     reset_at = times[('w', 0x69, reg.PWR_MGMT_1, reg.PWR_MGMT_1_DEVICE_RESET)]
     wake_at = times[('w', 0x69, reg.PWR_MGMT_1, reg.PWR_MGMT_1_CLKSEL_AUTO)]
     assert wake_at - reset_at >= reg.DEVICE_RESET_WAIT_S - 1e-9
@@ -123,8 +89,9 @@ def test_initialise_sequence_and_waits():
     mode_at = times[('w', reg.AK09916_ADDRESS, reg.CNTL2, reg.CONTINUOUS_MODES[50])]
     assert mode_at - down_at >= reg.MODE_CHANGE_WAIT_S - 1e-9
     # Identities were checked: WHO_AM_I, then WIA1/WIA2 in one block read.
-    assert ('r', 0x69, reg.WHO_AM_I, reg.WHO_AM_I_VALUE) in [e[1:] for e in bus.log]
-    assert ('rb', reg.AK09916_ADDRESS, reg.WIA1, (0x48, 0x09)) in [e[1:] for e in bus.log]
+    seen = [(e.kind, e.address, e.register, e.value) for e in bus.log]
+    assert ('r', 0x69, reg.WHO_AM_I, reg.WHO_AM_I_VALUE) in seen
+    assert ('rb', reg.AK09916_ADDRESS, reg.WIA1, (0x48, 0x09)) in seen
     assert sim.read_byte_data(reg.AK09916_ADDRESS, reg.CNTL2) == reg.CONTINUOUS_MODES[50]
     assert driver.mag_rate_hz == 50 and driver.imu is None
 
@@ -188,16 +155,17 @@ def test_polls_st1_alone_and_reads_the_data_only_on_drdy():
     for _ in range(50):
         clock.sleep(0.004)
         readings += driver.read_mag() is not None
-    polls = [e for e in bus.log if e[1] == 'r']
-    bursts = [e for e in bus.log if e[1] == 'rb']
-    assert {(e[2], e[3]) for e in polls} == {(reg.AK09916_ADDRESS, reg.ST1)}
+    polls = [e for e in bus.log if e.kind == 'r']
+    bursts = [e for e in bus.log if e.kind == 'rb']
+    assert {(e.address, e.register) for e in polls} == {(reg.AK09916_ADDRESS, reg.ST1)}
     assert len(polls) == 50
     # Each burst follows a DRDY poll, runs HXL..ST2 (ST2 last) and yields one reading.
-    assert {(e[2], e[3], len(e[4])) for e in bursts} == {(reg.AK09916_ADDRESS, reg.HXL, 8)}
+    assert {(e.address, e.register, len(e.value)) for e in bursts} == {
+        (reg.AK09916_ADDRESS, reg.HXL, 8)}
     assert len(bursts) == readings == 20
     for burst in bursts:
         previous = bus.log[bus.log.index(burst) - 1]
-        assert previous[1] == 'r' and previous[4] & reg.ST1_DRDY
+        assert previous.kind == 'r' and previous.value & reg.ST1_DRDY
 
 
 def test_data_protection_holds_a_partial_read_until_st2():

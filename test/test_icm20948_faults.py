@@ -3,23 +3,13 @@ faults is the supervisor's job, tested in test_icm20948_supervisor.py)."""
 
 import errno
 
+from icm20948_fakes import FakeClock
 import numpy as np
 import pytest
 
 from mag_calibrator_ros.icm20948 import registers as reg
 from mag_calibrator_ros.icm20948.driver import Icm20948, ImuSettings
 from mag_calibrator_ros.icm20948.simulator import SimConfig, SimulatedIcm20948Bus
-
-
-class FakeClock:
-    def __init__(self, start: float = 50.0) -> None:
-        self.now = start
-
-    def __call__(self) -> float:
-        return self.now
-
-    def sleep(self, seconds: float) -> None:
-        self.now += seconds
 
 
 def make(**config):

@@ -3,6 +3,7 @@ data-ready and the simulator's physics (DS-000189), without ROS."""
 
 import math
 
+from icm20948_fakes import FakeClock, RecordingBus
 import numpy as np
 import pytest
 
@@ -19,40 +20,6 @@ from mag_calibrator_ros.icm20948.driver import (
 from mag_calibrator_ros.icm20948.simulator import SimConfig, SimulatedIcm20948Bus
 
 G = reg.STANDARD_GRAVITY
-
-
-class FakeClock:
-    def __init__(self, start: float = 100.0) -> None:
-        self.now = start
-
-    def __call__(self) -> float:
-        return self.now
-
-    def sleep(self, seconds: float) -> None:
-        self.now += seconds
-
-
-class RecordingBus:
-    """Forwards to the simulator and records (kind, address, register, value, bank)."""
-
-    def __init__(self, bus: SimulatedIcm20948Bus) -> None:
-        self.bus, self.log, self.bank = bus, [], 0
-
-    def read_byte_data(self, addr, register):
-        value = self.bus.read_byte_data(addr, register)
-        self.log.append(('r', addr, register, value, self.bank))
-        return value
-
-    def write_byte_data(self, addr, register, value):
-        self.bus.write_byte_data(addr, register, value)
-        if addr == 0x69 and register == reg.REG_BANK_SEL:
-            self.bank = value >> reg.BANK_SHIFT
-        self.log.append(('w', addr, register, value, self.bank))
-
-    def read_i2c_block_data(self, addr, register, length):
-        values = self.bus.read_i2c_block_data(addr, register, length)
-        self.log.append(('rb', addr, register, tuple(values), self.bank))
-        return values
 
 
 class FixedRegisters:
@@ -163,12 +130,13 @@ def test_invalid_settings_are_named(kwargs, fragment):
 def test_configuration_goes_to_bank_2_and_reads_back_then_bank_0():
     clock = FakeClock()
     sim = SimulatedIcm20948Bus(SimConfig(), clock=clock)
-    bus = RecordingBus(sim)
+    bus = RecordingBus(sim, clock)
     driver = Icm20948(bus, sleep=clock.sleep, clock=clock)
     imu = ImuSettings(rate_hz=100, accel_range_g=8, gyro_range_dps=500, dlpf=5)
     driver.initialise(100, imu)
-    config = {(register, value) for kind, addr, register, value, bank in bus.log
-              if kind == 'w' and addr == 0x69 and bank == 2 and register != reg.REG_BANK_SEL}
+    config = {(e.register, e.value) for e in bus.log
+              if e.kind == 'w' and e.address == 0x69 and e.bank == 2
+              and e.register != reg.REG_BANK_SEL}
     assert config == {
         (reg.ODR_ALIGN_EN, 1),
         (reg.GYRO_SMPLRT_DIV, 10),
@@ -177,14 +145,15 @@ def test_configuration_goes_to_bank_2_and_reads_back_then_bank_0():
         (reg.ACCEL_SMPLRT_DIV_2, 10),
         (reg.ACCEL_CONFIG, (5 << 3) | (2 << 1) | 1),
     }
-    reads_in_bank_2 = [entry for entry in bus.log if entry[0] == 'rb' and entry[4] == 2]
+    reads_in_bank_2 = [e for e in bus.log if e.kind == 'rb' and e.bank == 2]
     assert len(reads_in_bank_2) == 2  # the configuration was read back
-    wake = bus.log.index(('w', 0x69, reg.PWR_MGMT_1, reg.PWR_MGMT_1_CLKSEL_AUTO, 0))
-    first_config = min(i for i, e in enumerate(bus.log) if e[0] == 'w' and e[4] == 2
-                       and e[2] != reg.REG_BANK_SEL)
+    writes = [(e.address, e.register, e.value, e.bank) for e in bus.log if e.kind == 'w']
+    wake = writes.index((0x69, reg.PWR_MGMT_1, reg.PWR_MGMT_1_CLKSEL_AUTO, 0))
+    first_config = min(i for i, (_, register, _, bank) in enumerate(writes)
+                       if bank == 2 and register != reg.REG_BANK_SEL)
     assert wake < first_config  # configured awake
     assert bus.bank == 0 and sim.read_byte_data(0x69, reg.REG_BANK_SEL) == 0
-    assert ('w', 0x69, reg.PWR_MGMT_2, reg.PWR_MGMT_2_ALL_ON, 0) in bus.log
+    assert (0x69, reg.PWR_MGMT_2, reg.PWR_MGMT_2_ALL_ON, 0) in writes
 
 
 def test_a_driver_that_forgets_the_bank_switch_is_caught_by_the_read_back():
@@ -199,7 +168,8 @@ def test_a_driver_that_forgets_the_bank_switch_is_caught_by_the_read_back():
 
     clock = FakeClock()
     sim = SimulatedIcm20948Bus(SimConfig(), clock=clock)
-    driver = Icm20948(NoBankSwitch(sim), bus_name='/dev/i2c-3', sleep=clock.sleep, clock=clock)
+    driver = Icm20948(NoBankSwitch(sim, clock), bus_name='/dev/i2c-3', sleep=clock.sleep,
+                      clock=clock)
     with pytest.raises(ConfigNotAcceptedError) as caught:
         driver.initialise(100, ImuSettings())
     assert 'GYRO_SMPLRT_DIV expected 0x04, found 0xea' in str(caught.value)  # WHO_AM_I

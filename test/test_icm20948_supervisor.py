@@ -4,6 +4,7 @@ stuck data-ready, rate windows and diagnostics, on a fake clock (deterministic, 
 import threading
 import time
 
+from icm20948_fakes import FakeClock
 import numpy as np
 import pytest
 
@@ -23,17 +24,6 @@ from mag_calibrator_ros.icm20948.supervisor import (
 )
 
 DEFAULT_IMU = ImuSettings()
-
-
-class FakeClock:
-    def __init__(self, start: float = 500.0) -> None:
-        self.now = start
-
-    def __call__(self) -> float:
-        return self.now
-
-    def sleep(self, seconds: float) -> None:
-        self.now += seconds
 
 
 class Preempting:

@@ -175,6 +175,20 @@ def temperature_counts(celsius: float) -> int:
     return min(max(raw, reg.INT16_MIN), reg.INT16_MAX)
 
 
+def _with_retries(attempts: int, operation: Callable, args: tuple,
+                  pause: Callable[[], None] | None = None):
+    """``operation(*args)``, tried up to ``attempts`` times on OSError; the last one propagates."""
+    for attempt in range(attempts):
+        try:
+            return operation(*args)
+        except OSError:
+            if attempt == attempts - 1:
+                raise
+            if pause is not None:
+                pause()
+    return None  # unreachable
+
+
 _IMU_WORDS = struct.Struct('>7h')
 _MAG_WORDS = struct.Struct('<3h')
 _TESLA_PER_COUNT = np.asarray(reg.AXIS_SIGNS) * reg.TESLA_PER_LSB
@@ -327,14 +341,8 @@ class Icm20948:
     def _retry(self, operation: Callable, *args: int) -> int | list[int] | None:
         """Bring-up transactions are idempotent: retry a transient bus error a few times so one
         glitch does not cost a whole re-initialisation; the last error propagates."""
-        for attempt in range(INIT_TRANSACTION_ATTEMPTS):
-            try:
-                return operation(*args)
-            except OSError:
-                if attempt == INIT_TRANSACTION_ATTEMPTS - 1:
-                    raise
-                self._sleep(reg.MODE_CHANGE_WAIT_S)
-        return None  # unreachable
+        return _with_retries(INIT_TRANSACTION_ATTEMPTS, operation, args,
+                             lambda: self._sleep(reg.MODE_CHANGE_WAIT_S))
 
     def _select_bank(self, bank: int) -> None:
         self._retry(
@@ -438,13 +446,7 @@ class Icm20948:
     @staticmethod
     def _read(operation: Callable, *args: int):
         """A read transaction with ``READ_ATTEMPTS`` tries; the last error propagates."""
-        for attempt in range(READ_ATTEMPTS):
-            try:
-                return operation(*args)
-            except OSError:
-                if attempt == READ_ATTEMPTS - 1:
-                    raise
-        return None  # unreachable
+        return _with_retries(READ_ATTEMPTS, operation, args)
 
     def _resync_imu(self) -> None:
         at = self._clock()

@@ -75,6 +75,29 @@ def _int16(value: float) -> int:
     return min(max(round(value), reg.INT16_MIN), reg.INT16_MAX)
 
 
+@dataclass
+class _ReadCounter:
+    """Which sample one sensor's data registers hold, and how often data reads got a new one
+    (``fresh``) or one already read (``repeated``)."""
+
+    latched: int | None = None
+    last_read: int | None = None
+    fresh: int = 0
+    repeated: int = 0
+
+    def forget(self) -> None:  # power-on: no sample latched; the counts stay
+        self.latched = self.last_read = None
+
+    def data_read(self) -> None:
+        if self.latched is None:
+            return
+        if self.latched == self.last_read:
+            self.repeated += 1
+        else:
+            self.fresh += 1
+            self.last_read = self.latched
+
+
 def _nack(what: str) -> OSError:
     """What i2c-dev raises when no device acknowledges: OSError(121, 'Remote I/O error')."""
     return OSError(errno.EREMOTEIO, f'{os.strerror(errno.EREMOTEIO)} ({what})')
@@ -229,10 +252,8 @@ class SimulatedIcm20948Bus:
         self.injected_errors = 0
         self.samples_measured = 0
         self.imu_samples_measured = 0
-        self.mag_samples_read = 0
-        self.mag_repeated_reads = 0
-        self.imu_samples_read = 0
-        self.imu_repeated_reads = 0
+        self._mag_reads = _ReadCounter()
+        self._imu_reads = _ReadCounter()
         self._sample_id = 0  # every latched sample of either sensor gets a new id
         self._power_on()
 
@@ -254,8 +275,7 @@ class SimulatedIcm20948Bus:
         self._imu_origin: float | None = None  # sample clock start (None: not sampling)
         self._imu_index = -1  # newest sample index latched since the origin
         self._imu_ready = False
-        self._imu_latched_id: int | None = None
-        self._imu_last_read_id: int | None = None
+        self._imu_reads.forget()
 
     def _ak_power_on(self) -> None:
         self._mode = reg.MODE_POWER_DOWN
@@ -267,8 +287,7 @@ class SimulatedIcm20948Bus:
         self._dor = False
         self._locked = False
         self._pending: tuple[bytearray, np.ndarray] | None = None
-        self._mag_latched_id: int | None = None
-        self._mag_last_read_id: int | None = None
+        self._mag_reads.forget()
 
     @_locked
     def chip_reset(self) -> None:
@@ -468,7 +487,7 @@ class SimulatedIcm20948Bus:
         _IMU_WORDS.pack_into(self._banks[0], reg.ACCEL_XOUT_H, *counts)
         self._imu_ready = True
         self._sample_id += 1
-        self._imu_latched_id = self._sample_id
+        self._imu_reads.latched = self._sample_id
         self.imu_samples_measured += 1
         key = counts[:6]
         self._imu_truth[key] = truth
@@ -480,22 +499,26 @@ class SimulatedIcm20948Bus:
         """Count a read of sensor data: a new sample, or one that was already read."""
         last = register + length - 1
         if i2c_addr == self.config.address and self._bank == 0:
-            if self._imu_latched_id is not None and (
-                register <= reg.TEMP_OUT_L and last >= reg.ACCEL_XOUT_H
-            ):
-                if self._imu_latched_id == self._imu_last_read_id:
-                    self.imu_repeated_reads += 1
-                else:
-                    self.imu_samples_read += 1
-                    self._imu_last_read_id = self._imu_latched_id
-        elif i2c_addr == reg.AK09916_ADDRESS and self._mag_latched_id is not None and (
-            register <= reg.TMPS and last >= reg.HXL
-        ):
-            if self._mag_latched_id == self._mag_last_read_id:
-                self.mag_repeated_reads += 1
-            else:
-                self.mag_samples_read += 1
-                self._mag_last_read_id = self._mag_latched_id
+            if register <= reg.TEMP_OUT_L and last >= reg.ACCEL_XOUT_H:
+                self._imu_reads.data_read()
+        elif i2c_addr == reg.AK09916_ADDRESS and register <= reg.TMPS and last >= reg.HXL:
+            self._mag_reads.data_read()
+
+    @property
+    def mag_samples_read(self) -> int:
+        return self._mag_reads.fresh
+
+    @property
+    def mag_repeated_reads(self) -> int:
+        return self._mag_reads.repeated
+
+    @property
+    def imu_samples_read(self) -> int:
+        return self._imu_reads.fresh
+
+    @property
+    def imu_repeated_reads(self) -> int:
+        return self._imu_reads.repeated
 
     # --- AK09916 ---------------------------------------------------------------------------------
 
@@ -577,7 +600,7 @@ class SimulatedIcm20948Bus:
         self._data = data
         self._drdy = True
         self._sample_id += 1
-        self._mag_latched_id = self._sample_id
+        self._mag_reads.latched = self._sample_id
         counts = tuple(int(c) for c in np.frombuffer(bytes(data[:6]), dtype='<i2'))
         self._truth[counts] = truth
         self._truth.move_to_end(counts)

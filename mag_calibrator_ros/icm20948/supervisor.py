@@ -379,33 +379,30 @@ class Icm20948Supervisor:
                                f'({error}); retrying', now)
 
     def _check_mag_stuck(self, now: float) -> None:
-        """No DRDY for too long: find out whether the AK09916 left continuous mode."""
-        waited = now - self._mag.last_ready
-        try:
-            mode = self._driver.measurement_mode()
-        except OSError as error:
-            self._fault(f'no magnetometer data-ready for {waited:.2f} s and the AK09916 does not '
-                        f'answer ({error})', now)
-            return
+        """No DRDY for too long: did the AK09916 leave continuous mode?"""
         expected = reg.CONTINUOUS_MODES[self.mag_rate_hz]
-        reason = (f'AK09916 left continuous mode (CNTL2 expected {expected:#04x}, found '
-                  f'{mode:#04x}): chip reset?' if mode != expected
-                  else 'AK09916 data-ready stuck although in continuous mode')
-        self._fault(f'no magnetometer data-ready for {waited:.2f} s; {reason}', now)
+        self._stuck(now, self._mag, 'magnetometer', 'AK09916', self._driver.measurement_mode,
+                    lambda mode: f'AK09916 left continuous mode (CNTL2 expected {expected:#04x}, '
+                                 f'found {mode:#04x}): chip reset?' if mode != expected
+                    else 'AK09916 data-ready stuck although in continuous mode')
 
     def _check_imu_stuck(self, now: float) -> None:
         """No raw-data-ready for too long: asleep (a reset) or stuck?"""
-        waited = now - self._imu.last_ready
+        self._stuck(now, self._imu, 'accel/gyro', 'ICM-20948', self._driver.power_state,
+                    lambda power: f'ICM-20948 asleep (PWR_MGMT_1 {power:#04x}): chip reset?'
+                    if power & reg.PWR_MGMT_1_SLEEP
+                    else f'raw-data-ready stuck although awake (PWR_MGMT_1 {power:#04x})')
+
+    def _stuck(self, now: float, stream: _Stream, sensor: str, chip: str,
+               probe: Callable[[], int], explain: Callable[[int], str]) -> None:
+        """A data-ready that stopped is a fault either way; the probed register says why."""
+        waited = f'no {sensor} data-ready for {now - stream.last_ready:.2f} s'
         try:
-            power = self._driver.power_state()
+            value = probe()
         except OSError as error:
-            self._fault(f'no accel/gyro data-ready for {waited:.2f} s and the ICM-20948 does not '
-                        f'answer ({error})', now)
+            self._fault(f'{waited} and the {chip} does not answer ({error})', now)
             return
-        reason = (f'ICM-20948 asleep (PWR_MGMT_1 {power:#04x}): chip reset?'
-                  if power & reg.PWR_MGMT_1_SLEEP
-                  else f'raw-data-ready stuck although awake (PWR_MGMT_1 {power:#04x})')
-        self._fault(f'no accel/gyro data-ready for {waited:.2f} s; {reason}', now)
+        self._fault(f'{waited}; {explain(value)}', now)
 
     # --- diagnostics -----------------------------------------------------------------------------
 
