@@ -22,6 +22,7 @@ the gyroscope integrated over 10 s of tumbling / turning versus the true rotatio
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import math
 import os
@@ -70,6 +71,7 @@ def _driver_process(duration_s: float, imu_rate: int | None, error_rate: float,
 
     rclpy.init()
     node = Icm20948DriverNode(parameter_overrides=_driver_parameters(imu_rate, error_rate))
+    gc.freeze()  # as the console script does (icm20948_driver.started_node)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     go = threading.Event()  # the parent says GO once its subscriber receives our messages
@@ -251,11 +253,14 @@ def print_table(rows: list[dict]) -> None:
 # --- accuracy against the simulator's truth (in this process) -----------------------------------
 
 def _collect(imu_rate: int, motion: str, seconds: float, warmup_s: float = 1.0):
-    """Run the node and a listener in this process; return (node, messages) after ``seconds``."""
+    """Run the node in this process for ``seconds``; return it and the Imu messages it published.
+
+    The messages are taken where the node publishes them (a tap on its publisher): a subscriber
+    in this process would compete with the driver's thread for the interpreter, which is not what
+    the accuracy measures. Rates over DDS are the table's business.
+    """
     import rclpy
     from rclpy.context import Context
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from sensor_msgs.msg import Imu
 
     from mag_calibrator_ros.nodes.icm20948_driver import Icm20948DriverNode
     from mag_calibrator_ros.nodes.runtime import NodeThreads
@@ -265,19 +270,23 @@ def _collect(imu_rate: int, motion: str, seconds: float, warmup_s: float = 1.0):
     threads = NodeThreads(context)
     node = Icm20948DriverNode(context=context, parameter_overrides=_driver_parameters(
         imu_rate, 0.0, motion))
-    listener = rclpy.create_node('bench_accuracy', context=context)
+    gc.freeze()  # as the console script does (icm20948_driver.started_node)
     messages: list = []
-    listener.create_subscription(Imu, 'imu/data_raw', messages.append,
-                                 QoSProfile(depth=5000, reliability=ReliabilityPolicy.RELIABLE))
+    publisher = node._imu_publisher
+    publish = publisher.publish
+
+    def tap(message) -> None:
+        messages.append(message)
+        publish(message)
+
+    publisher.publish = tap
     threads.add(node)
-    threads.add(listener)
     time.sleep(warmup_s)
     messages.clear()
     time.sleep(seconds)
-    node._stop.set()  # freeze the simulator's truth log; let the last messages arrive
-    time.sleep(0.5)
-    taken = list(messages)
-    return node, taken, (threads, context)
+    node._stop.set()  # freeze the simulator's truth log
+    node._pump.join()
+    return node, list(messages), (threads, context)
 
 
 def _close(handles) -> None:
@@ -313,30 +322,26 @@ def gyro_integration(imu_rate: int, motion: str, seconds: float = 10.0) -> dict:
     node, messages, handles = _collect(imu_rate, motion, seconds)
     try:
         rates = _vectors(messages, 'angular_velocity')
-        accel = _vectors(messages, 'linear_acceleration')
-        truths = [node.simulator.imu_truth_for_reading(a, w)
-                  for a, w in zip(accel, rates, strict=True)]
-        keep = [i for i, t in enumerate(truths) if t is not None]
-        rates = rates[keep]
-        truths = [truths[i] for i in keep]
-        stamps = np.array([messages[i].header.stamp.sec + 1e-9 * messages[i].header.stamp.nanosec
-                           for i in keep])
+        truths = node.simulator.imu_truths_read()[-len(messages):]  # each read is published once
+        assert len(truths) == len(messages)
+        stamps = np.array([m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for m in messages])
         sample_times = np.array([t.sample_time for t in truths])
         true_delta = Rotation.from_matrix(truths[0].rotation.T @ truths[-1].rotation)
         errors = {}
         for name, times in (('stamps', stamps), ('sample_times', sample_times)):
-            steps = Rotation.from_rotvec(rates[:-1] * np.diff(times)[:, None])
-            integrated = Rotation.identity()
-            for step in steps:
-                integrated = integrated * step
-            errors[name] = float(np.degrees((true_delta.inv() * integrated).magnitude()))
+            for rule, step_rates in (('rectangle', rates[:-1]),
+                                     ('trapezoid', 0.5 * (rates[:-1] + rates[1:]))):
+                steps = Rotation.from_rotvec(step_rates * np.diff(times)[:, None])
+                integrated = Rotation.identity()
+                for step in steps:
+                    integrated = integrated * step
+                errors[f'{rule}_{name}'] = float(
+                    np.degrees((true_delta.inv() * integrated).magnitude()))
         expected = (sample_times[-1] - sample_times[0]) * node.settings.imu.odr_hz + 1
         return {'imu_rate': imu_rate, 'motion': motion, 'samples': len(rates),
                 'missing': int(round(expected)) - len(rates),
                 'span_s': float(sample_times[-1] - sample_times[0]),
-                'rotation_deg': float(np.degrees(true_delta.magnitude())),
-                'error_stamps_deg': errors['stamps'],
-                'error_sample_times_deg': errors['sample_times']}
+                'rotation_deg': float(np.degrees(true_delta.magnitude())), **errors}
     finally:
         _close(handles)
 
@@ -388,19 +393,21 @@ def main() -> int:
               f"{row['overruns']}, imu resyncs {row['imu_resyncs']}")
     if args.skip_accuracy:
         return 0
-    print('\nAccuracy against the simulator truth (in-process node + listener):')
+    print('\nAccuracy against the simulator truth (node in this process, its published Imu '
+          'messages):')
     for rate in (200, 1000):
         rest = accel_at_rest(rate)
         print(f"  still, IMU {rate} Hz, 1 s ({rest['samples']} samples): |mean a| = "
               f"{rest['norm_of_mean']:.4f} m/s^2, mean |a| = {rest['mean_of_norms']:.4f} m/s^2")
+    print('  gyro integrated over 10 s, rotation error in deg: trapezoid / forward rectangle, '
+          'dt from header stamps | from the true sample times')
     for rate in (200, 1000):
-        for motion in ('tumble', 'yaw'):
-            result = gyro_integration(rate, motion)
-            print(f"  gyro integrated, {motion}, IMU {rate} Hz, {result['span_s']:.1f} s, "
-                  f"{result['samples']} samples ({result['missing']} missing), true rotation "
-                  f"{result['rotation_deg']:.1f} deg: error {result['error_stamps_deg']:.3f} deg "
-                  f"with stamps, {result['error_sample_times_deg']:.3f} deg with true sample "
-                  f'times')
+        for motion in ('yaw', 'tumble'):
+            r = gyro_integration(rate, motion)
+            print(f"  {motion}, IMU {rate} Hz, {r['span_s']:.1f} s, {r['samples']} samples "
+                  f"({r['missing']} missing), true rotation {r['rotation_deg']:.1f} deg: "
+                  f"{r['trapezoid_stamps']:.3f} / {r['rectangle_stamps']:.3f} | "
+                  f"{r['trapezoid_sample_times']:.3f} / {r['rectangle_sample_times']:.3f}")
     return 0
 
 

@@ -23,7 +23,7 @@ Thread-safe: a test may inject faults while a driver thread polls.
 
 from __future__ import annotations
 
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 import errno
@@ -77,16 +77,21 @@ def _int16(value: float) -> int:
 
 @dataclass
 class _ReadCounter:
-    """Which sample one sensor's data registers hold, and how often data reads got a new one
-    (``fresh``) or one already read (``repeated``)."""
+    """Which sample one sensor's data registers hold, how often data reads got a new one
+    (``fresh``) or one already read (``repeated``), and the new ones' truths in read order."""
 
     latched: int | None = None
+    latched_truth: object = None
     last_read: int | None = None
     fresh: int = 0
     repeated: int = 0
+    delivered: deque = field(default_factory=lambda: deque(maxlen=IMU_TRUTH_LOG_SIZE))
+
+    def latch(self, sample_id: int, truth: object) -> None:
+        self.latched, self.latched_truth = sample_id, truth
 
     def forget(self) -> None:  # power-on: no sample latched; the counts stay
-        self.latched = self.last_read = None
+        self.latched = self.last_read = self.latched_truth = None
 
     def data_read(self) -> None:
         if self.latched is None:
@@ -96,6 +101,7 @@ class _ReadCounter:
         else:
             self.fresh += 1
             self.last_read = self.latched
+            self.delivered.append(self.latched_truth)
 
 
 def _nack(what: str) -> OSError:
@@ -487,7 +493,7 @@ class SimulatedIcm20948Bus:
         _IMU_WORDS.pack_into(self._banks[0], reg.ACCEL_XOUT_H, *counts)
         self._imu_ready = True
         self._sample_id += 1
-        self._imu_reads.latched = self._sample_id
+        self._imu_reads.latch(self._sample_id, truth)
         self.imu_samples_measured += 1
         key = counts[:6]
         self._imu_truth[key] = truth
@@ -519,6 +525,13 @@ class SimulatedIcm20948Bus:
     @property
     def imu_repeated_reads(self) -> int:
         return self._imu_reads.repeated
+
+    @_locked
+    def imu_truths_read(self) -> list[ImuTruth]:
+        """Truth of every new inertial sample read, in read order (the last 16384): a driver that
+        hands each on once lets the k-th published sample be paired with the k-th here, exactly,
+        where ``imu_truth_for_reading`` can only match counts."""
+        return list(self._imu_reads.delivered)
 
     # --- AK09916 ---------------------------------------------------------------------------------
 
@@ -600,7 +613,7 @@ class SimulatedIcm20948Bus:
         self._data = data
         self._drdy = True
         self._sample_id += 1
-        self._mag_reads.latched = self._sample_id
+        self._mag_reads.latch(self._sample_id, truth)
         counts = tuple(int(c) for c in np.frombuffer(bytes(data[:6]), dtype='<i2'))
         self._truth[counts] = truth
         self._truth.move_to_end(counts)
