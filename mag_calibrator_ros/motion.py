@@ -294,6 +294,7 @@ class TumbleTrajectory(Trajectory):
         return np.sum(self._shake_amp * np.sin(self._shake_freq * t + self._shake_phase), axis=1)
 
     def state(self, t: float) -> MotionState:
+        """Plain float arithmetic: called once per simulated sample, up to 1 kHz."""
         t = _checked_time(t)
         position = t * self.KNOT_HZ
         knot = math.floor(position)
@@ -302,38 +303,39 @@ class TumbleTrajectory(Trajectory):
         if knot < self._first:
             self.rotations(np.array([t]))  # raises the 'no longer available' error
         local = knot - self._first
-        step = self._rotvecs[local]
-        quat = _quat_multiply(self._quats[local], _rotvec_quat((position - knot) * step))
-        omega = step * self.KNOT_HZ  # constant between knots, body frame
+        step = self._rotvecs[local].tolist()
+        quat = _quat_multiply(self._quats[local].tolist(),
+                              _rotvec_quat([(position - knot) * v for v in step]))
+        omega = np.array(step) * self.KNOT_HZ  # constant between knots, body frame
         phase = self._shake_freq * t + self._shake_phase
         acceleration = -np.sum(self._shake_amp * self._shake_freq**2 * np.sin(phase), axis=1)
         return MotionState(_quat_matrix(quat), omega, acceleration)
 
 
-def _rotvec_quat(rotvec: np.ndarray) -> np.ndarray:
+def _rotvec_quat(rotvec) -> tuple[float, float, float, float]:
     """Rotation vector -> unit quaternion (x, y, z, w), scipy's order."""
-    angle = math.sqrt(float(rotvec @ rotvec))
+    x, y, z = rotvec
+    angle = math.sqrt(x * x + y * y + z * z)
     if angle < 1e-12:
-        return np.array([0.5 * rotvec[0], 0.5 * rotvec[1], 0.5 * rotvec[2], 1.0])
-    half = 0.5 * angle
-    scale = math.sin(half) / angle
-    return np.array([rotvec[0] * scale, rotvec[1] * scale, rotvec[2] * scale, math.cos(half)])
+        return 0.5 * x, 0.5 * y, 0.5 * z, 1.0
+    scale = math.sin(0.5 * angle) / angle
+    return x * scale, y * scale, z * scale, math.cos(0.5 * angle)
 
 
-def _quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def _quat_multiply(a, b) -> tuple[float, float, float, float]:
     """Hamilton product a * b of (x, y, z, w) quaternions: rotation b, then a."""
     ax, ay, az, aw = a
     bx, by, bz, bw = b
-    return np.array([
-        aw * bx + bw * ax + ay * bz - az * by,
-        aw * by + bw * ay + az * bx - ax * bz,
-        aw * bz + bw * az + ax * by - ay * bx,
-        aw * bw - ax * bx - ay * by - az * bz,
-    ])
+    return (aw * bx + bw * ax + ay * bz - az * by,
+            aw * by + bw * ay + az * bx - ax * bz,
+            aw * bz + bw * az + ax * by - ay * bx,
+            aw * bw - ax * bx - ay * by - az * bz)
 
 
-def _quat_matrix(quat: np.ndarray) -> np.ndarray:
-    x, y, z, w = quat / math.sqrt(float(quat @ quat))
+def _quat_matrix(quat) -> np.ndarray:
+    x, y, z, w = quat
+    norm = 1.0 / math.sqrt(x * x + y * y + z * z + w * w)
+    x, y, z, w = x * norm, y * norm, z * norm, w * norm
     return np.array([
         [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],

@@ -369,6 +369,10 @@ class SimulatedIcm20948Bus:
             raise ValueError(f'Desired block length over 32 bytes or below 1: {length}')
         self._transaction(i2c_addr, f'block read from register {register:#04x}')
         self._note_data_read(i2c_addr, register, length)
+        if i2c_addr == self.config.address and (
+            self._bank != 0 or register > reg.INT_STATUS_1
+        ) and register + length <= reg.REG_BANK_SEL:
+            return list(self._banks[self._bank][register:register + length])  # plain registers
         return [self._read_register(i2c_addr, register + i) for i in range(length)]
 
     @_locked
