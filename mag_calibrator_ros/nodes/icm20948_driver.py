@@ -10,9 +10,9 @@ ICM-20948 accel/gyro frame, with the magnetometer axes already remapped into it)
 rad/s, no orientation: orientation_covariance[0] = -1), ``imu/temperature``
 (sensor_msgs/Temperature, degC). All stamps come from the node's clock, taken at the read.
 
-Why a thread and not a timer: at 1 kHz the executor's per-tick overhead alone (about 27 us a
-callback in Jazzy's rclpy) would take a third of a core; the supervisor's loop sleeps until its
-next poll and costs a few microseconds a wake-up. Publishers are thread-safe.
+Why a thread and not a timer: at kHz poll rates the executor's per-tick overhead alone would take
+a large share of a core (docs/ARCHITECTURE.md, Node contracts); the supervisor's loop sleeps until
+its next poll. Publishers are thread-safe.
 """
 
 from __future__ import annotations
@@ -508,8 +508,8 @@ class Icm20948DriverNode(Node):
 
 def started_node() -> Icm20948DriverNode:
     """The node, with everything allocated at start-up exempt from the garbage collector: a full
-    collection over rclpy's, numpy's and scipy's objects pauses every thread for tens of ms
-    (tens of samples at 1 kHz); what the running node allocates is still collected."""
+    collection over rclpy's, numpy's and scipy's objects pauses every thread long enough to lose
+    samples at high rates; what the running node allocates is still collected."""
     node = Icm20948DriverNode()
     gc.freeze()
     return node
