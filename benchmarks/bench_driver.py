@@ -1,22 +1,28 @@
 #!/usr/bin/env python3
-"""icm20948_driver (simulated chip) over real DDS: publish rate and jitter, CPU share, faults.
+"""icm20948_driver (simulated chip) over real DDS: rates, jitter, CPU, I2C load, faults, accuracy.
 
 The driver node runs in its own process (so its CPU share is its own: process time / wall time,
-all threads, DDS included); this process subscribes to ``imu/mag`` and measures what arrives.
-Scenarios, all at rate_hz 100 in a private ROS_DOMAIN_ID on localhost:
+all threads, DDS and the simulator included); this process subscribes to imu/mag, imu/data_raw
+and imu/temperature and measures what arrives (header stamps). The node reports its I2C traffic
+(wire bytes: address, register and data bytes; bus share = bit times incl. ACK/START/STOP over a
+400 kHz clock). Scenarios, in a private ROS_DOMAIN_ID on localhost, magnetometer at 100 Hz:
 
-- nominal: 30 s; published rate from header stamps, interval jitter (std, p99, max), CPU share.
-- 5 % I2C errors: sim.i2c_error_rate 0.05; published rate, errors, re-initialisations.
-- 2 s outage: the device vanishes 5 s in (and comes back power-cycled); published rate outside
-  the outage, and recovery time = first stamp after the outage ends - outage end.
+- mag only: publish_imu and publish_temperature false (the magnetometer's own bus cost);
+- IMU 200 Hz and 1 kHz requested (the chip runs 225 Hz and 1125 Hz), nominal;
+- the same with sim.i2c_error_rate 0.05;
+- a 2 s outage 5 s in (the device comes back power-cycled): rates outside it, recovery time.
 
-    python benchmarks/bench_driver.py                 # 30 s nominal, 20 s per fault scenario
-    python benchmarks/bench_driver.py --duration 10   # quicker
+Accuracy (in this process, against the simulator's truth): |a| averaged over 1 s lying still;
+the gyroscope integrated over 10 s of tumbling / turning versus the true rotation (bias-free).
+
+    python benchmarks/bench_driver.py                  # 30 s per nominal row, 20 s per fault row
+    python benchmarks/bench_driver.py --duration 10 --fault-duration 10   # quicker
 """
 
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import math
 import os
@@ -29,26 +35,43 @@ import time
 import numpy as np
 
 WARMUP_S = 2.0
-RATE_HZ = 100
+MAG_RATE_HZ = 100
 OUTAGE_AT_S = 5.0
 OUTAGE_S = 2.0
+TODAY_POLLS_PER_SAMPLE = 2.5  # before issue #11: a 9-byte ST1..ST2 burst per check
+TODAY_MAG_BYTES_PER_S = TODAY_POLLS_PER_SAMPLE * MAG_RATE_HZ * (3 + 9)
+TODAY_MAG_BITS_PER_S = TODAY_POLLS_PER_SAMPLE * MAG_RATE_HZ * (9 * (3 + 9) + 3)
 
 
-def _driver_process(duration_s: float, error_rate: float, outage: bool) -> int:
+def _driver_parameters(imu_rate: int | None, error_rate: float, motion: str = 'tumble'):
+    from rclpy.parameter import Parameter
+
+    parameters = [
+        Parameter('backend', value='sim'),
+        Parameter('rate_hz', value=MAG_RATE_HZ),
+        Parameter('sim.i2c_error_rate', value=error_rate),
+        Parameter('sim.seed', value=1),
+        Parameter('sim.motion', value=motion),
+    ]
+    if imu_rate is None:
+        parameters += [Parameter('publish_imu', value=False),
+                       Parameter('publish_temperature', value=False)]
+    else:
+        parameters += [Parameter('imu_rate_hz', value=imu_rate)]
+    return parameters
+
+
+def _driver_process(duration_s: float, imu_rate: int | None, error_rate: float,
+                    outage: bool) -> int:
     """Child: run the node for warm-up + duration; print its own counters and CPU as JSON."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
-    from rclpy.parameter import Parameter
 
     from mag_calibrator_ros.nodes.icm20948_driver import Icm20948DriverNode
 
     rclpy.init()
-    node = Icm20948DriverNode(parameter_overrides=[
-        Parameter('backend', value='sim'),
-        Parameter('rate_hz', value=RATE_HZ),
-        Parameter('sim.i2c_error_rate', value=error_rate),
-        Parameter('sim.seed', value=1),
-    ])
+    node = Icm20948DriverNode(parameter_overrides=_driver_parameters(imu_rate, error_rate))
+    gc.freeze()  # as the console script does (icm20948_driver.started_node)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     go = threading.Event()  # the parent says GO once its subscriber receives our messages
@@ -64,21 +87,28 @@ def _driver_process(duration_s: float, error_rate: float, outage: bool) -> int:
             break
         if cpu0 is None and now >= measure_from and go.is_set():
             cpu0, wall0 = time.process_time(), now
-            published0 = node.published
+            published0 = (node.published, node.published_imu)
+            bus0 = node.supervisor.monitor.counters
             measure_from, stop_at = now, now + duration_s
         if outage and outage_start_ros is None and now >= measure_from + OUTAGE_AT_S:
             outage_start_ros = time.time()
             node.simulator.start_outage(OUTAGE_S)
         executor.spin_once(timeout_sec=0.05)
     cpu, wall = time.process_time() - cpu0, time.monotonic() - wall0
+    bus = node.supervisor.monitor.counters - bus0
     result = {
         'cpu_share': cpu / wall,
-        'published': node.published - published0,
+        'published_mag': node.published - published0[0],
+        'published_imu': node.published_imu - published0[1],
         'measure_from': time.time() - wall,  # wall-clock (ROS system time) window
         'measure_to': time.time(),
+        'bus_bytes_per_s': bus.wire_bytes / wall,
+        'bus_share': bus.bits / wall / 400_000,
         'i2c_errors': node.i2c_errors,
         'reinitialisations': node.reinitialisations,
         'overruns': node.overruns,
+        'imu_resyncs': node.supervisor.imu_resyncs,
+        'chip_rate_hz': node.settings.imu.odr_hz,
         'outage_start': outage_start_ros,
         'node_recovery_s': node.last_recovery_s,
     }
@@ -91,21 +121,24 @@ def _driver_process(duration_s: float, error_rate: float, outage: bool) -> int:
 
 
 class _Sink:
-    """Receives imu/mag (reliable, deep queue) in a background executor; keeps header stamps."""
+    """Receives the driver's topics (reliable, deep queues) on a background executor."""
+
+    TOPICS = ('imu/mag', 'imu/data_raw', 'imu/temperature')
 
     def __init__(self) -> None:
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.qos import QoSProfile, ReliabilityPolicy
-        from sensor_msgs.msg import MagneticField
+        from sensor_msgs.msg import Imu, MagneticField, Temperature
 
         rclpy.init()
         self._rclpy = rclpy
         self.node = rclpy.create_node('bench_driver_sink')
-        self._stamps: list[float] = []
+        self._stamps: dict[str, list[float]] = {topic: [] for topic in self.TOPICS}
         self._lock = threading.Lock()
-        qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
-        self.node.create_subscription(MagneticField, 'imu/mag', self._on_message, qos)
+        qos = QoSProfile(depth=2000, reliability=ReliabilityPolicy.RELIABLE)
+        for topic, kind in zip(self.TOPICS, (MagneticField, Imu, Temperature), strict=True):
+            self.node.create_subscription(kind, topic, self._receiver(topic), qos)
         self._executor = SingleThreadedExecutor()
         self._executor.add_node(self.node)
         self._thread = threading.Thread(target=self._spin, daemon=True)
@@ -119,14 +152,18 @@ class _Sink:
         except ExternalShutdownException:
             pass  # close() shut rclpy down
 
-    def _on_message(self, message) -> None:
-        with self._lock:
-            self._stamps.append(message.header.stamp.sec + 1e-9 * message.header.stamp.nanosec)
+    def _receiver(self, topic: str):
+        def receive(message) -> None:
+            with self._lock:
+                stamp = message.header.stamp
+                self._stamps[topic].append(stamp.sec + 1e-9 * stamp.nanosec)
+        return receive
 
-    def take(self) -> np.ndarray:
+    def take(self) -> dict[str, np.ndarray]:
         with self._lock:
-            taken, self._stamps = self._stamps, []
-        return np.array(taken)
+            taken = {topic: np.sort(np.array(stamps)) for topic, stamps in self._stamps.items()}
+            self._stamps = {topic: [] for topic in self.TOPICS}
+        return taken
 
     def close(self) -> None:
         self._rclpy.try_shutdown()  # wakes the spinning thread, which then returns
@@ -134,14 +171,24 @@ class _Sink:
         self.node.destroy_node()
 
 
-def run_scenario(sink: _Sink, name: str, duration_s: float, error_rate: float = 0.0,
-                 outage: bool = False) -> dict:
+def _intervals(stamps: np.ndarray) -> dict[str, float]:
+    intervals = np.diff(stamps) * 1e3
+    if len(intervals) == 0:
+        return {'jitter_ms': math.nan, 'p99_ms': math.nan, 'max_gap_ms': math.nan}
+    return {'jitter_ms': float(np.std(intervals)), 'p99_ms': float(np.percentile(intervals, 99)),
+            'max_gap_ms': float(np.max(intervals))}
+
+
+def run_scenario(sink: _Sink, name: str, duration_s: float, imu_rate: int | None,
+                 error_rate: float = 0.0, outage: bool = False) -> dict:
     command = [sys.executable, __file__, '--driver-process', '--duration', str(duration_s),
-               '--error-rate', str(error_rate)] + (['--outage'] if outage else [])
+               '--error-rate', str(error_rate)]
+    command += ['--imu-rate', str(imu_rate)] if imu_rate is not None else []
+    command += ['--outage'] if outage else []
     child = subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     assert child.stdout.readline().strip() == 'READY', 'driver process failed to start'
     deadline = time.monotonic() + 30.0
-    while len(sink.take()) == 0 and time.monotonic() < deadline:  # DDS discovery done
+    while len(sink.take()['imu/mag']) == 0 and time.monotonic() < deadline:  # discovery done
         time.sleep(0.1)
     output, _ = child.communicate('GO\n', timeout=duration_s + 90)
     if child.returncode != 0:
@@ -149,80 +196,218 @@ def run_scenario(sink: _Sink, name: str, duration_s: float, error_rate: float = 
     result = json.loads(next(line for line in output.splitlines()
                              if line.startswith('RESULT '))[len('RESULT '):])
     time.sleep(0.2)
-    stamps = np.sort(sink.take())
-    stamps = stamps[(stamps >= result['measure_from']) & (stamps <= result['measure_to'])]
+    received = sink.take()
     window = result['measure_to'] - result['measure_from']
-    intervals = np.diff(stamps) * 1e3
-    row = {
-        'scenario': name,
-        'received': len(stamps),
-        'published': result['published'],
-        'rate_hz': len(stamps) / window,
-        'node_rate_hz': result['published'] / window,
-        'interval_ms': float(np.mean(intervals)) if len(intervals) else float('nan'),
-        'jitter_ms': float(np.std(intervals)) if len(intervals) else float('nan'),
-        'p99_ms': float(np.percentile(intervals, 99)) if len(intervals) else float('nan'),
-        'max_gap_ms': float(np.max(intervals)) if len(intervals) else float('nan'),
+    span = (result['measure_from'], result['measure_to'])
+    stamps = {topic: s[(s >= span[0]) & (s <= span[1])] for topic, s in received.items()}
+    rate_window = window
+    outside = stamps
+    row = {'scenario': name, 'imu_requested': imu_rate,
+           'chip_rate_hz': result['chip_rate_hz'] if imu_rate is not None else math.nan}
+    if outage and result['outage_start'] is not None:
+        start, end = result['outage_start'], result['outage_start'] + OUTAGE_S
+        outside = {topic: s[(s < start) | (s >= end)] for topic, s in stamps.items()}
+        rate_window = window - OUTAGE_S
+        after = [s[s >= end] for s in stamps.values() if len(s[s >= end])]
+        row['recovery_s'] = min(float(s[0] - end) for s in after) if after else math.inf
+        row['in_outage'] = sum(int(np.count_nonzero((s > start + 0.001) & (s < end)))
+                               for s in stamps.values())
+    row.update({
+        'mag_hz': len(outside['imu/mag']) / rate_window,
+        'imu_hz': len(outside['imu/data_raw']) / rate_window,
+        'temperature_hz': len(outside['imu/temperature']) / rate_window,
+        'mag': _intervals(stamps['imu/mag']),
+        'imu': _intervals(stamps['imu/data_raw']),
         'cpu_pct': 100.0 * result['cpu_share'],
+        'bus_bytes_per_s': result['bus_bytes_per_s'],
+        'bus_pct': 100.0 * result['bus_share'],
         'i2c_errors': result['i2c_errors'],
         'reinits': result['reinitialisations'],
         'overruns': result['overruns'],
-        'recovery_s': float('nan'),
-    }
-    if outage and result['outage_start'] is not None:
-        start = result['outage_start']
-        end = start + OUTAGE_S
-        after = stamps[stamps >= end]
-        row['recovery_s'] = float(after[0] - end) if len(after) else float('inf')
-        outside = (stamps < start) | (stamps >= end)
-        row['rate_hz'] = int(np.count_nonzero(outside)) / (window - OUTAGE_S)
-        row['in_outage'] = int(np.count_nonzero(~outside))
+        'imu_resyncs': result['imu_resyncs'],
+    })
     return row
 
 
+def _fmt(value: float, spec: str) -> str:
+    return '—' if value is None or (isinstance(value, float) and math.isnan(value)) else \
+        format(value, spec)
+
+
 def print_table(rows: list[dict]) -> None:
-    columns = [('scenario', '{}'), ('rate_hz', '{:.2f}'), ('node_rate_hz', '{:.2f}'),
-               ('interval_ms', '{:.2f}'),
-               ('jitter_ms', '{:.2f}'), ('p99_ms', '{:.1f}'), ('max_gap_ms', '{:.0f}'),
-               ('cpu_pct', '{:.1f}'), ('i2c_errors', '{}'), ('reinits', '{}'),
-               ('overruns', '{}'), ('recovery_s', '{:.2f}')]
-    cells = [[fmt.format(row[key]) for key, fmt in columns] for row in rows]
-    widths = [max(len(key), *(len(c[i]) for c in cells)) for i, (key, _) in enumerate(columns)]
-    print(' | '.join(key.ljust(w) for (key, _), w in zip(columns, widths, strict=True)))
-    print('-|-'.join('-' * w for w in widths))
-    for c in cells:
-        print(' | '.join(v.ljust(w) for v, w in zip(c, widths, strict=True)))
+    print('| scenario | imu/data_raw Hz (req → chip) | imu/mag Hz | imu jitter / p99 / max gap ms '
+          '| mag jitter / p99 ms | CPU % | I2C B/s | bus % | I2C errors | re-inits |')
+    print('|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|')
+    for row in rows:
+        imu = (f"{row['imu_hz']:.1f} ({row['imu_requested']} → {row['chip_rate_hz']:.0f})"
+               if row['imu_requested'] else '—')
+        timing = row['imu']
+        imu_timing = (f"{_fmt(timing['jitter_ms'], '.2f')} / {_fmt(timing['p99_ms'], '.1f')} / "
+                      f"{_fmt(timing['max_gap_ms'], '.0f')}" if row['imu_requested'] else '—')
+        print(f"| {row['scenario']} | {imu} | {row['mag_hz']:.2f} | {imu_timing} | "
+              f"{_fmt(row['mag']['jitter_ms'], '.2f')} / {_fmt(row['mag']['p99_ms'], '.1f')} | "
+              f"{row['cpu_pct']:.1f} | {row['bus_bytes_per_s']:.0f} | {row['bus_pct']:.1f} | "
+              f"{row['i2c_errors']} | {row['reinits']} |")
+
+
+# --- accuracy against the simulator's truth (in this process) -----------------------------------
+
+def _collect(imu_rate: int, motion: str, seconds: float, warmup_s: float = 1.0):
+    """Run the node in this process for ``seconds``; return it and the Imu messages it published.
+
+    The messages are taken where the node publishes them (a tap on its publisher): a subscriber
+    in this process would compete with the driver's thread for the interpreter, which is not what
+    the accuracy measures. Rates over DDS are the table's business.
+    """
+    import rclpy
+    from rclpy.context import Context
+
+    from mag_calibrator_ros.nodes.icm20948_driver import Icm20948DriverNode
+    from mag_calibrator_ros.nodes.runtime import NodeThreads
+
+    context = Context()
+    rclpy.init(context=context)
+    threads = NodeThreads(context)
+    node = Icm20948DriverNode(context=context, parameter_overrides=_driver_parameters(
+        imu_rate, 0.0, motion))
+    gc.freeze()  # as the console script does (icm20948_driver.started_node)
+    messages: list = []
+    publisher = node._imu_publisher
+    publish = publisher.publish
+
+    def tap(message) -> None:
+        messages.append(message)
+        publish(message)
+
+    publisher.publish = tap
+    threads.add(node)
+    time.sleep(warmup_s)
+    messages.clear()
+    time.sleep(seconds)
+    node._stop.set()  # freeze the simulator's truth log
+    node._pump.join()
+    return node, list(messages), (threads, context)
+
+
+def _close(handles) -> None:
+    import rclpy
+
+    threads, context = handles
+    threads.shutdown()
+    rclpy.try_shutdown(context=context)
+
+
+def _vectors(messages, field: str) -> np.ndarray:
+    return np.array([[getattr(m, field).x, getattr(m, field).y, getattr(m, field).z]
+                     for m in messages])
+
+
+def accel_at_rest(imu_rate: int) -> dict:
+    node, messages, handles = _collect(imu_rate, 'still', 1.0)
+    try:
+        accel = _vectors(messages, 'linear_acceleration')
+        return {'imu_rate': imu_rate, 'samples': len(accel),
+                'norm_of_mean': float(np.linalg.norm(accel.mean(axis=0))),
+                'mean_of_norms': float(np.linalg.norm(accel, axis=1).mean())}
+    finally:
+        _close(handles)
+
+
+def gyro_integration(imu_rate: int, motion: str, seconds: float = 10.0) -> dict:
+    """Integrate the published rates over ``seconds``; compare with the true rotation between the
+    first and last sample's true orientations. dt from header stamps (what a user has) and from
+    the simulator's true sample times (the driver's share alone)."""
+    from scipy.spatial.transform import Rotation
+
+    node, messages, handles = _collect(imu_rate, motion, seconds)
+    try:
+        rates = _vectors(messages, 'angular_velocity')
+        truths = node.simulator.imu_truths_read()[-len(messages):]  # each read is published once
+        assert len(truths) == len(messages)
+        stamps = np.array([m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for m in messages])
+        sample_times = np.array([t.sample_time for t in truths])
+        true_delta = Rotation.from_matrix(truths[0].rotation.T @ truths[-1].rotation)
+        errors = {}
+        for name, times in (('stamps', stamps), ('sample_times', sample_times)):
+            for rule, step_rates in (('rectangle', rates[:-1]),
+                                     ('trapezoid', 0.5 * (rates[:-1] + rates[1:]))):
+                steps = Rotation.from_rotvec(step_rates * np.diff(times)[:, None])
+                integrated = Rotation.identity()
+                for step in steps:
+                    integrated = integrated * step
+                errors[f'{rule}_{name}'] = float(
+                    np.degrees((true_delta.inv() * integrated).magnitude()))
+        expected = (sample_times[-1] - sample_times[0]) * node.settings.imu.odr_hz + 1
+        return {'imu_rate': imu_rate, 'motion': motion, 'samples': len(rates),
+                'missing': int(round(expected)) - len(rates),
+                'span_s': float(sample_times[-1] - sample_times[0]),
+                'rotation_deg': float(np.degrees(true_delta.magnitude())), **errors}
+    finally:
+        _close(handles)
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
-    parser.add_argument('--duration', type=float, default=30.0, help='nominal scenario (s)')
-    parser.add_argument('--fault-duration', type=float, default=20.0, help='fault scenarios (s)')
+    parser.add_argument('--duration', type=float, default=30.0, help='nominal rows (s)')
+    parser.add_argument('--fault-duration', type=float, default=20.0, help='fault rows (s)')
+    parser.add_argument('--skip-accuracy', action='store_true')
     parser.add_argument('--driver-process', action='store_true', help=argparse.SUPPRESS)
+    parser.add_argument('--imu-rate', type=int, default=None, help=argparse.SUPPRESS)
     parser.add_argument('--error-rate', type=float, default=0.0, help=argparse.SUPPRESS)
     parser.add_argument('--outage', action='store_true', help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.driver_process:
-        return _driver_process(args.duration, args.error_rate, args.outage)
+        return _driver_process(args.duration, args.imu_rate, args.error_rate, args.outage)
 
     os.environ.setdefault('ROS_DOMAIN_ID', str(random.SystemRandom().randint(101, 180)))
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     sink = _Sink()
     try:
         rows = [
-            run_scenario(sink, f'nominal {RATE_HZ} Hz', args.duration),
-            run_scenario(sink, '5% I2C errors', args.fault_duration, error_rate=0.05),
-            run_scenario(sink, f'{OUTAGE_S:g} s outage', args.fault_duration, outage=True),
+            run_scenario(sink, 'mag only', args.duration, None),
+            run_scenario(sink, 'IMU 200 Hz', args.duration, 200),
+            run_scenario(sink, 'IMU 1 kHz', args.duration, 1000),
+            run_scenario(sink, 'IMU 200 Hz, 5 % I2C errors', args.fault_duration, 200, 0.05),
+            run_scenario(sink, 'IMU 1 kHz, 5 % I2C errors', args.fault_duration, 1000, 0.05),
+            run_scenario(sink, f'IMU 200 Hz, {OUTAGE_S:g} s outage', args.fault_duration, 200,
+                         outage=True),
         ]
     finally:
         sink.close()
-    print(f'\nicm20948_driver, sim backend, requested {RATE_HZ} Hz, ROS_DOMAIN_ID '
-          f"{os.environ['ROS_DOMAIN_ID']}. rate_hz: received, from header stamps (outage row: "
-          f'outside the outage); node_rate_hz: published by the node over the whole window; '
-          f'recovery = first stamp after the device is back.\n')
+    print(f'\nicm20948_driver, sim backend, magnetometer {MAG_RATE_HZ} Hz, ROS_DOMAIN_ID '
+          f"{os.environ['ROS_DOMAIN_ID']}; rates received, from header stamps (outage row: "
+          f'outside the outage); CPU of the node process (simulator included); I2C wire bytes/s '
+          f'and share of a 400 kHz bus.\n')
     print_table(rows)
-    outage_row = rows[2]
-    print(f"\nmessages stamped inside the outage: {outage_row.get('in_outage')}")
+    outage_row = rows[-1]
+    print(f"\noutage row: recovery {outage_row.get('recovery_s', math.nan):.2f} s after the "
+          f"device is back; messages stamped inside the outage: {outage_row.get('in_outage')}")
+    mag = rows[0]
+    before_pct = 100 * TODAY_MAG_BITS_PER_S / 400_000
+    print(f"magnetometer polling: {mag['bus_bytes_per_s']:.0f} B/s ({mag['bus_pct']:.2f} % of "
+          f'the bus) vs {TODAY_MAG_BYTES_PER_S:.0f} B/s ({before_pct:.2f} %) before (a 9-byte '
+          f'burst {TODAY_POLLS_PER_SAMPLE:g}x per sample): '
+          f"{mag['bus_bytes_per_s'] / TODAY_MAG_BYTES_PER_S:.2f} of it")
+    for row in rows:
+        print(f"  {row['scenario']}: temperature {row['temperature_hz']:.1f} Hz, overruns "
+              f"{row['overruns']}, imu resyncs {row['imu_resyncs']}")
+    if args.skip_accuracy:
+        return 0
+    print('\nAccuracy against the simulator truth (node in this process, its published Imu '
+          'messages):')
+    for rate in (200, 1000):
+        rest = accel_at_rest(rate)
+        print(f"  still, IMU {rate} Hz, 1 s ({rest['samples']} samples): |mean a| = "
+              f"{rest['norm_of_mean']:.4f} m/s^2, mean |a| = {rest['mean_of_norms']:.4f} m/s^2")
+    print('  gyro integrated over 10 s, rotation error in deg: trapezoid / forward rectangle, '
+          'dt from header stamps | from the true sample times')
+    for rate in (200, 1000):
+        for motion in ('yaw', 'tumble'):
+            r = gyro_integration(rate, motion)
+            print(f"  {motion}, IMU {rate} Hz, {r['span_s']:.1f} s, {r['samples']} samples "
+                  f"({r['missing']} missing), true rotation {r['rotation_deg']:.1f} deg: "
+                  f"{r['trapezoid_stamps']:.3f} / {r['rectangle_stamps']:.3f} | "
+                  f"{r['trapezoid_sample_times']:.3f} / {r['rectangle_sample_times']:.3f}")
     return 0
 
 

@@ -5,18 +5,27 @@ sensor the way people and robots do: a hand tumbling the board (``tumble``), a g
 turning in place with a little tilt (``yaw``), or a board lying on the bench (``still``). Every
 trajectory is deterministic for a seed so tests and benchmarks are repeatable.
 
+The inertial sensors need more than the orientation: ``state(t)`` gives the orientation, the body
+angular rate (what a gyroscope measures) and the linear acceleration (what an accelerometer adds to
+gravity) of one consistent motion, so a new motion (a robot following ``cmd_vel``, say) plugs into
+the simulator by implementing that one method.
+
 Conventions: world frame ENU (x east, y north, z up); ``orientation(t)`` is the rotation matrix
-world<-body, so a world vector ``v`` reads ``R.T @ v`` in the body frame.
+world<-body, so a world vector ``v`` reads ``R.T @ v`` in the body frame; angular velocity in the
+body frame (rad/s), linear acceleration in the world frame (m/s^2, gravity excluded).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 import math
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 TRAJECTORY_KINDS = ('tumble', 'yaw', 'still')
+ZERO3 = np.zeros(3)
+ZERO3.setflags(write=False)
 
 
 def earth_field(strength: float, inclination_deg: float) -> np.ndarray:
@@ -35,8 +44,25 @@ def earth_field(strength: float, inclination_deg: float) -> np.ndarray:
     return np.array([0.0, strength * math.cos(inclination), -strength * math.sin(inclination)])
 
 
+@dataclass(frozen=True)
+class MotionState:
+    """The board's motion at one instant.
+
+    ``rotation``: (3,3) world<-body; ``angular_velocity``: (3,) body frame, rad/s;
+    ``linear_acceleration``: (3,) world frame, m/s^2, gravity excluded.
+    """
+
+    rotation: np.ndarray
+    angular_velocity: np.ndarray
+    linear_acceleration: np.ndarray
+
+
 class Trajectory:
-    """A body orientation as a function of time (seconds, t >= 0)."""
+    """A body motion as a function of time (seconds, t >= 0).
+
+    Subclasses give ``rotations``; those that move also override ``state`` (the simulator calls
+    it once per inertial sample, so it should be cheap for a single time).
+    """
 
     kind: str = ''
 
@@ -51,6 +77,26 @@ class Trajectory:
     def orientations(self, times: np.ndarray) -> np.ndarray:
         """World<-body rotation matrices (n,3,3) at ``times``."""
         return self.rotations(times).as_matrix().reshape(-1, 3, 3)
+
+    def state(self, t: float) -> MotionState:
+        """Orientation, body angular velocity and linear acceleration at time ``t``."""
+        return MotionState(self.orientation(t), ZERO3, ZERO3)
+
+    def angular_velocity(self, t: float) -> np.ndarray:
+        """Body-frame angular velocity (3,) in rad/s at time ``t``."""
+        return self.state(t).angular_velocity
+
+    def linear_acceleration(self, t: float) -> np.ndarray:
+        """World-frame linear acceleration (3,) in m/s^2 at time ``t`` (gravity excluded)."""
+        return self.state(t).linear_acceleration
+
+
+def _checked_time(t: float) -> float:
+    """One time, checked (the per-sample path: no array round trip)."""
+    t = float(t)
+    if not math.isfinite(t) or t < 0.0:
+        raise ValueError('trajectory times must be finite and >= 0 seconds')
+    return t
 
 
 def _checked_times(times: np.ndarray) -> np.ndarray:
@@ -72,10 +118,15 @@ class StillTrajectory(Trajectory):
         heading = rng.uniform(-math.pi, math.pi)
         roll, pitch = rng.normal(0.0, math.radians(0.5), size=2)
         self._quat = Rotation.from_euler('ZYX', [heading, pitch, roll]).as_quat()
+        self._state = MotionState(Rotation.from_quat(self._quat).as_matrix(), ZERO3, ZERO3)
 
     def rotations(self, times: np.ndarray) -> Rotation:
         times = _checked_times(times)
         return Rotation.from_quat(np.tile(self._quat, (len(times), 1)))
+
+    def state(self, t: float) -> MotionState:
+        _checked_time(t)
+        return self._state
 
 
 class YawTrajectory(Trajectory):
@@ -111,6 +162,47 @@ class YawTrajectory(Trajectory):
         )
         return Rotation.from_euler('ZYX', np.column_stack([yaw, tilt[:, 1], tilt[:, 0]]))
 
+    def state(self, t: float) -> MotionState:
+        """Analytic: Z-Y-X Euler angles and their rates mapped to the body rate; the IMU sits on
+        the turning axis, so there is no linear acceleration."""
+        t = _checked_time(t)
+        mod = self._yaw_mod_freq * t + self._yaw_mod_phase
+        yaw = self._yaw0 + self._yaw_rate * t + float(np.sum(self._yaw_mod * np.sin(mod)))
+        yaw_rate = self._yaw_rate + float(np.sum(self._yaw_mod * self._yaw_mod_freq * np.cos(mod)))
+        phase = self._tilt_freq * t + self._tilt_phase
+        roll, pitch = np.sum(self._tilt_amp * np.sin(phase), axis=1)
+        roll_rate, pitch_rate = np.sum(self._tilt_amp * self._tilt_freq * np.cos(phase), axis=1)
+        return MotionState(
+            _zyx_matrix(yaw, pitch, roll),
+            _zyx_body_rate(yaw_rate, pitch, pitch_rate, roll, roll_rate),
+            ZERO3,
+        )
+
+
+def _zyx_matrix(yaw: float, pitch: float, roll: float) -> np.ndarray:
+    """Rz(yaw) @ Ry(pitch) @ Rx(roll), as scipy's ``from_euler('ZYX', ...)``."""
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    cr, sr = math.cos(roll), math.sin(roll)
+    return np.array([
+        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+        [-sp, cp * sr, cp * cr],
+    ])
+
+
+def _zyx_body_rate(
+    yaw_rate: float, pitch: float, pitch_rate: float, roll: float, roll_rate: float
+) -> np.ndarray:
+    """Body angular velocity of R = Rz(yaw) Ry(pitch) Rx(roll) from the Euler angle rates."""
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    cr, sr = math.cos(roll), math.sin(roll)
+    return np.array([
+        roll_rate - yaw_rate * sp,
+        pitch_rate * cr + yaw_rate * cp * sr,
+        -pitch_rate * sr + yaw_rate * cp * cr,
+    ])
+
 
 class TumbleTrajectory(Trajectory):
     """A hand tumbling the board: body angular velocity is low-pass filtered white noise.
@@ -118,8 +210,10 @@ class TumbleTrajectory(Trajectory):
     Each body axis's rate is white noise through two cascaded first-order low-passes (time constant
     ``correlation_s``), scaled to ``rate_std`` rad/s per axis; peaks reach several rad/s, and the
     random walk on SO(3) visits every orientation within 30-60 s. The rate is integrated exactly
-    on a 25 Hz knot grid (piecewise-constant rate between knots), extended lazily and forgotten
-    after ``retain_s`` seconds so a long-running simulator stays bounded in memory.
+    on a 25 Hz knot grid (piecewise-constant rate between knots, so a gyroscope sampling it sees
+    the exact rate), extended lazily and forgotten after ``retain_s`` seconds so a long-running
+    simulator stays bounded in memory. The hand also moves the board a few centimetres at
+    0.2-1 Hz (three sinusoids per axis): linear acceleration of about 1 m/s^2 RMS.
     """
 
     kind = 'tumble'
@@ -146,6 +240,11 @@ class TumbleTrajectory(Trajectory):
         self._first = 0  # index of the first retained knot
         self._quats = Rotation.random(random_state=self._rng).as_quat()[None, :]
         self._rotvecs = np.empty((0, 3))  # rotvec from knot k to knot k+1 (body frame)
+        # Translation (its own random stream, so the orientations do not depend on it).
+        shake = np.random.default_rng([seed, 4])
+        self._shake_amp = shake.uniform(0.01, 0.04, size=(3, 3))  # metres, axis x component
+        self._shake_freq = shake.uniform(0.2, 1.0, size=(3, 3)) * 2.0 * math.pi
+        self._shake_phase = shake.uniform(0.0, 2.0 * math.pi, size=(3, 3))
 
     def _extend(self) -> None:
         steps = np.empty((self.CHUNK, 3))
@@ -188,6 +287,60 @@ class TumbleTrajectory(Trajectory):
         return Rotation.from_quat(self._quats[local]) * Rotation.from_rotvec(
             fraction * self._rotvecs[local]
         )
+
+    def position(self, t: float) -> np.ndarray:
+        """World-frame displacement (3,) in metres of the hand's translation at time ``t``."""
+        t = _checked_time(t)
+        return np.sum(self._shake_amp * np.sin(self._shake_freq * t + self._shake_phase), axis=1)
+
+    def state(self, t: float) -> MotionState:
+        """Plain float arithmetic: called once per simulated sample, up to 1 kHz."""
+        t = _checked_time(t)
+        position = t * self.KNOT_HZ
+        knot = math.floor(position)
+        while knot >= self._first + len(self._rotvecs):
+            self._extend()
+        if knot < self._first:
+            self.rotations(np.array([t]))  # raises the 'no longer available' error
+        local = knot - self._first
+        step = self._rotvecs[local].tolist()
+        quat = _quat_multiply(self._quats[local].tolist(),
+                              _rotvec_quat([(position - knot) * v for v in step]))
+        omega = np.array(step) * self.KNOT_HZ  # constant between knots, body frame
+        phase = self._shake_freq * t + self._shake_phase
+        acceleration = -np.sum(self._shake_amp * self._shake_freq**2 * np.sin(phase), axis=1)
+        return MotionState(_quat_matrix(quat), omega, acceleration)
+
+
+def _rotvec_quat(rotvec) -> tuple[float, float, float, float]:
+    """Rotation vector -> unit quaternion (x, y, z, w), scipy's order."""
+    x, y, z = rotvec
+    angle = math.sqrt(x * x + y * y + z * z)
+    if angle < 1e-12:
+        return 0.5 * x, 0.5 * y, 0.5 * z, 1.0
+    scale = math.sin(0.5 * angle) / angle
+    return x * scale, y * scale, z * scale, math.cos(0.5 * angle)
+
+
+def _quat_multiply(a, b) -> tuple[float, float, float, float]:
+    """Hamilton product a * b of (x, y, z, w) quaternions: rotation b, then a."""
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return (aw * bx + bw * ax + ay * bz - az * by,
+            aw * by + bw * ay + az * bx - ax * bz,
+            aw * bz + bw * az + ax * by - ay * bx,
+            aw * bw - ax * bx - ay * by - az * bz)
+
+
+def _quat_matrix(quat) -> np.ndarray:
+    x, y, z, w = quat
+    norm = 1.0 / math.sqrt(x * x + y * y + z * z + w * w)
+    x, y, z, w = x * norm, y * norm, z * norm, w * norm
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
 
 
 def make_trajectory(kind: str, seed: int = 0) -> Trajectory:

@@ -1,14 +1,16 @@
-"""Register-level protocol of the AK09916-in-ICM-20948 driver against the simulated chip."""
+"""Register-level protocol of the driver's magnetometer side (AK09916 behind the ICM-20948)
+against the simulated chip; the accel/gyro side is in test_icm20948_imu.py."""
 
 import errno
 
+from icm20948_fakes import FakeClock, RecordingBus
 import numpy as np
 import pytest
 
 from mag_calibrator_ros.icm20948 import registers as reg
 from mag_calibrator_ros.icm20948.driver import (
     DeviceNotFoundError,
-    Icm20948Magnetometer,
+    Icm20948,
     WrongDeviceError,
     counts_to_tesla,
     tesla_to_counts,
@@ -16,45 +18,12 @@ from mag_calibrator_ros.icm20948.driver import (
 from mag_calibrator_ros.icm20948.simulator import SimConfig, SimulatedIcm20948Bus
 
 
-class FakeClock:
-    """Deterministic time for the simulator; ``sleep`` advances it instead of waiting."""
-
-    def __init__(self, start: float = 1000.0) -> None:
-        self.now = start
-
-    def __call__(self) -> float:
-        return self.now
-
-    def sleep(self, seconds: float) -> None:
-        self.now += seconds
-
-
-class RecordingBus:
-    """Forwards to the simulator and records each transaction with the fake time."""
-
-    def __init__(self, bus: SimulatedIcm20948Bus, clock: FakeClock) -> None:
-        self.bus, self.clock, self.log = bus, clock, []
-
-    def read_byte_data(self, addr, register):
-        value = self.bus.read_byte_data(addr, register)
-        self.log.append((self.clock.now, 'r', addr, register, value))
-        return value
-
-    def write_byte_data(self, addr, register, value):
-        self.bus.write_byte_data(addr, register, value)
-        self.log.append((self.clock.now, 'w', addr, register, value))
-
-    def read_i2c_block_data(self, addr, register, length):
-        values = self.bus.read_i2c_block_data(addr, register, length)
-        self.log.append((self.clock.now, 'rb', addr, register, tuple(values)))
-        return values
-
-
 def make(config: SimConfig | None = None, address: int = 0x69):
     config = config if config is not None else SimConfig()
     clock = FakeClock()
     bus = SimulatedIcm20948Bus(config, clock=clock)
-    driver = Icm20948Magnetometer(bus, address=address, bus_name='/dev/i2c-7', sleep=clock.sleep)
+    driver = Icm20948(bus, address=address, bus_name='/dev/i2c-7', sleep=clock.sleep,
+                      clock=clock)
     return clock, bus, driver
 
 
@@ -62,7 +31,7 @@ def poll(clock, driver, seconds: float, poll_hz: float = 250.0):
     readings = []
     for _ in range(int(round(seconds * poll_hz))):
         clock.sleep(1.0 / poll_hz)
-        reading = driver.read()
+        reading = driver.read_mag()
         if reading is not None:
             readings.append(reading)
     return readings
@@ -96,14 +65,14 @@ def test_power_on_state_of_the_model():
 def test_initialise_sequence_and_waits():
     clock, sim, _ = make()
     bus = RecordingBus(sim, clock)
-    driver = Icm20948Magnetometer(bus, address=0x69, sleep=clock.sleep)
-    driver.initialise(rate_hz=50)
-    writes = [(kind, addr, register, value) for _, kind, addr, register, value in bus.log
-              if kind == 'w']
+    driver = Icm20948(bus, address=0x69, sleep=clock.sleep, clock=clock)
+    driver.initialise(mag_rate_hz=50)  # magnetometer only: accel and gyro powered down
+    writes = [(e.kind, e.address, e.register, e.value) for e in bus.log if e.kind == 'w']
     order = [
         ('w', 0x69, reg.REG_BANK_SEL, 0),
         ('w', 0x69, reg.PWR_MGMT_1, reg.PWR_MGMT_1_DEVICE_RESET),
         ('w', 0x69, reg.PWR_MGMT_1, reg.PWR_MGMT_1_CLKSEL_AUTO),
+        ('w', 0x69, reg.PWR_MGMT_2, reg.PWR_MGMT_2_DISABLE_ACCEL | reg.PWR_MGMT_2_DISABLE_GYRO),
         ('w', 0x69, reg.USER_CTRL, 0),
         ('w', 0x69, reg.INT_PIN_CFG, reg.INT_PIN_CFG_BYPASS_EN),
         ('w', reg.AK09916_ADDRESS, reg.CNTL3, reg.CNTL3_SRST),
@@ -112,7 +81,7 @@ def test_initialise_sequence_and_waits():
     ]
     positions = [writes.index(step) for step in order]
     assert positions == sorted(positions)
-    times = {(e[1], e[2], e[3], e[4]): e[0] for e in bus.log if e[1] == 'w'}
+    times = {(e.kind, e.address, e.register, e.value): e.time for e in bus.log if e.kind == 'w'}
     reset_at = times[('w', 0x69, reg.PWR_MGMT_1, reg.PWR_MGMT_1_DEVICE_RESET)]
     wake_at = times[('w', 0x69, reg.PWR_MGMT_1, reg.PWR_MGMT_1_CLKSEL_AUTO)]
     assert wake_at - reset_at >= reg.DEVICE_RESET_WAIT_S - 1e-9
@@ -120,17 +89,18 @@ def test_initialise_sequence_and_waits():
     mode_at = times[('w', reg.AK09916_ADDRESS, reg.CNTL2, reg.CONTINUOUS_MODES[50])]
     assert mode_at - down_at >= reg.MODE_CHANGE_WAIT_S - 1e-9
     # Identities were checked: WHO_AM_I, then WIA1/WIA2 in one block read.
-    assert ('r', 0x69, reg.WHO_AM_I, reg.WHO_AM_I_VALUE) in [e[1:] for e in bus.log]
-    assert ('rb', reg.AK09916_ADDRESS, reg.WIA1, (0x48, 0x09)) in [e[1:] for e in bus.log]
+    seen = [(e.kind, e.address, e.register, e.value) for e in bus.log]
+    assert ('r', 0x69, reg.WHO_AM_I, reg.WHO_AM_I_VALUE) in seen
+    assert ('rb', reg.AK09916_ADDRESS, reg.WIA1, (0x48, 0x09)) in seen
     assert sim.read_byte_data(reg.AK09916_ADDRESS, reg.CNTL2) == reg.CONTINUOUS_MODES[50]
-    assert driver.rate_hz == 50
+    assert driver.mag_rate_hz == 50 and driver.imu is None
 
 
 def test_initialise_without_waiting_fails_on_the_model():
     """The model enforces the datasheet waits, so a driver that skipped them would be caught."""
     clock = FakeClock()
     sim = SimulatedIcm20948Bus(SimConfig(), clock=clock)
-    hasty = Icm20948Magnetometer(sim, sleep=lambda seconds: None)
+    hasty = Icm20948(sim, sleep=lambda seconds: None, clock=clock)
     with pytest.raises(OSError):
         hasty.initialise(100)
 
@@ -148,7 +118,7 @@ def test_rate_must_be_a_continuous_mode():
     with pytest.raises(ValueError, match='10, 20, 50, 100'):
         driver.initialise(30)
     with pytest.raises(ValueError, match='0x68 or 0x69'):
-        Icm20948Magnetometer(SimulatedIcm20948Bus(SimConfig()), address=0x0C)
+        Icm20948(SimulatedIcm20948Bus(SimConfig()), address=0x0C)
 
 
 @pytest.mark.parametrize('rate', [10, 20, 50, 100])
@@ -163,45 +133,58 @@ def test_one_reading_per_sample_without_overruns(rate):
 
 
 def test_no_new_data_reads_none_and_never_repeats():
-    clock, _, driver = make(SimConfig(motion='still', noise_ut=0.0))
+    clock, sim, driver = make(SimConfig(motion='still', noise_ut=0.0))
     driver.initialise(10)
-    while driver.read() is None:  # catch a sample within 1 ms of its data-ready
+    while driver.read_mag() is None:  # catch a sample within 1 ms of its data-ready
         clock.sleep(0.001)
-    assert driver.read() is None  # DRDY cleared by the ST2 read: no duplicate
+    assert driver.read_mag() is None  # DRDY cleared by the data read: no duplicate
     clock.sleep(0.05)
-    assert driver.read() is None
+    assert driver.read_mag() is None
     clock.sleep(0.06)
-    assert driver.read() is not None
+    assert driver.read_mag() is not None
+    assert sim.mag_repeated_reads == 0
 
 
-def test_burst_is_one_nine_byte_read_ending_at_st2():
+def test_polls_st1_alone_and_reads_the_data_only_on_drdy():
     clock, sim, _ = make()
     bus = RecordingBus(sim, clock)
-    driver = Icm20948Magnetometer(bus, sleep=clock.sleep)
+    driver = Icm20948(bus, sleep=clock.sleep, clock=clock)
     driver.initialise(100)
     bus.log.clear()
+    readings = 0
     for _ in range(50):
         clock.sleep(0.004)
-        driver.read()
-    assert {(e[1], e[2], e[3], len(e[4])) for e in bus.log} == {
-        ('rb', reg.AK09916_ADDRESS, reg.ST1, 9)
-    }
+        readings += driver.read_mag() is not None
+    polls = [e for e in bus.log if e.kind == 'r']
+    bursts = [e for e in bus.log if e.kind == 'rb']
+    assert {(e.address, e.register) for e in polls} == {(reg.AK09916_ADDRESS, reg.ST1)}
+    assert len(polls) == 50
+    # Each burst follows a DRDY poll, runs HXL..ST2 (ST2 last) and yields one reading.
+    assert {(e.address, e.register, len(e.value)) for e in bursts} == {
+        (reg.AK09916_ADDRESS, reg.HXL, 8)}
+    assert len(bursts) == readings == 20
+    for burst in bursts:
+        previous = bus.log[bus.log.index(burst) - 1]
+        assert previous.kind == 'r' and previous.value & reg.ST1_DRDY
 
 
-def test_partial_reader_without_st2_gets_stuck_data_but_the_driver_does_not():
+def test_data_protection_holds_a_partial_read_until_st2():
+    """A reader that skips ST2 leaves the data locked: nothing new arrives (the supervisor sees a
+    stuck data-ready and re-initialises; test_icm20948_supervisor covers that)."""
     clock, sim, driver = make()
     driver.initialise(100)
     clock.sleep(0.02)
     first = sim.read_i2c_block_data(reg.AK09916_ADDRESS, reg.ST1, 7)  # ST1..HZH, no ST2
+    assert first[0] & reg.ST1_DRDY
     clock.sleep(0.1)
     again = sim.read_i2c_block_data(reg.AK09916_ADDRESS, reg.ST1, 7)
     assert first[1:] == again[1:]  # data protected (locked) until ST2 is read
-    assert again[0] & reg.ST1_DOR  # samples piled up meanwhile
-    reading = driver.read()  # the 9-byte burst ends with ST2: unlocks
+    assert again[0] & reg.ST1_DOR and not again[0] & reg.ST1_DRDY  # piled up, not released
+    assert driver.read_mag() is None
+    sim.read_byte_data(reg.AK09916_ADDRESS, reg.ST2)  # ST2 ends the read: the newest is latched
+    reading = driver.read_mag()
     assert reading is not None and reading.overrun
-    clock.sleep(0.01)
-    later = driver.read()
-    assert later is not None and not np.array_equal(later.counts, reading.counts)
+    assert not np.array_equal(reading.counts, np.frombuffer(bytes(first[1:7]), '<i2'))
 
 
 def test_overrun_flagged_and_counted_when_polling_too_slowly():
@@ -234,7 +217,7 @@ def test_units_and_axis_remap_into_the_accel_gyro_frame():
     raw = sim.read_i2c_block_data(reg.AK09916_ADDRESS, reg.ST1, 9)
     counts = np.frombuffer(bytes(raw[1:7]), dtype='<i2')
     clock.sleep(0.01)
-    reading = driver.read()
+    reading = driver.read_mag()
     truth = sim.truth_for_reading(reading.field_tesla)
     expected_tesla = truth + np.array([0.0, 300e-6, -200e-6])
     np.testing.assert_allclose(reading.field_tesla, expected_tesla, atol=0.076e-6)

@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from mag_calibrator_ros import motion
 
@@ -113,3 +114,64 @@ def test_tumble_forgets_old_knots_but_stays_continuous():
     assert first.shape == (3, 3)
     with pytest.raises(ValueError, match='no longer available'):
         trajectory.orientation(1.0)
+
+
+def finite_difference_rate(trajectory, t: float, h: float = 1e-5) -> np.ndarray:
+    """Body rate from the orientation alone: R(t-h)^T R(t+h) = exp([w] 2h)."""
+    before = Rotation.from_matrix(trajectory.orientation(t - h))
+    after = Rotation.from_matrix(trajectory.orientation(t + h))
+    return (before.inv() * after).as_rotvec() / (2.0 * h)
+
+
+@pytest.mark.parametrize('kind', motion.TRAJECTORY_KINDS)
+def test_state_is_one_consistent_motion(kind):
+    """Orientation, body rate and acceleration of state(t) describe the same motion."""
+    trajectory = motion.make_trajectory(kind, seed=3)
+    # Mid-knot times: the tumble's rate is piecewise constant on its 25 Hz knot grid.
+    for t in (np.arange(40) + 0.37) / motion.TumbleTrajectory.KNOT_HZ * 31.0:
+        state = trajectory.state(t)
+        np.testing.assert_allclose(state.rotation, trajectory.orientation(t), atol=1e-12)
+        np.testing.assert_allclose(state.angular_velocity,
+                                   finite_difference_rate(trajectory, t), atol=1e-6)
+        np.testing.assert_array_equal(trajectory.angular_velocity(t), state.angular_velocity)
+        assert state.linear_acceleration.shape == (3,)
+
+
+def test_tumble_rates_reach_hand_speeds_and_integrate_to_the_orientation():
+    trajectory = motion.make_trajectory('tumble', seed=5)
+    dt = 1.0 / motion.TumbleTrajectory.KNOT_HZ
+    rotation = trajectory.orientation(0.0)
+    for k in range(250):  # 10 s, one exact step per knot interval
+        omega = trajectory.state((k + 0.5) * dt).angular_velocity
+        rotation = rotation @ Rotation.from_rotvec(omega * dt).as_matrix()
+    np.testing.assert_allclose(rotation, trajectory.orientation(10.0), atol=1e-9)
+
+
+def test_tumble_hand_translation_is_the_second_derivative_of_its_position():
+    trajectory = motion.TumbleTrajectory(seed=2)
+    h = 1e-3
+    for t in (1.0, 7.3, 33.3):
+        numeric = (trajectory.position(t + h) - 2 * trajectory.position(t)
+                   + trajectory.position(t - h)) / h**2
+        np.testing.assert_allclose(trajectory.state(t).linear_acceleration, numeric, atol=1e-4)
+    accelerations = np.array([trajectory.linear_acceleration(t) for t in np.arange(0, 60, 0.05)])
+    rms = np.sqrt(np.mean(np.sum(accelerations**2, axis=1)))
+    assert 0.3 < rms < 3.0  # a hand, not a vibrating motor
+    assert np.max(np.abs(trajectory.position(12.0))) < 0.15  # centimetres, not metres
+
+
+def test_yaw_and_still_do_not_translate():
+    for kind in ('yaw', 'still'):
+        trajectory = motion.make_trajectory(kind, seed=1)
+        for t in (0.0, 3.3, 40.0):
+            np.testing.assert_array_equal(trajectory.linear_acceleration(t), np.zeros(3))
+    np.testing.assert_array_equal(motion.make_trajectory('still').angular_velocity(5.0),
+                                  np.zeros(3))
+
+
+def test_state_refuses_bad_times():
+    for kind in motion.TRAJECTORY_KINDS:
+        with pytest.raises(ValueError):
+            motion.make_trajectory(kind).state(-1.0)
+        with pytest.raises(ValueError):
+            motion.make_trajectory(kind).state(math.nan)

@@ -1,38 +1,45 @@
-"""AK09916 magnetometer inside an ICM-20948, read over an injected smbus2-like bus (no rclpy).
+"""The whole ICM-20948 over an injected smbus2-like bus: accelerometer, gyroscope, temperature
+and the AK09916 magnetometer behind it (no rclpy).
 
 The bus is anything with the smbus2.SMBus methods used here (``read_byte_data``,
 ``write_byte_data``, ``read_i2c_block_data``): a real ``smbus2.SMBus`` on a robot, or
-``SimulatedIcm20948Bus`` in tests and the demo. I2C failures surface as ``OSError`` so callers
-can back off and re-initialise; identity problems raise errors that name bus, address, expected
-and found values.
+``SimulatedIcm20948Bus`` in tests and the demo; every call goes through ``CountingBus``. I2C
+failures surface as ``OSError`` so a caller (``Icm20948Supervisor``) can back off and
+re-initialise; identity problems raise errors that name bus, address, expected and found values.
+
+Data-ready is polled (no interrupt line): INT_STATUS_1 for the accel/gyro/temperature sample
+(then one coherent 14-byte burst), ST1 for the magnetometer (then the 8-byte HXL..ST2 burst).
+Register facts: TDK DS-000189 and the AKM AK09916 datasheet, collected in ``registers``.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+import math
+import struct
 import time
-from typing import Protocol
 
 import numpy as np
 
 from mag_calibrator_ros.icm20948 import registers as reg
+from mag_calibrator_ros.icm20948.bus import CountingBus, SmbusLike
 
 INIT_TRANSACTION_ATTEMPTS = 3  # per register access during bring-up
-
-
-class SmbusLike(Protocol):
-    """The subset of ``smbus2.SMBus`` the driver relies on."""
-
-    def read_byte_data(self, i2c_addr: int, register: int) -> int: ...
-
-    def write_byte_data(self, i2c_addr: int, register: int, value: int) -> None: ...
-
-    def read_i2c_block_data(self, i2c_addr: int, register: int, length: int) -> list[int]: ...
+# Per read transaction while running: one immediate retry. The sample stays latched until the next
+# one arrives, so a glitch on a 5 %-error bus costs nothing instead of a lost sample.
+READ_ATTEMPTS = 2
+# The ICM-20948's sample clock is its own oscillator: assume consecutive samples can come this
+# much sooner than the nominal period when judging whether a read straddled one.
+CLOCK_TOLERANCE = 0.10
 
 
 class DeviceNotFoundError(OSError):
     """Nothing answered at the expected I2C address."""
+
+
+class UnreliableBusError(OSError):
+    """The device answers, but too many transactions fail to bring it up."""
 
 
 class WrongDeviceError(ValueError):
@@ -41,6 +48,68 @@ class WrongDeviceError(ValueError):
 
 class ModeNotAcceptedError(OSError):
     """The AK09916 did not take the requested measurement mode (read back differs)."""
+
+
+class ConfigNotAcceptedError(OSError):
+    """An ICM-20948 configuration register reads back differently from what was written."""
+
+
+@dataclass(frozen=True)
+class ImuSettings:
+    """Accelerometer/gyroscope configuration.
+
+    ``rate_hz``: the lowest acceptable output rate; the chip runs at 1125 / (1 + divider) Hz and
+    the divider is chosen so that rate is the nearest at or above the request (200 -> 225 Hz,
+    1000 -> 1125 Hz). ``dlpf``: DLPFCFG 1-6 for both sensors (``registers.GYRO_DLPF_HZ``).
+    """
+
+    rate_hz: int = 200
+    accel_range_g: int = 4
+    gyro_range_dps: int = 1000
+    dlpf: int = 3
+
+    def problems(self) -> list[str]:
+        """Every reason the chip cannot run these settings (empty when it can)."""
+        problems = []
+        lowest = reg.INTERNAL_RATE_HZ / (reg.GYRO_DIVIDER_MAX + 1)
+        if not isinstance(self.rate_hz, int) or not (
+            math.ceil(lowest) <= self.rate_hz <= reg.INTERNAL_RATE_HZ
+        ):
+            problems.append(
+                f'imu_rate_hz must be an integer from {math.ceil(lowest)} to '
+                f'{reg.INTERNAL_RATE_HZ:.0f} Hz (the chip runs at 1125/(1+n) Hz), '
+                f'got {self.rate_hz!r}'
+            )
+        if self.accel_range_g not in reg.ACCEL_RANGES_G:
+            problems.append(f'accel_range_g must be one of {list(reg.ACCEL_RANGES_G)} g, '
+                            f'got {self.accel_range_g!r}')
+        if self.gyro_range_dps not in reg.GYRO_RANGES_DPS:
+            problems.append(f'gyro_range_dps must be one of {list(reg.GYRO_RANGES_DPS)} deg/s, '
+                            f'got {self.gyro_range_dps!r}')
+        if self.dlpf not in reg.DLPF_SETTINGS:
+            problems.append(
+                f'dlpf must be one of {list(reg.DLPF_SETTINGS)} (DLPFCFG; 0 and 7 would bypass '
+                f'the sample-rate divider), got {self.dlpf!r}'
+            )
+        return problems
+
+    @property
+    def divider(self) -> int:
+        """GYRO_SMPLRT_DIV = ACCEL_SMPLRT_DIV: the largest divider still at or above rate_hz."""
+        return min(max(int(reg.INTERNAL_RATE_HZ // self.rate_hz) - 1, 0), reg.GYRO_DIVIDER_MAX)
+
+    @property
+    def odr_hz(self) -> float:
+        """The rate the chip will actually produce samples at."""
+        return reg.INTERNAL_RATE_HZ / (1 + self.divider)
+
+    @property
+    def accel_noise_bandwidth_hz(self) -> float:
+        return reg.ACCEL_DLPF_HZ[self.dlpf][1]
+
+    @property
+    def gyro_noise_bandwidth_hz(self) -> float:
+        return reg.GYRO_DLPF_HZ[self.dlpf][1]
 
 
 @dataclass(frozen=True)
@@ -57,6 +126,23 @@ class MagReading:
     overrun: bool
 
 
+@dataclass(frozen=True)
+class ImuReading:
+    """One accelerometer/gyroscope/temperature sample, chip frame.
+
+    ``linear_acceleration``: specific force in m/s^2 (+9.81 on z lying level, REP-145);
+    ``angular_velocity``: rad/s; ``temperature_c``: die temperature; ``counts``: the seven raw
+    int16 values (accel x, y, z, gyro x, y, z, temperature); ``saturated``: an accel or gyro
+    axis sits on the int16 rail (the true value may be beyond the range).
+    """
+
+    linear_acceleration: np.ndarray
+    angular_velocity: np.ndarray
+    temperature_c: float
+    counts: tuple[int, ...]
+    saturated: bool
+
+
 def counts_to_tesla(counts: np.ndarray) -> np.ndarray:
     """AK09916 counts (its own axes) -> tesla in the accel/gyro chip frame."""
     return np.asarray(counts, dtype=float) * np.asarray(reg.AXIS_SIGNS) * reg.TESLA_PER_LSB
@@ -68,11 +154,52 @@ def tesla_to_counts(field_tesla: np.ndarray) -> np.ndarray:
     return np.rint(chip * np.asarray(reg.AXIS_SIGNS)).astype(np.int64)
 
 
-class Icm20948Magnetometer:
-    """Brings up the AK09916 behind an ICM-20948 in bypass mode and reads it on data-ready.
+def accel_scale(range_g: int) -> float:
+    """m/s^2 per LSB at the ±``range_g`` full scale."""
+    return reg.STANDARD_GRAVITY / reg.ACCEL_RANGES_G[range_g][1]
 
-    Counters: ``overruns`` (ST1 DOR: samples skipped because we read too late) and ``overflows``
-    (ST2 HOFL: magnetic sensor overflow, sample discarded).
+
+def gyro_scale(range_dps: int) -> float:
+    """rad/s per LSB at the ±``range_dps`` full scale."""
+    return math.radians(1.0) / reg.GYRO_RANGES_DPS[range_dps][1]
+
+
+def temperature_celsius(raw: int) -> float:
+    """TEMP_OUT -> degC (DS-000189: (TEMP_OUT - RoomTemp_Offset) / 333.87 + 21)."""
+    return raw / reg.TEMP_SENSITIVITY_LSB_PER_C + reg.TEMP_OFFSET_C
+
+
+def temperature_counts(celsius: float) -> int:
+    """Inverse of ``temperature_celsius``, rounded and saturated to int16."""
+    raw = round((celsius - reg.TEMP_OFFSET_C) * reg.TEMP_SENSITIVITY_LSB_PER_C)
+    return min(max(raw, reg.INT16_MIN), reg.INT16_MAX)
+
+
+def _with_retries(attempts: int, operation: Callable, args: tuple,
+                  pause: Callable[[], None] | None = None):
+    """``operation(*args)``, tried up to ``attempts`` times on OSError; the last one propagates."""
+    for attempt in range(attempts):
+        try:
+            return operation(*args)
+        except OSError:
+            if attempt == attempts - 1:
+                raise
+            if pause is not None:
+                pause()
+    return None  # unreachable
+
+
+_IMU_WORDS = struct.Struct('>7h')
+_MAG_WORDS = struct.Struct('<3h')
+_TESLA_PER_COUNT = np.asarray(reg.AXIS_SIGNS) * reg.TESLA_PER_LSB
+
+
+class Icm20948:
+    """Brings up the whole chip (AK09916 in bypass mode) and reads each sensor on data-ready.
+
+    Counters: ``overruns`` (ST1 DOR: magnetometer samples skipped because we read too late),
+    ``overflows`` (ST2 HOFL: magnetic overflow, sample discarded), ``imu_resyncs`` (an IMU read
+    that may have straddled a new sample, so its data-ready flag was cleared: see ``read_imu``).
     """
 
     def __init__(
@@ -81,42 +208,114 @@ class Icm20948Magnetometer:
         address: int = reg.ICM20948_DEFAULT_ADDRESS,
         bus_name: str = '/dev/i2c-1',
         sleep: Callable[[float], None] = time.sleep,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         if address not in reg.ICM20948_ADDRESSES:
             raise ValueError(
                 f'ICM-20948 address must be 0x68 or 0x69, got {address:#04x} on {bus_name}'
             )
-        self.bus = bus
+        self.bus = bus if isinstance(bus, CountingBus) else CountingBus(bus)
         self.address = address
         self.bus_name = bus_name
         self._sleep = sleep
-        self.rate_hz: int | None = None
+        self._clock = clock
+        self.mag_rate_hz: int | None = None
+        self.imu: ImuSettings | None = None
         self.overruns = 0
         self.overflows = 0
+        self.imu_resyncs = 0
+        self._imu_synced_at: float | None = None  # last INT_STATUS_1 read with nothing pending
+        self._imu_window = 0.0
+        self._accel_scale = self._gyro_scale = 0.0
 
     # --- bring-up --------------------------------------------------------------------------------
 
-    def initialise(self, rate_hz: int = 100) -> None:
-        """Reset the ICM-20948, route the AK09916 to the host bus, start continuous measurement.
+    def initialise(self, mag_rate_hz: int = 100, imu: ImuSettings | None = None) -> None:
+        """Reset the chip, configure accel/gyro (or power them down when ``imu`` is None), route
+        the AK09916 to the host bus and start its continuous measurement.
 
-        Raises ``DeviceNotFoundError`` (an OSError) when nothing answers, ``WrongDeviceError``
-        (a ValueError) on a wrong identity, ``OSError`` on a bus error mid-sequence.
+        Raises ``DeviceNotFoundError`` / ``UnreliableBusError`` (OSErrors) when the chip does not
+        answer, ``WrongDeviceError`` (a ValueError) on a wrong identity, ``OSError`` on a bus
+        error mid-sequence, ``ConfigNotAcceptedError`` / ``ModeNotAcceptedError`` (OSErrors)
+        when a register does not read back as written.
         """
-        if rate_hz not in reg.CONTINUOUS_MODES:
+        if mag_rate_hz not in reg.CONTINUOUS_MODES:
             raise ValueError(
                 f'AK09916 continuous rate must be one of {sorted(reg.CONTINUOUS_MODES)} Hz, '
-                f'got {rate_hz}'
+                f'got {mag_rate_hz}'
             )
+        if imu is not None and imu.problems():
+            raise ValueError('; '.join(imu.problems()))
+        self.mag_rate_hz = self.imu = None
+        self._imu_synced_at = None
         self._check_icm20948_identity()
         self._write_icm(reg.PWR_MGMT_1, reg.PWR_MGMT_1_DEVICE_RESET)
         self._sleep(reg.DEVICE_RESET_WAIT_S)
         self._select_bank(0)  # reset returns to bank 0; be explicit
         self._write_icm(reg.PWR_MGMT_1, reg.PWR_MGMT_1_CLKSEL_AUTO)  # wake, auto clock
         self._sleep(reg.WAKE_WAIT_S)
+        if imu is None:
+            self._write_icm(reg.PWR_MGMT_2,
+                            reg.PWR_MGMT_2_DISABLE_ACCEL | reg.PWR_MGMT_2_DISABLE_GYRO)
+        else:
+            self._write_icm(reg.PWR_MGMT_2, reg.PWR_MGMT_2_ALL_ON)
+            self._configure_inertial(imu)
         user_ctrl = self._retry(self.bus.read_byte_data, self.address, reg.USER_CTRL)
         self._write_icm(reg.USER_CTRL, user_ctrl & ~reg.USER_CTRL_I2C_MST_EN & 0xFF)
         pin_cfg = self._retry(self.bus.read_byte_data, self.address, reg.INT_PIN_CFG)
         self._write_icm(reg.INT_PIN_CFG, pin_cfg | reg.INT_PIN_CFG_BYPASS_EN)
+        self._start_magnetometer(mag_rate_hz)
+        self.mag_rate_hz = mag_rate_hz
+        if imu is not None:
+            self.imu = imu
+            self._accel_scale = accel_scale(imu.accel_range_g)
+            self._gyro_scale = gyro_scale(imu.gyro_range_dps)
+            self._imu_window = (1.0 - CLOCK_TOLERANCE) / imu.odr_hz
+
+    def _configure_inertial(self, imu: ImuSettings) -> None:
+        """Bank 2: aligned sample clocks, dividers, ranges and DLPF; read back, then bank 0."""
+        divider = imu.divider
+        gyro_config = ((imu.dlpf << reg.CONFIG_DLPF_SHIFT)
+                       | (reg.GYRO_RANGES_DPS[imu.gyro_range_dps][0] << reg.CONFIG_FS_SHIFT)
+                       | reg.CONFIG_FCHOICE)
+        accel_config = ((imu.dlpf << reg.CONFIG_DLPF_SHIFT)
+                        | (reg.ACCEL_RANGES_G[imu.accel_range_g][0] << reg.CONFIG_FS_SHIFT)
+                        | reg.CONFIG_FCHOICE)
+        wanted = {
+            reg.GYRO_SMPLRT_DIV: ('GYRO_SMPLRT_DIV', divider),
+            reg.GYRO_CONFIG_1: ('GYRO_CONFIG_1', gyro_config),
+            reg.ACCEL_SMPLRT_DIV_1: ('ACCEL_SMPLRT_DIV_1', divider >> 8),
+            reg.ACCEL_SMPLRT_DIV_2: ('ACCEL_SMPLRT_DIV_2', divider & 0xFF),
+            reg.ACCEL_CONFIG: ('ACCEL_CONFIG', accel_config),
+        }
+        self._select_bank(reg.CONFIG_BANK)
+        try:
+            self._write_icm(reg.ODR_ALIGN_EN, 1)
+            for register, (_, value) in wanted.items():
+                self._write_icm(register, value)
+            found = dict(zip(
+                (reg.GYRO_SMPLRT_DIV, reg.GYRO_CONFIG_1),
+                self._retry(self.bus.read_i2c_block_data, self.address, reg.GYRO_SMPLRT_DIV, 2),
+                strict=True,
+            ))
+            accel_block = self._retry(
+                self.bus.read_i2c_block_data, self.address, reg.ACCEL_SMPLRT_DIV_1,
+                reg.ACCEL_CONFIG - reg.ACCEL_SMPLRT_DIV_1 + 1,
+            )
+            found.update({reg.ACCEL_SMPLRT_DIV_1: accel_block[0],
+                          reg.ACCEL_SMPLRT_DIV_2: accel_block[1],
+                          reg.ACCEL_CONFIG: accel_block[-1]})
+        finally:
+            self._select_bank(0)
+        wrong = [f'{name} expected {value:#04x}, found {found[register]:#04x}'
+                 for register, (name, value) in wanted.items() if found[register] != value]
+        if wrong:
+            raise ConfigNotAcceptedError(
+                f'ICM-20948 at {self.address:#04x} on {self.bus_name} did not keep its bank-2 '
+                f'configuration: ' + '; '.join(wrong)
+            )
+
+    def _start_magnetometer(self, rate_hz: int) -> None:
         self._check_ak09916_identity()
         self._write_mag(reg.CNTL3, reg.CNTL3_SRST)
         self._sleep(reg.SOFT_RESET_WAIT_S)
@@ -130,23 +329,20 @@ class Icm20948Magnetometer:
                 f'AK09916 at {reg.AK09916_ADDRESS:#04x} on {self.bus_name} did not accept '
                 f'continuous mode {rate_hz} Hz: CNTL2 expected {mode:#04x}, found {found:#04x}'
             )
-        self.rate_hz = rate_hz
 
     def measurement_mode(self) -> int:
         """CNTL2 as the AK09916 reports it now (0 after a reset: the chip stopped measuring)."""
         return self.bus.read_byte_data(reg.AK09916_ADDRESS, reg.CNTL2)
 
+    def power_state(self) -> int:
+        """PWR_MGMT_1 now (0x41 after a reset or brown-out: asleep, no samples)."""
+        return self.bus.read_byte_data(self.address, reg.PWR_MGMT_1)
+
     def _retry(self, operation: Callable, *args: int) -> int | list[int] | None:
         """Bring-up transactions are idempotent: retry a transient bus error a few times so one
         glitch does not cost a whole re-initialisation; the last error propagates."""
-        for attempt in range(INIT_TRANSACTION_ATTEMPTS):
-            try:
-                return operation(*args)
-            except OSError:
-                if attempt == INIT_TRANSACTION_ATTEMPTS - 1:
-                    raise
-                self._sleep(reg.MODE_CHANGE_WAIT_S)
-        return None  # unreachable
+        return _with_retries(INIT_TRANSACTION_ATTEMPTS, operation, args,
+                             lambda: self._sleep(reg.MODE_CHANGE_WAIT_S))
 
     def _select_bank(self, bank: int) -> None:
         self._retry(
@@ -159,13 +355,26 @@ class Icm20948Magnetometer:
     def _write_mag(self, register: int, value: int) -> None:
         self._retry(self.bus.write_byte_data, reg.AK09916_ADDRESS, register, value)
 
+    def _unreachable(self, error: OSError, what: str, address: int, hint: str) -> OSError:
+        """'Nothing answers' only if nothing at ``address`` answered lately; else the bus is
+        unreliable (a device that answers 4 in 10 transactions is not missing)."""
+        if self.bus.monitor.answering(address):
+            attempts, failures = self.bus.monitor.recent(address)
+            return UnreliableBusError(
+                error.errno,
+                f'{what} at {address:#04x} on {self.bus_name} answers, but {failures} of its last '
+                f'{attempts} I2C transactions failed (last: {error}); check wiring, pull-ups, '
+                f'cable length and bus speed',
+            )
+        return DeviceNotFoundError(error.errno, hint)
+
     def _check_icm20948_identity(self) -> None:
         try:
             self._select_bank(0)
             found = self._retry(self.bus.read_byte_data, self.address, reg.WHO_AM_I)
         except OSError as error:
-            raise DeviceNotFoundError(
-                error.errno,
+            raise self._unreachable(
+                error, 'the ICM-20948', self.address,
                 f'no ICM-20948 answered at {self.address:#04x} on {self.bus_name} '
                 f'(expected WHO_AM_I {reg.WHO_AM_I_VALUE:#04x}; bus error: {error}); check '
                 f'wiring, power and the address (0x68 when AD0 is low, 0x69 when high)',
@@ -180,8 +389,8 @@ class Icm20948Magnetometer:
         try:
             found = self._retry(self.bus.read_i2c_block_data, reg.AK09916_ADDRESS, reg.WIA1, 2)
         except OSError as error:
-            raise DeviceNotFoundError(
-                error.errno,
+            raise self._unreachable(
+                error, 'the AK09916', reg.AK09916_ADDRESS,
                 f'AK09916 magnetometer did not answer at {reg.AK09916_ADDRESS:#04x} on '
                 f'{self.bus_name} with I2C bypass enabled on the ICM-20948 at {self.address:#04x} '
                 f'(expected WIA1/WIA2 {reg.WIA1_VALUE:#04x}/{reg.WIA2_VALUE:#04x}; bus error: '
@@ -198,26 +407,97 @@ class Icm20948Magnetometer:
 
     # --- reading ---------------------------------------------------------------------------------
 
-    def read(self) -> MagReading | None:
-        """One 9-byte burst ST1..ST2 (ST2 last, so the data registers never stay locked).
+    def read_imu(self) -> ImuReading | None:
+        """Poll INT_STATUS_1; on RAW_DATA_0_RDY read the 14-byte burst ACCEL_XOUT_H..TEMP_OUT_L.
 
-        Returns None when no new sample is ready or the sample overflowed (counted in
-        ``overflows``). ``OSError`` from the bus propagates to the caller.
+        Reading the status clears it, and the burst is a second transaction: a sample landing
+        between the two is read by the burst *and* sets the flag again, so the next poll would
+        read the same sample twice. A sample can only land there if the burst ended more than one
+        (shortest) sample period after the previous status read; then the flag is read once more
+        and discarded, so no sample is ever returned twice (at worst one arriving in that
+        instant is lost). Returns None when no new sample is ready; ``OSError`` propagates.
         """
-        raw = self.bus.read_i2c_block_data(reg.AK09916_ADDRESS, reg.BURST_START, reg.BURST_LENGTH)
-        if len(raw) != reg.BURST_LENGTH:
-            raise OSError(
-                f'short read from AK09916 at {reg.AK09916_ADDRESS:#04x} on {self.bus_name}: '
-                f'expected {reg.BURST_LENGTH} bytes, got {len(raw)}'
-            )
-        st1, st2 = raw[0], raw[-1]
+        if self.imu is None:
+            raise RuntimeError('read_imu() needs initialise() with ImuSettings')
+        if self._imu_synced_at is None:
+            self._resync_imu()
+            return None
+        polled_at = self._clock()
+        status = self._read(self.bus.read_byte_data, self.address, reg.INT_STATUS_1)
+        since = self._imu_synced_at
+        self._imu_synced_at = polled_at
+        if not status & reg.INT_STATUS_1_RAW_DATA_0_RDY:
+            return None
+        raw = self._read(self.bus.read_i2c_block_data, self.address, reg.IMU_BURST_START,
+                         reg.IMU_BURST_LENGTH)
+        if len(raw) != reg.IMU_BURST_LENGTH:
+            raise OSError(f'short read from ICM-20948 at {self.address:#04x} on '
+                          f'{self.bus_name}: expected {reg.IMU_BURST_LENGTH} bytes, '
+                          f'got {len(raw)}')
+        if self._clock() - since >= self._imu_window:
+            self.imu_resyncs += 1
+            self._imu_synced_at = None
+            try:
+                self._resync_imu()
+            except OSError:
+                pass  # still unsynced: the next call starts with the resync
+        return self._decode_imu(raw)
+
+    @staticmethod
+    def _read(operation: Callable, *args: int):
+        """A read transaction with ``READ_ATTEMPTS`` tries; the last error propagates."""
+        return _with_retries(READ_ATTEMPTS, operation, args)
+
+    def _resync_imu(self) -> None:
+        at = self._clock()
+        self.bus.read_byte_data(self.address, reg.INT_STATUS_1)  # clears a possibly stale flag
+        self._imu_synced_at = at
+
+    def _decode_imu(self, raw: list[int]) -> ImuReading:
+        counts = _IMU_WORDS.unpack(bytes(raw))
+        a, g = self._accel_scale, self._gyro_scale
+        saturated = any(c in (reg.INT16_MIN, reg.INT16_MAX) for c in counts[:6])
+        return ImuReading(
+            linear_acceleration=np.array((counts[0] * a, counts[1] * a, counts[2] * a)),
+            angular_velocity=np.array((counts[3] * g, counts[4] * g, counts[5] * g)),
+            temperature_c=temperature_celsius(counts[6]),
+            counts=counts,
+            saturated=saturated,
+        )
+
+    def read_mag(self) -> MagReading | None:
+        """Poll ST1 (one byte); on DRDY read HXL..ST2 (8 bytes, ST2 last so the data registers
+        never stay locked). Returns None when no new sample is ready or the sample overflowed
+        (counted in ``overflows``). ``OSError`` from the bus propagates."""
+        st1 = self._read(self.bus.read_byte_data, reg.AK09916_ADDRESS, reg.ST1)
         if not st1 & reg.ST1_DRDY:
             return None
+        try:
+            raw = self._read(self.bus.read_i2c_block_data, reg.AK09916_ADDRESS,
+                             reg.MAG_BURST_START, reg.MAG_BURST_LENGTH)
+        except OSError:
+            self._release_mag_data()
+            raise
+        if len(raw) != reg.MAG_BURST_LENGTH:
+            self._release_mag_data()
+            raise OSError(
+                f'short read from AK09916 at {reg.AK09916_ADDRESS:#04x} on {self.bus_name}: '
+                f'expected {reg.MAG_BURST_LENGTH} bytes, got {len(raw)}'
+            )
         overrun = bool(st1 & reg.ST1_DOR)
         if overrun:
             self.overruns += 1
-        counts = np.frombuffer(bytes(raw[1:7]), dtype='<i2').astype(np.int64)
-        if st2 & reg.ST2_HOFL or np.any(np.abs(counts) > reg.MEASUREMENT_LIMIT):
+        words = _MAG_WORDS.unpack(bytes(raw[:6]))
+        if raw[-1] & reg.ST2_HOFL or max(abs(w) for w in words) > reg.MEASUREMENT_LIMIT:
             self.overflows += 1
             return None
-        return MagReading(field_tesla=counts_to_tesla(counts), counts=counts, overrun=overrun)
+        counts = np.array(words, dtype=np.int64)
+        return MagReading(field_tesla=counts * _TESLA_PER_COUNT, counts=counts, overrun=overrun)
+
+    def _release_mag_data(self) -> None:
+        """A data read that broke off before ST2 leaves the AK09916's data protected (no new
+        samples) until ST2 is read: read it once, best effort."""
+        try:
+            self.bus.read_byte_data(reg.AK09916_ADDRESS, reg.ST2)
+        except OSError:
+            pass

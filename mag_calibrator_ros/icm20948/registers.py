@@ -1,7 +1,7 @@
 """ICM-20948 and AK09916 register map (TDK DS-000189, AKM AK09916 datasheet; DESIGN.md §5).
 
-One place for every address, bit and timing the driver and the simulator share, so the model of
-the chip and the code that talks to it cannot drift apart.
+One place for every address, bit, scale and timing the driver and the simulator share, so the
+model of the chip and the code that talks to it cannot drift apart.
 """
 
 from __future__ import annotations
@@ -25,11 +25,61 @@ PWR_MGMT_1_DEVICE_RESET = 1 << 7
 PWR_MGMT_1_SLEEP = 1 << 6
 PWR_MGMT_1_CLKSEL_AUTO = 0x01
 PWR_MGMT_1_RESET_VALUE = 0x41  # asleep, auto clock
+PWR_MGMT_2 = 0x07
+PWR_MGMT_2_DISABLE_ACCEL = 0x38  # bits 5:3, one per axis
+PWR_MGMT_2_DISABLE_GYRO = 0x07  # bits 2:0
+PWR_MGMT_2_ALL_ON = 0x00  # reset value: accel and gyro on
 INT_PIN_CFG = 0x0F
 INT_PIN_CFG_BYPASS_EN = 1 << 1
+INT_STATUS_1 = 0x1A
+INT_STATUS_1_RAW_DATA_0_RDY = 1 << 0  # new accel/gyro/temp data; cleared by reading INT_STATUS_1
+ACCEL_XOUT_H = 0x2D  # ACCEL_X/Y/Z, GYRO_X/Y/Z, TEMP: int16 big-endian, contiguous
+GYRO_XOUT_H = 0x33
+TEMP_OUT_H = 0x39
+TEMP_OUT_L = 0x3A
+IMU_BURST_START = ACCEL_XOUT_H
+IMU_BURST_LENGTH = TEMP_OUT_L - ACCEL_XOUT_H + 1  # 14 bytes: one coherent sample
+
+# Bank 2 (configuration; reached through REG_BANK_SEL, then back to bank 0 for data)
+CONFIG_BANK = 2
+GYRO_SMPLRT_DIV = 0x00  # 8-bit divider
+GYRO_CONFIG_1 = 0x01  # bits 5:3 GYRO_DLPFCFG, 2:1 GYRO_FS_SEL, 0 GYRO_FCHOICE (1 = DLPF on)
+ODR_ALIGN_EN = 0x09  # 1: accel and gyro sample clocks restart together when a divider is written
+ACCEL_SMPLRT_DIV_1 = 0x10  # divider bits 11:8
+ACCEL_SMPLRT_DIV_2 = 0x11  # divider bits 7:0
+ACCEL_CONFIG = 0x14  # bits 5:3 ACCEL_DLPFCFG, 2:1 ACCEL_FS_SEL, 0 ACCEL_FCHOICE (1 = DLPF on)
+CONFIG_DLPF_SHIFT = 3
+CONFIG_FS_SHIFT = 1
+CONFIG_FCHOICE = 1 << 0
+GYRO_CONFIG_1_RESET_VALUE = 0x01
+ACCEL_CONFIG_RESET_VALUE = 0x01
+
+# Output data rate with the DLPF on: 1125 / (1 + divider) Hz for both sensors (DS-000189 gives
+# 1.125 kHz for the accelerometer and rounds the gyroscope's to 1.1 kHz). The dividers only act
+# with FCHOICE = 1 and 0 < DLPFCFG < 7, so those are the settings offered.
+INTERNAL_RATE_HZ = 1125.0
+GYRO_DIVIDER_MAX = 0xFF
+ACCEL_DIVIDER_MAX = 0xFFF
+DLPF_SETTINGS = (1, 2, 3, 4, 5, 6)
+# DLPFCFG -> (3 dB bandwidth, noise bandwidth) in Hz, DS-000189 gyro and accel DLPF tables.
+GYRO_DLPF_HZ = {1: (151.8, 187.6), 2: (119.5, 154.3), 3: (51.2, 73.3), 4: (23.9, 35.9),
+                5: (11.6, 17.8), 6: (5.7, 8.9)}
+ACCEL_DLPF_HZ = {1: (246.0, 265.0), 2: (111.4, 136.0), 3: (50.4, 68.8), 4: (23.9, 34.4),
+                 5: (11.5, 17.0), 6: (5.7, 8.3)}
+
+# Full-scale ranges: FS_SEL code and sensitivity (LSB per g, LSB per deg/s).
+ACCEL_RANGES_G = {2: (0, 16384.0), 4: (1, 8192.0), 8: (2, 4096.0), 16: (3, 2048.0)}
+GYRO_RANGES_DPS = {250: (0, 131.0), 500: (1, 65.5), 1000: (2, 32.8), 2000: (3, 16.4)}
+STANDARD_GRAVITY = 9.80665  # m/s^2 per g: the accelerometer's sensitivity is per standard g
+INT16_MIN, INT16_MAX = -32768, 32767  # a saturated axis reads the rail
+
+# Temperature: degC = (TEMP_OUT - RoomTemp_Offset) / 333.87 + 21, RoomTemp_Offset = 0.
+TEMP_SENSITIVITY_LSB_PER_C = 333.87
+TEMP_OFFSET_C = 21.0
 
 DEVICE_RESET_WAIT_S = 0.010  # after PWR_MGMT_1 DEVICE_RESET
 WAKE_WAIT_S = 0.001  # clock start-up after leaving sleep (the AK09916 itself needs none)
+SENSOR_STARTUP_S = 0.035  # gyroscope start-up from sleep (the longer of the two): no data before
 
 # --- AK09916 (magnetometer, on the host bus at 0x0C once bypass is on) ---------------------------
 AK09916_ADDRESS = 0x0C
@@ -48,8 +98,10 @@ CNTL2 = 0x31
 CNTL3 = 0x32
 CNTL3_SRST = 1 << 0  # soft reset, self-clearing
 
-BURST_START = ST1
-BURST_LENGTH = ST2 - ST1 + 1  # 9 bytes ST1..ST2: reading ST2 last unlocks the data registers
+# A data read starts at HXL (clears DRDY/DOR, protects the data) and must end with ST2 (releases
+# it): polling ST1 alone is cheap and the 8-byte burst runs only when DRDY is set.
+MAG_BURST_START = HXL
+MAG_BURST_LENGTH = ST2 - HXL + 1  # 8 bytes HXL..ST2
 
 MODE_POWER_DOWN = 0x00
 MODE_SINGLE = 0x01
@@ -65,3 +117,6 @@ TESLA_PER_LSB = 0.15e-6  # 0.15 uT per count
 
 # AK09916 axes into the ICM-20948 accel/gyro frame: x kept, y and z inverted (REP-145).
 AXIS_SIGNS = (1, -1, -1)
+
+# --- the I2C bus ---------------------------------------------------------------------------------
+I2C_STANDARD_FAST_HZ = 400_000  # fast-mode clock the bus share is quoted against

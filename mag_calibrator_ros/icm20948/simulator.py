@@ -1,38 +1,107 @@
 """Register-level model of an ICM-20948 with its AK09916, behind the smbus2.SMBus methods.
 
 No hardware exists on the development and CI machines, so the driver is exercised against this
-model of the chip's registers rather than a mock returning vectors: banks, WHO_AM_I, reset and
-sleep, the I2C bypass (the AK09916 answers at 0x0C only with the ICM's I2C master off and bypass
-on), the AK09916 measurement modes driven by a clock, ST1/ST2 semantics (DRDY, DOR, HOFL, data
-protection until ST2 is read), int16 saturation and 0.15 uT quantisation.
+model of the chip's registers rather than a mock returning vectors: banks (configuration lives in
+bank 2, data in bank 0), WHO_AM_I, reset and sleep, the sensors' start-up time, sample-rate
+dividers, full-scale ranges, DLPF settings (noise bandwidth), the raw-data-ready flag (cleared by
+reading INT_STATUS_1, set again by every new sample), big-endian int16 accel/gyro/temperature
+with saturation at the rails; the I2C bypass (the AK09916 answers at 0x0C only with the ICM's I2C
+master off and bypass on), the AK09916 measurement modes driven by a clock, ST1/ST2 semantics
+(DRDY, DOR, HOFL, data protection from the first data read until ST2), int16 saturation and
+0.15 uT quantisation.
 
-Physics: the board moves along a ``motion`` trajectory through the earth's field; the sensor sees
-``soft_iron @ field + hard_iron + noise`` in the chip (accel/gyro) frame, which the AK09916 reports
-in its own axes (x, -y, -z). Faults: random I2C errors, an outage (device vanishes) and a chip
-reset mid-run. ``truth_for_reading`` gives the true chip-frame earth field behind any reading.
+Physics (``board.BoardModel``): the board moves along a ``motion`` trajectory through the earth's
+field and gravity. Faults: random I2C errors, an outage (device vanishes) and a chip reset
+mid-run, on every transaction of either die. Truth: ``truth_for_reading`` (magnetometer) and
+``imu_truth_for_reading`` (accel/gyro/temperature) give the error-free values behind a reading;
+``mag_samples_read``/``mag_repeated_reads`` and ``imu_samples_read``/``imu_repeated_reads`` count
+data reads of new samples and of samples already read, so a test can tell a sample read twice
+from two samples that happen to be equal.
+
+Thread-safe: a test may inject faults while a driver thread polls.
 """
 
 from __future__ import annotations
 
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 import errno
 import math
 import os
+import struct
+import threading
 import time
 
 import numpy as np
 
 from mag_calibrator_ros import motion
 from mag_calibrator_ros.icm20948 import registers as reg
-from mag_calibrator_ros.icm20948.driver import tesla_to_counts
+from mag_calibrator_ros.icm20948.board import BoardModel, ImuTruth
+from mag_calibrator_ros.icm20948.driver import (
+    accel_scale,
+    gyro_scale,
+    temperature_counts,
+    tesla_to_counts,
+)
 
 MEASUREMENT_TIME_S = 0.0072  # AK09916 measurement duration before the first DRDY in a mode
-TRUTH_LOG_SIZE = 8192  # readings remembered for truth_for_reading
+TRUTH_LOG_SIZE = 8192  # magnetometer readings remembered for truth_for_reading
+IMU_TRUTH_LOG_SIZE = 16384  # inertial samples remembered (15 s at 1125 Hz)
 REGISTER_STARTUP_S = 0.001  # after DEVICE_RESET the ICM-20948 NACKs for this long
 TIME_EPSILON_S = 1e-9  # float tolerance on timing checks
 IDENTITY = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+# Datasheet typicals (DS-000189), rounded: 230 ug/sqrt(Hz) and 0.015 dps/sqrt(Hz).
+ACCEL_NOISE_DENSITY = 2.26e-3  # (m/s^2)/sqrt(Hz)
+GYRO_NOISE_DENSITY = 2.62e-4  # (rad/s)/sqrt(Hz)
+IMU_DATA = range(reg.ACCEL_XOUT_H, reg.TEMP_OUT_L + 1)
+_IMU_WORDS = struct.Struct('>7h')
+
+
+@dataclass(frozen=True)
+class _ImuConfig:
+    """What the bank-2 registers say, decoded once per write (not once per transaction)."""
+
+    odr_hz: float
+    accel_range_g: int
+    gyro_range_dps: int
+    accel_scale: float  # SI units per LSB
+    gyro_scale: float
+    accel_noise_bandwidth_hz: float
+    gyro_noise_bandwidth_hz: float
+
+
+def _int16(value: float) -> int:
+    return min(max(round(value), reg.INT16_MIN), reg.INT16_MAX)
+
+
+@dataclass
+class _ReadCounter:
+    """Which sample one sensor's data registers hold, how often data reads got a new one
+    (``fresh``) or one already read (``repeated``), and the new ones' truths in read order."""
+
+    latched: int | None = None
+    latched_truth: object = None
+    last_read: int | None = None
+    fresh: int = 0
+    repeated: int = 0
+    delivered: deque = field(default_factory=lambda: deque(maxlen=IMU_TRUTH_LOG_SIZE))
+
+    def latch(self, sample_id: int, truth: object) -> None:
+        self.latched, self.latched_truth = sample_id, truth
+
+    def forget(self) -> None:  # power-on: no sample latched; the counts stay
+        self.latched = self.last_read = self.latched_truth = None
+
+    def data_read(self) -> None:
+        if self.latched is None:
+            return
+        if self.latched == self.last_read:
+            self.repeated += 1
+        else:
+            self.fresh += 1
+            self.last_read = self.latched
+            self.delivered.append(self.latched_truth)
 
 
 def _nack(what: str) -> OSError:
@@ -44,9 +113,11 @@ def _nack(what: str) -> OSError:
 class SimConfig:
     """What the simulated board sees and how it misbehaves.
 
-    ``soft_iron`` is a symmetric positive-definite 3x3 matrix, row-major; ``hard_iron_ut`` an
-    offset in the chip frame; ``noise_ut`` white noise per axis (1 sigma). ``who_am_i`` and
-    ``ak09916_id`` let tests model a wrong chip.
+    Magnetometer: ``soft_iron`` is a symmetric positive-definite 3x3 matrix, row-major;
+    ``hard_iron_ut`` an offset in the chip frame; ``noise_ut`` white noise per axis (1 sigma).
+    Accel/gyro: constant biases (chip frame) and white-noise densities (per sample: density x
+    sqrt(DLPF noise bandwidth)); die temperature starts at ``temperature_c`` and warms by
+    ``temperature_rise_c``. ``who_am_i`` and ``ak09916_id`` let tests model a wrong chip.
     """
 
     field_ut: float = 50.0
@@ -60,6 +131,12 @@ class SimConfig:
     address: int = reg.ICM20948_DEFAULT_ADDRESS
     who_am_i: int = reg.WHO_AM_I_VALUE
     ak09916_id: tuple[int, int] = (reg.WIA1_VALUE, reg.WIA2_VALUE)
+    accel_bias_mps2: Sequence[float] = (0.0, 0.0, 0.0)
+    gyro_bias_dps: Sequence[float] = (0.0, 0.0, 0.0)
+    accel_noise_density: float = ACCEL_NOISE_DENSITY
+    gyro_noise_density: float = GYRO_NOISE_DENSITY
+    temperature_c: float = 25.0
+    temperature_rise_c: float = 2.0
     # Derived, validated copies (filled in __post_init__).
     hard_iron: np.ndarray = field(init=False, repr=False, compare=False)
     soft_iron_matrix: np.ndarray = field(init=False, repr=False, compare=False)
@@ -86,6 +163,11 @@ def config_problems(config: SimConfig) -> list[str]:
             problems.append(f'{name} must be a finite number, got {value!r}')
         return ok
 
+    def vector(name: str, values: object, unit: str) -> None:
+        array = np.asarray(values, dtype=float) if _numeric(values) else None
+        if array is None or array.shape != (3,) or not np.all(np.isfinite(array)):
+            problems.append(f'{name} must be 3 finite numbers ({unit}), got {values!r}')
+
     if finite('field_ut', config.field_ut) and not 0.0 < config.field_ut <= 4900.0:
         problems.append(f'field_ut must be in (0, 4900] uT (AK09916 range), got {config.field_ut}')
     if finite('inclination_deg', config.inclination_deg) and abs(config.inclination_deg) > 90.0:
@@ -102,9 +184,7 @@ def config_problems(config: SimConfig) -> list[str]:
         )
     if config.address not in reg.ICM20948_ADDRESSES:
         problems.append(f'address must be 0x68 or 0x69, got {config.address!r}')
-    hard = np.asarray(config.hard_iron_ut, dtype=float) if _numeric(config.hard_iron_ut) else None
-    if hard is None or hard.shape != (3,) or not np.all(np.isfinite(hard)):
-        problems.append(f'hard_iron_ut must be 3 finite numbers (uT), got {config.hard_iron_ut!r}')
+    vector('hard_iron_ut', config.hard_iron_ut, 'uT')
     soft = np.asarray(config.soft_iron, dtype=float) if _numeric(config.soft_iron) else None
     if soft is None or soft.shape != (9,) or not np.all(np.isfinite(soft)):
         problems.append(
@@ -116,6 +196,20 @@ def config_problems(config: SimConfig) -> list[str]:
             problems.append('soft_iron must be symmetric')
         elif np.linalg.eigvalsh(matrix).min() <= 0.0:
             problems.append('soft_iron must be positive definite')
+    vector('accel_bias_mps2', config.accel_bias_mps2, 'm/s^2')
+    vector('gyro_bias_dps', config.gyro_bias_dps, 'deg/s')
+    for name in ('accel_noise_density', 'gyro_noise_density'):
+        value = getattr(config, name)
+        if finite(name, value) and value < 0.0:
+            problems.append(f'{name} must be >= 0, got {value}')
+    if finite('temperature_c', config.temperature_c) and not -40.0 <= config.temperature_c <= 85.0:
+        problems.append(f'temperature_c must be within the operating range [-40, 85] degC, '
+                        f'got {config.temperature_c}')
+    if finite('temperature_rise_c', config.temperature_rise_c) and (
+        abs(config.temperature_rise_c) > 50.0
+    ):
+        problems.append(f'temperature_rise_c must be within [-50, 50] degC, '
+                        f'got {config.temperature_rise_c}')
     return problems
 
 
@@ -127,40 +221,67 @@ def _numeric(values: object) -> bool:
     return True
 
 
+def _locked(method):
+    def wrapper(self, *args, **kwargs):
+        with self._lock:
+            return method(self, *args, **kwargs)
+    wrapper.__name__ = method.__name__
+    wrapper.__doc__ = method.__doc__
+    return wrapper
+
+
 class SimulatedIcm20948Bus:
     """An I2C bus with one ICM-20948 (+ AK09916) on it, speaking the smbus2.SMBus methods.
 
     Time comes from ``clock`` (seconds, monotonic); inject a fake clock to run tests without
     sleeping. Any device outside the model NACKs with ``OSError(EREMOTEIO)`` like real i2c-dev.
+    ``trajectory`` replaces the motion named in the config (any ``motion.Trajectory``).
     """
 
     def __init__(
-        self, config: SimConfig | None = None, clock: Callable[[], float] = time.monotonic
+        self,
+        config: SimConfig | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        trajectory: motion.Trajectory | None = None,
     ) -> None:
         self.config = config if config is not None else SimConfig()
+        self._lock = threading.RLock()
         self._clock = clock
         self._t0 = clock()
-        self._trajectory = motion.make_trajectory(self.config.motion, self.config.seed)
-        self._earth_ut = motion.earth_field(self.config.field_ut, self.config.inclination_deg)
-        self._noise_rng = np.random.default_rng([self.config.seed, 10])
+        self.board = BoardModel(self.config, trajectory)
         self._fault_rng = np.random.default_rng([self.config.seed, 11])
         self._truth: OrderedDict[tuple[int, int, int], np.ndarray] = OrderedDict()
+        self._imu_truth: OrderedDict[tuple[int, ...], ImuTruth] = OrderedDict()
         self._outage_until = -math.inf
         self._reset_after_outage = False
         self.transactions = 0
         self.injected_errors = 0
         self.samples_measured = 0
+        self.imu_samples_measured = 0
+        self._mag_reads = _ReadCounter()
+        self._imu_reads = _ReadCounter()
+        self._sample_id = 0  # every latched sample of either sensor gets a new id
         self._power_on()
 
     # --- power and faults ------------------------------------------------------------------------
 
     def _power_on(self) -> None:
         """Power-on state of both dies: ICM asleep in bank 0, bypass off, AK09916 powered down."""
+        self._icm_reset()
+        self._ak_power_on()
+
+    def _icm_reset(self) -> None:
         self._bank = 0
         self._banks = [bytearray(128) for _ in range(4)]
         self._banks[0][reg.PWR_MGMT_1] = reg.PWR_MGMT_1_RESET_VALUE
+        self._banks[2][reg.GYRO_CONFIG_1] = reg.GYRO_CONFIG_1_RESET_VALUE
+        self._banks[2][reg.ACCEL_CONFIG] = reg.ACCEL_CONFIG_RESET_VALUE
         self._icm_ready_at = -math.inf
-        self._ak_power_on()
+        self._imu_config = self._decode_imu_config()
+        self._imu_origin: float | None = None  # sample clock start (None: not sampling)
+        self._imu_index = -1  # newest sample index latched since the origin
+        self._imu_ready = False
+        self._imu_reads.forget()
 
     def _ak_power_on(self) -> None:
         self._mode = reg.MODE_POWER_DOWN
@@ -172,11 +293,14 @@ class SimulatedIcm20948Bus:
         self._dor = False
         self._locked = False
         self._pending: tuple[bytearray, np.ndarray] | None = None
+        self._mag_reads.forget()
 
+    @_locked
     def chip_reset(self) -> None:
         """A brown-out: registers back to power-on (asleep, bypass off, AK09916 powered down)."""
         self._power_on()
 
+    @_locked
     def start_outage(self, duration_s: float, reset: bool = True) -> None:
         """The device vanishes from the bus for ``duration_s``; with ``reset`` it comes back
         power-cycled (a loose connector drops the supply too)."""
@@ -208,6 +332,7 @@ class SimulatedIcm20948Bus:
         if i2c_addr == self.config.address:
             if self._now() < self._icm_ready_at:
                 raise _nack(f'ICM-20948 at {i2c_addr:#04x} busy resetting')
+            self._advance_imu()
             return
         if i2c_addr == reg.AK09916_ADDRESS and self._ak_on_host_bus():
             self._advance()
@@ -223,24 +348,34 @@ class SimulatedIcm20948Bus:
 
     # --- smbus2.SMBus methods --------------------------------------------------------------------
 
+    @_locked
     def read_byte_data(self, i2c_addr: int, register: int, force: bool | None = None) -> int:
         self._transaction(i2c_addr, f'read of register {register:#04x}')
+        self._note_data_read(i2c_addr, register, 1)
         return self._read_register(i2c_addr, register)
 
+    @_locked
     def write_byte_data(
         self, i2c_addr: int, register: int, value: int, force: bool | None = None
     ) -> None:
         self._transaction(i2c_addr, f'write of register {register:#04x}')
         self._write_register(i2c_addr, register, value & 0xFF)
 
+    @_locked
     def read_i2c_block_data(
         self, i2c_addr: int, register: int, length: int, force: bool | None = None
     ) -> list[int]:
         if not 0 < length <= 32:
             raise ValueError(f'Desired block length over 32 bytes or below 1: {length}')
         self._transaction(i2c_addr, f'block read from register {register:#04x}')
+        self._note_data_read(i2c_addr, register, length)
+        if i2c_addr == self.config.address and (
+            self._bank != 0 or register > reg.INT_STATUS_1
+        ) and register + length <= reg.REG_BANK_SEL:
+            return list(self._banks[self._bank][register:register + length])  # plain registers
         return [self._read_register(i2c_addr, register + i) for i in range(length)]
 
+    @_locked
     def write_i2c_block_data(
         self, i2c_addr: int, register: int, data: Sequence[int], force: bool | None = None
     ) -> None:
@@ -267,6 +402,9 @@ class SimulatedIcm20948Bus:
             return self._bank << reg.BANK_SHIFT
         if self._bank == 0 and register == reg.WHO_AM_I:
             return self.config.who_am_i
+        if self._bank == 0 and register == reg.INT_STATUS_1:
+            ready, self._imu_ready = self._imu_ready, False  # cleared by this read
+            return reg.INT_STATUS_1_RAW_DATA_0_RDY if ready else 0
         return self._banks[self._bank][register]
 
     def _write_register(self, i2c_addr: int, register: int, value: int) -> None:
@@ -277,18 +415,129 @@ class SimulatedIcm20948Bus:
         if register == reg.REG_BANK_SEL:
             self._bank = (value & reg.BANK_MASK) >> reg.BANK_SHIFT
             return
-        if self._bank == 0 and register == reg.WHO_AM_I:
+        if self._bank == 0 and register in (reg.WHO_AM_I, reg.INT_STATUS_1) or (
+            self._bank == 0 and register in IMU_DATA
+        ):
             return  # read-only
         if self._bank == 0 and register == reg.PWR_MGMT_1 and value & reg.PWR_MGMT_1_DEVICE_RESET:
             # Resets the ICM-20948 die only; the AK09916 keeps its state.
-            self._bank = 0
-            self._banks = [bytearray(128) for _ in range(4)]
-            self._banks[0][reg.PWR_MGMT_1] = reg.PWR_MGMT_1_RESET_VALUE
+            self._icm_reset()
             self._icm_ready_at = self._now() + REGISTER_STARTUP_S
             return
         if self._bank == 0 and register == reg.USER_CTRL:
             value &= ~reg.USER_CTRL_I2C_MST_RST & 0xFF  # self-clearing
         self._banks[self._bank][register] = value
+        if self._bank == 0 and register in (reg.PWR_MGMT_1, reg.PWR_MGMT_2):
+            self._restart_sampling(startup=True)
+        elif self._bank == reg.CONFIG_BANK and register in (
+            reg.GYRO_SMPLRT_DIV, reg.GYRO_CONFIG_1, reg.ACCEL_SMPLRT_DIV_1,
+            reg.ACCEL_SMPLRT_DIV_2, reg.ACCEL_CONFIG,
+        ):
+            self._imu_config = self._decode_imu_config()
+            self._restart_sampling(startup=False)
+
+    # --- ICM-20948 sampling ----------------------------------------------------------------------
+
+    def _sampling(self) -> bool:
+        awake = not self._banks[0][reg.PWR_MGMT_1] & reg.PWR_MGMT_1_SLEEP
+        disabled = reg.PWR_MGMT_2_DISABLE_ACCEL | reg.PWR_MGMT_2_DISABLE_GYRO
+        return awake and (self._banks[0][reg.PWR_MGMT_2] & disabled) != disabled
+
+    def _restart_sampling(self, startup: bool) -> None:
+        """Waking (or enabling the sensors) starts the sample clock after the start-up time; a
+        new divider or filter restarts it (ODR_ALIGN_EN keeps accel and gyro together)."""
+        if not self._sampling():
+            self._imu_origin = None
+        elif self._imu_origin is None:
+            self._imu_origin = self._now() + reg.SENSOR_STARTUP_S
+        elif startup:
+            return  # already running: PWR_MGMT writes that keep it running change nothing
+        else:  # a new configuration restarts the clock, never before the start-up time is over
+            self._imu_origin = max(self._now(), self._imu_origin)
+        self._imu_index = -1
+
+    def _decode_imu_config(self) -> _ImuConfig:
+        """ODR, ranges and DLPF from the bank-2 registers (accel and gyro share the divider)."""
+        bank2 = self._banks[2]
+        gyro_config, accel_config = bank2[reg.GYRO_CONFIG_1], bank2[reg.ACCEL_CONFIG]
+        dlpf = (gyro_config >> reg.CONFIG_DLPF_SHIFT) & 0x07
+        divider = bank2[reg.GYRO_SMPLRT_DIV]
+        if not gyro_config & reg.CONFIG_FCHOICE or dlpf not in reg.DLPF_SETTINGS:
+            divider = 0  # DS-000189: the divider acts only with the DLPF on, 0 < DLPFCFG < 7
+        accel_range = {code: g for g, (code, _) in reg.ACCEL_RANGES_G.items()}[
+            (accel_config >> reg.CONFIG_FS_SHIFT) & 0x03]
+        gyro_range = {code: d for d, (code, _) in reg.GYRO_RANGES_DPS.items()}[
+            (gyro_config >> reg.CONFIG_FS_SHIFT) & 0x03]
+        bandwidth = dlpf if dlpf in reg.DLPF_SETTINGS else 1
+        return _ImuConfig(
+            reg.INTERNAL_RATE_HZ / (1 + divider), accel_range, gyro_range,
+            accel_scale(accel_range), gyro_scale(gyro_range),
+            reg.ACCEL_DLPF_HZ[bandwidth][1], reg.GYRO_DLPF_HZ[bandwidth][1],
+        )
+
+    def _advance_imu(self) -> None:
+        """Latch the newest accel/gyro/temperature sample due by now (older ones are lost)."""
+        if self._imu_origin is None:
+            return
+        elapsed = self._now() - self._imu_origin
+        if elapsed < 0.0:
+            return
+        config = self._imu_config
+        due = int(math.floor(elapsed * config.odr_hz + 1e-9))
+        if due <= self._imu_index:
+            return
+        self._imu_index = due
+        sample_time = self._imu_origin + due / config.odr_hz
+        accel, gyro, truth = self.board.inertial(
+            sample_time, config.accel_noise_bandwidth_hz, config.gyro_noise_bandwidth_hz)
+        a, g = config.accel_scale, config.gyro_scale
+        counts = (_int16(accel[0] / a), _int16(accel[1] / a), _int16(accel[2] / a),
+                  _int16(gyro[0] / g), _int16(gyro[1] / g), _int16(gyro[2] / g),
+                  temperature_counts(truth.temperature_c))
+        _IMU_WORDS.pack_into(self._banks[0], reg.ACCEL_XOUT_H, *counts)
+        self._imu_ready = True
+        self._sample_id += 1
+        self._imu_reads.latch(self._sample_id, truth)
+        self.imu_samples_measured += 1
+        key = counts[:6]
+        self._imu_truth[key] = truth
+        self._imu_truth.move_to_end(key)
+        if len(self._imu_truth) > IMU_TRUTH_LOG_SIZE:
+            self._imu_truth.popitem(last=False)
+
+    def _note_data_read(self, i2c_addr: int, register: int, length: int) -> None:
+        """Count a read of sensor data: a new sample, or one that was already read."""
+        last = register + length - 1
+        if i2c_addr == self.config.address and self._bank == 0:
+            if register <= reg.TEMP_OUT_L and last >= reg.ACCEL_XOUT_H:
+                self._imu_reads.data_read()
+        elif i2c_addr == reg.AK09916_ADDRESS and register <= reg.TMPS and last >= reg.HXL:
+            self._mag_reads.data_read()
+
+    @property
+    def mag_samples_read(self) -> int:
+        return self._mag_reads.fresh
+
+    @property
+    def mag_repeated_reads(self) -> int:
+        return self._mag_reads.repeated
+
+    @property
+    def imu_samples_read(self) -> int:
+        return self._imu_reads.fresh
+
+    @property
+    def imu_repeated_reads(self) -> int:
+        return self._imu_reads.repeated
+
+    @_locked
+    def imu_truths_read(self) -> list[ImuTruth]:
+        """Truth of every new inertial sample read, in read order (the last 16384): a driver that
+        hands each on once lets the k-th published sample be paired with the k-th here, exactly,
+        where ``imu_truth_for_reading`` can only match counts."""
+        return list(self._imu_reads.delivered)
+
+    # --- AK09916 ---------------------------------------------------------------------------------
 
     def _read_ak(self, register: int) -> int:
         if register == reg.WIA1:
@@ -297,14 +546,17 @@ class SimulatedIcm20948Bus:
             return self.config.ak09916_id[1]
         if register == reg.ST1:
             return (reg.ST1_DRDY if self._drdy else 0) | (reg.ST1_DOR if self._dor else 0)
-        if reg.HXL <= register <= reg.TMPS:
-            self._locked = True  # data protection until ST2 is read
-            return self._data[register - reg.HXL]
-        if register == reg.ST2:
+        if reg.HXL <= register <= reg.ST2:
+            if not self._locked:
+                # The first data or ST2 read starts a data read: DRDY and DOR clear, data
+                # protected (a DOR raised while protected stays for the next sample).
+                self._drdy = False
+                self._dor = False
+                self._locked = True
+            if register <= reg.TMPS:
+                return self._data[register - reg.HXL]
             value = self._data[7]
-            self._drdy = False
-            self._dor = False
-            self._locked = False
+            self._locked = False  # ST2 ends the read
             if self._pending is not None:  # a sample finished during the read: latch it now
                 data, truth = self._pending
                 self._pending = None
@@ -336,10 +588,8 @@ class SimulatedIcm20948Bus:
         self._mode_since = self._now()
         self._next_sample_index = 0
 
-    # --- measurement -----------------------------------------------------------------------------
-
     def _advance(self) -> None:
-        """Complete every measurement due by now; only the newest reaches the registers."""
+        """Complete every magnetometer measurement due by now; only the newest is kept."""
         if self._mode not in reg.CONTINUOUS_RATES:
             return
         period = 1.0 / reg.CONTINUOUS_RATES[self._mode]
@@ -366,6 +616,8 @@ class SimulatedIcm20948Bus:
     def _latch(self, data: bytearray, truth: np.ndarray) -> None:
         self._data = data
         self._drdy = True
+        self._sample_id += 1
+        self._mag_reads.latch(self._sample_id, truth)
         counts = tuple(int(c) for c in np.frombuffer(bytes(data[:6]), dtype='<i2'))
         self._truth[counts] = truth
         self._truth.move_to_end(counts)
@@ -374,20 +626,17 @@ class SimulatedIcm20948Bus:
 
     def _measure(self, t: float) -> tuple[bytearray, np.ndarray]:
         """Registers HXL..ST2 for a sample taken at sim time ``t``, and its true field (T)."""
-        rotation = self._trajectory.orientation(max(t, 0.0))
-        earth_chip_ut = rotation.T @ self._earth_ut
-        sensed_ut = self.config.soft_iron_matrix @ earth_chip_ut + self.config.hard_iron
-        if self.config.noise_ut > 0.0:
-            sensed_ut = sensed_ut + self._noise_rng.normal(0.0, self.config.noise_ut, 3)
+        sensed_ut, truth = self.board.magnetometer(t)
         counts = tesla_to_counts(sensed_ut * 1e-6)  # AK09916 axes, quantised
         overflow = bool(np.any(np.abs(counts) > reg.MEASUREMENT_LIMIT))
         counts = np.clip(counts, -reg.MEASUREMENT_LIMIT, reg.MEASUREMENT_LIMIT)
         data = bytearray(counts.astype('<i2').tobytes())
         data += bytes([0, reg.ST2_HOFL if overflow else 0])
-        return data, earth_chip_ut * 1e-6
+        return data, truth
 
     # --- ground truth ----------------------------------------------------------------------------
 
+    @_locked
     def truth_for_reading(self, field_tesla: np.ndarray) -> np.ndarray | None:
         """True chip-frame earth field (T) of the sample behind a published reading, or None if it
         is not (or no longer) in the log. Readings with identical counts map to the newest."""
@@ -395,7 +644,23 @@ class SimulatedIcm20948Bus:
         truth = self._truth.get(counts)
         return None if truth is None else truth.copy()
 
+    @_locked
+    def imu_truth_for_reading(
+        self, linear_acceleration: np.ndarray, angular_velocity: np.ndarray
+    ) -> ImuTruth | None:
+        """The error-free values behind a published inertial sample (converted back to counts
+        with the ranges configured now), or None if not (or no longer) in the log. Readings with
+        identical counts map to the newest."""
+        config = self._imu_config
+        key = (*(round(float(v) / config.accel_scale) for v in linear_acceleration),
+               *(round(float(v) / config.gyro_scale) for v in angular_velocity))
+        return self._imu_truth.get(key)
+
+    @_locked
     def true_field_now(self) -> np.ndarray:
         """True chip-frame earth field (T) at the current time (for the demo's live view)."""
-        rotation = self._trajectory.orientation(max(self._now(), 0.0))
-        return rotation.T @ self._earth_ut * 1e-6
+        return self.board.true_field_tesla(self._now())
+
+    @_locked
+    def true_temperature_now(self) -> float:
+        return self.board.temperature_c(self._now())

@@ -1,19 +1,27 @@
-"""ROS 2 node ``icm20948_driver``: publishes the ICM-20948's AK09916 as sensor_msgs/MagneticField.
+"""ROS 2 node ``icm20948_driver``: the whole ICM-20948, one owner of the chip and its bus.
 
-A thin shell over ``icm20948.driver``: parameters, a poll timer in step with the sensor's
-data-ready, fault recovery (back off, re-initialise, resume) and diagnostics. With
+Wiring only: parameters -> ``Icm20948Supervisor`` (bring-up, polling, fault recovery, rates;
+``icm20948/supervisor.py``) on its own thread -> publishers and diagnostics. With
 ``backend: sim`` the bus is the register-level ``SimulatedIcm20948Bus`` (tests, demo, no hardware).
 
-Topic: relative ``imu/mag`` (REP-145), reliable QoS as REP-2003 asks of drivers; field in tesla in
-the ICM-20948 accel/gyro frame so it shares ``imu_link`` with imu/data_raw from the same chip.
+Topics (relative, REP-145; reliable QoS as REP-2003 asks of drivers; one frame for all three, the
+ICM-20948 accel/gyro frame, with the magnetometer axes already remapped into it):
+``imu/mag`` (sensor_msgs/MagneticField, tesla), ``imu/data_raw`` (sensor_msgs/Imu, m/s^2 and
+rad/s, no orientation: orientation_covariance[0] = -1), ``imu/temperature``
+(sensor_msgs/Temperature, degC). All stamps come from the node's clock, taken at the read.
+
+Why a thread and not a timer: at kHz poll rates the executor's per-tick overhead alone would take
+a large share of a core (docs/ARCHITECTURE.md, Node contracts); the supervisor's loop sleeps until
+its next poll. Publishers are thread-safe.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+import gc
 import math
 import sys
-import time
+import threading
 
 from rcl_interfaces.msg import (
     FloatingPointRange,
@@ -24,40 +32,37 @@ from rcl_interfaces.msg import (
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import MagneticField
+from sensor_msgs.msg import Imu, MagneticField, Temperature
 
 from mag_calibrator_ros import motion
 from mag_calibrator_ros.icm20948 import registers as reg
-from mag_calibrator_ros.icm20948.driver import (
-    Icm20948Magnetometer,
-    MagReading,
-    WrongDeviceError,
-)
+from mag_calibrator_ros.icm20948.driver import ImuSettings
 from mag_calibrator_ros.icm20948.simulator import (
+    ACCEL_NOISE_DENSITY,
+    GYRO_NOISE_DENSITY,
     IDENTITY,
     SimConfig,
     SimulatedIcm20948Bus,
+)
+from mag_calibrator_ros.icm20948.supervisor import (
+    ERROR,
+    OK,
+    WARN,
+    Icm20948Supervisor,
+    ImuSample,
+    MagSample,
+    Sample,
+    TemperatureSample,
 )
 from mag_calibrator_ros.nodes import diagnostics
 from mag_calibrator_ros.nodes.runtime import spin_node
 
 NODE_NAME = 'icm20948_driver'
 TOPIC = 'imu/mag'
+IMU_TOPIC = 'imu/data_raw'
+TEMPERATURE_TOPIC = 'imu/temperature'
 BACKENDS = ('smbus2', 'sim')
-
-# Poll the data-ready flag this many times per sample period (at least MIN_POLL_HZ): late enough
-# reads never exceed half a period, so no sample is overrun while the executor keeps up.
-POLL_PER_SAMPLE = 2.5
-MIN_POLL_HZ = 50.0
-# A read error this many times in a row means the device is gone or reset: re-initialise.
-ERRORS_BEFORE_REINIT = 3
-# No DRDY for this many sample periods (and at least STUCK_MIN_S) means the AK09916 stopped.
-STUCK_PERIODS = 5
-STUCK_MIN_S = 0.25
-BACKOFF_INITIAL_S = 0.1
-BACKOFF_MAX_S = 0.5  # cheap to retry (a dozen register accesses); recover fast
-# Diagnostics: WARN when the measured rate is below this share of the requested one.
-RATE_WARN_FRACTION = 0.8
+LEVELS = {OK: diagnostics.OK, WARN: diagnostics.WARN, ERROR: diagnostics.ERROR}
 
 # Publisher QoS: reliable, volatile, keep-last 10 (REP-2003 system-default reliability; the
 # explicit depth keeps a momentarily slow reliable subscriber from losing samples).
@@ -81,6 +86,11 @@ class DriverSettings:
     rate_hz: int
     frame_id: str
     magnetic_field_stddev: float
+    imu: ImuSettings
+    publish_imu: bool
+    publish_temperature: bool
+    accel_noise_density: float
+    gyro_noise_density: float
     sim: SimConfig | None
 
 
@@ -106,6 +116,7 @@ def _descriptor(
     return descriptor
 
 
+_IMU = ImuSettings()
 PARAMETERS: dict[str, tuple[object, ParameterDescriptor]] = {
     'backend': ('smbus2', _descriptor(
         'Where the chip is: smbus2 (Linux /dev/i2c-N) or sim (register-level simulator).',
@@ -116,14 +127,37 @@ PARAMETERS: dict[str, tuple[object, ParameterDescriptor]] = {
         'ICM-20948 I2C address: 104 (0x68, AD0 low) or 105 (0x69, AD0 high; SparkFun and '
         'Adafruit boards).', integer_range=(0x68, 0x69))),
     'rate_hz': (100, _descriptor(
-        'AK09916 continuous-measurement rate in Hz.', integer_range=(10, 100),
+        'AK09916 magnetometer continuous-measurement rate in Hz.', integer_range=(10, 100),
         constraints='one of 10, 20, 50, 100')),
+    'imu_rate_hz': (_IMU.rate_hz, _descriptor(
+        'Accelerometer/gyroscope output rate in Hz, at least: the chip runs at 1125/(1+n) Hz, '
+        'the nearest at or above this (200 -> 225, 1000 -> 1125).', integer_range=(5, 1125))),
+    'accel_range_g': (_IMU.accel_range_g, _descriptor(
+        'Accelerometer full scale in g.', integer_range=(2, 16), constraints='2 | 4 | 8 | 16')),
+    'gyro_range_dps': (_IMU.gyro_range_dps, _descriptor(
+        'Gyroscope full scale in deg/s.', integer_range=(250, 2000),
+        constraints='250 | 500 | 1000 | 2000')),
+    'dlpf': (_IMU.dlpf, _descriptor(
+        'Digital low-pass filter DLPFCFG for both sensors; 3 dB bandwidth accel/gyro in Hz: '
+        '1: 246/152, 2: 111/120, 3: 50/51, 4: 24/24, 5: 12/12, 6: 6/6.',
+        integer_range=(1, 6))),
+    'publish_imu': (True, _descriptor('Publish imu/data_raw (accelerometer and gyroscope).')),
+    'publish_temperature': (True, _descriptor(
+        'Publish imu/temperature (die temperature, at most 10 Hz).')),
     'frame_id': ('imu_link', _descriptor(
-        'header.frame_id of imu/mag: the ICM-20948 accel/gyro frame (REP-145).',
-        read_only=False, constraints='non-empty, no leading slash')),
+        'header.frame_id of imu/mag, imu/data_raw and imu/temperature: the ICM-20948 '
+        'accel/gyro frame (REP-145).', read_only=False,
+        constraints='non-empty, no leading slash')),
     'magnetic_field_stddev': (0.0, _descriptor(
         'Per-axis noise standard deviation in tesla for the covariance diagonal; 0 = unknown '
         '(all-zero covariance).', read_only=False, float_range=(0.0, 1e-3))),
+    'accel_noise_density': (0.0, _descriptor(
+        'Accelerometer noise density in (m/s^2)/sqrt(Hz) for the covariance diagonal (variance '
+        '= density^2 x DLPF noise bandwidth); 0 = unknown. ICM-20948 typical: 2.26e-3.',
+        read_only=False, float_range=(0.0, 1.0))),
+    'gyro_noise_density': (0.0, _descriptor(
+        'Gyroscope noise density in (rad/s)/sqrt(Hz) for the covariance diagonal; 0 = unknown. '
+        'ICM-20948 typical: 2.6e-4.', read_only=False, float_range=(0.0, 1.0))),
     'sim.field_ut': (50.0, _descriptor(
         'Simulator: earth field strength in microtesla.', float_range=(1.0, 4900.0))),
     'sim.inclination_deg': (60.0, _descriptor(
@@ -145,6 +179,21 @@ PARAMETERS: dict[str, tuple[object, ParameterDescriptor]] = {
         float_range=(0.0, 0.99))),
     'sim.seed': (0, _descriptor(
         'Simulator: random seed (motion, noise, faults).', integer_range=(0, 2**31 - 1))),
+    'sim.accel_bias_mps2': ([0.0, 0.0, 0.0], _descriptor(
+        'Simulator: accelerometer bias [x, y, z] in m/s^2, chip frame.',
+        constraints='3 finite doubles')),
+    'sim.gyro_bias_dps': ([0.0, 0.0, 0.0], _descriptor(
+        'Simulator: gyroscope bias [x, y, z] in deg/s, chip frame.',
+        constraints='3 finite doubles')),
+    'sim.accel_noise_density': (ACCEL_NOISE_DENSITY, _descriptor(
+        'Simulator: accelerometer noise density in (m/s^2)/sqrt(Hz).', float_range=(0.0, 1.0))),
+    'sim.gyro_noise_density': (GYRO_NOISE_DENSITY, _descriptor(
+        'Simulator: gyroscope noise density in (rad/s)/sqrt(Hz).', float_range=(0.0, 1.0))),
+    'sim.temperature_c': (25.0, _descriptor(
+        'Simulator: die temperature at power-on in degC.', float_range=(-40.0, 85.0))),
+    'sim.temperature_rise_c': (2.0, _descriptor(
+        'Simulator: warm-up of the die after power-on in degC (time constant 10 min).',
+        float_range=(-50.0, 50.0))),
 }
 
 
@@ -157,14 +206,21 @@ def settings_problems(values: dict[str, object]) -> list[str]:
         problems.append(
             f"rate_hz must be one of {sorted(reg.CONTINUOUS_MODES)}, got {values['rate_hz']}"
         )
+    problems += imu_settings(values).problems()
     problems += frame_id_problems(values['frame_id'])
-    problems += stddev_problems(values['magnetic_field_stddev'])
+    for name in ('magnetic_field_stddev', 'accel_noise_density', 'gyro_noise_density'):
+        problems += non_negative_problems(name, values[name])
     if values['sim.motion'] not in motion.TRAJECTORY_KINDS:
         problems.append(
             f"sim.motion must be one of {', '.join(motion.TRAJECTORY_KINDS)}, "
             f"got {values['sim.motion']!r}"
         )
     return problems
+
+
+def imu_settings(values: dict[str, object]) -> ImuSettings:
+    return ImuSettings(rate_hz=values['imu_rate_hz'], accel_range_g=values['accel_range_g'],
+                       gyro_range_dps=values['gyro_range_dps'], dlpf=values['dlpf'])
 
 
 def frame_id_problems(frame_id: object) -> list[str]:
@@ -175,20 +231,28 @@ def frame_id_problems(frame_id: object) -> list[str]:
     return []
 
 
-def stddev_problems(stddev: object) -> list[str]:
-    if not isinstance(stddev, float) or not math.isfinite(stddev) or stddev < 0.0:
-        return [f'magnetic_field_stddev must be a finite double >= 0 (tesla), got {stddev!r}']
+def non_negative_problems(name: str, value: object) -> list[str]:
+    if not isinstance(value, float) or not math.isfinite(value) or value < 0.0:
+        return [f'{name} must be a finite double >= 0, got {value!r}']
     return []
 
 
-def covariance_from_stddev(stddev: float) -> list[float]:
-    """Row-major 3x3: stddev^2 on the diagonal, or all zeros (= unknown, REP-145) for 0."""
-    variance = stddev * stddev
+def diagonal_covariance(variance: float) -> list[float]:
+    """Row-major 3x3 with ``variance`` on the diagonal: all zeros (= unknown, REP-145) for 0."""
     return [variance, 0.0, 0.0, 0.0, variance, 0.0, 0.0, 0.0, variance]
 
 
+def covariance_from_stddev(stddev: float) -> list[float]:
+    return diagonal_covariance(stddev * stddev)
+
+
+def covariance_from_density(density: float, noise_bandwidth_hz: float) -> list[float]:
+    """White noise of ``density`` per sqrt(Hz) through a filter of this noise bandwidth."""
+    return diagonal_covariance(density * density * noise_bandwidth_hz)
+
+
 class Icm20948DriverNode(Node):
-    """Publishes imu/mag from an ICM-20948 (smbus2) or its simulator, surviving bus faults."""
+    """Publishes imu/mag, imu/data_raw and imu/temperature from an ICM-20948 or its simulator."""
 
     def __init__(self, **node_kwargs) -> None:
         super().__init__(NODE_NAME, **node_kwargs)
@@ -200,45 +264,70 @@ class Icm20948DriverNode(Node):
         self.bus_name = 'sim' if s.backend == 'sim' else f'/dev/i2c-{s.i2c_bus}'
         self.hardware_id = f'icm20948@{self.bus_name}:{s.address:#04x}'
         self._frame_id = s.frame_id
-        self._covariance = covariance_from_stddev(s.magnetic_field_stddev)
+        self._mag_covariance = covariance_from_stddev(s.magnetic_field_stddev)
+        self._accel_covariance = covariance_from_density(
+            s.accel_noise_density, s.imu.accel_noise_bandwidth_hz)
+        self._gyro_covariance = covariance_from_density(
+            s.gyro_noise_density, s.imu.gyro_noise_bandwidth_hz)
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
-        self._bus = None
-        self._driver: Icm20948Magnetometer | None = None
-        self._running = False
-        self._next_attempt = 0.0
-        self._backoff = BACKOFF_INITIAL_S
-        self._episode_start: float | None = None
-        self._episode_logged = False
-        self._last_error = ''
-        self._consecutive_errors = 0
-        self._last_drdy = 0.0
-        self._last_overflows = 0
-        self._period = 1.0 / s.rate_hz
-        self._stuck_after = max(STUCK_PERIODS * self._period, STUCK_MIN_S)
-
-        # Counters (diagnostics, tests, benchmark).
-        self.published = 0
-        self.i2c_errors = 0
-        self.reinitialisations = 0
-        self.overflows = 0
-        self.overruns = 0
-        self.last_recovery_s: float | None = None
-        self._window_start = time.monotonic()
-        self._window_published = 0
-        self._window_counters = (0, 0)  # i2c_errors, overflows at the window start
-        self.measured_rate_hz = 0.0
-
+        self.published = 0  # imu/mag messages
+        self.published_imu = 0
+        self.published_temperature = 0
         self._publisher = self.create_publisher(MagneticField, TOPIC, DRIVER_QOS)
+        self._imu_publisher = (self.create_publisher(Imu, IMU_TOPIC, DRIVER_QOS)
+                               if s.publish_imu else None)
+        self._temperature_publisher = (
+            self.create_publisher(Temperature, TEMPERATURE_TOPIC, DRIVER_QOS)
+            if s.publish_temperature else None)
         self._diagnostics = diagnostics.DiagnosticsPublisher(self)
-        poll_hz = max(POLL_PER_SAMPLE * s.rate_hz, MIN_POLL_HZ)
-        self._poll_timer = self.create_timer(1.0 / poll_hz, self._poll)
-        self._diagnostics_timer = self.create_timer(1.0, self._publish_diagnostics)
-        self.get_logger().info(
-            f'{s.backend} backend, ICM-20948 {s.address:#04x} on {self.bus_name}, '
-            f'{s.rate_hz} Hz, publishing {self.resolve_topic_name(TOPIC)} in frame {s.frame_id}'
+        clock = self.get_clock()
+        inertial = s.publish_imu or s.publish_temperature
+        self.supervisor = Icm20948Supervisor(
+            self._open_bus, address=s.address, bus_name=self.bus_name, mag_rate_hz=s.rate_hz,
+            imu=s.imu if inertial else None, publish_imu=s.publish_imu,
+            publish_temperature=s.publish_temperature,
+            stamp=lambda: clock.now().to_msg(), log=self._log,
         )
-        self._try_initialise()
+        self._diagnostics_timer = self.create_timer(1.0, self._publish_diagnostics)
+        topics = [self.resolve_topic_name(TOPIC) + f' {s.rate_hz} Hz']
+        if s.publish_imu:
+            topics.append(f'{self.resolve_topic_name(IMU_TOPIC)} {s.imu.odr_hz:.1f} Hz '
+                          f'(imu_rate_hz {s.imu.rate_hz}; chip rates are 1125/(1+n) Hz), '
+                          f'±{s.imu.accel_range_g} g, ±{s.imu.gyro_range_dps} deg/s, '
+                          f'dlpf {s.imu.dlpf}')
+        if s.publish_temperature:
+            topics.append(self.resolve_topic_name(TEMPERATURE_TOPIC))
+        self.get_logger().info(
+            f'{s.backend} backend, ICM-20948 {s.address:#04x} on {self.bus_name}, publishing '
+            + '; '.join(topics) + f' in frame {s.frame_id}'
+        )
+        self._stop = threading.Event()
+        self._pump = threading.Thread(target=self.supervisor.run, args=(self._stop, self._deliver),
+                                      daemon=True, name=f'{NODE_NAME} I2C')
+        self._pump.start()
+
+    # --- counters the tests, the demo and the benchmark read -------------------------------------
+
+    @property
+    def i2c_errors(self) -> int:
+        return self.supervisor.i2c_errors
+
+    @property
+    def reinitialisations(self) -> int:
+        return self.supervisor.reinitialisations
+
+    @property
+    def overflows(self) -> int:
+        return self.supervisor.overflows
+
+    @property
+    def overruns(self) -> int:
+        return self.supervisor.overruns
+
+    @property
+    def last_recovery_s(self) -> float | None:
+        return self.supervisor.last_recovery_s
 
     # --- parameters ------------------------------------------------------------------------------
 
@@ -271,6 +360,12 @@ class Icm20948DriverNode(Node):
                     i2c_error_rate=values['sim.i2c_error_rate'],
                     seed=values['sim.seed'],
                     address=values['address'],
+                    accel_bias_mps2=tuple(values['sim.accel_bias_mps2']),
+                    gyro_bias_dps=tuple(values['sim.gyro_bias_dps']),
+                    accel_noise_density=values['sim.accel_noise_density'],
+                    gyro_noise_density=values['sim.gyro_noise_density'],
+                    temperature_c=values['sim.temperature_c'],
+                    temperature_rise_c=values['sim.temperature_rise_c'],
                 )
             except ValueError as error:
                 problems.append(f'sim.*: {error}')
@@ -286,6 +381,11 @@ class Icm20948DriverNode(Node):
             rate_hz=values['rate_hz'],
             frame_id=values['frame_id'],
             magnetic_field_stddev=values['magnetic_field_stddev'],
+            imu=imu_settings(values),
+            publish_imu=values['publish_imu'],
+            publish_temperature=values['publish_temperature'],
+            accel_noise_density=values['accel_noise_density'],
+            gyro_noise_density=values['gyro_noise_density'],
             sim=sim,
         )
 
@@ -294,18 +394,26 @@ class Icm20948DriverNode(Node):
         for parameter in parameters:
             if parameter.name == 'frame_id':
                 problems += frame_id_problems(parameter.value)
-            elif parameter.name == 'magnetic_field_stddev':
-                problems += stddev_problems(parameter.value)
+            elif parameter.name in ('magnetic_field_stddev', 'accel_noise_density',
+                                    'gyro_noise_density'):
+                problems += non_negative_problems(parameter.name, parameter.value)
         if problems:
             return SetParametersResult(successful=False, reason='; '.join(problems))
+        imu = self.settings.imu
         for parameter in parameters:
             if parameter.name == 'frame_id':
                 self._frame_id = parameter.value
             elif parameter.name == 'magnetic_field_stddev':
-                self._covariance = covariance_from_stddev(parameter.value)
+                self._mag_covariance = covariance_from_stddev(parameter.value)
+            elif parameter.name == 'accel_noise_density':
+                self._accel_covariance = covariance_from_density(
+                    parameter.value, imu.accel_noise_bandwidth_hz)
+            elif parameter.name == 'gyro_noise_density':
+                self._gyro_covariance = covariance_from_density(
+                    parameter.value, imu.gyro_noise_bandwidth_hz)
         return SetParametersResult(successful=True)
 
-    # --- device life cycle -----------------------------------------------------------------------
+    # --- wiring ----------------------------------------------------------------------------------
 
     def _open_bus(self):
         if self.simulator is not None:
@@ -321,180 +429,96 @@ class Icm20948DriverNode(Node):
                 f'this user in the i2c group?)',
             ) from error
 
-    def _try_initialise(self) -> None:
-        now = time.monotonic()
-        try:
-            if self._bus is None:
-                self._bus = self._open_bus()
-            driver = Icm20948Magnetometer(self._bus, self.settings.address, self.bus_name)
-            driver.initialise(self.settings.rate_hz)
-        except (OSError, WrongDeviceError) as error:
-            self._fault(f'initialisation failed: {error}', now)
-            self._close_bus()  # a USB adapter may come back as a new device: reopen next time
-            self._next_attempt = now + self._backoff
-            self._backoff = min(2.0 * self._backoff, BACKOFF_MAX_S)
-            return
-        self._driver = driver
-        self._last_overflows = 0
-        self._running = True
-        self._consecutive_errors = 0
-        self._backoff = BACKOFF_INITIAL_S
-        self._last_drdy = time.monotonic()
-        if self._episode_start is not None:
-            self.last_recovery_s = self._last_drdy - self._episode_start
-            self.reinitialisations += 1
-            self.get_logger().info(
-                f'magnetometer back after {self.last_recovery_s:.2f} s; publishing again'
-            )
-            self._episode_start = None
-            self._episode_logged = False
-
-    def _fault(self, message: str, now: float) -> None:
-        """Enter (or stay in) a fault episode; the first message of an episode is logged."""
-        self._last_error = message
-        self._running = False
-        if self._episode_start is None:
-            self._episode_start = now
-        if not self._episode_logged:
-            self._episode_logged = True
-            self.get_logger().error(
-                f'{self.hardware_id}: {message}; retrying with back-off up to {BACKOFF_MAX_S:g} s '
-                f'(logged once until it recovers)'
-            )
-        self._next_attempt = now + self._backoff
-
-    # --- reading ---------------------------------------------------------------------------------
-
-    def _poll(self) -> None:
-        now = time.monotonic()
-        if not self._running:
-            if now >= self._next_attempt:
-                self._try_initialise()
-            return
-        stamp = self.get_clock().now()
-        try:
-            reading = self._driver.read()
-        except OSError as error:
-            self._read_error(error, now)
-            return
-        self._consecutive_errors = 0
-        if self._driver.overflows != self._last_overflows:
-            self.overflows += self._driver.overflows - self._last_overflows
-            self._last_overflows = self._driver.overflows
-            self._last_drdy = now  # a sample arrived, it was just unusable
-            self.get_logger().warning(
-                'AK09916 magnetic overflow (ST2 HOFL): sample discarded; a magnet or motor '
-                'too close?', throttle_duration_sec=10.0,
-            )
-        if reading is None:
-            if now - self._last_drdy > self._stuck_after:
-                self._check_stuck(now)
-            return
-        self._last_drdy = now
-        self._publish(reading, stamp)
-
-    def _read_error(self, error: OSError, now: float) -> None:
-        self.i2c_errors += 1
-        self._consecutive_errors += 1
-        self._last_error = f'I2C read failed: {error}'
-        if self._consecutive_errors >= ERRORS_BEFORE_REINIT:
-            self._fault(
-                f'{self._consecutive_errors} I2C reads failed in a row (last: {error}); device '
-                f'gone or reset, re-initialising', now,
-            )
+    def _log(self, level: str, message: str) -> None:
+        # One call site per severity: rclpy refuses a severity change at the same call site.
+        logger = self.get_logger()
+        if level == 'error':
+            logger.error(message)
+        elif level == 'warning':
+            logger.warning(message)
         else:
-            self.get_logger().warning(
-                f'{self.hardware_id}: I2C read failed ({error}); retrying',
-                throttle_duration_sec=10.0,
-            )
+            logger.info(message)
 
-    def _check_stuck(self, now: float) -> None:
-        """No data-ready for too long: find out whether the AK09916 left continuous mode."""
+    def _deliver(self, samples: list[Sample]) -> bool:
+        """Publish the supervisor's samples (on its thread); False stops it after shutdown."""
         try:
-            mode = self._driver.measurement_mode()
-        except OSError as error:
-            self.i2c_errors += 1
-            self._fault(f'no data-ready for {now - self._last_drdy:.2f} s and the AK09916 does '
-                        f'not answer ({error})', now)
-            return
-        expected = reg.CONTINUOUS_MODES[self.settings.rate_hz]
-        reason = (f'AK09916 left continuous mode (CNTL2 expected {expected:#04x}, found '
-                  f'{mode:#04x}): chip reset?' if mode != expected
-                  else 'AK09916 data-ready stuck although in continuous mode')
-        self._fault(f'no data-ready for {now - self._last_drdy:.2f} s; {reason}', now)
+            for sample in samples:
+                if isinstance(sample, MagSample):
+                    self._publish_mag(sample)
+                elif isinstance(sample, ImuSample):
+                    self._publish_imu(sample)
+                else:
+                    self._publish_temperature(sample)
+        except Exception as error:  # a publish after shutdown, or a defect
+            if not self.context.ok():
+                return False
+            self.get_logger().error(f'publishing failed: {error!r}', throttle_duration_sec=10.0)
+        return True
 
-    def _publish(self, reading: MagReading, stamp) -> None:
-        if reading.overrun:
-            self.overruns += 1
+    def _publish_mag(self, sample: MagSample) -> None:
         message = MagneticField()
-        message.header.stamp = stamp.to_msg()
+        message.header.stamp = sample.stamp
         message.header.frame_id = self._frame_id
-        x, y, z = (float(v) for v in reading.field_tesla)
+        x, y, z = (float(v) for v in sample.reading.field_tesla)
         message.magnetic_field.x, message.magnetic_field.y, message.magnetic_field.z = x, y, z
-        message.magnetic_field_covariance = self._covariance
+        message.magnetic_field_covariance = self._mag_covariance
         self._publisher.publish(message)
         self.published += 1
-        self._window_published += 1
 
-    # --- diagnostics -----------------------------------------------------------------------------
+    def _publish_imu(self, sample: ImuSample) -> None:
+        reading = sample.reading
+        message = Imu()
+        message.header.stamp = sample.stamp
+        message.header.frame_id = self._frame_id
+        message.orientation_covariance[0] = -1.0  # no orientation (REP-145)
+        acceleration, rate = message.linear_acceleration, message.angular_velocity
+        acceleration.x, acceleration.y, acceleration.z = (
+            float(v) for v in reading.linear_acceleration)
+        rate.x, rate.y, rate.z = (float(v) for v in reading.angular_velocity)
+        message.linear_acceleration_covariance = self._accel_covariance
+        message.angular_velocity_covariance = self._gyro_covariance
+        self._imu_publisher.publish(message)
+        self.published_imu += 1
+
+    def _publish_temperature(self, sample: TemperatureSample) -> None:
+        message = Temperature()
+        message.header.stamp = sample.stamp
+        message.header.frame_id = self._frame_id
+        message.temperature = float(sample.celsius)
+        message.variance = 0.0  # unknown
+        self._temperature_publisher.publish(message)
+        self.published_temperature += 1
 
     def _publish_diagnostics(self) -> None:
-        now = time.monotonic()
-        elapsed = now - self._window_start
-        if elapsed > 0.0:
-            self.measured_rate_hz = self._window_published / elapsed
-        errors = self.i2c_errors - self._window_counters[0]
-        overflows = self.overflows - self._window_counters[1]
-        self._window_start, self._window_published = now, 0
-        self._window_counters = (self.i2c_errors, self.overflows)
-        requested = self.settings.rate_hz
-        warnings = []
-        if self.measured_rate_hz < RATE_WARN_FRACTION * requested:
-            warnings.append(f'{self.measured_rate_hz:.1f} Hz of {requested} Hz requested')
-        if errors:
-            warnings.append(f'{errors} I2C errors in the last {elapsed:.1f} s (wiring?)')
-        if overflows:
-            warnings.append(f'{overflows} overflowed samples discarded (magnet nearby?)')
-        if not self._running:
-            level, message = diagnostics.ERROR, self._last_error or 'not initialised'
-        elif warnings:
-            level, message = diagnostics.WARN, '; '.join(warnings)
-        else:
-            level, message = diagnostics.OK, f'publishing {self.measured_rate_hz:.1f} Hz'
-        values = {
-            'backend': self.settings.backend,
-            'bus': self.bus_name,
-            'address': f'{self.settings.address:#04x}',
-            'requested rate (Hz)': requested,
-            'measured rate (Hz)': self.measured_rate_hz,
-            'published': self.published,
-            'i2c errors': self.i2c_errors,
-            'reinitialisations': self.reinitialisations,
-            'overflows (HOFL)': self.overflows,
-            'overruns (DOR)': self.overruns,
-            'last error': self._last_error,
-        }
-        self._diagnostics.publish([diagnostics.diagnostic_status(
-            f'{self.get_name()}: magnetometer', self.hardware_id, level, message, values
-        )])
-
-    def _close_bus(self) -> None:
-        bus, self._bus = self._bus, None
-        if bus is not None and bus is not self.simulator:
-            try:
-                bus.close()
-            except OSError:
-                pass
+        backend = {'backend': self.settings.backend}
+        self._diagnostics.publish([
+            diagnostics.diagnostic_status(
+                f'{self.get_name()}: {status.stream}', self.hardware_id, LEVELS[status.level],
+                status.message, {**backend, **status.values},
+            )
+            for status in self.supervisor.status()
+        ])
 
     def destroy_node(self) -> None:
-        self._close_bus()
+        self._stop.set()
+        self._pump.join(timeout=5.0)
+        self.supervisor.close()
         super().destroy_node()
+
+
+def started_node() -> Icm20948DriverNode:
+    """The node, with everything allocated at start-up exempt from the garbage collector: a full
+    collection over rclpy's, numpy's and scipy's objects pauses every thread long enough to lose
+    samples at high rates; what the running node allocates is still collected."""
+    node = Icm20948DriverNode()
+    gc.freeze()
+    return node
 
 
 def main(args: list[str] | None = None) -> int:
     """Console script ``icm20948_driver``: exit 0 on a normal stop, 2 on invalid parameters."""
     try:
-        return spin_node(Icm20948DriverNode, args)
+        return spin_node(started_node, args)
     except DriverConfigurationError:
         return 2  # already logged as FATAL with every problem
 

@@ -1,0 +1,96 @@
+"""What the sensors on a moving board measure: physics and sensor errors, in SI units, chip frame.
+
+The register-level simulator asks this model for a sample at a sample time and only encodes the
+answer into registers (scale, saturation, quantisation), so physics and register protocol stay
+apart. A motion is any ``motion.Trajectory``; the world is ENU with the earth's field from
+``motion.earth_field`` and gravity straight down.
+
+- magnetometer: ``soft_iron @ (R.T @ earth) + hard_iron + noise`` (µT);
+- accelerometer: specific force ``R.T @ (a_world - g_world) + bias + noise`` (m/s^2), so a board
+  lying level reads +g on z;
+- gyroscope: body angular rate ``+ bias + noise`` (rad/s);
+- die temperature: ``temperature_c + temperature_rise_c * (1 - exp(-t / 600 s))``, a slow
+  warm-up after power-on.
+
+Noise per sample is the noise density times the square root of the DLPF's noise bandwidth, the
+way DS-000189 specifies it; the DLPF's delay is not modelled.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from mag_calibrator_ros import motion
+from mag_calibrator_ros.icm20948 import registers as reg
+
+if TYPE_CHECKING:
+    from mag_calibrator_ros.icm20948.simulator import SimConfig
+
+TEMPERATURE_TIME_CONSTANT_S = 600.0
+GRAVITY_WORLD = np.array([0.0, 0.0, -reg.STANDARD_GRAVITY])  # ENU: down
+
+
+@dataclass(frozen=True)
+class ImuTruth:
+    """The error-free values behind one inertial sample (chip frame, SI).
+
+    ``sample_time``: seconds since the simulated chip powered on; ``rotation``: world<-body;
+    ``specific_force`` (m/s^2) and ``angular_velocity`` (rad/s) without bias or noise.
+    """
+
+    sample_time: float
+    rotation: np.ndarray
+    specific_force: np.ndarray
+    angular_velocity: np.ndarray
+    temperature_c: float
+
+
+class BoardModel:
+    """The simulated board: a trajectory, the earth's field and gravity, and sensor errors."""
+
+    def __init__(self, config: SimConfig, trajectory: motion.Trajectory | None = None) -> None:
+        self.config = config
+        self.trajectory = (trajectory if trajectory is not None
+                           else motion.make_trajectory(config.motion, config.seed))
+        self._earth_ut = motion.earth_field(config.field_ut, config.inclination_deg)
+        self._mag_rng = np.random.default_rng([config.seed, 10])
+        self._imu_rng = np.random.default_rng([config.seed, 12])
+        self._accel_bias = np.asarray(config.accel_bias_mps2, dtype=float)
+        self._gyro_bias = np.radians(np.asarray(config.gyro_bias_dps, dtype=float))
+
+    def true_field_tesla(self, t: float) -> np.ndarray:
+        """True chip-frame earth field (T) at time ``t``."""
+        return self.trajectory.orientation(max(t, 0.0)).T @ self._earth_ut * 1e-6
+
+    def magnetometer(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """(sensed field in µT with distortion and noise, true earth field in T), chip frame."""
+        earth_chip_ut = self.trajectory.state(max(t, 0.0)).rotation.T @ self._earth_ut
+        sensed = self.config.soft_iron_matrix @ earth_chip_ut + self.config.hard_iron
+        if self.config.noise_ut > 0.0:
+            sensed = sensed + self._mag_rng.normal(0.0, self.config.noise_ut, 3)
+        return sensed, earth_chip_ut * 1e-6
+
+    def inertial(
+        self, t: float, accel_noise_bandwidth_hz: float, gyro_noise_bandwidth_hz: float
+    ) -> tuple[np.ndarray, np.ndarray, ImuTruth]:
+        """(specific force m/s^2, angular rate rad/s) as sensed, and the truth behind them."""
+        state = self.trajectory.state(max(t, 0.0))
+        rotation = state.rotation
+        specific_force = rotation.T @ (state.linear_acceleration - GRAVITY_WORLD)
+        truth = ImuTruth(t, rotation, specific_force, state.angular_velocity,
+                         self.temperature_c(t))
+        accel_sigma = self.config.accel_noise_density * math.sqrt(accel_noise_bandwidth_hz)
+        gyro_sigma = self.config.gyro_noise_density * math.sqrt(gyro_noise_bandwidth_hz)
+        noise = self._imu_rng.standard_normal(6)
+        accel = specific_force + self._accel_bias + accel_sigma * noise[:3]
+        gyro = state.angular_velocity + self._gyro_bias + gyro_sigma * noise[3:]
+        return accel, gyro, truth
+
+    def temperature_c(self, t: float) -> float:
+        """First-order warm-up from ``temperature_c`` by ``temperature_rise_c``."""
+        warm = 1.0 - math.exp(-max(t, 0.0) / TEMPERATURE_TIME_CONSTANT_S)
+        return self.config.temperature_c + self.config.temperature_rise_c * warm
