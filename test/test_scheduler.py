@@ -8,10 +8,10 @@ import math
 from mag_calibrator_ros.calibration.scheduler import (
     CHECK_FIT_PERIOD_S,
     CHECK_PERIOD_S,
-    CONVERGED_AFTER,
     MAX_STEP_S,
     NOMINAL_STEP_S,
     REFERENCE_MAX_FACTOR,
+    REFINE_FIRST_S,
     REFINE_MAX_FACTOR,
     FitScheduler,
     Situation,
@@ -71,24 +71,25 @@ def test_automatic_attempts_check_often_and_fit_at_most_every_period():
     assert scheduler.due(replace(ready, auto_calibrate=False, now=100.0)) is None
 
 
-def test_refinement_runs_every_period_and_slows_down_once_converged():
+def test_refinement_starts_soon_then_slows_to_its_period_and_further_once_converged():
     scheduler = FitScheduler(capacity=100)
     calibrated = replace(IDLE, calibrated=True, buffer_fill=100)
-    assert scheduler.due(calibrated) != 'refine'  # the first period starts with the calibration
     times, now = [], 0.0
-    while len(times) < CONVERGED_AFTER + 4:
-        now += 0.5
+    while len(times) < 9:
+        now = round(now + 0.25, 6)
         if scheduler.due(replace(calibrated, now=now)) == 'refine':
             times.append(now)
-            scheduler.refine_done(judged=True, adopted=False)
+            judged = len(times) > 4  # the first few find too little held-out evidence
+            scheduler.refine_done(judged=judged, adopted=False)
     gaps = [round(b - a, 6) for a, b in zip(times, times[1:], strict=False)]
-    assert gaps[:CONVERGED_AFTER - 1] == [10.0] * (CONVERGED_AFTER - 1)
+    assert times[0] == 0.25 + REFINE_FIRST_S  # counted from the first reading calibrated
+    assert gaps[:4] == [2.0, 4.0, 8.0, 10.0]  # doubling up to refine_period
     assert scheduler.converged
-    assert gaps[-1] == 10.0 * REFINE_MAX_FACTOR
-    scheduler.refine_done(judged=True, adopted=True)
+    assert 10.0 < gaps[-1] <= 10.0 * REFINE_MAX_FACTOR and gaps == sorted(gaps)
+    scheduler.refine_done(judged=True, adopted=True)  # a new calibration: soon again
     assert not scheduler.converged
-    assert scheduler.due(replace(calibrated, now=now + 1.0)) != 'refine'
-    assert scheduler.due(replace(calibrated, now=now + 11.0)) == 'refine'
+    assert scheduler.due(replace(calibrated, now=now + 0.5)) != 'refine'
+    assert scheduler.due(replace(calibrated, now=now + 0.5 + REFINE_FIRST_S)) == 'refine'
 
 
 def test_unjudged_refinements_do_not_count_towards_convergence():
