@@ -271,6 +271,7 @@ def bounded_step(current: Calibration, target: Calibration, max_change: float) -
         current.field_strength,
         current.model,
         {**current.metadata, 'source': 'online_tracking'},
+        current.rotation,
     )
 
 

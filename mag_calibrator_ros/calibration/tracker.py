@@ -149,6 +149,7 @@ class OnlineTracker:
                 self._field,
                 model='full',
                 metadata={**self._start.metadata, 'tracker_steps': self._steps},
+                rotation=self._start.rotation,
             )
         return self._cached
 

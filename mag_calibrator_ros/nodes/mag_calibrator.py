@@ -164,6 +164,7 @@ CALIBRATION_PARAMETERS: dict[str, str] = {
     'calibration.matrix': 'Soft-iron matrix M [9], row-major.',
     'calibration.field_strength': '|corrected| target F, tesla.',
     'calibration.model': 'Model that produced the calibration.',
+    'calibration.rotation': 'Rotation R [9] into the IMU frame, row-major (identity if unset).',
 }
 
 
@@ -323,6 +324,7 @@ class MagCalibratorNode(Node):
             field_strength=parameters.get('calibration.field_strength'),
             model=parameters.get('calibration.model', 'full'),
             metadata=metadata,
+            rotation=parameters.get('calibration.rotation'),
         )
 
     def _loaded(self, path: Path, loaded: LoadedCalibration | Exception) -> tuple[bool, str]:
@@ -355,7 +357,7 @@ class MagCalibratorNode(Node):
             out.magnetic_field.x, out.magnetic_field.y, out.magnetic_field.z = (
                 processed.corrected.tolist())
             out.magnetic_field_covariance = transform_covariance(
-                processed.calibration.matrix, msg.magnetic_field_covariance
+                processed.calibration.correction, msg.magnetic_field_covariance
             )
             self._publisher.publish(out)
         elif processed.accepted and self.get_parameter('publish_uncalibrated').value:
