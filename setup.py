@@ -24,6 +24,7 @@ setup(
         'PyYAML',
         'smbus2',
         'rosbags',
+        'wmm-calculator',
     ],
     zip_safe=True,
     maintainer='mag_calibrator_ros maintainers',
