@@ -217,8 +217,15 @@ class StaticAttitudes:
         self._close(math.inf)
 
     def snapshot(self) -> np.ndarray:
-        """The attitudes so far (fill, ATTITUDE_WIDTH), a copy; an open stretch not included."""
-        return self._rows[: self.fill].copy()
+        """The attitudes so far (n, ATTITUDE_WIDTH), a copy, with the stretch still open when it
+        has lasted MIN_STILL_S (the sensor held still while a calibration is asked for)."""
+        rows = self._rows[: self.fill].copy()
+        segment = self._open
+        if segment is not None and segment[3] - segment[2] >= MIN_STILL_S:
+            count = segment[1]
+            current = [*(value / count for value in segment[0]), count, segment[3] - segment[2]]
+            rows = np.vstack([rows, current])
+        return rows
 
 
 def _attitude_distance(kept: np.ndarray, row: np.ndarray, scale: float | None) -> np.ndarray:

@@ -184,6 +184,22 @@ def check_against_model(
                       dip_error, tuple(problems))
 
 
+@dataclass(frozen=True)
+class EarthReference:
+    """The model's field where the robot is, in the units of the readings, with the tolerances
+    a fit is judged by; ``gate``: a fit beyond them fails (else it is only warned about)."""
+
+    field: EarthField
+    units: str
+    max_field_error_pct: float = MAX_FIELD_ERROR_PCT
+    max_dip_error_deg: float = MAX_DIP_ERROR_DEG
+    gate: bool = True
+
+    def check(self, fitted_radius: float | None, dip_deg: float | None = None) -> EarthCheck:
+        return check_against_model(self.field, self.units, fitted_radius, dip_deg,
+                                   self.max_field_error_pct, self.max_dip_error_deg)
+
+
 def disturbance_text(check: EarthCheck) -> str:
     """'field strength +20 % against the model (...): the field here is disturbed (...)'."""
     return f"{'; '.join(check.problems)}: {DISTURBED_HINT}" if check.problems else ''
@@ -198,6 +214,7 @@ __all__ = [
     'EarthCheck',
     'EarthField',
     'EarthFieldError',
+    'EarthReference',
     'as_date',
     'check_against_model',
     'disturbance_text',
