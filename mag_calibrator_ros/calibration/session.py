@@ -512,8 +512,8 @@ class CalibrationSession:
             gap = sample[0] - stamp_ns
             if abs(gap) < best_gap:
                 best, best_gap = sample, abs(gap)
-            if gap < -PAIR_TOLERANCE_NS:
-                break
+            elif gap < 0:
+                break  # older still: only further away
         if best is None:
             return None
         self.paired += 1

@@ -1,8 +1,9 @@
 """``mag_calibrator`` node: raw ``imu/mag`` in, ``imu/mag_corrected`` out, services to calibrate.
 
-Wiring only: parameters, the subscription, the publisher, four std_srvs/Trigger services, a poll
-timer and the diagnostics timer. Every decision (screening, buffer, when to fit and whether to
-adopt, misfit detection, online tracking, progress text) lives in
+Wiring only: parameters, the subscriptions (``imu/mag``; ``imu/data_raw`` and ``gps/fix`` when
+present), the publisher, four std_srvs/Trigger services, a poll timer and the diagnostics timer.
+Every decision (screening, buffer, when to fit and whether to adopt, misfit detection, online
+tracking, alignment to the IMU, progress text) lives in
 :class:`~mag_calibrator_ros.calibration.session.CalibrationSession`; its fits run in a worker
 process (``ProcessRunner``) and file I/O on a thread, so the message callback never waits for
 either.
@@ -31,7 +32,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from rclpy.task import Future
-from sensor_msgs.msg import MagneticField
+from sensor_msgs.msg import Imu, MagneticField, NavSatFix, NavSatStatus
 from std_srvs.srv import Trigger
 
 from mag_calibrator_ros.calibration.calibration import Calibration, CalibrationError
@@ -47,6 +48,12 @@ from mag_calibrator_ros.calibration.calibration_file import (
     save_calibration,
 )
 from mag_calibrator_ros.calibration.coverage import Coverage
+from mag_calibrator_ros.calibration.earth_field import (
+    EarthField,
+    EarthFieldError,
+    earth_field,
+    location_problems,
+)
 from mag_calibrator_ros.calibration.jobs import ProcessRunner
 from mag_calibrator_ros.calibration.session import (
     FITTABLE_MODELS,
@@ -152,11 +159,38 @@ PARAMETERS: dict[str, tuple[object, str, dict]] = {
     'progress_log_period': (5.0, 'Seconds between progress log lines while uncalibrated '
                                  '(0 = silent).',
                             {'floating_point_range': _float_range(0.0, 3600.0)}),
+    'use_imu': (True, 'Subscribe imu/data_raw (sensor_msgs/Imu, same frame as imu/mag) and align '
+                      'each calibration to the accelerometer from readings held still; without '
+                      'a publisher nothing changes.', {}),
+    'max_alignment_deg': (DEFAULTS.max_alignment_deg,
+                          'A larger rotation to the IMU is reported as a mounting or axis-remap '
+                          'error (with the remap that fixes it) and not applied.',
+                          {'floating_point_range': _float_range(0.0, 180.0)}),
+    'latitude': (math.nan, 'Degrees north (WGS84) for the World Magnetic Model; NaN: unknown '
+                           '(the first fix on gps/fix is used).', {}),
+    'longitude': (math.nan, 'Degrees east (WGS84) for the World Magnetic Model; NaN: unknown.',
+                  {}),
+    'altitude': (0.0, 'Metres above the WGS84 ellipsoid for the World Magnetic Model.',
+                 {'floating_point_range': _float_range(-1000.0, 850000.0)}),
+    'use_gps': (True, 'Without latitude/longitude, take the location from the first fix on '
+                      'gps/fix (sensor_msgs/NavSatFix).', {}),
+    'max_field_error_pct': (DEFAULTS.max_field_error_pct,
+                            'Largest difference, in %, between the fitted field and the World '
+                            "Magnetic Model's intensity before the field counts as disturbed.",
+                            {'floating_point_range': _float_range(1.0, 100.0)}),
+    'max_dip_error_deg': (DEFAULTS.max_dip_error_deg,
+                          "Largest difference between the measured dip and the model's "
+                          'inclination before the field counts as disturbed.',
+                          {'floating_point_range': _float_range(0.1, 90.0)}),
+    'earth_field_gate': (DEFAULTS.earth_field_gate,
+                         'A fit off the World Magnetic Model beyond the tolerances fails (true) '
+                         'or is only warned about (false).', {}),
 }
 SESSION_FIELDS = {f.name for f in fields(SessionSettings)}
 CALIBRATION_METADATA_KEYS = (
     'residual_rms_pct', 'coverage', 'samples', 'time', 'frame_id', 'units', 'source',
-    'plane_normal', 'unobserved',
+    'plane_normal', 'unobserved', 'alignment_angle_deg', 'dip_deg', 'dip_std_deg',
+    'static_samples', 'declination_deg',
 )
 """Metadata the fit and the node write into a saved file (declared so --params-file keeps it)."""
 CALIBRATION_PARAMETERS: dict[str, str] = {
@@ -198,6 +232,9 @@ class MagCalibratorNode(Node):
         self._save_wanted = False
         self._saving = False
         self._last_auto_save = -math.inf
+        self._imu_subscription = None
+        self._location_source = ''  # 'parameters' or 'gps/fix' once the model's field is known
+        self._location_wanted: tuple[float, float, float] | None = None
         self._startup(startup_calibration)
 
         self.add_on_set_parameters_callback(self._validate_parameters)
@@ -206,6 +243,9 @@ class MagCalibratorNode(Node):
             MagneticField, 'imu/mag_corrected', QoSProfile(depth=10)
         )
         self.create_subscription(MagneticField, 'imu/mag', self._on_mag, INPUT_QOS)
+        self._sync_imu_subscription()
+        self.create_subscription(NavSatFix, 'gps/fix', self._on_fix, INPUT_QOS)
+        self._locate_from_parameters()
         # The services wait for the fit worker and the I/O thread without blocking the executor;
         # a waiting service must not hold the default (mutually exclusive) group, or the poll
         # timer that completes it could never run.
@@ -249,10 +289,18 @@ class MagCalibratorNode(Node):
             resolve_calibration_path(str(values['calibration_file']))
         except CalibrationFileError as error:
             problems.append(f'calibration_file: {error}')
+        latitude, longitude = values['latitude'], values['longitude']
+        if not (_is_nan(latitude) and _is_nan(longitude)):  # NaN and NaN: no location
+            problems += location_problems(latitude, longitude, values['altitude'])
         return problems
 
     def _apply_parameters(self, parameters: list[Parameter]) -> None:
         self.session.reconfigure(self._settings_from(self._current_values()))
+        names = {parameter.name for parameter in parameters}
+        if 'use_imu' in names:
+            self._sync_imu_subscription()
+        if names & {'latitude', 'longitude', 'altitude'}:
+            self._locate_from_parameters()
 
     def _declare_calibration_parameters(self) -> dict[str, object]:
         """Declare ``calibration.*`` (read-only, start-up): a saved file works as --params-file.
@@ -364,6 +412,70 @@ class MagCalibratorNode(Node):
             self._publisher.publish(msg)
         if self.session.has_events:
             self._handle_events()
+
+    def _on_imu(self, msg: Imu) -> None:
+        """O(1): the session keeps the sample to pair magnetometer readings with."""
+        stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        accel, rate = msg.linear_acceleration, msg.angular_velocity
+        gyro = None if msg.angular_velocity_covariance[0] == -1.0 else (rate.x, rate.y, rate.z)
+        self.session.process_imu(stamp_ns, msg.header.frame_id, (accel.x, accel.y, accel.z),
+                                 gyro)
+
+    def _sync_imu_subscription(self) -> None:
+        wanted = bool(self.get_parameter('use_imu').value)
+        if wanted and self._imu_subscription is None:
+            self._imu_subscription = self.create_subscription(Imu, 'imu/data_raw', self._on_imu,
+                                                              INPUT_QOS)
+        elif not wanted and self._imu_subscription is not None:
+            self.destroy_subscription(self._imu_subscription)
+            self._imu_subscription = None
+
+    # -- the Earth's field here -------------------------------------------------------------------
+
+    def _locate_from_parameters(self) -> None:
+        latitude = float(self.get_parameter('latitude').value)
+        longitude = float(self.get_parameter('longitude').value)
+        if math.isnan(latitude) and math.isnan(longitude):
+            if self._location_source == 'parameters':
+                self._location_source = ''
+                self.session.set_earth_field(None)
+            return
+        self._locate(latitude, longitude, float(self.get_parameter('altitude').value),
+                     'parameters')
+
+    def _on_fix(self, msg: NavSatFix) -> None:
+        """The first usable fix locates the robot when the parameters do not."""
+        if (self._location_source or self._location_wanted is not None
+                or not self.get_parameter('use_gps').value
+                or msg.status.status < NavSatStatus.STATUS_FIX):
+            return
+        altitude = msg.altitude if math.isfinite(msg.altitude) else 0.0
+        if location_problems(msg.latitude, msg.longitude, altitude):
+            return
+        self._locate(msg.latitude, msg.longitude, altitude, 'gps/fix')
+
+    def _locate(self, latitude: float, longitude: float, altitude: float, source: str) -> None:
+        """Evaluate the World Magnetic Model on the I/O thread (an import and ~30 ms)."""
+        where = (latitude, longitude, altitude)
+        self._location_wanted = where
+        self._run_io(lambda: earth_field(*where)).add_done_callback(
+            lambda future: self._located(where, source, future.result()))
+
+    def _located(self, where: tuple[float, float, float], source: str,
+                 result: EarthField | Exception) -> None:
+        if where != self._location_wanted:
+            return  # a newer location was asked for meanwhile
+        self._location_wanted = None
+        if isinstance(result, Exception):
+            what = '' if isinstance(result, EarthFieldError) else f'{type(result).__name__}: '
+            self.get_logger().warning(f'no World Magnetic Model field at {where} (from '
+                                      f'{source}): {what}{result}; running without it')
+            return
+        self._location_source = source
+        self.session.set_earth_field(result)
+        self.get_logger().info(f'earth field here (from {source}): {result.describe()}')
+        for note in result.notes:
+            self.get_logger().warning(note)
 
     # -- what the session decided -----------------------------------------------------------------
 
@@ -498,6 +610,8 @@ class MagCalibratorNode(Node):
     def _publish_diagnostics(self, now: float, coverage: Coverage) -> None:
         values = self.session.diagnostic_values(now, coverage)
         values['calibration_file'] = str(self._calibration_file())
+        if self._location_source:
+            values['location_source'] = self._location_source
         state = self.session.state
         if self._problem is not None:
             level, message = ERROR, self._problem
@@ -506,6 +620,10 @@ class MagCalibratorNode(Node):
             level, message = WARN, f'{state}: input messages refused since last report: {counts}'
         elif state == 'calibrated-misfit':
             level, message = WARN, self.session.misfit_text()
+        elif state.startswith('calibrated') and (warning := self.session.earth_warning()):
+            level, message = WARN, f'{state}: {warning}'
+        elif state.startswith('calibrated') and (warning := self.session.alignment_warning()):
+            level, message = WARN, f'{state}: {warning}'
         elif state.startswith('calibrated'):
             level, message = OK, self.session.progress_text(coverage)
         elif values['input_rate_hz'] == 0.0:
@@ -517,6 +635,10 @@ class MagCalibratorNode(Node):
             diagnostic_status(f'{self.get_name()}: calibration', hardware_id, level, message,
                               values)
         ])
+
+
+def _is_nan(value: object) -> bool:
+    return isinstance(value, float) and math.isnan(value)
 
 
 def _read_calibration(path: Path, node_name: str) -> LoadedCalibration | Exception | None:
