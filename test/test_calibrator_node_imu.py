@@ -12,7 +12,16 @@ import numpy as np
 import pytest
 from rclpy.node import Node
 from sensor_msgs.msg import NavSatFix, NavSatStatus
-from test_calibrator_node import HARD_IRON_UT, SOFT_IRON, WAIT_S, Probe, Ros, wait_for
+from test_calibrator_node import (
+    HARD_IRON_UT,
+    SOFT_IRON,
+    WAIT_S,
+    Probe,
+    Ros,
+    angle_deg,
+    vector,
+    wait_for,
+)
 
 from mag_calibrator_ros.calibration.alignment import rotation_angle_deg
 from mag_calibrator_ros.calibration.earth_field import earth_field
@@ -68,10 +77,7 @@ def test_live_alignment_to_the_imu_with_the_world_magnetic_model(ros, tmp_path):
             raw = probe.raw_for(msg)
             truth_t = driver.simulator.truth_for_reading(raw) if raw is not None else None
             if truth_t is not None:
-                corrected = np.array([msg.magnetic_field.x, msg.magnetic_field.y,
-                                      msg.magnetic_field.z])
-                cosine = corrected @ truth_t / (np.linalg.norm(corrected) * np.linalg.norm(truth_t))
-                errors.append(math.degrees(math.acos(min(1.0, cosine))))
+                errors.append(angle_deg(vector(msg), truth_t))
         assert len(errors) >= 20 and np.sqrt(np.mean(np.square(errors))) < 1.0
         assert wait_for(lambda: any('dip_deg' in values_of(s) for s in
                                     probe.statuses('mag_calibrator: calibration')))

@@ -648,7 +648,8 @@ class CalibrationSession:
             evidence=evidence, ticket=ticket,
             ready_coverage=self.settings.min_coverage if kind == 'calibrate' else None,
             reference=buffer.reference,
-            attitudes=attitudes if attitudes is not None and len(attitudes) else None,
+            attitudes=attitudes if attitudes is not None and (len(attitudes) or self.paired)
+            else None,
             alignment=self.settings.alignment_options(self.earth),
             earth=self._earth_reference(),
         )

@@ -76,6 +76,8 @@ class Recording:
     """Units implied by the format ('T' for bags); None when the file does not say."""
     notes: tuple[str, ...] = ()
     """Things the user should know, e.g. that more numeric fields were present than used."""
+    accel: np.ndarray | None = None
+    """(n, 3) accelerometer rows beside ``samples`` (``read_paired_recording``), else None."""
 
     @property
     def rows(self) -> int:
@@ -403,3 +405,126 @@ def _choose_topic(path: Path, topics: dict[str, str | None], wanted: str | None)
 
 def _one_line(error: BaseException) -> str:
     return ' '.join(str(error).split()) or type(error).__name__
+
+
+# --- magnetometer and accelerometer on one line (alignment to the IMU) -----------------------
+
+
+def read_paired_recording(
+    source: str | Path,
+    *,
+    accel_columns: str,
+    columns: str | None = None,
+    min_rows: int = 1,
+    stdin: TextIO | None = None,
+    progress: ProgressCallback | None = None,
+) -> Recording:
+    """A text recording that logs the accelerometer beside the magnetometer on each line.
+
+    ``accel_columns``: three zero-based field indices or header names (``'0,1,2'``,
+    ``'ax,ay,az'``); ``columns`` the magnetometer's, by default the first three numeric fields
+    that are not the accelerometer's. A line is used only when all six values are numbers, so
+    ``Recording.samples`` and ``Recording.accel`` stay row for row.
+    """
+    if str(source) == STDIN:
+        stream = stdin if stdin is not None else sys.stdin
+        return _read_paired(stream, 'stdin', accel_columns, columns, min_rows, progress, None)
+    path = Path(source)
+    if is_rosbag(path):
+        raise RecordingError(f'{path}: --accel-columns applies to text input, not to a rosbag2 '
+                             'bag')
+    if not path.exists():
+        raise RecordingError(f'{path}: no such file')
+    try:
+        with path.open('rb') as probe:
+            head = probe.read(4096)
+        _refuse_binary(path, head)
+        with path.open(encoding='utf-8-sig', errors='replace', newline=None) as stream:
+            return _read_paired(stream, str(path), accel_columns, columns, min_rows, progress,
+                                path.stat().st_size)
+    except OSError as error:
+        raise RecordingError(f'{path}: cannot read ({error.strerror or error})') from error
+
+
+def _read_paired(stream: Iterable[str], source: str, accel_columns: str, columns: str | None,
+                 min_rows: int, progress: ProgressCallback | None, total: int | None
+                 ) -> Recording:
+    lines = iter(stream)
+    first = list(itertools.islice(lines, LAYOUT_SAMPLE_LINES))
+    accel = _explicit_layout(accel_columns, first, source)
+    field_count = None
+    notes: tuple[str, ...] = ()
+    if columns is None and isinstance(parse_columns(accel_columns)[0], str):
+        try:  # named accelerometer columns: the magnetometer's are most likely named too
+            mag = _explicit_layout('mx,my,mz', first, source)
+        except RecordingError:
+            columns = None
+        else:
+            columns = 'mx,my,mz'
+    if columns is not None:
+        mag = _explicit_layout(columns, first, source)
+    else:
+        mag, field_count = _other_numeric_fields(first, accel.indices, source)
+        notes = (f'magnetometer from {mag.description}, the first numeric fields besides the '
+                 'accelerometer (choose others with --columns)',)
+    if set(mag.indices) & set(accel.indices):
+        raise RecordingError(f'{source}: the magnetometer fields {mag.description} overlap the '
+                             f'accelerometer fields {accel.description}')
+    needed = max(*mag.indices, *accel.indices) + 1
+    mag = _Layout(mag.indices, field_count, mag.description)
+    accel_layout = _Layout(accel.indices, field_count, accel.description)
+    rows: list[tuple[float, ...]] = []
+    skipped: Counter[str] = Counter()
+    consumed = 0
+    for count, line in enumerate(itertools.chain(first, lines), start=1):
+        consumed += len(line)
+        if progress is not None and count % PROGRESS_EVERY_LINES == 0:
+            progress(consumed, total)
+        if not line.strip():
+            continue
+        if _is_comment(line):
+            skipped['comment'] += 1
+            continue
+        tokens = _split(line)
+        reason, field = _parse_line(tokens, mag, needed)
+        specific_force = None
+        if field is not None:
+            reason, specific_force = _parse_line(tokens, accel_layout, needed)
+        if field is not None and specific_force is not None:
+            rows.append((*field, *specific_force))
+        elif not rows and _is_text(tokens):
+            skipped['header'] += 1
+        else:
+            skipped[reason] += 1
+    if progress is not None:
+        progress(consumed, total if total is not None else consumed)
+    data = np.array(rows, dtype=np.float64).reshape(-1, 6)
+    layout = f'{mag.description}; accelerometer {accel.description}'
+    if len(data) < max(min_rows, 1):
+        found = 'no usable rows' if len(data) == 0 else f'only {len(data)} usable rows'
+        need = f' (need at least {min_rows})' if min_rows > 1 else ''
+        raise RecordingError(f'{source}: {found} from {layout}{need}')
+    return Recording(data[:, :3].copy(), source, 'text', layout, dict(skipped), None, notes,
+                     accel=data[:, 3:].copy())
+
+
+def _other_numeric_fields(lines: list[str], taken: tuple[int, ...], source: str
+                          ) -> tuple[_Layout, int]:
+    """The first three numeric fields of the most common line pattern not in ``taken``."""
+    patterns: Counter[tuple[int, tuple[int, ...]]] = Counter()
+    for line in lines:
+        if not line.strip() or _is_comment(line):
+            continue
+        tokens = _split(line)
+        numeric = tuple(i for i, token in enumerate(tokens) if _number(token) is not None)
+        if len(numeric) >= 6:
+            patterns[(len(tokens), numeric)] += 1
+    if not patterns:
+        raise RecordingError(f'{source}: no line with six numeric fields (magnetometer and '
+                             f'accelerometer) in the first {len(lines)} lines')
+    (field_count, numeric), _ = patterns.most_common(1)[0]
+    free = [index for index in numeric if index not in taken][:3]
+    if len(free) < 3:
+        raise RecordingError(f'{source}: no three numeric fields besides the accelerometer '
+                             f'fields {",".join(map(str, taken))}; give --columns')
+    return _Layout(tuple(free), field_count, f'fields {",".join(map(str, free))}'), field_count
