@@ -335,7 +335,7 @@ class PosesTrajectory(Trajectory):
     kind = 'poses'
     CACHE = 64  # poses kept for random access
 
-    def __init__(self, seed: int = 0, hold_s: float = 1.2, move_s: float = 1.4) -> None:
+    def __init__(self, seed: int = 0, hold_s: float = 0.8, move_s: float = 1.2) -> None:
         self._seed = int(seed)
         self._hold = float(hold_s)
         self._move = float(move_s)
