@@ -282,8 +282,9 @@ def magnitude_residual_pct(calibration: Calibration, samples: np.ndarray) -> flo
 
 
 def transform_covariance(matrix: np.ndarray, covariance: Sequence[float]) -> np.ndarray:
-    """``M C M^T`` for a known covariance; all-zero (unknown) and -1 (not reported) pass as is,
-    and a covariance with NaN/Inf (or one that overflows) becomes all-zero: unknown (REP-145)."""
+    """``A C A^T`` for a known covariance (``A`` = ``calibration.correction``, R M); all-zero
+    (unknown) and -1 (not reported) pass as is, and a covariance with NaN/Inf (or one that
+    overflows) becomes all-zero: unknown (REP-145)."""
     covariance = np.asarray(covariance, dtype=float).reshape(3, 3)
     if not np.all(np.isfinite(covariance)):
         return np.zeros(9)

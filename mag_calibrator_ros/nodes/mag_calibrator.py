@@ -235,6 +235,7 @@ class MagCalibratorNode(Node):
         self._imu_subscription = None
         self._location_source = ''  # 'parameters' or 'gps/fix' once the model's field is known
         self._location_wanted: tuple[float, float, float] | None = None
+        self._fix_used = False
         self._startup(startup_calibration)
 
         self.add_on_set_parameters_callback(self._validate_parameters)
@@ -444,14 +445,17 @@ class MagCalibratorNode(Node):
                      'parameters')
 
     def _on_fix(self, msg: NavSatFix) -> None:
-        """The first usable fix locates the robot when the parameters do not."""
-        if (self._location_source or self._location_wanted is not None
-                or not self.get_parameter('use_gps').value
-                or msg.status.status < NavSatStatus.STATUS_FIX):
+        """The first usable fix locates the robot when the parameters do not (one evaluation
+        only, whatever its outcome: a fix stream never repeats it)."""
+        if (self._fix_used or not self.get_parameter('use_gps').value
+                or msg.status.status < NavSatStatus.STATUS_FIX
+                or not (_is_nan(self.get_parameter('latitude').value)
+                        and _is_nan(self.get_parameter('longitude').value))):
             return
         altitude = msg.altitude if math.isfinite(msg.altitude) else 0.0
         if location_problems(msg.latitude, msg.longitude, altitude):
             return
+        self._fix_used = True
         self._locate(msg.latitude, msg.longitude, altitude, 'gps/fix')
 
     def _locate(self, latitude: float, longitude: float, altitude: float, source: str) -> None:
