@@ -169,3 +169,18 @@ def test_imu_samples_pair_by_nearest_stamp_and_bad_ones_are_refused():
 def test_field_radius_is_the_raw_ellipsoid_mean_radius():
     calibration = Calibration(np.zeros(3), np.diag([2.0, 2.0, 2.0]), 50.0)
     assert field_radius(calibration) == pytest.approx(25.0)
+
+
+def test_a_fit_that_fails_its_own_gates_says_nothing_about_the_place(misaligned):
+    """A refinement from the first seconds (one or two poses) fails its gates: its radius and
+    rotation are no evidence of a disturbed field or a mounting error."""
+    mag, accel, gyro, _ = misaligned
+    truth = Calibration(np.array(HARD_IRON_UT) * 1e-6,
+                        np.linalg.inv(np.reshape(SOFT_IRON, (3, 3))), 50e-6, 'full')
+    session = CalibrationSession(SessionSettings(), calibration=truth)
+    session.set_earth_field(MODEL)
+    session.feed(mag[:400], RATE_HZ, frame_id='imu_link', accel=accel[:400], gyro=gyro[:400])
+    assert session.jobs_run.get('refine', 0) >= 1
+    assert not [e for e in session.take_events() if e.level == 'warning']
+    assert session.earth_check is None and session.alignment is None
+    assert session.calibration is truth

@@ -777,7 +777,8 @@ class CalibrationSession:
             self._event('debug', f'refinement kept the calibration: {comparison.reason}')
         if not outcome.error:
             self._note_reference(outcome)
-        if not adopted and current is not None and current is outcome.job.current:
+        if (not adopted and current is not None and current is outcome.job.current
+                and _passed_own_gates(outcome)):
             self._realign(current, outcome.alignment)
         self.scheduler.refine_done(judged, adopted)
 
@@ -785,7 +786,10 @@ class CalibrationSession:
 
     def _note_reference(self, outcome: JobOutcome) -> None:
         """Remember a fit's alignment and model check; warn once per new finding (a mounting
-        error, a disturbed field), not at every refinement."""
+        error, a disturbed field), not at every refinement. Only a fit that passed its own gates
+        (the model's aside) says anything about the sensor or the place."""
+        if not _passed_own_gates(outcome):
+            return
         if outcome.alignment is not None:
             self.alignment = outcome.alignment
             alignment = outcome.alignment
@@ -1168,6 +1172,14 @@ class CalibrationSession:
                 if check.dip_error_deg is not None:
                     values['dip_error_deg'] = round(check.dip_error_deg, 3)
         return values
+
+
+def _passed_own_gates(outcome: JobOutcome) -> bool:
+    """The fit passed its gates, or failed only the World Magnetic Model's."""
+    result, check = outcome.result, outcome.earth_check
+    if result is None or outcome.error:
+        return False
+    return result.success or (check is not None and result.reason == disturbance_text(check))
 
 
 def field_radius(calibration: Calibration) -> float:
