@@ -16,6 +16,7 @@ from mag_calibrator_ros.calibration.session import (
     PAIR_TOLERANCE_NS,
     CalibrationSession,
     SessionSettings,
+    calibration_summary,
     field_radius,
     transform_covariance,
 )
@@ -68,6 +69,8 @@ def test_a_misaligned_magnetometer_is_aligned_to_the_imu(misaligned):
     assert calibration.metadata['dip_deg'] == pytest.approx(60.0, abs=0.2)
     assert calibration.metadata['dip_std_deg'] < 0.3
     assert session.paired == session.accepted == len(misaligned[0])
+    assert calibration_summary(calibration).endswith('rotated 3.00 deg into the IMU frame') or (
+        'rotated 2.9' in calibration_summary(calibration))
     values = session.diagnostic_values(1.0)
     assert values['static_attitudes'] >= 15 and values['last_alignment'] == 'applied'
     assert values['alignment_angle_deg'] == pytest.approx(3.0, abs=0.2)

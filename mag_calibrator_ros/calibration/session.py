@@ -334,6 +334,8 @@ def calibration_summary(calibration: Calibration, units: str = 'T') -> str:
         text += f', coverage {100.0 * coverage:.0f} %'
     if samples is not None:
         text += f', {samples:.0f} samples'
+    if calibration.aligned:
+        text += f', rotated {rotation_angle_deg(calibration.rotation):.2f} deg into the IMU frame'
     return text
 
 
