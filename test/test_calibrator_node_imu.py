@@ -123,3 +123,20 @@ def test_the_first_gps_fix_locates_the_calibrator_and_use_imu_false_ignores_the_
     finally:
         for node in (gps, calibrator, driver):
             ros.remove(node)
+
+
+@pytest.mark.parametrize(('parameters', 'message'), [
+    ({'latitude': 95.0, 'longitude': 0.0}, 'latitude must be within'),
+    ({'latitude': 52.0}, 'longitude must be within'),
+    ({'max_alignment_deg': 200.0}, 'max_alignment_deg'),
+])
+def test_a_bad_location_or_tolerance_refuses_to_start(ros, parameters, message):
+    from rclpy.parameter import Parameter
+
+    from mag_calibrator_ros.nodes.mag_calibrator import MagCalibratorNode
+    from mag_calibrator_ros.nodes.parameters import ConfigurationError
+
+    overrides = [Parameter(name, value=value) for name, value in parameters.items()]
+    with pytest.raises(ConfigurationError, match=message):
+        MagCalibratorNode(namespace='refused', context=ros.context,
+                          parameter_overrides=overrides)
