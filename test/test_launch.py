@@ -23,7 +23,7 @@ def test_launch_description_starts_driver_and_calibrator():
     try:
         description = module.generate_launch_description()
     except Exception as error:  # package not installed into an ament index (no colcon build)
-        if 'PackageNotFoundError' in type(error).__name__:
+        if 'PackageNotFoundError' in type(error).__name__ or 'AMENT_PREFIX_PATH' in str(error):
             pytest.skip(f'mag_calibrator_ros not in the ament index: {error}')
         raise
     assert isinstance(description, LaunchDescription)
