@@ -56,6 +56,7 @@ from mag_calibrator_ros.calibration.session import (
     calibration_summary,
     transform_covariance,
 )
+from mag_calibrator_ros.calibration.view import calibration_view
 from mag_calibrator_ros.nodes.diagnostics import (
     ERROR,
     OK,
@@ -69,6 +70,7 @@ from mag_calibrator_ros.nodes.parameters import (
     refuse_to_start,
 )
 from mag_calibrator_ros.nodes.runtime import guarded, spin_node
+from mag_calibrator_ros.nodes.view import ViewPublisher
 
 NODE_NAME = 'mag_calibrator'
 DIAGNOSTICS_PERIOD_S = 1.0
@@ -153,6 +155,11 @@ PARAMETERS: dict[str, tuple[object, str, dict]] = {
     'progress_log_period': (5.0, 'Seconds between progress log lines while uncalibrated '
                                  '(0 = silent).',
                             {'floating_point_range': _float_range(0.0, 3600.0)}),
+    'view_period': (1.0, 'Seconds between RViz views (~/view/raw, ~/view/corrected, '
+                         '~/view/markers), drawn only while subscribed; 0 = never.',
+                    {'floating_point_range': _float_range(0.0, 3600.0)}),
+    'view_scale': (1e4, 'RViz view: metres per tesla (1e4: a 50 uT field is a 0.5 m sphere).',
+                   {'floating_point_range': _float_range(1e-3, 1e9)}),
 }
 SESSION_FIELDS = {f.name for f in fields(SessionSettings)}
 CALIBRATION_METADATA_KEYS = (
@@ -226,6 +233,8 @@ class MagCalibratorNode(Node):
             self.create_service(Trigger, name, self._answering(name, callback),
                                 callback_group=waiting)
         self._diagnostics = DiagnosticsPublisher(self)
+        self._view = ViewPublisher(self)
+        self._last_view = -math.inf
         self.create_timer(POLL_PERIOD_S, guarded(self, 'poll', self._on_poll))
         self.create_timer(DIAGNOSTICS_PERIOD_S, guarded(self, 'diagnostics', self._on_tick))
 
@@ -529,6 +538,17 @@ class MagCalibratorNode(Node):
         coverage = self.session.coverage()
         self._log_progress(now, coverage)
         self._publish_diagnostics(now, coverage)
+        self._publish_view(now)
+
+    def _publish_view(self, now: float) -> None:
+        period = float(self.get_parameter('view_period').value)
+        if period <= 0.0 or now - self._last_view < period or not self._view.watched:
+            return
+        self._last_view = now
+        buffer = self.session.buffer
+        view = calibration_view(buffer.samples, buffer.counts, self.session.calibration)
+        self._view.publish(view, self.session.screen.frame_id or 'imu_link',
+                           float(self.get_parameter('view_scale').value))
 
     def _log_progress(self, now: float, coverage: Coverage) -> None:
         period = float(self.get_parameter('progress_log_period').value)
