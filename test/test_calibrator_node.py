@@ -654,3 +654,29 @@ def test_param_dump_shows_the_calibration_and_loads_back(ros, live, tmp_path):
     finally:
         rclpy.try_shutdown(context=context)
     ros.remove(uncalibrated)
+
+
+def test_two_robots_on_one_host_keep_their_own_calibration_files(ros):
+    """Two namespaced driver + calibrator pairs, default files: save both, restart both, each
+    loads its own (they used to share ~/.ros/mag_calibrator/calibration.yaml)."""
+    hard_iron = {'robot1': [120.0, -80.0, 60.0], 'robot2': [-40.0, 150.0, 20.0]}
+    pairs = {}
+    for robot, offset in hard_iron.items():
+        driver = ros.driver(robot, **{'sim.hard_iron_ut': offset, 'sim.motion': 'tumble',
+                                      'sim.seed': 7, 'publish_imu': False})
+        pairs[robot] = (driver, ros.calibrator(robot, progress_log_period=0.0))
+    probe = Probe(ros, 'robot1')
+    for robot, (_, calibrator) in pairs.items():
+        assert wait_for(lambda c=calibrator: c.session.calibration is not None, timeout_s=60.0)
+        assert probe.call(f'/{robot}/mag_calibrator/save').success
+        assert f'{robot}__mag_calibrator.yaml' in str(calibrator._calibration_file())
+    for robot, (driver, calibrator) in pairs.items():
+        ros.remove(calibrator)
+        restarted = ros.calibrator(robot, auto_calibrate=False, progress_log_period=0.0)
+        assert restarted.session.adoptions == {'file': 1}
+        np.testing.assert_allclose(restarted.session.calibration.offset,
+                                   np.array(hard_iron[robot]) * 1e-6, atol=3e-6)
+        assert restarted.session.calibration.metadata['frame_id'] == 'imu_link'
+        ros.remove(restarted)
+        ros.remove(driver)
+    ros.remove(probe)
