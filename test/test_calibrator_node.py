@@ -34,6 +34,7 @@ from mag_calibrator_ros.nodes.runtime import NodeThreads
 HARD_IRON_UT = [120.0, -80.0, 60.0]
 SOFT_IRON = [1.15, 0.10, -0.08, 0.10, 0.85, 0.12, -0.08, 0.12, 1.00]  # strong, symmetric
 WAIT_S = 20.0
+REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
 def wait_for(condition: Callable[[], bool], timeout_s: float = WAIT_S, step_s: float = 0.05
@@ -680,3 +681,27 @@ def test_two_robots_on_one_host_keep_their_own_calibration_files(ros):
         ros.remove(restarted)
         ros.remove(driver)
     ros.remove(probe)
+
+
+def test_the_shipped_config_applies_in_a_namespace_and_matches_the_defaults(tmp_path):
+    """config/mag_calibrator.yaml documents every parameter with its default, and its /** key
+    applies in any namespace (a bare node-name key was silently ignored under a namespace)."""
+    from mag_calibrator_ros.nodes.mag_calibrator import PARAMETERS
+
+    config = REPO_ROOT / 'config' / 'mag_calibrator.yaml'
+    (section,) = yaml.safe_load(config.read_text()).values()
+    shipped = section['ros__parameters']
+    for name, (default, _, _) in PARAMETERS.items():
+        if name != 'calibration_file':  # per node by default: not set in the shipped file
+            assert shipped[name] == default, name
+    changed = tmp_path / 'config.yaml'
+    changed.write_text(config.read_text().replace('buffer_size: 100', 'buffer_size: 150'))
+    context = Context()
+    rclpy.init(args=['--ros-args', '--params-file', str(changed)], context=context)
+    try:
+        node = MagCalibratorNode(context=context, namespace='robot1')
+        assert node.get_parameter('buffer_size').value == 150
+        assert node.session.buffer.capacity == 150
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)

@@ -20,8 +20,9 @@ def guarded(node: Node, name: str, callback: Callable) -> Callable:
         try:
             return callback(*args)
         except Exception:  # noqa: BLE001 - logged; the node must keep serving
-            node.get_logger().error(f'{name} failed:\n{traceback.format_exc()}',
-                                    throttle_duration_sec=5.0)
+            if node.context.ok():  # not a callback caught by shutdown (Ctrl-C, SIGTERM)
+                node.get_logger().error(f'{name} failed:\n{traceback.format_exc()}',
+                                        throttle_duration_sec=5.0)
             return None
 
     return run
