@@ -168,7 +168,7 @@ def shell_directions(
     points = distinct_rows(finite_rows(samples))
     if len(points) == 0:
         return np.empty((0, 3)), ''
-    if max(len(np.unique(column)) for column in points.T) < MIN_LEVELS:
+    if not _has_levels(points, MIN_LEVELS):
         # a few quantisation steps (a still sensor read in counts): any shell fits them exactly
         return np.empty((0, 3)), STILL_HINT if readings_barely_change(points) else FEW_HINT
     evidence = None if readings is None else finite_rows(readings)
@@ -223,12 +223,38 @@ def _is_ring(points: np.ndarray) -> bool:
     return norm is not None and thickness(norm.forward(points))[0] < _RING_THICKNESS
 
 
+def _has_levels(points: np.ndarray, levels: int) -> bool:
+    """True when some axis takes at least ``levels`` distinct values (the first rows usually
+    show it; all of them are sorted only when they do not)."""
+    for column in points.T:
+        if len(np.unique(column[: 8 * levels])) >= levels or len(np.unique(column)) >= levels:
+            return True
+    return False
+
+
+_ROW_HASH = np.array([0x9E3779B97F4A7C15, 0xC2B2AE3D27D4EB4F, 0x165667B19E3779F9], np.uint64)
+
+
 def distinct_rows(points: np.ndarray) -> np.ndarray:
     """The rows without repeats, in their first order: a repeated reading is no new evidence of
-    a shell (and many repeats would make the robust radial scatter zero)."""
+    a shell (and many repeats would make the robust radial scatter zero).
+
+    Rows are grouped by a hash of their bits (one sort of n integers; np.unique(axis=0) sorts
+    the rows themselves, 30 times slower) and compared exactly within a group.
+    """
     if len(points) < 2:
         return points
-    first = np.unique(points, axis=0, return_index=True)[1]
+    rows = np.ascontiguousarray(points, dtype=float) + 0.0  # -0.0 equals 0.0: hash them alike
+    bits = rows.view(np.uint64)
+    key = np.bitwise_xor.reduce(bits * _ROW_HASH, axis=1)
+    order = np.argsort(key, kind='stable')  # a repeat follows its first occurrence
+    key, rows = key[order], rows[order]
+    same_key = key[1:] == key[:-1]
+    same_row = np.all(rows[1:] == rows[:-1], axis=1)
+    if np.any(same_key & ~same_row):  # a hash collision: fall back on sorting the rows
+        first = np.unique(points, axis=0, return_index=True)[1]
+        return points[np.sort(first)]
+    first = order[np.concatenate([[True], ~(same_key & same_row)])]
     return points[np.sort(first)]
 
 
