@@ -1,5 +1,6 @@
 """mag_calibrator_fit end to end: real recordings, every output, every way it must refuse."""
 
+from collections import Counter
 import io
 import json
 import os
@@ -7,13 +8,15 @@ from pathlib import Path
 import subprocess
 import sys
 
+from hypothesis import given
+from hypothesis import strategies as st
 import numpy as np
 import pytest
 from rosbags.rosbag2 import StoragePlugin
 from test_recordings import write_bag
 import yaml
 
-from mag_calibrator_ros.calibration.buffer import SampleBuffer
+from mag_calibrator_ros.calibration.buffer import SampleBuffer, reading_problem
 from mag_calibrator_ros.calibration.calibration_file import load_calibration
 from mag_calibrator_ros.calibration.fitting import FitOptions, fit_calibration
 from mag_calibrator_ros.tools import fit
@@ -240,6 +243,18 @@ def test_all_mode_counts_zero_and_saturated_rows(shared_data, tmp_path, capsys):
     assert code == 0
     assert summary['rejects']['zero'] == 3
     assert summary['rejects']['saturated'] == 2
+
+
+@given(st.lists(st.tuples(*[st.sampled_from([0.0, -0.0, 1.0, -3.5, 400.0, -400.0, 401.0, 1e-300,
+                                               np.nan, np.inf, -np.inf])] * 3),
+                min_size=1, max_size=40),
+       st.sampled_from([None, 400.0, 1.0]))
+def test_all_mode_screens_with_the_buffers_own_rule(rows, full_scale):
+    samples = np.array(rows, dtype=float).reshape(-1, 3)
+    kept, counts = fit.screen_all(samples, full_scale)
+    problems = [reading_problem(*row, full_scale) for row in samples.tolist()]
+    np.testing.assert_array_equal(kept, samples[[problem is None for problem in problems]])
+    assert counts == dict(Counter(problem for problem in problems if problem is not None))
 
 
 # --- failures --------------------------------------------------------------------------------

@@ -206,14 +206,28 @@ def thickness(y: np.ndarray) -> tuple[float, np.ndarray]:
     """
     distance = row_norms(y) - 1.0
     window = max(GROSS_OUTLIER_SIGMAS * robust_sigma(distance), 0.2)
-    kept = y[np.abs(distance) <= window]
-    if len(kept) < 3:
+    kept = np.abs(distance) <= window
+    if np.count_nonzero(kept) < 3:
         return 0.0, np.eye(3)
-    eigenvalues, vectors = np.linalg.eigh(np.cov(kept, rowvar=False))
+    eigenvalues, vectors = np.linalg.eigh(_covariance(y, kept))
     eigenvalues, vectors = eigenvalues[::-1], vectors[:, ::-1]
     if eigenvalues[1] <= 0:
         return 0.0, vectors
     return float(np.sqrt(max(eigenvalues[2], 0.0) / eigenvalues[1])), vectors
+
+
+def _covariance(points: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """np.cov of the rows in ``mask`` (two passes, block by block: no copy of the rows)."""
+    count = int(np.count_nonzero(mask))
+    total = np.zeros(points.shape[1])
+    for span in _spans(len(points)):
+        total += np.compress(mask[span], points[span], axis=0).sum(axis=0)
+    mean = total / count
+    scatter = np.zeros((points.shape[1], points.shape[1]))
+    for span in _spans(len(points)):
+        centred = np.compress(mask[span], points[span], axis=0) - mean
+        scatter += centred.T @ centred
+    return scatter / (count - 1)
 
 
 # -----------------------------------------------------------------------------------------------

@@ -274,7 +274,7 @@ def _usable_rows(samples: ArrayLike) -> tuple[np.ndarray, np.ndarray, str]:
             f'samples must be an (n, 3) array, got shape {array.shape}',
         )
     finite = np.all(np.isfinite(array), axis=1)
-    return array[finite], finite, ''
+    return (array if finite.all() else array[finite]), finite, ''
 
 
 def _usable_weights(weights: ArrayLike, finite: np.ndarray) -> tuple[np.ndarray | None, str]:
@@ -552,12 +552,13 @@ def _coverage(
         if directions.occupied == 0:
             return directions  # a flat noise blob (a still sensor) has headings all round too
         return heading_coverage(fitted.headings[fitted.inliers], fitted.plane_normal)
-    coverage = direction_coverage(rows[fitted.inliers], calibration, readings)
+    inliers = rows if fitted.inliers.all() else rows[fitted.inliers]
+    coverage = direction_coverage(inliers, calibration, readings)
     if coverage.occupied == 0 and calibration is not None:
         # A model too simple for the data (e.g. `axis` under rotated soft iron) leaves a shell too
         # thick to trust its directions; that is the residual gate's finding, not missing
         # rotation. Coverage is a property of the data: judge it by their own whitening.
-        own = direction_coverage(rows[fitted.inliers], None, readings)
+        own = direction_coverage(inliers, None, readings)
         if own.occupied > 0:
             return own
     return coverage
