@@ -7,6 +7,7 @@ import os
 from pathlib import Path
 import subprocess
 import sys
+import warnings
 
 from hypothesis import given
 from hypothesis import strategies as st
@@ -243,6 +244,46 @@ def test_all_mode_counts_zero_and_saturated_rows(shared_data, tmp_path, capsys):
     assert code == 0
     assert summary['rejects']['zero'] == 3
     assert summary['rejects']['saturated'] == 2
+
+
+def imu_log(rng, n=600):
+    """An IMU log: accelerometer (a tumble: g in every direction) then magnetometer (distorted)."""
+    directions = rng.normal(size=(n, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    accel = 9.81 * directions[rng.permutation(n)] + rng.normal(0.0, 0.05, (n, 3))
+    offset = np.array([30.0, -20.0, 45.0])
+    mag = 50.0 * directions @ np.diag([1.1, 0.95, 1.0]) + offset + rng.normal(0.0, 0.3, (n, 3))
+    return np.hstack([accel, mag]), offset
+
+
+@pytest.mark.parametrize('mode', ['buffer', 'all'])
+@pytest.mark.parametrize('value', [1.7e308, -1.7e308, 1e308])
+def test_values_beyond_any_unit_are_named_as_such_without_warnings(tmp_path, capsys, mode,
+                                                                  value):
+    rng = np.random.default_rng(72)
+    rows = value * np.sign(rng.normal(size=(200, 3))) * rng.uniform(0.5, 1.0, (200, 3))
+    path = tmp_path / 'huge.txt'
+    np.savetxt(path, rows)
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')
+        code = main([str(path), *mode_args(mode)])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert 'beyond' in err and 'identical' not in err and 'Warning' not in err
+    assert len(err.splitlines()) == 1
+
+
+def test_extreme_but_valid_scales_calibrate_without_warnings(tmp_path, capsys):
+    rows, offset = imu_log(np.random.default_rng(73))
+    path = tmp_path / 'tiny.txt'
+    np.savetxt(path, rows[:, 3:] * 1e-300)
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')
+        for mode in ('buffer', 'all'):
+            code, summary, err = run_json(capsys, [str(path), *mode_args(mode)])
+            assert code == 0, summary['reason']
+            assert err == ''
+            np.testing.assert_allclose(np.array(summary['offset']) * 1e300, offset, atol=0.5)
 
 
 @given(st.lists(st.tuples(*[st.sampled_from([0.0, -0.0, 1.0, -3.5, 400.0, -400.0, 401.0, 1e-300,

@@ -8,6 +8,7 @@ import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
+from mag_calibrator_ros.calibration.fitting import LARGEST_READING
 from mag_calibrator_ros.tools.recordings import (
     MAGNETIC_FIELD,
     Recording,
@@ -94,6 +95,16 @@ def test_garbage_nan_and_inf_rows_are_skipped_and_counted(tmp_path):
     assert recording.skipped == {'comment': 1, 'header': 1, 'non_finite': 2,
                                  'wrong_field_count': 3, 'not_numeric': 1}
     assert recording.rows_skipped == 8
+
+
+def test_out_of_range_rows_are_skipped_and_counted(tmp_path):
+    text = f'1,2,3\n1.7e308,2,3\n4,5,6\n{LARGEST_READING * 1.01:.17g},0,0\n'
+    recording = read(tmp_path, text)
+    np.testing.assert_array_equal(recording.samples, [[1, 2, 3], [4, 5, 6]])
+    assert recording.skipped == {'out_of_range': 2}
+    assert 'beyond' in recording.describe()
+    with pytest.raises(RecordingError, match='no usable rows.*2 beyond'):
+        read(tmp_path, '1.7e308,2,3\n-1.7e308,2,3\n')
 
 
 def test_stdin_is_read_with_dash():

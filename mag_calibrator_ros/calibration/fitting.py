@@ -39,6 +39,11 @@ from mag_calibrator_ros.calibration.ellipsoid import (
 _HUGE = sys.float_info.max
 """Stands in for an infinite condition number or axis ratio: results never carry inf or NaN."""
 
+LARGEST_READING = sys.float_info.max / 4
+"""Readings beyond this magnitude (4.5e307) are refused: differences between them, which every fit
+takes, overflow float64. No magnetometer reads anything near it in any unit (a tesla reading in
+femtotesla is 1e11); such numbers come from wrong columns or a corrupt log."""
+
 GATE_MARGIN = 0.2
 """A fit that took the fast path (see ellipsoid.py) stands only when it passes every gate by more
 than this share of the way from the ideal value (residual 0, condition and axis ratio 1, coverage
@@ -190,6 +195,15 @@ def fit_calibration(
             f'no usable samples: all {n_bad} rows contain NaN or Inf' if n_bad else 'no samples'
         )
         return _failure(options, reason, finite, 0, n_bad)
+    largest = float(np.max(np.abs(rows)))
+    if largest > LARGEST_READING:
+        return _failure(
+            options,
+            f'samples reach {largest:.3g}, beyond {LARGEST_READING:.2g} where the differences '
+            'between readings overflow: these are no magnetometer readings in any unit (wrong '
+            'columns, a corrupt log?)',
+            finite, n, n_bad,
+        )  # fmt: skip
     norm = normalise(rows)
     if norm is None:
         return _failure(

@@ -167,7 +167,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as stop:  # --help (0) or a usage error (2, already printed)
         return int(stop.code) if isinstance(stop.code, int) else EXIT_USAGE
     try:
-        return run(args)
+        with np.errstate(all='ignore'):  # results are judged (finite, gated), never warned about
+            return run(args)
     except (UsageError, RecordingError, CalibrationFileError) as error:
         _error(str(error))
         return EXIT_USAGE

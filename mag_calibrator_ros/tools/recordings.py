@@ -30,6 +30,8 @@ from typing import TextIO
 
 import numpy as np
 
+from mag_calibrator_ros.calibration.fitting import LARGEST_READING
+
 MAGNETIC_FIELD = 'sensor_msgs/msg/MagneticField'
 BAG_SUFFIXES = ('.db3', '.mcap')
 BINARY_CONTROL_FRACTION = 0.1
@@ -49,6 +51,7 @@ SKIP_REASONS = {
     'too_few_fields': 'too few fields for the chosen columns',
     'not_numeric': 'not numeric',
     'non_finite': 'NaN/Inf',
+    'out_of_range': f'beyond ±{LARGEST_READING:.2g} (no reading in any unit)',
     'undecodable': 'undecodable message',
 }
 """Why a line or message was skipped: key -> words for the summary."""
@@ -331,6 +334,8 @@ def _parse_line(
     x, y, z = values
     if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
         return 'non_finite', None
+    if max(abs(x), abs(y), abs(z)) > LARGEST_READING:
+        return 'out_of_range', None
     return '', (x, y, z)  # type: ignore[return-value]
 
 
@@ -368,10 +373,12 @@ def read_rosbag(
                     skipped['undecodable'] += 1
                     continue
                 row = (float(vector.x), float(vector.y), float(vector.z))
-                if np.all(np.isfinite(row)):
-                    rows.append(row)
-                else:
+                if not np.all(np.isfinite(row)):
                     skipped['non_finite'] += 1
+                elif max(map(abs, row)) > LARGEST_READING:
+                    skipped['out_of_range'] += 1
+                else:
+                    rows.append(row)
             if progress is not None:
                 progress(count, count)
     except RecordingError:
