@@ -257,6 +257,29 @@ def imu_log(rng, n=600):
 
 
 @pytest.mark.parametrize('mode', ['buffer', 'all'])
+def test_header_names_pick_the_magnetometer_not_the_accelerometer(tmp_path, capsys, mode):
+    rows, offset = imu_log(np.random.default_rng(70))
+    path = tmp_path / 'imu.csv'
+    np.savetxt(path, rows, delimiter=',', header='ax,ay,az,mx,my,mz', comments='', fmt='%.5f')
+    code, summary, err = run_json(capsys, [str(path), *mode_args(mode)])
+    assert code == 0, summary['reason']
+    assert err == ''
+    assert 'mx,my,mz (fields 3,4,5)' in summary['input']['layout']
+    np.testing.assert_allclose(summary['offset'], offset, atol=0.5)
+    assert summary['field_strength'] == pytest.approx(50.0, rel=0.1)
+
+
+def test_unnamed_imu_columns_ask_for_columns_instead_of_fitting_the_accelerometer(tmp_path,
+                                                                                     capsys):
+    rows, _ = imu_log(np.random.default_rng(71))
+    path = tmp_path / 'imu.csv'
+    np.savetxt(path, rows, delimiter=',', fmt='%.5f')
+    assert_usage_error(capsys, [str(path), '--all'], '6 numeric fields', '--columns')
+    code, summary, _ = run_json(capsys, [str(path), '--all', '--columns', '3,4,5'])
+    assert code == 0 and summary['field_strength'] == pytest.approx(50.0, rel=0.1)
+
+
+@pytest.mark.parametrize('mode', ['buffer', 'all'])
 @pytest.mark.parametrize('value', [1.7e308, -1.7e308, 1e308])
 def test_values_beyond_any_unit_are_named_as_such_without_warnings(tmp_path, capsys, mode,
                                                                   value):
