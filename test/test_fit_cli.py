@@ -483,6 +483,30 @@ def test_progress_bar_only_on_a_terminal_outside_ci(monkeypatch):
     assert ci.getvalue() == ''
 
 
+# --- start-up --------------------------------------------------------------------------------
+
+
+STARTUP_CHECK = """
+import sys
+from mag_calibrator_ros.tools.fit import main
+import mag_calibrator_ros.nodes.icm20948_driver, mag_calibrator_ros.nodes.mag_calibrator
+import mag_calibrator_ros.tools.demo
+codes = [main(['--help']), main(['--model', 'nope', 'x.txt']), main(['--all', '--k', '3', 'x'])]
+heavy = sorted({name.split('.')[0] + '.' + name.split('.')[1] for name in sys.modules
+                if name.startswith(('scipy.optimize', 'scipy.spatial', 'matplotlib.'))})
+print(codes, heavy)
+"""
+
+
+def test_help_argument_errors_and_node_modules_import_no_scipy_optimize_or_matplotlib():
+    """--help, usage errors and the nodes' start-up never pay for the fit's or the plot's
+    imports (scipy.optimize alone took 0.4 s); they come when a fit or a figure needs them."""
+    result = subprocess.run([sys.executable, '-c', STARTUP_CHECK], capture_output=True,
+                            text=True, timeout=120, check=False)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip().splitlines()[-1] == '[0, 2, 2] []'
+
+
 # --- the installed console script --------------------------------------------------------------
 
 
