@@ -104,7 +104,7 @@ value to rounding; the condition and parameter errors are then taken from a QR f
 
 _MAD_TO_SIGMA = 1.4826
 _LEAST_SQUARES_ITERATIONS = 100
-_LEAST_SQUARES_TOLERANCE = 1e-10
+_LEAST_SQUARES_TOLERANCE = 1e-12
 _ROBUST_ITERATIONS = 50
 _ROBUST_TOLERANCE = 1e-8
 
@@ -659,9 +659,19 @@ def _minimise(
         params, cost = trial, trial_cost
         residuals, normal, gradient = evaluated
         damping = 0.0 if damping < 1e-5 else damping / 10.0
-        if converged:
-            break
+        if converged or _predicted_reduction(normal, gradient) <= tolerance * cost:
+            break  # (the second test spares a pass that would move nothing: Gauss-Newton from an
+            # algebraic start is there after one or two steps)
     return params, residuals, normal
+
+
+def _predicted_reduction(normal: np.ndarray, gradient: np.ndarray) -> float:
+    """The loss a full Gauss–Newton step would remove (gᵀ (JᵀJ)⁻¹ g), inf when unknown."""
+    try:
+        reduction = float(gradient @ np.linalg.solve(normal, gradient))
+    except np.linalg.LinAlgError:
+        return np.inf
+    return reduction if np.isfinite(reduction) else np.inf
 
 
 @dataclass(frozen=True)
@@ -875,8 +885,10 @@ def fit_ellipsoids(
     normalised: tuple[Normalisation, np.ndarray] | None = None,
 ) -> dict[str, EllipsoidFit | None]:
     """fit_ellipsoid for several models of the same points (``auto``): the normalisation and
-    the algebraic moments are computed once. ``normalised``: ``normalise(points)`` and its
-    ``forward(points)`` when the caller has them."""
+    the algebraic moments are computed once, and when a well-determined ``full`` took the robust
+    path, the sphere's robust fit starts from the sphere through full's inliers (the spikes are
+    the same points whatever the model) instead of a trimmed start of its own. ``normalised``:
+    ``normalise(points)`` and its ``forward(points)`` when the caller has them."""
     for model in models:
         if model not in FIT_MODELS:
             raise ValueError(f'unknown fit model {model!r}; expected one of {FIT_MODELS}')
@@ -889,7 +901,8 @@ def fit_ellipsoids(
         if norm is None:
             return fits
         gram = None
-        for model in wanted:
+        spike_free = None  # full's inliers, when its robust path judged them
+        for model in sorted(wanted, key=lambda name: name != 'full'):
             try:
                 if model == 'planar':
                     fits[model] = _fit_planar(
@@ -900,13 +913,23 @@ def fit_ellipsoids(
                     y = norm.forward(points)
                 if gram is None and not always_robust and model != 'axis':
                     gram = moments(y, weights)
-                fitted = _fit_3d(y, model, outlier_threshold, weights, always_robust, gram)
+                fitted = _fit_3d(
+                    y, model, outlier_threshold, weights, always_robust, gram, spike_free
+                )
             except (np.linalg.LinAlgError, ValueError):
                 continue
+            if (model == 'full' and fitted is not None and fitted.robust
+                    and fitted.condition <= SHARED_START_CONDITION):
+                spike_free = fitted.inliers
             if fitted is not None:
                 fits[model] = _to_input_units(fitted, norm, model)
     return fits
 
+
+SHARED_START_CONDITION = 100.0
+"""``full`` fits up to this condition number share their inliers as the sphere's robust start:
+data that determine the ellipsoid determine the sphere's one minimum, which any spike-free start
+reaches; an ill-posed arc has several, and keeps its own trimmed start."""
 
 _AXIS_PARAMETERS = np.array([0, 1, 2, 3, 6, 8])
 """b and the diagonal of M among [b, upper(M)]: the axis model's own parameters."""
@@ -919,7 +942,10 @@ def _fit_3d(
     weights: np.ndarray | None = None,
     always_robust: bool = False,
     gram: np.ndarray | None = None,
+    spike_free: np.ndarray | None = None,
 ) -> _Refined | None:
+    """``spike_free``: inliers of a robust full fit, the sphere's robust start (see
+    fit_ellipsoids)."""
     if model == 'axis':
         solved = axis_least_squares(y, weights)
         if solved is None:
@@ -949,7 +975,11 @@ def _fit_3d(
             fast = _refine(y, *plain, spherical, outlier_threshold, weights=weights, robust=False)
             if fast is not None:
                 return fast
-    start = trimmed_start(y, algebraic, outlier_threshold, weights)
+    start = None
+    if spherical and spike_free is not None and np.count_nonzero(spike_free) >= 8:
+        start = _sphere_start(y[spike_free], _part(weights, spike_free))
+    if start is None:
+        start = trimmed_start(y, algebraic, outlier_threshold, weights)
     if start is None and not spherical:  # the sphere is the next start, as robustly found
         start = trimmed_start(y, _sphere_start, outlier_threshold, weights)
     if start is None:  # the unit sphere about the median: the normalisation put the data there
