@@ -408,6 +408,11 @@ TRIMMED_SHARE = 0.6
 (a buffer that keeps far-out samples can hold that many) cannot pull it."""
 _TRIMMED_MEDIAN = NormalDist().inv_cdf(0.5 + TRIMMED_SHARE / 4)
 
+SETTLED_CHANGE = 1e-3
+"""A concentration step that moves the centre and matrix by less than this (0.1 % of the
+normalised radius) ends the trimming: on many points thousands swap across the 60 % border from
+step to step without moving the fit, and the robust fit that follows finds its own minimum."""
+
 Algebraic = Callable[[np.ndarray, np.ndarray | None], tuple[np.ndarray, np.ndarray] | None]
 
 
@@ -421,8 +426,9 @@ def trimmed_start(
 
     Least trimmed squares by concentration steps: from the unit sphere about the median (where
     the normalisation put the data), fit the ``TRIMMED_SHARE`` of points closest to the current
-    surface, repeat until that set settles; then refit once on every point within ``threshold``
-    robust sigmas of it, for an efficient start when there are few outliers.
+    surface, repeat until that set or the fit settles (SETTLED_CHANGE); then refit once on every
+    point within ``threshold`` robust sigmas of it, for an efficient start when there are few
+    outliers.
     """
     d = points.shape[1]
     n_needed = 2 * (d + 1 + d * (d + 1) // 2)
@@ -443,7 +449,10 @@ def trimmed_start(
         fitted = algebraic(points[kept], _part(weights, kept))
         if fitted is None or _ratio(fitted[1]) > 10.0:
             break
+        moved = max(np.max(np.abs(fitted[0] - centre)), np.max(np.abs(fitted[1] - matrix)))
         best = centre, matrix = fitted
+        if moved <= SETTLED_CHANGE:
+            break  # the fit stands still while points on the trimming border keep swapping
     if best is None:
         return None
     residuals = radial_residuals(points, centre, matrix)
@@ -580,17 +589,22 @@ class _Geometric:
         weights: np.ndarray | None = None,
         f_scale: float | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """One pass: every row's residual ``e``, and ``JᵀUJ``, ``JᵀUe`` over the rows in
-        ``mask``, U the weights (1 without) times, for soft-L1 of scale ``f_scale``, the
-        loss's slope ``1 / sqrt(1 + e²/f²)`` (iteratively reweighted least squares)."""
+        """One pass: every row's residual ``e``, and the Gauss–Newton system over the rows in
+        ``mask`` (weights W, 1 without): ``JᵀWJ`` and ``JᵀWe`` for least squares; for soft-L1
+        of scale ``f_scale``, with ``s = 1 + e²/f²``, the curvature ``JᵀW s^-1.5 J`` and the
+        gradient ``JᵀW s^-0.5 e`` of its loss (the loss's second derivative included, as scipy's
+        least_squares does: far fewer steps than plain reweighting when residuals are large)."""
         size = len(self.pack(*self.unpack(params)))
         residuals = np.empty(len(self.points))
-        augmented = np.zeros((size + 1, size + 1))  # [J e]ᵀ U [J e]: one product per block
+        augmented = np.zeros((size + 1, size + 1))  # [J e']ᵀ U [J e']: one product per block
         for span, block_residuals, jacobian, row_weights in self._blocks(params, mask, weights):
             residuals[span] = block_residuals
+            scaled = block_residuals
             if f_scale is not None:
-                row_weights = row_weights / np.sqrt(1.0 + (block_residuals / f_scale) ** 2)
-            augmented += _gram(np.column_stack([jacobian, block_residuals]), row_weights)
+                stretch = 1.0 + (block_residuals / f_scale) ** 2
+                row_weights = row_weights / (stretch * np.sqrt(stretch))
+                scaled = block_residuals * stretch
+            augmented += _gram(np.column_stack([jacobian, scaled]), row_weights)
         return residuals, augmented[:size, :size], augmented[:size, size]
 
     def triangular_factor(
