@@ -24,7 +24,6 @@ import os
 from pathlib import Path
 import random
 import resource
-import signal
 import subprocess
 import sys
 import tempfile
@@ -38,6 +37,7 @@ from mag_calibrator_ros.calibration.fitting import FitOptions, fit_calibration
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from bench_node import _stop as stop_process  # noqa: E402  (SIGINT, then kill)
 from scenarios import (  # noqa: E402
     FIELD_UT,
     NOISE_UT,
@@ -247,16 +247,6 @@ class _Probe:
         self._rclpy.try_shutdown()
 
 
-def _stop(process: subprocess.Popen) -> None:
-    if process.poll() is None:
-        process.send_signal(signal.SIGINT)
-        try:
-            process.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
-
-
 def _start_to_first(probe: _Probe, command: list[str], topic: str, feed: bool) -> float:
     probe.reset()
     probe.feeding = feed
@@ -271,7 +261,7 @@ def _start_to_first(probe: _Probe, command: list[str], topic: str, feed: bool) -
         return probe.first(topic) - start
     finally:
         probe.feeding = False
-        _stop(process)
+        stop_process(process)
         time.sleep(0.3)  # let the topic's last messages drain before the next start
 
 

@@ -89,37 +89,34 @@ def test_auto_shares_one_normalisation_and_gives_each_models_own_fit():
         np.testing.assert_array_equal(together[model].inliers, alone.inliers)
 
 
-def test_a_fast_fit_near_a_gate_is_redone_on_the_robust_path(monkeypatch):
+@pytest.fixture
+def robust_flags(monkeypatch):
+    """The ``always_robust`` of every fit_ellipsoids call fit_calibration makes."""
+    calls = []
+    original = ellipsoid.fit_ellipsoids
+
+    def spy(*args, **kwargs):
+        calls.append(args[5] if len(args) > 5 else kwargs.get('always_robust', False))
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr('mag_calibrator_ros.calibration.fitting.fit_ellipsoids', spy)
+    return calls
+
+
+def test_a_fast_fit_near_a_gate_is_redone_on_the_robust_path(robust_flags):
     """Noise at 4.3 % of the field: the residual gate (5 %) is near, so the decision must come
     from the robust fit, exactly as if the fast path did not exist."""
     raw = clean_tumble(11, n=600, noise=0.043 * 50.0)
-    calls = []
-    original = ellipsoid.fit_ellipsoids
-
-    def spy(*args, **kwargs):
-        calls.append(args[5] if len(args) > 5 else kwargs.get('always_robust', False))
-        return original(*args, **kwargs)
-
-    monkeypatch.setattr('mag_calibrator_ros.calibration.fitting.fit_ellipsoids', spy)
     result = fit_calibration(raw, FitOptions(model='full'))
-    assert calls == [False, True]
-    robust = original(raw / 2 ** round(np.log2(ellipsoid.normalise(raw).scale)), ('full',),
-                      always_robust=True)['full']
+    assert robust_flags == [False, True]
+    unit = 2 ** round(np.log2(ellipsoid.normalise(raw).scale))
+    robust = fit_ellipsoid(raw / unit, 'full', always_robust=True)
     assert result.metrics.n_inliers == int(robust.inliers.sum())
 
 
-def test_a_fast_fit_far_from_every_gate_stands(monkeypatch):
-    raw = clean_tumble(12)
-    calls = []
-    original = ellipsoid.fit_ellipsoids
-
-    def spy(*args, **kwargs):
-        calls.append(args[5] if len(args) > 5 else kwargs.get('always_robust', False))
-        return original(*args, **kwargs)
-
-    monkeypatch.setattr('mag_calibrator_ros.calibration.fitting.fit_ellipsoids', spy)
-    result = fit_calibration(raw, FitOptions(model='full'))
-    assert result.success and calls == [False]
+def test_a_fast_fit_far_from_every_gate_stands(robust_flags):
+    result = fit_calibration(clean_tumble(12), FitOptions(model='full'))
+    assert result.success and robust_flags == [False]
 
 
 # ----------------------------------------------------------------------------------------------
