@@ -277,6 +277,23 @@ def _start_to_first(probe: _Probe, command: list[str], topic: str, feed: bool) -
         time.sleep(0.3)  # let the topic's last messages drain before the next start
 
 
+BARE_PUBLISHER = """
+import rclpy
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import MagneticField
+
+rclpy.init()
+node = rclpy.create_node('bare_publisher')
+publisher = node.create_publisher(MagneticField, 'imu/mag', QoSProfile(
+    depth=10, reliability=ReliabilityPolicy.RELIABLE))
+node.create_timer(0.01, lambda: publisher.publish(MagneticField()))
+try:
+    rclpy.spin(node)
+except BaseException:
+    pass
+"""
+
+
 def node_speed(quick: bool) -> tuple[list[list[str]], dict]:
     os.environ.setdefault('ROS_DOMAIN_ID', str(random.SystemRandom().randint(150, 200)))
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
@@ -295,7 +312,11 @@ def node_speed(quick: bool) -> tuple[list[list[str]], dict]:
 
             calibration_file = Path(directory) / 'calibration.yaml'
             save_calibration(calibration_file, Calibration(np.zeros(3), np.eye(3), 50e-6))
+            bare = Path(directory) / 'bare_publisher.py'
+            bare.write_text(BARE_PUBLISHER)
             cases = {
+                'bare rclpy publisher (the floor: interpreter, rclpy, discovery) -> imu/mag': (
+                    [sys.executable, str(bare)], 'imu/mag', False),
                 'icm20948_driver (sim) -> first imu/mag': (
                     [str(BIN / 'icm20948_driver'), '--ros-args', '-p', 'backend:=sim',
                      '--log-level', 'warn'], 'imu/mag', False),
@@ -305,6 +326,11 @@ def node_speed(quick: bool) -> tuple[list[list[str]], dict]:
                      '--log-level', 'warn'], 'imu/mag_corrected', True),
             }
             for name, (command, topic, feed) in cases.items():
+                if name.startswith('bare'):
+                    times = [_start_to_first(probe, command, topic, feed) for _ in range(repeats)]
+                    rows_out.append([name, f'{np.nanmedian(times):.3f} s (min '
+                                     f'{np.nanmin(times):.3f})', str(repeats)])
+                    continue
                 times = [_start_to_first(probe, command, topic, feed) for _ in range(repeats)]
                 verdicts[name] = float(np.nanmedian(times)) if not np.all(np.isnan(times)) \
                     else math.nan
@@ -344,8 +370,8 @@ def speed_main(quick: bool, markdown: bool, print_table: Callable, table_type: t
                        ['run', 'wall', 'runs'], node_rows)
     table.notes = [f'real DDS on localhost, ROS_DOMAIN_ID={os.environ.get("ROS_DOMAIN_ID")}; '
                    'includes the interpreter, imports, rclpy init, parameters and discovery, '
-                   'which alone varies from run to run (the same driver start measured 0.8 s '
-                   'and 2.4 s): read the min as the start-up, the median as what a launch sees']
+                   'which alone varies from run to run here (0.4 s or 2.5 s for the bare '
+                   'publisher): compare each node with that floor']
     print_table(table, markdown)
 
     lines = []
