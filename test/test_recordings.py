@@ -172,7 +172,8 @@ def test_out_of_range_rows_are_skipped_and_counted(tmp_path):
 
 
 TOKENS = ['1', '-2.5', '3e2', '.5', '+7', 'nan', 'inf', '-Infinity', '1e309', '1.7e308', '1_0',
-          '0x10', 'abc', '"4"', "'5'", '', '1,', '#', '%9', '//', 'Mx', '1.5f', '١']
+          '0x10', 'abc', '"4"', "'5'", '', '1,', '#', '%9', '//', 'Mx', '1.5f', '١', 'iNf', '-0',
+          '1.', '.', '-.', 'e5', '1e', '+nan', '1e-400', ' 2 ', '0x1p3', '1d3', '"1,2"']
 
 
 @given(st.lists(st.lists(st.sampled_from(TOKENS), min_size=0, max_size=6), max_size=30),
