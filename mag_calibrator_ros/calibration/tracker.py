@@ -32,7 +32,6 @@ import math
 
 import numpy as np
 from numpy.typing import ArrayLike
-import scipy.linalg
 
 from mag_calibrator_ros.calibration.calibration import Calibration
 
@@ -116,6 +115,8 @@ class OnlineTracker:
             self._rotation = np.eye(3)
             matrix = 0.5 * (matrix + matrix.T)
         else:
+            import scipy.linalg  # only for a rotated start: 0.2 s off every node's start-up
+
             self._rotation, matrix = scipy.linalg.polar(matrix, side='right')
             matrix = 0.5 * (matrix + matrix.T)
         eigenvalues = np.linalg.eigvalsh(matrix)

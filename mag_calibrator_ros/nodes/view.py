@@ -12,7 +12,6 @@ from geometry_msgs.msg import Point
 import numpy as np
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
@@ -43,6 +42,8 @@ def _ellipsoid(header: Header, marker_id: int, namespace: str, surface: Surface,
                     action=Marker.ADD, color=color)
     centre = surface.centre * scale
     marker.pose.position.x, marker.pose.position.y, marker.pose.position.z = centre.tolist()
+    from scipy.spatial.transform import Rotation  # only once someone watches: not at start-up
+
     x, y, z, w = Rotation.from_matrix(surface.rotation).as_quat()
     marker.pose.orientation.x, marker.pose.orientation.y = float(x), float(y)
     marker.pose.orientation.z, marker.pose.orientation.w = float(z), float(w)

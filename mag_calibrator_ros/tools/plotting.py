@@ -20,13 +20,15 @@ state, safe from any thread.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
 import numpy as np
 from numpy.typing import ArrayLike
 
 from mag_calibrator_ros.calibration.calibration import Calibration
+
+if TYPE_CHECKING:  # matplotlib (0.3 s) is imported when a figure is drawn, not with this module
+    from matplotlib.figure import Figure
 
 MAX_POINTS = 5000
 """Points drawn per panel; longer recordings are thinned evenly (the fit still used every one)."""
@@ -80,6 +82,9 @@ def calibration_figure(
             mask = given
     keep = _thin(np.flatnonzero(finite))
     samples, mask = samples[keep], mask[keep]
+
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
     rows = 1 if calibration is None else 2
     figure = Figure(figsize=(21, 4.3 * rows + 0.6), layout='constrained')
