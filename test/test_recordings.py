@@ -11,7 +11,7 @@ import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from mag_calibrator_ros.calibration.fitting import LARGEST_READING
+from mag_calibrator_ros.calibration.screening import MAX_READING
 from mag_calibrator_ros.tools import recordings
 from mag_calibrator_ros.tools.recordings import (
     MAGNETIC_FIELD,
@@ -162,7 +162,7 @@ def test_column_roles_also_find_the_accelerometer_and_gyroscope():
 
 
 def test_out_of_range_rows_are_skipped_and_counted(tmp_path):
-    text = f'1,2,3\n1.7e308,2,3\n4,5,6\n{LARGEST_READING * 1.01:.17g},0,0\n'
+    text = f'1,2,3\n1.7e308,2,3\n4,5,6\n{MAX_READING * 1.01:.17g},0,0\n'
     recording = read(tmp_path, text)
     np.testing.assert_array_equal(recording.samples, [[1, 2, 3], [4, 5, 6]])
     assert recording.skipped == {'out_of_range': 2}

@@ -19,7 +19,7 @@ rosbag2 (a bag directory, or a single ``.db3`` / ``.mcap`` file): the
 Values are tesla (REP-103).
 
 Nothing is dropped silently: every skipped line or message is counted by reason in
-``Recording.skipped`` (NaN/Inf, values beyond ``fitting.LARGEST_READING``, ...). Problems a user
+``Recording.skipped`` (NaN/Inf, values beyond ``screening.MAX_READING``, ...). Problems a user
 must fix raise ``RecordingError`` with a one-line message naming the source and what is wrong.
 """
 
@@ -38,7 +38,7 @@ import warnings
 
 import numpy as np
 
-from mag_calibrator_ros.calibration.fitting import LARGEST_READING
+from mag_calibrator_ros.calibration.screening import MAX_READING
 
 MAGNETIC_FIELD = 'sensor_msgs/msg/MagneticField'
 BAG_SUFFIXES = ('.db3', '.mcap')
@@ -61,7 +61,7 @@ SKIP_REASONS = {
     'too_few_fields': 'too few fields for the chosen columns',
     'not_numeric': 'not numeric',
     'non_finite': 'NaN/Inf',
-    'out_of_range': f'beyond ±{LARGEST_READING:.2g} (no reading in any unit)',
+    'out_of_range': f'beyond ±{MAX_READING:.0e} (no magnetometer reads that in any unit)',
     'undecodable': 'undecodable message',
 }
 """Why a line or message was skipped: key -> words for the summary."""
@@ -600,10 +600,10 @@ def _parse_block(
 
 
 def _screen_rows(rows: np.ndarray) -> tuple[np.ndarray, Counter[str]]:
-    """Drop rows with a NaN/Inf or a value beyond LARGEST_READING, counted."""
+    """Drop rows with a NaN/Inf or a value beyond MAX_READING, counted."""
     skipped: Counter[str] = Counter()
     finite = np.all(np.isfinite(rows), axis=1)
-    in_range = np.all(np.abs(rows) <= LARGEST_READING, axis=1)  # False for NaN too
+    in_range = np.all(np.abs(rows) <= MAX_READING, axis=1)  # False for NaN too
     skipped['non_finite'] = int(np.count_nonzero(~finite))
     skipped['out_of_range'] = int(np.count_nonzero(finite & ~in_range))
     return (rows if in_range.all() else rows[in_range]), skipped
@@ -645,7 +645,7 @@ def _parse_line(
     x, y, z = values
     if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
         return 'non_finite', None
-    if max(abs(x), abs(y), abs(z)) > LARGEST_READING:
+    if max(abs(x), abs(y), abs(z)) > MAX_READING:
         return 'out_of_range', None
     return '', (x, y, z)  # type: ignore[return-value]
 
