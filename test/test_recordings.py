@@ -428,3 +428,20 @@ def test_corrupt_bag_is_a_one_line_error(tmp_path):
     assert '\n' not in str(error.value)
     with pytest.raises(RecordingError, match='no such file or bag directory'):
         read_recording(tmp_path / 'absent.mcap')
+
+
+def test_a_bag_without_the_rosbags_library_says_how_to_get_it(tmp_path, monkeypatch):
+    import builtins
+
+    real_import = builtins.__import__
+
+    def no_rosbags(name, *args, **kwargs):
+        if name.startswith('rosbags'):
+            raise ImportError(f'No module named {name!r}')
+        return real_import(name, *args, **kwargs)
+
+    bag = tmp_path / 'bag.mcap'
+    bag.write_bytes(b'\x89MCAP0\r\n')
+    monkeypatch.setattr(builtins, '__import__', no_rosbags)
+    with pytest.raises(RecordingError, match='pip install rosbags'):
+        read_recording(bag)

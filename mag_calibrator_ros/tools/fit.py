@@ -117,7 +117,8 @@ def build_parser() -> argparse.ArgumentParser:
                         'or - for text on stdin')
     parser.add_argument('--model', choices=MODELS, default=DEFAULT_OPTIONS.model,
                         help='calibration model: full (hard + symmetric soft iron), axis (the '
-                        "brief's axis-aligned least squares), sphere (hard iron only), planar "
+                        'axis-aligned least squares of mag-calibrator-rs), sphere (hard iron '
+                        'only), planar '
                         '(motion in one plane, e.g. a ground robot turning in place), auto '
                         '(chosen by an information criterion; default)')
     mode = parser.add_mutually_exclusive_group()
@@ -133,7 +134,7 @@ def build_parser() -> argparse.ArgumentParser:
     strength.add_argument('--field-strength', type=float, metavar='F', default=None,
                           help='|corrected| = F in input units (default: the fitted mean radius)')
     strength.add_argument('--normalise', '--normalize', action='store_true',
-                          help="F = 1 (unit-length corrected field, as the brief's library)")
+                          help='F = 1 (unit-length corrected field, as mag-calibrator-rs)')
     parser.add_argument('--rate', type=float, metavar='HZ', default=DEFAULT_RATE_HZ,
                         help='sample rate of the recording: the live session times its fits by '
                         f'message stamps, replayed here at HZ (default {DEFAULT_RATE_HZ:g})')

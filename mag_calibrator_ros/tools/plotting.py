@@ -1,9 +1,10 @@
 """Before/after pictures of a magnetometer calibration, as PNG files (no display needed).
 
 Top row: the raw samples; bottom row: the corrected samples ``M (raw - b)``. Columns: the XY, YZ
-and ZX projections with the reference circle of radius F about the origin (as in the brief's
-notebook figures), a 3-D view with the sphere of radius F, and |field|/F per sample (raw: about
-the fitted centre) with its spread. A good calibration puts the corrected points on the circles
+and ZX projections with the reference circle of radius F about the origin (as in the figures of
+the gradient-descent notebook, github.com/antsundq/Magnetometer-Auto-Calibration), a 3-D view
+with the sphere of radius F, and |field|/F per sample (raw: about the fitted centre) with its
+spread. A good calibration puts the corrected points on the circles
 and on the sphere of radius F; the raw row shows how far off the sensor was (the fitted centre
 ``b`` is marked). Outliers found by the fit are drawn as red crosses.
 

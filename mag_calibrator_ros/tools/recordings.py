@@ -657,8 +657,14 @@ def read_rosbag(
     path: Path, *, topic: str | None = None, progress: ProgressCallback | None = None,
 ) -> Recording:
     """Read ``magnetic_field`` of every message on a MagneticField topic of a rosbag2 bag."""
-    from rosbags.rosbag2 import Reader, ReaderError
-    from rosbags.typesys import Stores, get_typestore
+    try:  # only bags need it (and apt ROS users may not have it: README, rosdep#979)
+        from rosbags.rosbag2 import Reader, ReaderError
+        from rosbags.typesys import Stores, get_typestore
+    except ImportError as error:
+        raise RecordingError(
+            f'{path}: reading rosbag2 bags needs the rosbags library ({error}): '
+            'pip install rosbags (in a venv, or --user --break-system-packages on Ubuntu 24.04)'
+        ) from None
 
     if not path.exists():
         raise RecordingError(f'{path}: no such file or bag directory')
