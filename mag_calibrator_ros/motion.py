@@ -21,9 +21,24 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+
+if TYPE_CHECKING:
+    from scipy.spatial.transform import Rotation
+else:
+
+    class _LazyRotation:
+        """scipy's Rotation, imported on first use: scipy.spatial costs 0.5 s, and a node that
+        never simulates (a driver on real hardware) never needs it."""
+
+        def __getattr__(self, name: str) -> object:
+            from scipy.spatial.transform import Rotation
+
+            return getattr(Rotation, name)
+
+    Rotation = _LazyRotation()
 
 TRAJECTORY_KINDS = ('tumble', 'yaw', 'still', 'poses')
 ZERO3 = np.zeros(3)

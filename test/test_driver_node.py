@@ -232,8 +232,9 @@ def test_imu_and_temperature_can_be_switched_off(harness_factory):
 
 def test_diagnostics_report_rates_counters_bus_and_address(harness_factory):
     h = harness_factory(address=0x68)
+    name = h.node.get_fully_qualified_name()  # names carry the namespace: robots stay apart
     assert h.spin_until(lambda: {s.name for s in h.statuses} >= {
-        'icm20948_driver: magnetometer', 'icm20948_driver: imu'}, limit_s=5.0)
+        f'{name}: magnetometer', f'{name}: imu'}, limit_s=5.0)
     for stream in ('magnetometer', 'imu'):
         status = h.status(stream)
         values = values_of(status)

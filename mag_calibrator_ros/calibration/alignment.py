@@ -36,8 +36,6 @@ import itertools
 import math
 
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
 from mag_calibrator_ros.calibration.calibration import Calibration
 
@@ -364,6 +362,8 @@ def _linear_rotation(accel: np.ndarray, field: np.ndarray) -> tuple[np.ndarray, 
 def _refine(accel: np.ndarray, field: np.ndarray, start: np.ndarray, scale: float | None
             ) -> tuple[np.ndarray, float, float, np.ndarray]:
     """Rotation and mean dip residual: robust (soft-L1 at ``scale``) or plain (None)."""
+    from scipy.optimize import least_squares  # the fit worker's import, never a node's start-up
+    from scipy.spatial.transform import Rotation
     def residuals(x: np.ndarray) -> np.ndarray:
         rotation = Rotation.from_rotvec(x[:3]).as_matrix() @ start
         return _dips(accel, field, rotation) - x[3]
@@ -540,6 +540,7 @@ def remap_text(remap: np.ndarray) -> str:
 
 def describe_rotation(rotation: np.ndarray) -> str:
     """'180 deg about x', '90 deg about z', '120 deg about (0.58, 0.58, 0.58)'."""
+    from scipy.spatial.transform import Rotation
     vector = Rotation.from_matrix(rotation).as_rotvec()
     angle = math.degrees(float(np.linalg.norm(vector)))
     if angle < 1e-9:

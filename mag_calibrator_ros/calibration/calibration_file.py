@@ -334,6 +334,15 @@ def calibration_yaml(calibration: Calibration, node_name: str = DEFAULT_NODE_NAM
     Raises :class:`CalibrationFileError` for metadata no parameters file can hold.
     """
     _check_section_key(node_name)
+    fields = _calibration_fields(calibration)
+    try:
+        return params_yaml(node_name, {SECTION: fields}, _COMMENTS)
+    except ParamsYamlError as error:
+        raise CalibrationFileError(str(error)) from None
+
+
+def _calibration_fields(calibration: Calibration) -> dict[str, Any]:
+    """The ``calibration`` section's values, in file order (metadata last)."""
     fields: dict[str, Any] = {
         'offset': [float(value) for value in calibration.offset],
         'matrix': [float(value) for value in calibration.matrix.reshape(9)],
@@ -346,10 +355,15 @@ def calibration_yaml(calibration: Calibration, node_name: str = DEFAULT_NODE_NAM
     fields['field_strength'] = float(calibration.field_strength)
     fields['model'] = str(calibration.model)
     fields.update(metadata)
-    try:
-        return params_yaml(node_name, {SECTION: fields}, _COMMENTS)
-    except ParamsYamlError as error:
-        raise CalibrationFileError(str(error)) from None
+    return fields
+
+
+def calibration_parameters(calibration: Calibration) -> dict[str, Any]:
+    """The calibration as the node's ``calibration.*`` parameters (dotted names), exactly what
+    a saved file holds: ``ros2 param dump`` of the node then loads back with --params-file."""
+    flat: dict[str, Any] = {}
+    _flatten(_calibration_fields(calibration), f'{SECTION}.', flat)
+    return flat
 
 
 def save_calibration(

@@ -120,7 +120,11 @@ def earth_field(latitude: float, longitude: float, altitude_m: float = 0.0,
                         'model package is needed)')
     if problems:
         raise EarthFieldError('; '.join(problems))
-    from wmm import wmm_calc  # NOAA's package; imported only where a location is known
+    try:
+        from wmm import wmm_calc  # NOAA's package; imported only where a location is known
+    except ImportError:
+        raise EarthFieldError('the World Magnetic Model package is not installed: pip install '
+                              'wmm-calculator==1.4.4') from None
 
     model = wmm_calc()
     with warnings.catch_warnings(record=True) as caught:

@@ -29,7 +29,6 @@ import math
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from mag_calibrator_ros import motion
 from mag_calibrator_ros.calibration.earth_field import EarthField, earth_field
@@ -76,7 +75,7 @@ class BoardModel:
         inclination = min(90.0, max(-90.0, inclination + config.inclination_offset_deg))
         self._earth_ut = motion.earth_field(strength * config.field_scale, inclination,
                                             declination)
-        self.mag_misalignment = Rotation.from_rotvec(
+        self.mag_misalignment = motion.Rotation.from_rotvec(
             np.radians(np.asarray(config.mag_misalignment_deg, dtype=float))).as_matrix()
         """A: the magnetometer's axes in the accel/gyro frame; it reads A^T @ field."""
         self._sensing = config.soft_iron_matrix @ self.mag_misalignment.T

@@ -519,7 +519,8 @@ class Icm20948DriverNode(Node):
         backend = {'backend': self.settings.backend}
         self._diagnostics.publish([
             diagnostics.diagnostic_status(
-                f'{self.get_name()}: {status.stream}', self.hardware_id, LEVELS[status.level],
+                f'{self.get_fully_qualified_name()}: {status.stream}', self.hardware_id,
+                LEVELS[status.level],
                 status.message, {**backend, **status.values},
             )
             for status in self.supervisor.status()

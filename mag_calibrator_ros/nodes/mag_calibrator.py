@@ -41,6 +41,7 @@ from mag_calibrator_ros.calibration.calibration_file import (
     CalibrationFileMissingError,
     LoadedCalibration,
     calibration_from_parameters,
+    calibration_parameters,
     default_calibration_path,
     default_load_path,
     read_calibration_file,
@@ -62,6 +63,7 @@ from mag_calibrator_ros.calibration.session import (
     calibration_summary,
     transform_covariance,
 )
+from mag_calibrator_ros.calibration.view import calibration_view
 from mag_calibrator_ros.nodes.diagnostics import (
     ERROR,
     OK,
@@ -74,7 +76,8 @@ from mag_calibrator_ros.nodes.parameters import (
     declare_checked,
     refuse_to_start,
 )
-from mag_calibrator_ros.nodes.runtime import spin_node
+from mag_calibrator_ros.nodes.runtime import guarded, spin_node
+from mag_calibrator_ros.nodes.view import ViewPublisher
 
 NODE_NAME = 'mag_calibrator'
 DIAGNOSTICS_PERIOD_S = 1.0
@@ -159,6 +162,11 @@ PARAMETERS: dict[str, tuple[object, str, dict]] = {
     'progress_log_period': (5.0, 'Seconds between progress log lines while uncalibrated '
                                  '(0 = silent).',
                             {'floating_point_range': _float_range(0.0, 3600.0)}),
+    'view_period': (1.0, 'Seconds between RViz views (~/view/raw, ~/view/corrected, '
+                         '~/view/markers), drawn only while subscribed; 0 = never.',
+                    {'floating_point_range': _float_range(0.0, 3600.0)}),
+    'view_scale': (1e4, 'RViz view: metres per tesla (1e4: a 50 uT field is a 0.5 m sphere).',
+                   {'floating_point_range': _float_range(1e-3, 1e9)}),
     'use_imu': (True, 'Subscribe imu/data_raw (sensor_msgs/Imu, same frame as imu/mag) and align '
                       'each calibration to the accelerometer from readings held still; without '
                       'a publisher nothing changes.', {}),
@@ -192,14 +200,24 @@ CALIBRATION_METADATA_KEYS = (
     'plane_normal', 'unobserved', 'alignment_angle_deg', 'dip_deg', 'dip_std_deg',
     'static_samples', 'declination_deg',
 )
-"""Metadata the fit and the node write into a saved file (declared so --params-file keeps it)."""
+"""Metadata a saved file may carry (declared so --params-file keeps it)."""
 CALIBRATION_PARAMETERS: dict[str, str] = {
     'calibration.offset': 'Hard-iron offset b [3], tesla.',
     'calibration.matrix': 'Soft-iron matrix M [9], row-major.',
-    'calibration.field_strength': '|corrected| target F, tesla.',
-    'calibration.model': 'Model that produced the calibration.',
-    'calibration.rotation': 'Rotation R [9] into the IMU frame, row-major (identity if unset).',
+    'calibration.field_strength': '|corrected| target F, tesla (0.0 with model none).',
+    'calibration.model': "Model of the calibration in force; 'none' while uncalibrated.",
+    'calibration.rotation': 'Rotation R [9] into the IMU frame, row-major (identity: none).',
 }
+NO_CALIBRATION = {
+    'calibration.offset': [0.0, 0.0, 0.0],
+    'calibration.matrix': [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+    'calibration.field_strength': 0.0,
+    'calibration.model': 'none',
+    'calibration.rotation': [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+}
+"""What calibration.* hold while uncalibrated (a dump of it loads back as 'no calibration')."""
+CALIBRATION_READ_ONLY = ('calibration.* show the calibration in force: change it with '
+                         '~/calibrate, ~/load, or --params-file at start-up')
 
 
 class MagCalibratorNode(Node):
@@ -237,15 +255,18 @@ class MagCalibratorNode(Node):
         self._location_wanted: tuple[float, float, float] | None = None
         self._fix_used = False
         self._startup(startup_calibration)
-
+        self._showing = False
         self.add_on_set_parameters_callback(self._validate_parameters)
+        self._show_calibration()
         self.add_post_set_parameters_callback(self._apply_parameters)
         self._publisher = self.create_publisher(
             MagneticField, 'imu/mag_corrected', QoSProfile(depth=10)
         )
-        self.create_subscription(MagneticField, 'imu/mag', self._on_mag, INPUT_QOS)
+        self.create_subscription(MagneticField, 'imu/mag', guarded(self, 'imu/mag', self._on_mag),
+                                 INPUT_QOS)
         self._sync_imu_subscription()
-        self.create_subscription(NavSatFix, 'gps/fix', self._on_fix, INPUT_QOS)
+        self.create_subscription(NavSatFix, 'gps/fix', guarded(self, 'gps/fix', self._on_fix),
+                                 INPUT_QOS)
         self._locate_from_parameters()
         # The services wait for the fit worker and the I/O thread without blocking the executor;
         # a waiting service must not hold the default (mutually exclusive) group, or the poll
@@ -256,8 +277,10 @@ class MagCalibratorNode(Node):
             self.create_service(Trigger, name, self._answering(name, callback),
                                 callback_group=waiting)
         self._diagnostics = DiagnosticsPublisher(self)
-        self.create_timer(POLL_PERIOD_S, self._on_poll)
-        self.create_timer(DIAGNOSTICS_PERIOD_S, self._on_tick)
+        self._view = ViewPublisher(self)
+        self._last_view = -math.inf
+        self.create_timer(POLL_PERIOD_S, guarded(self, 'poll', self._on_poll))
+        self.create_timer(DIAGNOSTICS_PERIOD_S, guarded(self, 'diagnostics', self._on_tick))
 
     def destroy_node(self) -> None:
         self.session.close()
@@ -274,6 +297,8 @@ class MagCalibratorNode(Node):
         return SessionSettings(**{k: v for k, v in values.items() if k in SESSION_FIELDS})
 
     def _validate_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
+        if any(p.name.startswith('calibration.') for p in parameters) and not self._showing:
+            return SetParametersResult(successful=False, reason=CALIBRATION_READ_ONLY)
         values = self._current_values()
         for parameter in parameters:
             if parameter.name in PARAMETERS:
@@ -296,7 +321,8 @@ class MagCalibratorNode(Node):
         return problems
 
     def _apply_parameters(self, parameters: list[Parameter]) -> None:
-        self.session.reconfigure(self._settings_from(self._current_values()))
+        if any(parameter.name in PARAMETERS for parameter in parameters):
+            self.session.reconfigure(self._settings_from(self._current_values()))
         names = {parameter.name for parameter in parameters}
         if 'use_imu' in names:
             self._sync_imu_subscription()
@@ -304,32 +330,59 @@ class MagCalibratorNode(Node):
             self._locate_from_parameters()
 
     def _declare_calibration_parameters(self) -> dict[str, object]:
-        """Declare ``calibration.*`` (read-only, start-up): a saved file works as --params-file.
+        """Declare ``calibration.*``: what --params-file gave (a saved file or a dump works as
+        one) comes back; afterwards they always show the calibration in force.
 
         Dynamically typed, so a hand-written file with integers (``matrix: [1, 0, 0, ...]``) or
         a wrong type reaches calibration_from_parameters, which converts or says what is wrong,
         instead of rclpy refusing the whole node.
         """
         given = {}
-        for name, description in CALIBRATION_PARAMETERS.items():
-            descriptor = ParameterDescriptor(description=description, read_only=True,
-                                             dynamic_typing=True)
+        names = {**CALIBRATION_PARAMETERS,
+                 **{f'calibration.{key}': f'Calibration metadata ({key}); informational.'
+                    for key in CALIBRATION_METADATA_KEYS}}
+        for name, description in names.items():
+            descriptor = ParameterDescriptor(description=description, dynamic_typing=True)
             value = self.declare_parameter(name, None, descriptor).value
             if value is not None:
                 given[name] = value
-        for key in CALIBRATION_METADATA_KEYS:
-            name = f'calibration.{key}'
-            if self.has_parameter(name):
-                continue
-            descriptor = ParameterDescriptor(
-                description=f'Calibration metadata ({key}); informational.',
-                read_only=True,
-                dynamic_typing=True,
-            )
-            value = self.declare_parameter(name, None, descriptor).value
-            if value is not None:
-                given[name] = value
+        if given.get('calibration.model') == NO_CALIBRATION['calibration.model']:
+            return {}  # a dump of an uncalibrated node: no calibration given
         return given
+
+    def _show_calibration(self) -> None:
+        """Set ``calibration.*`` to the calibration in force (``ros2 param get/dump`` read it),
+        metadata it does not carry left unset, never NOT_SET: a dump loads back as given."""
+        calibration = self.session.calibration
+        self._shown_calibration = calibration
+        values = dict(NO_CALIBRATION)
+        if calibration is not None:
+            try:
+                values = calibration_parameters(calibration)
+            except CalibrationFileError as error:
+                self.get_logger().warning(f'calibration.* not updated: {error}')
+                return
+        parameters = []
+        for name, value in values.items():
+            try:
+                parameters.append(Parameter(name, value=value))
+            except TypeError:  # metadata no parameter can hold (a mixed list ...)
+                continue
+        kept = {parameter.name for parameter in parameters}
+        self._showing = True  # our own change: _validate_parameters lets it through
+        try:
+            for key in CALIBRATION_METADATA_KEYS:
+                name = f'calibration.{key}'
+                if name not in kept and self.has_parameter(name):
+                    self.undeclare_parameter(name)
+            for parameter in parameters:
+                if not self.has_parameter(parameter.name):
+                    self.declare_parameter(parameter.name, None, ParameterDescriptor(
+                        description='Calibration metadata; informational.',
+                        dynamic_typing=True))
+            self.set_parameters(parameters)
+        finally:
+            self._showing = False
 
     # -- start-up --------------------------------------------------------------------------------
 
@@ -425,8 +478,8 @@ class MagCalibratorNode(Node):
     def _sync_imu_subscription(self) -> None:
         wanted = bool(self.get_parameter('use_imu').value)
         if wanted and self._imu_subscription is None:
-            self._imu_subscription = self.create_subscription(Imu, 'imu/data_raw', self._on_imu,
-                                                              INPUT_QOS)
+            self._imu_subscription = self.create_subscription(
+                Imu, 'imu/data_raw', guarded(self, 'imu/data_raw', self._on_imu), INPUT_QOS)
         elif not wanted and self._imu_subscription is not None:
             self.destroy_subscription(self._imu_subscription)
             self._imu_subscription = None
@@ -484,13 +537,16 @@ class MagCalibratorNode(Node):
     # -- what the session decided -----------------------------------------------------------------
 
     def _on_poll(self) -> None:
-        """Collect finished fits and file operations; answer waiting services; auto-save."""
+        """Collect finished fits and file operations; answer waiting services; auto-save;
+        show a new calibration in force as calibration.* parameters."""
         self.session.poll()
         while not self._io_results.empty():
             future, result = self._io_results.get()
             future.set_result(result)
         if self.session.has_events:
             self._handle_events()
+        if self.session.calibration is not self._shown_calibration:
+            self._show_calibration()
         if self._save_wanted and not self._saving and (
                 time.monotonic() - self._last_auto_save >= AUTO_SAVE_MIN_INTERVAL_S):
             self._save_wanted = False
@@ -602,6 +658,17 @@ class MagCalibratorNode(Node):
         coverage = self.session.coverage()
         self._log_progress(now, coverage)
         self._publish_diagnostics(now, coverage)
+        self._publish_view(now)
+
+    def _publish_view(self, now: float) -> None:
+        period = float(self.get_parameter('view_period').value)
+        if period <= 0.0 or now - self._last_view < period or not self._view.watched:
+            return
+        self._last_view = now
+        buffer = self.session.buffer
+        view = calibration_view(buffer.samples, buffer.counts, self.session.calibration)
+        self._view.publish(view, self.session.screen.frame_id or 'imu_link',
+                           float(self.get_parameter('view_scale').value))
 
     def _log_progress(self, now: float, coverage: Coverage) -> None:
         period = float(self.get_parameter('progress_log_period').value)
@@ -609,7 +676,15 @@ class MagCalibratorNode(Node):
             return
         if now - self._last_progress_log >= period:
             self._last_progress_log = now
-            self.get_logger().info(self.session.progress_text(coverage))
+            if self.session.input_rate.rate == 0.0:
+                self.get_logger().info(self._no_input_text())
+            else:
+                self.get_logger().info(self.session.progress_text(coverage))
+
+    def _no_input_text(self) -> str:
+        topic = self.resolve_topic_name('imu/mag')
+        return (f'no input on {topic}: is the driver running, in this namespace? '
+                f'(ros2 topic info {topic})')
 
     def _publish_diagnostics(self, now: float, coverage: Coverage) -> None:
         values = self.session.diagnostic_values(now, coverage)
@@ -631,13 +706,16 @@ class MagCalibratorNode(Node):
         elif state.startswith('calibrated'):
             level, message = OK, self.session.progress_text(coverage)
         elif values['input_rate_hz'] == 0.0:
-            level, message = WARN, f'{state}: no input on {self.resolve_topic_name("imu/mag")}'
+            level, message = WARN, f'{state}: {self._no_input_text()}'
         else:
             level, message = WARN, f'{state}: {self.session.progress_text(coverage)}'
-        hardware_id = self.session.screen.frame_id or self.get_fully_qualified_name()
+        # Names and hardware ids carry the namespace: robots on one host stay apart.
+        topic = self.resolve_topic_name('imu/mag')
+        frame = self.session.screen.frame_id
+        hardware_id = f'{topic} ({frame})' if frame else topic
         self._diagnostics.publish([
-            diagnostic_status(f'{self.get_name()}: calibration', hardware_id, level, message,
-                              values)
+            diagnostic_status(f'{self.get_fully_qualified_name()}: calibration', hardware_id,
+                              level, message, values)
         ])
 
 

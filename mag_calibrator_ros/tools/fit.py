@@ -135,7 +135,8 @@ def build_parser() -> argparse.ArgumentParser:
                         'or - for text on stdin')
     parser.add_argument('--model', choices=MODELS, default=DEFAULT_OPTIONS.model,
                         help='calibration model: full (hard + symmetric soft iron), axis (the '
-                        "brief's axis-aligned least squares), sphere (hard iron only), planar "
+                        'axis-aligned least squares of mag-calibrator-rs), sphere (hard iron '
+                        'only), planar '
                         '(motion in one plane, e.g. a ground robot turning in place), auto '
                         '(chosen by an information criterion; default)')
     mode = parser.add_mutually_exclusive_group()
@@ -151,7 +152,7 @@ def build_parser() -> argparse.ArgumentParser:
     strength.add_argument('--field-strength', type=float, metavar='F', default=None,
                           help='|corrected| = F in input units (default: the fitted mean radius)')
     strength.add_argument('--normalise', '--normalize', action='store_true',
-                          help="F = 1 (unit-length corrected field, as the brief's library)")
+                          help='F = 1 (unit-length corrected field, as mag-calibrator-rs)')
     parser.add_argument('--rate', type=float, metavar='HZ', default=DEFAULT_RATE_HZ,
                         help='sample rate of the recording: the live session times its fits by '
                         f'message stamps, replayed here at HZ (default {DEFAULT_RATE_HZ:g})')
@@ -221,7 +222,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as stop:  # --help (0) or a usage error (2, already printed)
         return int(stop.code) if isinstance(stop.code, int) else EXIT_USAGE
     try:
-        return run(args)
+        with np.errstate(all='ignore'):  # results are judged (finite, gated), never warned about
+            return run(args)
     except (UsageError, RecordingError, CalibrationFileError) as error:
         _error(str(error))
         return EXIT_USAGE
@@ -416,12 +418,23 @@ def stream(session: CalibrationSession, samples: np.ndarray, rate_hz: float,
         progress.fitting(min(start + PROGRESS_CHUNK, total), total)
 
 
+SCREEN_BLOCK = 1 << 16
+
+
 def screen_all(samples: np.ndarray, full_scale: float | None) -> tuple[np.ndarray, dict[str, int]]:
-    """--all: drop what the buffer would refuse outright (the same rule), counted by reason."""
-    problems = [reading_problem(*row, full_scale) for row in samples.tolist()]
-    keep = np.array([problem is None for problem in problems], dtype=bool)
-    counts = Counter(problem for problem in problems if problem is not None)
-    return samples[keep], dict(counts)
+    """--all: drop what the buffer would refuse outright (its own rule, reading_problem, applied
+    element-wise block by block), counted by reason; the rows are not copied when none goes."""
+    problem = np.frompyfunc(reading_problem, 4, 1)
+    keep = np.ones(len(samples), dtype=bool)
+    counts: Counter[str] = Counter()
+    for start in range(0, len(samples), SCREEN_BLOCK):
+        block = samples[start:start + SCREEN_BLOCK]
+        found = problem(block[:, 0], block[:, 1], block[:, 2], full_scale)
+        refused = found.astype(bool)  # None (a sample) is False, a reason is True
+        if refused.any():
+            keep[start:start + len(block)] = ~refused
+            counts.update(found[refused].tolist())
+    return (samples if keep.all() else samples[keep]), dict(counts)
 
 
 def write_plot(path: str, recording: Recording, fitted: np.ndarray,
