@@ -241,6 +241,7 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     settings = None if args.all else session_settings(args, options)
     progress = ProgressBar(sys.stderr, args.input)
 
+    earth = location(args)  # usage errors before reading anything
     if args.accel_columns is not None:
         if args.topic is not None:
             raise UsageError('--accel-columns applies to text input, not to a rosbag2 bag')
@@ -252,7 +253,6 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
                                    min_rows=options.min_samples, progress=progress.reading)
     progress.finish()
     units = input_units(args, recording)
-    earth = location(args)
     reference = None if earth is None else EarthReference(
         earth, units, args.max_field_error, args.max_dip_error, not args.no_earth_gate)
     metadata = {
