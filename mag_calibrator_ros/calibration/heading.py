@@ -54,12 +54,13 @@ about its radius). Twice a sphere's: tilting while turning moves tan(inclination
 field in and out of the plane (14 % for 3° at 70°), which only a 3-D fit explains, while a
 still sensor's noise scatters by 30-40 % about the rim a kNN buffer keeps."""
 
-ARC_FLATNESS = 0.08
-"""...or less than this relative to their largest spread: an arc of the first quarter turn, whose
-second spread is only the arc's sagitta (a turning robot's noise and wobble put 2-5 % out of the
-plane), so hints speak of turning from the start. A hand's tumble passes 8 % within a second or
-two; one mostly about one axis can stay near 15 % for seconds, which is why the looser share of
-the largest spread is not used."""
+ARC_FLATNESS = 0.12
+"""...or less than this relative to their largest spread: the arc of the first quarter turn,
+whose second spread is only the arc's sagitta (a turning robot's noise and wobble put 3-9 %
+out of the plane in its first seconds, 2-5 % once round), so hints speak of turning from the
+start. A hand's tumble passes it within a second or two; one mostly about a single axis can stay
+near 15 % for seconds, which is why the looser share of the largest spread is not the rule
+throughout."""
 
 COMPLETE_HEADING_COVERAGE = (HEADING_SECTORS - 1) / HEADING_SECTORS
 """The heading circle counts as complete with at most one 10° sector missing: what a full turn

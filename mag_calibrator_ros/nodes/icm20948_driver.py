@@ -31,6 +31,7 @@ from rcl_interfaces.msg import (
     SetParametersResult,
 )
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Imu, MagneticField, Temperature
@@ -214,6 +215,7 @@ PARAMETERS: dict[str, tuple[object, ParameterDescriptor]] = {
 }
 CMD_VEL_TOPIC = 'cmd_vel'
 CMD_VEL_TYPES = {'geometry_msgs/msg/Twist': Twist, 'geometry_msgs/msg/TwistStamped': TwistStamped}
+RCLError = rclpy_implementation.RCLError
 CMD_VEL_CHECK_S = 0.25
 """How often the sim's cmd_vel subscription checks which type the publishers use."""
 
@@ -554,10 +556,17 @@ class Icm20948DriverNode(Node):
         if wanted == self._cmd_vel_type:
             return
         if self._cmd_vel_subscription is not None:
+            # the old type's topic goes with its last user: subscribe anew at the next check
             self.destroy_subscription(self._cmd_vel_subscription)
+            self._cmd_vel_subscription = self._cmd_vel_type = None
+            return
+        try:
+            self._cmd_vel_subscription = self.create_subscription(
+                CMD_VEL_TYPES[wanted], CMD_VEL_TOPIC, self._on_cmd_vel, QoSProfile(depth=10))
+        except RCLError as error:  # the old type still held by DDS: the next check retries
+            self.get_logger().debug(f'subscribing {topic} as {wanted} failed: {error}')
+            return
         self._cmd_vel_type = wanted
-        self._cmd_vel_subscription = self.create_subscription(
-            CMD_VEL_TYPES[wanted], CMD_VEL_TOPIC, self._on_cmd_vel, QoSProfile(depth=10))
 
     def _on_cmd_vel(self, message: Twist | TwistStamped) -> None:
         """Turn in place at the commanded yaw rate (linear velocities are ignored)."""
