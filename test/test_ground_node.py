@@ -190,11 +190,12 @@ class FailingRequests(InlineRunner):
 
 
 def test_a_fit_error_commands_zero(ros, tmp_path):
+    """The automatic calibration passes (an info event), the rotation's own fit errs (a warning
+    event after it: the node once crashed logging the two from one call site)."""
     driver = sim_robot(ros, 'ground_error')
     calibrator = ros.add(MagCalibratorNode(
         namespace='ground_error', context=ros.context, parameter_overrides=[
-            Parameter('calibration_file', value=str(tmp_path / 'c.yaml')),
-            Parameter('auto_calibrate', value=False)]))
+            Parameter('calibration_file', value=str(tmp_path / 'c.yaml'))]))
     calibrator.session.runner.close()
     calibrator.session.runner = FailingRequests()
     commander = Commander(ros, 'ground_error')
@@ -205,7 +206,9 @@ def test_a_fit_error_commands_zero(ros, tmp_path):
     assert wait_for(lambda: calibrator._rotation.state != 'turning', timeout_s=CALIBRATION_S)
     reason, message = calibrator._rotation.last_stop
     assert reason == 'fit_error' and 'injected' in message
+    assert calibrator.session.adoptions.get('auto') == 1  # the info event came first
     brought_to_rest(commander, driver, moment)
+    assert commander.call('mag_calibrator/stop_rotation').success  # the node still answers
     remove_all(ros, commander, calibrator, driver)
 
 

@@ -415,8 +415,13 @@ class MagCalibratorNode(Node):
     def _handle_events(self) -> None:
         logger = self.get_logger()
         for event in self.session.take_events():
-            log = {'info': logger.info, 'warning': logger.warning}.get(event.level, logger.debug)
-            log(event.message)
+            # one call site per severity: rclpy refuses a severity change at the same call site
+            if event.level == 'warning':
+                logger.warning(event.message)
+            elif event.level == 'info':
+                logger.info(event.message)
+            else:
+                logger.debug(event.message)
             if event.adopted:
                 self._problem = None
                 self._save_wanted = bool(self.get_parameter('auto_save').value)
