@@ -40,7 +40,6 @@ import statistics
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 
 import numpy as np
@@ -52,23 +51,21 @@ from geometry_msgs.msg import Twist  # noqa: E402
 from rcl_interfaces.srv import SetParameters  # noqa: E402
 import rclpy  # noqa: E402
 from rclpy.context import Context  # noqa: E402
-from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
-from rclpy.qos import qos_profile_sensor_data  # noqa: E402
-from sensor_msgs.msg import MagneticField  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from mag_calibrator_ros import motion  # noqa: E402
 from mag_calibrator_ros.calibration.jobs import InlineRunner, JobOutcome  # noqa: E402
 from mag_calibrator_ros.calibration.rotation import INPUT_TIMEOUT_S  # noqa: E402
-from mag_calibrator_ros.nodes.icm20948_driver import Icm20948DriverNode  # noqa: E402
 from mag_calibrator_ros.nodes.mag_calibrator import MagCalibratorNode  # noqa: E402
 from mag_calibrator_ros.nodes.runtime import NodeThreads  # noqa: E402
-from mag_calibrator_ros.tools.demo import SOFT_IRON, azimuth_errors_deg  # noqa: E402
+from mag_calibrator_ros.tools.demo import (  # noqa: E402
+    GROUND_HARD_IRON_UT,
+    GroundObserver,
+    azimuth_errors_deg,
+    simulated_board,
+)
 
-FIELD_UT = 50.0
-INCLINATION_DEG = 60.0
-HARD_IRON_UT = (55.0, -45.0, 25.0)
 WOBBLE_DEG = 2.0
 CHECK_RATE = 0.6
 CALIBRATED_TARGET_S = 40.0
@@ -78,48 +75,18 @@ STOP_TARGET_S = 0.2
 TIMEOUT_S = 5.0  # rotation_timeout of the timeout path (its minimum)
 
 
-class Station(Node):
-    """The benchmark's own node: cmd_vel listener, service caller, a teleop, the raw and
-    corrected streams paired by stamp."""
+class Station(GroundObserver):
+    """The benchmark as a user: the demo's ground-robot observer (raw and corrected streams
+    paired by stamp, the rotation services, a teleop) that also records every twist on cmd_vel."""
 
     def __init__(self, context: Context, namespace: str) -> None:
-        super().__init__('bench', namespace=namespace, context=context)
-        self._lock = threading.Lock()
+        super().__init__(context, namespace)
         self.twists: list[tuple[float, float]] = []
-        self._raw: dict[tuple[int, int], np.ndarray] = {}
-        self.pairs: list[tuple[np.ndarray, np.ndarray]] = []
         self.create_subscription(Twist, 'cmd_vel', self._on_twist, 50)
-        self.create_subscription(MagneticField, 'imu/mag', self._on_raw, qos_profile_sensor_data)
-        self.create_subscription(MagneticField, 'imu/mag_corrected', self._on_corrected,
-                                 qos_profile_sensor_data)
-        self.teleop = None
 
     def _on_twist(self, message: Twist) -> None:
         with self._lock:
             self.twists.append((time.monotonic(), message.angular.z))
-
-    @staticmethod
-    def _vector(message: MagneticField) -> np.ndarray:
-        field = message.magnetic_field
-        return np.array([field.x, field.y, field.z])
-
-    def _on_raw(self, message: MagneticField) -> None:
-        with self._lock:
-            self._raw[(message.header.stamp.sec, message.header.stamp.nanosec)] = (
-                self._vector(message))
-            if len(self._raw) > 2000:
-                self._raw.pop(next(iter(self._raw)))
-
-    def _on_corrected(self, message: MagneticField) -> None:
-        with self._lock:
-            raw = self._raw.get((message.header.stamp.sec, message.header.stamp.nanosec))
-            if raw is not None:
-                self.pairs.append((raw, self._vector(message)))
-
-    def take_pairs(self) -> list[tuple[np.ndarray, np.ndarray]]:
-        with self._lock:
-            pairs, self.pairs = self.pairs, []
-        return pairs
 
     def zero_after(self, moment: float) -> tuple[float | None, bool]:
         """(arrival of the first zero after ``moment``, whether only zeros followed it)."""
@@ -134,17 +101,6 @@ class Station(Node):
         with self._lock:
             return self.twists[-1][1] if self.twists else None
 
-    def call(self, service: str, timeout_s: float = 20.0) -> Trigger.Response | None:
-        client = self.create_client(Trigger, service)
-        try:
-            if not client.wait_for_service(timeout_sec=timeout_s):
-                return None
-            future = client.call_async(Trigger.Request())
-            wait(future.done, timeout_s)
-            return future.result() if future.done() else None
-        finally:
-            self.destroy_client(client)
-
     def set_parameter(self, node: str, name: str, value) -> None:
         client = self.create_client(SetParameters, f'{node}/set_parameters')
         client.wait_for_service(timeout_sec=20.0)
@@ -152,20 +108,6 @@ class Station(Node):
             parameters=[Parameter(name, value=value).to_parameter_msg()]))
         wait(future.done, 20.0)
         self.destroy_client(client)
-
-    def turn(self, rate: float) -> None:
-        if self.teleop is None:
-            self.teleop = self.create_publisher(Twist, 'cmd_vel', 10)
-        twist = Twist()
-        twist.angular.z = float(rate)
-        self.teleop.publish(twist)
-
-    def release(self) -> None:
-        if self.teleop is not None:
-            self.turn(0.0)
-            time.sleep(0.2)
-            self.destroy_publisher(self.teleop)
-            self.teleop = None
 
 
 def wait(condition, timeout_s: float, step_s: float = 0.01) -> bool:
@@ -185,16 +127,9 @@ class Bench:
         self.count = 0
 
     def robot(self, namespace: str, seed: int, wobble_deg: float = WOBBLE_DEG):
-        return self.spinning.add(Icm20948DriverNode(
-            namespace=namespace, context=self.context, parameter_overrides=[
-                Parameter('backend', value='sim'), Parameter('rate_hz', value=100),
-                Parameter('sim.field_ut', value=FIELD_UT),
-                Parameter('sim.inclination_deg', value=INCLINATION_DEG),
-                Parameter('sim.hard_iron_ut', value=list(HARD_IRON_UT)),
-                Parameter('sim.soft_iron', value=list(SOFT_IRON)),
-                Parameter('sim.motion', value='cmd_vel'),
-                Parameter('sim.tilt_wobble_deg', value=float(wobble_deg)),
-                Parameter('sim.seed', value=seed)]))
+        return self.spinning.add(simulated_board(
+            self.context, 'cmd_vel', GROUND_HARD_IRON_UT, seed, namespace,
+            tilt_wobble_deg=float(wobble_deg)))
 
     def calibrator(self, namespace: str, **parameters) -> MagCalibratorNode:
         self.count += 1
@@ -221,7 +156,7 @@ def yaw(driver) -> tuple[float, float]:
 def start_rotation(station: Station) -> Trigger.Response | None:
     response = None
     for _ in range(40):  # until the first readings have arrived
-        response = station.call('mag_calibrator/rotate_and_calibrate')
+        response = station.call(station.rotate)
         if response is None or response.success or 'no input' not in response.message:
             return response
         time.sleep(0.25)
@@ -394,7 +329,7 @@ def one_stop(bench: Bench, path: str, attempt: int) -> tuple[float, bool] | None
             cause = rotation._stopped  # the fit's answer came: the stop decision
         elif path == 'stop_rotation':
             cause = time.monotonic()
-            station.call('mag_calibrator/stop_rotation')
+            station.call(station.stop_rotation)
         elif path == 'timeout':
             cause = started + TIMEOUT_S  # from the service's answer: slightly late, if anything
             wait(lambda: rotation.state != 'turning', 30.0, 0.005)

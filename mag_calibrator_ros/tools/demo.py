@@ -145,8 +145,8 @@ def error_table(vectors: np.ndarray, truth: np.ndarray) -> dict[str, ErrorStats]
 class DemoObserver(Node):
     """Watches raw and corrected streams and calls the calibrator's services, like a user."""
 
-    def __init__(self, context: Context) -> None:
-        super().__init__('demo_observer', namespace=NAMESPACE, context=context)
+    def __init__(self, context: Context, namespace: str = NAMESPACE) -> None:
+        super().__init__('demo_observer', namespace=namespace, context=context)
         self._lock = threading.Lock()
         self._raw_by_stamp: dict[tuple[int, int], np.ndarray] = {}
         self.raw: list[np.ndarray] = []
@@ -263,28 +263,42 @@ def print_summary(count: int, before: dict, after: dict) -> None:
         print(f'  {name:24s} {b.rms:11.3f} {b.max:11.3f} {a.rms:10.3f} {a.max:10.3f}')
 
 
-def run(args: argparse.Namespace, context: Context) -> int:
-    if args.ground_robot:
-        return run_ground(args, context)
+def output_files(args: argparse.Namespace) -> tuple[Path, Path]:
+    """(calibration file, plot) in --output-dir, both removed: the demo starts uncalibrated and
+    writes both anew."""
     output_dir = Path(args.output_dir).expanduser().resolve()
     output_dir.mkdir(parents=True, exist_ok=True)
-    calibration_file = output_dir / 'calibration.yaml'
-    plot_file = output_dir / 'calibration.png'
-    for stale in (calibration_file, plot_file):
-        stale.unlink(missing_ok=True)  # the demo starts uncalibrated and rewrites both
+    files = output_dir / 'calibration.yaml', output_dir / 'calibration.png'
+    for stale in files:
+        stale.unlink(missing_ok=True)
+    return files
 
-    print(f'Simulated ICM-20948: field {FIELD_UT:.0f} uT, inclination {INCLINATION_DEG:.0f} deg, '
-          f'hard iron {list(HARD_IRON_UT)} uT, soft iron {list(SOFT_IRON)} (row-major).')
-    driver = Icm20948DriverNode(namespace=NAMESPACE, context=context, parameter_overrides=[
+
+def simulated_board(context: Context, motion_kind: str, hard_iron_ut, seed: int,
+                    namespace: str = NAMESPACE, **sim) -> Icm20948DriverNode:
+    """The driver on the simulated ICM-20948: the demo's field and soft iron, 100 Hz."""
+    overrides = [
         Parameter('backend', value='sim'),
         Parameter('rate_hz', value=100),
         Parameter('sim.field_ut', value=FIELD_UT),
         Parameter('sim.inclination_deg', value=INCLINATION_DEG),
-        Parameter('sim.hard_iron_ut', value=list(HARD_IRON_UT)),
+        Parameter('sim.hard_iron_ut', value=list(hard_iron_ut)),
         Parameter('sim.soft_iron', value=list(SOFT_IRON)),
-        Parameter('sim.motion', value='tumble'),
-        Parameter('sim.seed', value=args.seed),
-    ])
+        Parameter('sim.motion', value=motion_kind),
+        Parameter('sim.seed', value=seed),
+    ] + [Parameter(f'sim.{name}', value=value) for name, value in sim.items()]
+    return Icm20948DriverNode(namespace=namespace, context=context,
+                              parameter_overrides=overrides)
+
+
+def run(args: argparse.Namespace, context: Context) -> int:
+    if args.ground_robot:
+        return run_ground(args, context)
+    calibration_file, plot_file = output_files(args)
+
+    print(f'Simulated ICM-20948: field {FIELD_UT:.0f} uT, inclination {INCLINATION_DEG:.0f} deg, '
+          f'hard iron {list(HARD_IRON_UT)} uT, soft iron {list(SOFT_IRON)} (row-major).')
+    driver = simulated_board(context, 'tumble', HARD_IRON_UT, args.seed)
     overrides = [
         Parameter('auto_calibrate', value=False),
         Parameter('calibration_file', value=str(calibration_file)),
@@ -345,9 +359,10 @@ def run(args: argparse.Namespace, context: Context) -> int:
 class GroundObserver(DemoObserver):
     """The demo's user of a ground robot: the rotation services, and a teleop for a check turn."""
 
-    def __init__(self, context: Context) -> None:
-        super().__init__(context)
+    def __init__(self, context: Context, namespace: str = NAMESPACE) -> None:
+        super().__init__(context, namespace)
         self.rotate = self.create_client(Trigger, 'mag_calibrator/rotate_and_calibrate')
+        self.stop_rotation = self.create_client(Trigger, 'mag_calibrator/stop_rotation')
         self.teleop = None
 
     def turn(self, rate: float) -> None:
@@ -443,27 +458,13 @@ def noise_free_heading_error(calibration, driver: Icm20948DriverNode) -> ErrorSt
 
 def run_ground(args: argparse.Namespace, context: Context) -> int:
     """--ground-robot: ~/rotate_and_calibrate turns the simulated robot until calibrated."""
-    output_dir = Path(args.output_dir).expanduser().resolve()
-    output_dir.mkdir(parents=True, exist_ok=True)
-    calibration_file = output_dir / 'calibration.yaml'
-    plot_file = output_dir / 'calibration.png'
-    for stale in (calibration_file, plot_file):
-        stale.unlink(missing_ok=True)
+    calibration_file, plot_file = output_files(args)
     print(f'Simulated ground robot (ICM-20948 on it): field {FIELD_UT:.0f} uT, inclination '
           f'{INCLINATION_DEG:.0f} deg, hard iron {list(GROUND_HARD_IRON_UT)} uT (3x the '
           f'horizontal field), soft iron {list(SOFT_IRON)}, tilt wobble {GROUND_WOBBLE_DEG} deg; '
           'it turns only as commanded on cmd_vel.')
-    driver = Icm20948DriverNode(namespace=NAMESPACE, context=context, parameter_overrides=[
-        Parameter('backend', value='sim'),
-        Parameter('rate_hz', value=100),
-        Parameter('sim.field_ut', value=FIELD_UT),
-        Parameter('sim.inclination_deg', value=INCLINATION_DEG),
-        Parameter('sim.hard_iron_ut', value=list(GROUND_HARD_IRON_UT)),
-        Parameter('sim.soft_iron', value=list(SOFT_IRON)),
-        Parameter('sim.motion', value='cmd_vel'),
-        Parameter('sim.tilt_wobble_deg', value=GROUND_WOBBLE_DEG),
-        Parameter('sim.seed', value=args.seed),
-    ])
+    driver = simulated_board(context, 'cmd_vel', GROUND_HARD_IRON_UT, args.seed,
+                             tilt_wobble_deg=GROUND_WOBBLE_DEG)
     overrides = [Parameter('calibration_file', value=str(calibration_file)),
                  Parameter('progress_log_period', value=0.0)]
     if args.buffer_size is not None:
