@@ -9,7 +9,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 SHARED_DATA ?= ../shared/data
 
-.PHONY: setup demo test lint bench bench-engine bench-node colcon-build clean
+.PHONY: setup demo test lint bench bench-engine bench-replay bench-node colcon-build clean
 
 setup: $(STAMP)
 
@@ -28,10 +28,13 @@ lint: setup
 test: setup lint
 	$(PY) -m pytest -q test
 
-bench: bench-engine bench-node
+bench: bench-engine bench-replay bench-node
 
 bench-engine: setup
 	$(PY) benchmarks/bench_engine.py --data $(SHARED_DATA)
+
+bench-replay: setup
+	$(PY) benchmarks/bench_replay.py --data $(SHARED_DATA)
 
 bench-node: setup
 	$(PY) benchmarks/bench_node.py

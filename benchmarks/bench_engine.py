@@ -11,6 +11,8 @@ axis fit) against this engine, then PASS/FAIL for every target of issue #2:
 (c) per-sample cost of SampleBuffer.add against the brief's evaluate_sample at N = 50, 200, 1000;
 (d) fit time of fit_calibration at N = 100 and 1000.
 
+``--speed`` runs the speed sections of issue #14 instead (benchmarks/bench_speed.py).
+
 Timings are wall-clock on a shared machine: read them as orders of magnitude, and re-run before
 quoting them. ``--quick`` runs one seed and fewer timing repeats; ``--markdown`` prints the
 tables as markdown for the README.
@@ -505,7 +507,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument('--markdown', action='store_true', help='print tables as markdown')
     parser.add_argument('--strict', action='store_true',
                         help='exit with status 1 when a target fails (for CI)')
+    parser.add_argument('--speed', action='store_true',
+                        help='run the speed sections instead (issue #14: fit time from 300 to 2M '
+                        'rows, command line cold start, node start-up; benchmarks/bench_speed.py)')
     args = parser.parse_args(argv)
+    if args.speed:
+        from bench_speed import speed_main
+
+        return speed_main(args.quick, args.markdown, print_table, Table)
     if not args.data.is_dir():
         print(f'error: data directory {args.data} not found', file=sys.stderr)
         return 2

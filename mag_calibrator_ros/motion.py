@@ -2,10 +2,12 @@
 
 A magnetometer calibration is only as good as the orientations it saw, so the simulator moves the
 sensor the way people and robots do: a hand tumbling the board (``tumble``), a ground robot
-turning in place with a little tilt (``yaw``), a board lying on the bench (``still``), or a ground
-robot turning only as commanded on ``cmd_vel`` (``cmd_vel``, closing the loop with the
-calibrator's ``~/rotate_and_calibrate``). Every trajectory is deterministic for a seed (and, for
-``cmd_vel``, its commands) so tests and benchmarks are repeatable.
+turning in place with a little tilt (``yaw``), a board lying on the bench (``still``), a hand
+turning the board from pose to pose and holding each still for a moment (``poses``: what aligning
+the magnetometer to gravity needs, see ``calibration.alignment``), or a ground robot turning only
+as commanded on ``cmd_vel`` (``cmd_vel``, closing the loop with the calibrator's
+``~/rotate_and_calibrate``). Every trajectory is deterministic for a seed (and, for ``cmd_vel``,
+its commands) so tests and benchmarks are repeatable.
 
 The inertial sensors need more than the orientation: ``state(t)`` gives the orientation, the body
 angular rate (what a gyroscope measures) and the linear acceleration (what an accelerometer adds to
@@ -23,20 +25,37 @@ from bisect import bisect_right
 from dataclasses import dataclass
 import math
 import threading
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
-TRAJECTORY_KINDS = ('tumble', 'yaw', 'still', 'cmd_vel')
+if TYPE_CHECKING:
+    from scipy.spatial.transform import Rotation
+else:
+
+    class _LazyRotation:
+        """scipy's Rotation, imported on first use: scipy.spatial costs 0.5 s, and a node that
+        never simulates (a driver on real hardware) never needs it."""
+
+        def __getattr__(self, name: str) -> object:
+            from scipy.spatial.transform import Rotation
+
+            return getattr(Rotation, name)
+
+    Rotation = _LazyRotation()
+
+TRAJECTORY_KINDS = ('tumble', 'yaw', 'still', 'poses', 'cmd_vel')
 ZERO3 = np.zeros(3)
 ZERO3.setflags(write=False)
 
 
-def earth_field(strength: float, inclination_deg: float) -> np.ndarray:
-    """World-frame (ENU) earth field: ``F cos I`` towards north, ``F sin I`` downwards.
+def earth_field(strength: float, inclination_deg: float, declination_deg: float = 0.0
+                ) -> np.ndarray:
+    """World-frame (ENU) earth field: ``F cos I`` towards magnetic north, ``F sin I`` downwards.
 
     Positive inclination dips the field below the horizon (northern hemisphere), so the up
-    component is ``-F sin I``. Units are those of ``strength``.
+    component is ``-F sin I``; magnetic north lies ``declination_deg`` east of true north (y).
+    Units are those of ``strength``.
     """
     strength = float(strength)
     inclination_deg = float(inclination_deg)
@@ -44,8 +63,13 @@ def earth_field(strength: float, inclination_deg: float) -> np.ndarray:
         raise ValueError(f'field strength must be finite and >= 0, got {strength}')
     if not math.isfinite(inclination_deg) or abs(inclination_deg) > 90.0:
         raise ValueError(f'inclination must be within [-90, 90] degrees, got {inclination_deg}')
+    if not math.isfinite(float(declination_deg)):
+        raise ValueError(f'declination must be finite, got {declination_deg}')
     inclination = math.radians(inclination_deg)
-    return np.array([0.0, strength * math.cos(inclination), -strength * math.sin(inclination)])
+    declination = math.radians(float(declination_deg))
+    horizontal = strength * math.cos(inclination)
+    return np.array([horizontal * math.sin(declination), horizontal * math.cos(declination),
+                     -strength * math.sin(inclination)])
 
 
 @dataclass(frozen=True)
@@ -316,6 +340,78 @@ class TumbleTrajectory(Trajectory):
         return MotionState(_quat_matrix(quat), omega, acceleration)
 
 
+class PosesTrajectory(Trajectory):
+    """A hand turning the board from pose to pose and holding each one still.
+
+    Poses are uniformly random orientations; each is held for ``hold_s``, then the board turns
+    to the next about a fixed body axis in ``move_s`` with a quintic (minimum-jerk) profile, so
+    rate and acceleration start and end at zero, while the hand carries it a few centimetres the
+    same way. Still, it measures exactly gravity; moving, it turns at up to ~3 rad/s. This is
+    the static-attitude procedure of accelerometer and joint calibrations (ArduPilot's six-pose
+    accelerometer calibration; MAG.I.C.AL., Papafotis & Sotiriadis 2019).
+    """
+
+    kind = 'poses'
+    CACHE = 64  # poses kept for random access
+
+    def __init__(self, seed: int = 0, hold_s: float = 0.8, move_s: float = 1.2) -> None:
+        self._seed = int(seed)
+        self._hold = float(hold_s)
+        self._move = float(move_s)
+        self._period = self._hold + self._move
+        self._poses: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+    def _pose(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(quaternion of pose ``index``, body rotation vector to the next, displacement)."""
+        cached = self._poses.get(index)
+        if cached is None:
+            here = Rotation.random(random_state=np.random.default_rng([self._seed, 5, index]))
+            after = Rotation.random(random_state=np.random.default_rng([self._seed, 5, index + 1]))
+            shift = np.random.default_rng([self._seed, 6, index]).normal(0.0, 0.03, 3)
+            cached = (here.as_quat(), (here.inv() * after).as_rotvec(), shift)
+            if len(self._poses) >= self.CACHE:
+                self._poses.clear()
+            self._poses[index] = cached
+        return cached
+
+    def _phase(self, t: float) -> tuple[int, float]:
+        """Pose index and the move's progress tau in [0, 1] (0 while holding)."""
+        index = math.floor(t / self._period)
+        into = t - index * self._period - self._hold
+        return index, (into / self._move if into > 0.0 else 0.0)
+
+    @staticmethod
+    def _profile(tau: float) -> tuple[float, float, float]:
+        """Minimum-jerk s(tau) = 10 tau^3 - 15 tau^4 + 6 tau^5 and its first two derivatives."""
+        return (tau**3 * (10.0 - 15.0 * tau + 6.0 * tau * tau),
+                30.0 * tau * tau * (1.0 - tau) ** 2,
+                60.0 * tau * (1.0 - tau) * (1.0 - 2.0 * tau))
+
+    def rotations(self, times: np.ndarray) -> Rotation:
+        times = _checked_times(times)
+        quats = np.empty((len(times), 4))
+        rotvecs = np.empty((len(times), 3))
+        for i, t in enumerate(times.tolist()):
+            index, tau = self._phase(t)
+            quat, rotvec, _ = self._pose(index)
+            quats[i] = quat
+            rotvecs[i] = self._profile(tau)[0] * rotvec
+        return Rotation.from_quat(quats) * Rotation.from_rotvec(rotvecs)
+
+    def state(self, t: float) -> MotionState:
+        t = _checked_time(t)
+        index, tau = self._phase(t)
+        quat, rotvec, shift = self._pose(index)
+        position, rate, acceleration = self._profile(tau)
+        step = _rotvec_quat([position * v for v in rotvec.tolist()])
+        return MotionState(_quat_matrix(_quat_multiply(quat.tolist(), step)),
+                           rotvec * (rate / self._move), shift * (acceleration / self._move**2))
+
+    def holding(self, t: float) -> bool:
+        """Whether the board is held still at time ``t``."""
+        return self._phase(_checked_time(t))[1] == 0.0
+
+
 def _rotvec_quat(rotvec) -> tuple[float, float, float, float]:
     """Rotation vector -> unit quaternion (x, y, z, w), scipy's order."""
     x, y, z = rotvec
@@ -502,7 +598,7 @@ def make_trajectory(kind: str, seed: int = 0) -> Trajectory:
     """The trajectory named ``kind`` (TRAJECTORY_KINDS), deterministic for ``seed``; ``cmd_vel``
     with its default limits (standing until commanded)."""
     factories = {'tumble': TumbleTrajectory, 'yaw': YawTrajectory, 'still': StillTrajectory,
-                 'cmd_vel': CmdVelTrajectory}
+                 'poses': PosesTrajectory, 'cmd_vel': CmdVelTrajectory}
     if kind not in factories:
         raise ValueError(f"unknown motion {kind!r}; expected one of {', '.join(TRAJECTORY_KINDS)}")
     return factories[kind](seed=int(seed))

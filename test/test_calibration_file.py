@@ -616,13 +616,40 @@ def test_rotation_is_optional_validated_and_round_trips_as_doubles(tmp_path):
     path = tmp_path / 'c.yaml'
     path.write_text(WITH_METADATA.format(f'rotation: {ROTATION_45}'))
     loaded = load_calibration(path)
-    assert loaded.metadata['rotation'] == ROTATION_45
-    save_calibration(path, loaded.with_metadata(rotation=[1, 0, 0, 0, 1, 0, 0, 0, 1]))
+    assert loaded.rotation.reshape(9).tolist() == ROTATION_45  # a field, not metadata
+    assert 'rotation' not in loaded.metadata
+    save_calibration(path, loaded.with_rotation([1, 0, 0, 0, 1, 0, 0, 0, 1]))
     section = yaml.safe_load(path.read_text())['mag_calibrator']['ros__parameters']['calibration']
     assert list(section)[:3] == ['offset', 'matrix', 'rotation']
     assert all(type(value) is float for value in section['rotation'])  # never an int array
     path.write_text(GOOD)
-    assert 'rotation' not in load_calibration(path).metadata  # absent: identity, not invented
+    np.testing.assert_array_equal(load_calibration(path).rotation, np.eye(3))  # absent: identity
+
+
+def test_the_rotation_round_trips_and_is_applied(tmp_path):
+    """corrected = R M (raw - b), saved and loaded with and without R."""
+    path = tmp_path / 'c.yaml'
+    rotation = np.array(ROTATION_45).reshape(3, 3)
+    rotation = np.linalg.svd(rotation)[0] @ np.linalg.svd(rotation)[2]  # exactly orthonormal
+    plain = fitted_calibration()
+    rotated = plain.with_rotation(rotation, alignment_angle_deg=45.0)
+    raw = np.array([[3e-5, -1e-5, 2e-5], [-4e-5, 2e-5, 1e-5]])
+    np.testing.assert_allclose(rotated.apply(raw), plain.apply(raw) @ rotation.T)
+    np.testing.assert_allclose(rotated.correction, rotation @ plain.matrix)
+    for calibration in (plain, rotated):
+        save_calibration(path, calibration)
+        loaded = load_calibration(path)
+        np.testing.assert_array_equal(loaded.rotation, calibration.rotation)
+        np.testing.assert_allclose(loaded.apply(raw), calibration.apply(raw), rtol=1e-15)
+        assert loaded.aligned == calibration.aligned
+        assert loaded.scaled(1e6).rotation is not None
+        np.testing.assert_array_equal(loaded.scaled(1e6).rotation, calibration.rotation)
+    assert load_calibration(path).metadata['alignment_angle_deg'] == 45.0
+
+
+def test_rotation_in_metadata_is_refused_not_ignored():
+    with pytest.raises(CalibrationError, match='field of the calibration, not metadata'):
+        fitted_calibration(rotation=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0])
 
 
 @pytest.mark.parametrize(
@@ -638,8 +665,8 @@ def test_a_wrong_rotation_is_refused(tmp_path, rotation, message):
     path.write_text(WITH_METADATA.format(f'rotation: {rotation}'))
     with pytest.raises(CalibrationFileError, match=message):
         load_calibration(path)
-    with pytest.raises(CalibrationFileError, match=message):
-        calibration_yaml(fitted_calibration(rotation=yaml.safe_load(rotation)))
+    with pytest.raises(CalibrationError, match=message):
+        fitted_calibration().with_rotation(yaml.safe_load(rotation))
 
 
 # -- one file per node; sections (issue 10) -------------------------------------------------------
@@ -791,8 +818,8 @@ def test_rclpy_loads_the_file_as_a_params_file(tmp_path, key, node_name):
 
     calibration = Calibration(  # integral values: the int-vs-double trap
         np.array([1.0, -2.0, 0.0]), np.diag([2.0, 1.0, 1.0]), 50.0, 'full',
-        {**METADATA, 'frame_id': 'on', 'condition_number': 1.0,
-         'rotation': [0, -1, 0, 1, 0, 0, 0, 0, 1]},
+        {**METADATA, 'frame_id': 'on', 'condition_number': 1.0},
+        rotation=[[0, -1, 0], [1, 0, 0], [0, 0, 1]],
     )
     path = tmp_path / 'calibration.yaml'
     save_calibration(path, calibration, node_name=key)
@@ -815,7 +842,7 @@ def test_rclpy_loads_the_file_as_a_params_file(tmp_path, key, node_name):
     np.testing.assert_array_equal(rebuilt.offset, calibration.offset)
     np.testing.assert_array_equal(rebuilt.matrix, calibration.matrix)
     assert rebuilt.field_strength == 50.0
-    assert rebuilt.metadata['rotation'] == [0.0, -1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0]
+    assert rebuilt.rotation.reshape(9).tolist() == [0.0, -1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0]
     assert read_calibration_file(path, node_name).notes == ()  # it is this node's section
 
 

@@ -155,7 +155,7 @@ def test_hostile_calibration_files_never_stop_the_node(ros, tmp_path, calibratio
     warmed_up(probe)
     assert len(lockstep(probe, range(1001, 1006))) == 5  # still correcting
     assert wait_for(lambda: any(s.level == DiagnosticStatus.ERROR
-                                for s in probe.statuses('mag_calibrator: ')), timeout_s=5.0)
+                                for s in probe.statuses_of(node)), timeout_s=5.0)
     stop(ros, probe, node)
 
 
@@ -165,7 +165,7 @@ def test_a_hostile_file_at_start_up_leaves_the_node_running_uncalibrated(ros, tm
     node, probe = start(ros, f'startup_{abs(hash(name))}', calibration_file=str(path))
     assert node.session.calibration is None
     assert wait_for(lambda: any(s.level == DiagnosticStatus.ERROR
-                                for s in probe.statuses('mag_calibrator: ')), timeout_s=5.0)
+                                for s in probe.statuses_of(node)), timeout_s=5.0)
     stop(ros, probe, node)
 
 
@@ -254,7 +254,7 @@ def test_absurd_values_with_the_saturation_check_off_are_refused(ros, calibratio
     assert node.session.rejects()['out_of_range'] == 1
     assert len(lockstep(probe, range(1002, 1005))) == 3
     probe.diagnostics.clear()
-    assert wait_for(lambda: probe.statuses('mag_calibrator: '), timeout_s=5.0)
+    assert wait_for(lambda: probe.statuses_of(node), timeout_s=5.0)
     stop(ros, probe, node)
 
 

@@ -1,12 +1,16 @@
 """mag_calibrator_fit end to end: real recordings, every output, every way it must refuse."""
 
+from collections import Counter
 import io
 import json
 import os
 from pathlib import Path
 import subprocess
 import sys
+import warnings
 
+from hypothesis import given
+from hypothesis import strategies as st
 import numpy as np
 import pytest
 from rosbags.rosbag2 import StoragePlugin
@@ -15,6 +19,7 @@ import yaml
 
 from mag_calibrator_ros.calibration.calibration_file import load_calibration
 from mag_calibrator_ros.calibration.fitting import FitOptions, fit_calibration
+from mag_calibrator_ros.calibration.screening import reading_problem
 from mag_calibrator_ros.calibration.session import CalibrationSession, SessionSettings
 from mag_calibrator_ros.tools import fit
 from mag_calibrator_ros.tools.fit import main
@@ -246,6 +251,81 @@ def test_all_mode_counts_zero_and_saturated_rows(shared_data, tmp_path, capsys):
     assert summary['rejects']['saturated'] == 2
 
 
+def imu_log(rng, n=600):
+    """An IMU log: accelerometer (a tumble: g in every direction) then magnetometer (distorted)."""
+    directions = rng.normal(size=(n, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    accel = 9.81 * directions[rng.permutation(n)] + rng.normal(0.0, 0.05, (n, 3))
+    offset = np.array([30.0, -20.0, 45.0])
+    mag = 50.0 * directions @ np.diag([1.1, 0.95, 1.0]) + offset + rng.normal(0.0, 0.3, (n, 3))
+    return np.hstack([accel, mag]), offset
+
+
+@pytest.mark.parametrize('mode', ['buffer', 'all'])
+def test_header_names_pick_the_magnetometer_not_the_accelerometer(tmp_path, capsys, mode):
+    rows, offset = imu_log(np.random.default_rng(70))
+    path = tmp_path / 'imu.csv'
+    np.savetxt(path, rows, delimiter=',', header='ax,ay,az,mx,my,mz', comments='', fmt='%.5f')
+    code, summary, err = run_json(capsys, [str(path), *mode_args(mode)])
+    assert code == 0, summary['reason']
+    assert err == ''
+    assert 'mx,my,mz (fields 3,4,5)' in summary['input']['layout']
+    np.testing.assert_allclose(summary['offset'], offset, atol=0.5)
+    assert summary['field_strength'] == pytest.approx(50.0, rel=0.1)
+
+
+def test_unnamed_imu_columns_ask_for_columns_instead_of_fitting_the_accelerometer(tmp_path,
+                                                                                     capsys):
+    rows, _ = imu_log(np.random.default_rng(71))
+    path = tmp_path / 'imu.csv'
+    np.savetxt(path, rows, delimiter=',', fmt='%.5f')
+    assert_usage_error(capsys, [str(path), '--all'], '6 numeric fields', '--columns')
+    code, summary, _ = run_json(capsys, [str(path), '--all', '--columns', '3,4,5'])
+    assert code == 0 and summary['field_strength'] == pytest.approx(50.0, rel=0.1)
+
+
+@pytest.mark.parametrize('mode', ['buffer', 'all'])
+@pytest.mark.parametrize('value', [1.7e308, -1.7e308, 1e308])
+def test_values_beyond_any_unit_are_named_as_such_without_warnings(tmp_path, capsys, mode,
+                                                                  value):
+    rng = np.random.default_rng(72)
+    rows = value * np.sign(rng.normal(size=(200, 3))) * rng.uniform(0.5, 1.0, (200, 3))
+    path = tmp_path / 'huge.txt'
+    np.savetxt(path, rows)
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')
+        code = main([str(path), *mode_args(mode)])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert 'beyond' in err and 'identical' not in err and 'Warning' not in err
+    assert len(err.splitlines()) == 1
+
+
+def test_extreme_but_valid_scales_calibrate_without_warnings(tmp_path, capsys):
+    rows, offset = imu_log(np.random.default_rng(73))
+    path = tmp_path / 'tiny.txt'
+    np.savetxt(path, rows[:, 3:] * 1e-300)
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')
+        for mode in ('buffer', 'all'):
+            code, summary, err = run_json(capsys, [str(path), *mode_args(mode)])
+            assert code == 0, summary['reason']
+            assert err == ''
+            np.testing.assert_allclose(np.array(summary['offset']) * 1e300, offset, atol=0.5)
+
+
+@given(st.lists(st.tuples(*[st.sampled_from([0.0, -0.0, 1.0, -3.5, 400.0, -400.0, 401.0, 1e-300,
+                                               np.nan, np.inf, -np.inf])] * 3),
+                min_size=1, max_size=40),
+       st.sampled_from([None, 400.0, 1.0]))
+def test_all_mode_screens_with_the_buffers_own_rule(rows, full_scale):
+    samples = np.array(rows, dtype=float).reshape(-1, 3)
+    kept, counts = fit.screen_all(samples, full_scale)
+    problems = [reading_problem(*row, full_scale) for row in samples.tolist()]
+    np.testing.assert_array_equal(kept, samples[[problem is None for problem in problems]])
+    assert counts == dict(Counter(problem for problem in problems if problem is not None))
+
+
 # --- failures --------------------------------------------------------------------------------
 
 
@@ -409,6 +489,30 @@ def test_progress_bar_only_on_a_terminal_outside_ci(monkeypatch):
     ci = FakeTerminal(True)
     fit.ProgressBar(ci, '-').fitting(30_000, 60_000)
     assert ci.getvalue() == ''
+
+
+# --- start-up --------------------------------------------------------------------------------
+
+
+STARTUP_CHECK = """
+import sys
+from mag_calibrator_ros.tools.fit import main
+import mag_calibrator_ros.nodes.icm20948_driver, mag_calibrator_ros.nodes.mag_calibrator
+import mag_calibrator_ros.tools.demo
+codes = [main(['--help']), main(['--model', 'nope', 'x.txt']), main(['--all', '--k', '3', 'x'])]
+heavy = sorted({name.split('.')[0] + '.' + name.split('.')[1] for name in sys.modules
+                if name.startswith(('scipy.optimize', 'scipy.spatial', 'matplotlib.'))})
+print(codes, heavy)
+"""
+
+
+def test_help_argument_errors_and_node_modules_import_no_scipy_optimize_or_matplotlib():
+    """--help, usage errors and the nodes' start-up never pay for the fit's or the plot's
+    imports (scipy.optimize alone took 0.4 s); they come when a fit or a figure needs them."""
+    result = subprocess.run([sys.executable, '-c', STARTUP_CHECK], capture_output=True,
+                            text=True, timeout=120, check=False)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip().splitlines()[-1] == '[0, 2, 2] []'
 
 
 # --- the installed console script --------------------------------------------------------------

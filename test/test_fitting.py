@@ -2,6 +2,7 @@
 
 import json
 import math
+import warnings
 
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -466,6 +467,18 @@ def test_extreme_scales_fit_alike(scale):
     result = fit_calibration(raw / FIELD * scale, FitOptions(model='full'))
     assert result.success, result.reason
     np.testing.assert_allclose(result.calibration.matrix, reference.calibration.matrix, rtol=1e-6)
+    assert_all_finite(result)
+
+
+@pytest.mark.parametrize('model', ['auto', 'full', 'sphere', 'axis', 'planar'])
+def test_values_beyond_any_unit_fail_with_that_reason_and_no_warning(model):
+    rng = np.random.default_rng(37)
+    raw, _ = readings(unit_vectors(rng, 200), rng, np.eye(3), np.zeros(3))
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')
+        result = fit_calibration(raw / FIELD * 1.7e308, FitOptions(model=model))
+    assert not result.success and result.calibration is None
+    assert 'beyond' in result.reason and 'identical' not in result.reason
     assert_all_finite(result)
 
 

@@ -190,12 +190,11 @@ class FailingRequests(InlineRunner):
 
 
 def test_a_fit_error_commands_zero(ros, tmp_path):
-    """The automatic calibration passes (an info event), the rotation's own fit errs (a warning
-    event after it: the node once crashed logging the two from one call site)."""
     driver = sim_robot(ros, 'ground_error')
     calibrator = ros.add(MagCalibratorNode(
         namespace='ground_error', context=ros.context, parameter_overrides=[
-            Parameter('calibration_file', value=str(tmp_path / 'c.yaml'))]))
+            Parameter('calibration_file', value=str(tmp_path / 'c.yaml')),
+            Parameter('auto_calibrate', value=False)]))
     calibrator.session.runner.close()
     calibrator.session.runner = FailingRequests()
     commander = Commander(ros, 'ground_error')
@@ -206,10 +205,37 @@ def test_a_fit_error_commands_zero(ros, tmp_path):
     assert wait_for(lambda: calibrator._rotation.state != 'turning', timeout_s=CALIBRATION_S)
     reason, message = calibrator._rotation.last_stop
     assert reason == 'fit_error' and 'injected' in message
-    assert calibrator.session.adoptions.get('auto') == 1  # the info event came first
     brought_to_rest(commander, driver, moment)
     assert commander.call('mag_calibrator/stop_rotation').success  # the node still answers
     remove_all(ros, commander, calibrator, driver)
+
+
+def test_an_unexpected_error_in_the_rotation_commands_zero(ros, tmp_path):
+    driver, calibrator, commander = turning_robot(ros, tmp_path, 'ground_bug')
+
+    def broken():
+        raise RuntimeError('injected bug')
+
+    calibrator.session.heading_coverage = broken  # the rotation looks at it every 0.5 s
+    moment = time.monotonic()
+    assert wait_for(lambda: calibrator._rotation.state != 'turning', timeout_s=CALIBRATION_S)
+    assert calibrator._rotation.last_stop[0] == 'error'
+    brought_to_rest(commander, driver, moment)
+    assert commander.call('mag_calibrator/stop_rotation').success  # the node still answers
+    remove_all(ros, commander, calibrator, driver)
+
+
+def test_session_events_of_every_level_are_logged_from_one_node(ros, tmp_path):
+    """rclpy refuses a severity change at one logging call site: an info event, then a warning
+    (a calibration, then a failed rotation fit) once crashed the node's event handling."""
+    calibrator = ros.add(MagCalibratorNode(
+        namespace='ground_events', context=ros.context, parameter_overrides=[
+            Parameter('calibration_file', value=str(tmp_path / 'c.yaml'))]))
+    for level in ('info', 'warning', 'debug', 'info', 'warning'):
+        calibrator.session._event(level, f'a {level} event')
+        calibrator._handle_events()  # raised ValueError on the second level before the fix
+    assert not calibrator.session.has_events
+    ros.remove(calibrator)
 
 
 def test_a_parameter_change_commands_zero(ros, tmp_path):

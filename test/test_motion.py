@@ -266,3 +266,27 @@ def test_cmd_vel_state_is_one_consistent_motion_while_turning():
 def test_cmd_vel_limits_are_checked(limits):
     with pytest.raises(ValueError, match='invalid cmd_vel motion'):
         motion.CmdVelTrajectory(**limits)
+
+
+def test_poses_hold_still_then_turn_to_the_next_pose():
+    trajectory = motion.PosesTrajectory(seed=4)
+    held = [t for t in np.arange(0.0, 30.0, 0.01) if trajectory.holding(t)]
+    assert 0.35 < len(held) / 3000 < 0.6  # about half the time held
+    for t in held[::50]:
+        state = trajectory.state(t)
+        np.testing.assert_array_equal(state.angular_velocity, np.zeros(3))
+        np.testing.assert_array_equal(state.linear_acceleration, np.zeros(3))
+    rates = [np.linalg.norm(trajectory.state(t).angular_velocity) for t in np.arange(0, 30, 0.01)]
+    assert 1.0 < max(rates) < 8.0  # a hand turning the board, not a centrifuge
+    poses = trajectory.orientations(np.array(held))
+    distinct = {tuple(np.round(pose[:, 2], 3)) for pose in poses}  # gravity in the body frame
+    assert len(distinct) >= 10  # one per hold, each a new tilt
+
+
+def test_poses_move_the_board_a_few_centimetres_smoothly():
+    trajectory = motion.PosesTrajectory(seed=1)
+    accelerations = [np.linalg.norm(trajectory.linear_acceleration(t))
+                     for t in np.arange(0.0, 30.0, 0.01)]
+    assert 0.01 < max(accelerations) < 1.0
+    steps = np.diff([trajectory.state(t).angular_velocity for t in np.arange(0, 30, 0.01)], axis=0)
+    assert np.max(np.linalg.norm(steps, axis=1)) < 0.2  # minimum jerk: no jumps in rate

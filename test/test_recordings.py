@@ -1,19 +1,26 @@
 """Recordings reader: every text layout, stdin, rosbag2 (sqlite3, mcap), every error path."""
 
+import dataclasses
 import io
 from pathlib import Path
 
+from hypothesis import given
+from hypothesis import strategies as st
 import numpy as np
 import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
+from mag_calibrator_ros.calibration.screening import MAX_READING
+from mag_calibrator_ros.tools import recordings
 from mag_calibrator_ros.tools.recordings import (
     MAGNETIC_FIELD,
     Recording,
     RecordingError,
+    column_roles,
     parse_columns,
     read_recording,
+    sensor_columns,
 )
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
@@ -66,15 +73,134 @@ def test_labelled_lines_with_zero_based_columns(tmp_path):
 def test_labelled_lines_are_detected_without_columns(tmp_path):
     recording = read(tmp_path, 'Mx: 144, My: -270, Mz: 415\r\nMx: 1, My: 2, Mz: 3\r\n')
     np.testing.assert_array_equal(recording.samples, [[144, -270, 415], [1, 2, 3]])
-    assert recording.layout == 'fields 1,3,5'
+    assert recording.layout == 'columns Mx,My,Mz (fields 1,3,5)'
 
 
-def test_wide_rows_use_the_first_three_and_say_so(tmp_path):
-    recording = read(tmp_path, '1 2 3 4 5 6\n7 8 9 10 11 12\n')
-    np.testing.assert_array_equal(recording.samples, [[1, 2, 3], [7, 8, 9]])
-    assert any('--columns' in note for note in recording.notes)
+def test_labelled_lines_of_several_sensors_pick_the_magnetometer(tmp_path):
+    text = 'ax=0.1 ay=0.2 az=9.8 mx=144 my=-270 mz=415\nax=0 ay=0 az=9.8 mx=1 my=2 mz=3\n'
+    recording = read(tmp_path, text)
+    np.testing.assert_array_equal(recording.samples, [[144, -270, 415], [1, 2, 3]])
+
+
+def test_wide_rows_without_names_ask_for_columns(tmp_path):
+    with pytest.raises(RecordingError, match=r'6 numeric fields \(0,1,2,3,4,5\).*--columns') as \
+            error:
+        read(tmp_path, '1 2 3 4 5 6\n7 8 9 10 11 12\n')
+    assert 'first data line: 1 2 3 4 5 6' in str(error.value)
     chosen = read(tmp_path, '1 2 3 4 5 6\n7 8 9 10 11 12\n', columns='3,4,5')
     np.testing.assert_array_equal(chosen.samples, [[4, 5, 6], [10, 11, 12]])
+
+
+# Headers as real loggers write them: (header, data line, fields the magnetometer is read from)
+HEADER_STYLES = [
+    pytest.param('ax,ay,az,mx,my,mz', '0.1,0.2,9.8,1,2,3', (3, 4, 5), id='ax..mz'),
+    pytest.param('timestamp,ax,ay,az,gx,gy,gz,mx,my,mz', '5,0.1,0.2,9.8,0,0,0,1,2,3',
+                 (7, 8, 9), id='imu-9axis'),
+    pytest.param('Acc_X\tAcc_Y\tAcc_Z\tGyr_X\tGyr_Y\tGyr_Z\tMag_X\tMag_Y\tMag_Z',
+                 '0.1\t0.2\t9.8\t0\t0\t0\t1\t2\t3', (6, 7, 8), id='xsens'),
+    pytest.param('accX;accY;accZ;magX;magY;magZ', '0.1;0.2;9.8;1;2;3', (3, 4, 5), id='camel'),
+    pytest.param('TimeUS,I,MagX,MagY,MagZ,OfsX,OfsY,OfsZ,MOX,MOY,MOZ,Health,S',
+                 '1000,0,1,2,3,10,20,30,0,0,0,1,0', (2, 3, 4), id='ardupilot-MAG'),
+    pytest.param('timestamp,device_id,x,y,z,temperature,error_count', '1,7,1,2,3,25.5,0',
+                 (2, 3, 4), id='px4-sensor_mag'),
+    pytest.param('timestamp,magnetometer_ga[0],magnetometer_ga[1],magnetometer_ga[2]',
+                 '1,1,2,3', (1, 2, 3), id='px4-vehicle_magnetometer'),
+    pytest.param('%time,field.header.seq,field.header.stamp,field.header.frame_id,'
+                 'field.magnetic_field.x,field.magnetic_field.y,field.magnetic_field.z',
+                 '1700000000,1,1700000000,imu_link,1,2,3', (4, 5, 6), id='rostopic-echo-p'),
+    pytest.param('"Time (s)","Magnetic field x (µT)","Magnetic field y (µT)",'
+                 '"Magnetic field z (µT)","Absolute field (µT)"', '0.01,1,2,3,3.74', (1, 2, 3),
+                 id='phyphox'),
+    pytest.param('time,seconds_elapsed,z,y,x', '1700000000,0.1,3,2,1', (4, 3, 2),
+                 id='sensor-logger-zyx'),
+    pytest.param('time Bx By Bz Btotal', '0.1 1 2 3 3.74', (1, 2, 3), id='physics-toolbox'),
+    pytest.param('# t mx my mz', '0.1 1 2 3', (1, 2, 3), id='commented'),
+    pytest.param('imu_mx_raw,imu_my_raw,imu_mz_raw,temp', '1,2,3,25', (0, 1, 2), id='qualified'),
+]
+
+
+@pytest.mark.parametrize(('header', 'line', 'fields'), HEADER_STYLES)
+def test_header_names_pick_the_magnetometer_columns(tmp_path, header, line, fields):
+    recording = read(tmp_path, f'{header}\n{line}\n{line}\n', name='log.csv')
+    np.testing.assert_array_equal(recording.samples, [[1, 2, 3], [1, 2, 3]])
+    assert f'(fields {",".join(map(str, fields))})' in recording.layout
+    commented = header.startswith(('#', '%'))
+    assert recording.skipped == ({'comment': 1} if commented else {'header': 1})
+
+
+@pytest.mark.parametrize(('header', 'line', 'words'), [
+    pytest.param('mx_raw,my_raw,mz_raw,mx_cal,my_cal,mz_cal', '1,2,3,4,5,6',
+                 ['2 magnetometer column sets', 'mx_raw,my_raw,mz_raw (fields 0,1,2)',
+                  'mx_cal,my_cal,mz_cal (fields 3,4,5)'], id='raw-and-calibrated'),
+    pytest.param('ax,ay,az,gx,gy,gz', '1,2,3,4,5,6',
+                 ['no magnetometer columns', 'accelerometer ax,ay,az (fields 0,1,2)',
+                  'gyroscope gx,gy,gz (fields 3,4,5)'], id='imu-without-mag'),
+    pytest.param('ax,ay,az,x,y,z', '1,2,3,4,5,6',
+                 ['no magnetometer columns', 'unlabelled x,y,z (fields 3,4,5)',
+                  'accelerometer ax,ay,az'], id='unlabelled-beside-accel'),
+    pytest.param('a,b,c,d', '1,2,3,4', ['4 numeric fields'], id='names-that-say-nothing'),
+])
+def test_ambiguous_files_ask_for_columns_naming_the_candidates(tmp_path, header, line, words):
+    with pytest.raises(RecordingError, match='--columns') as error:
+        read(tmp_path, f'{header}\n{line}\n', name='log.csv')
+    message = str(error.value)
+    assert '\n' not in message
+    for word in words:
+        assert word in message
+
+
+def test_column_roles_also_find_the_accelerometer_and_gyroscope():
+    roles = column_roles(['t', 'ax', 'ay', 'az', 'gx', 'gy', 'gz', 'mx', 'my', 'mz'])
+    assert sensor_columns(roles, 'magnetometer') == (7, 8, 9)
+    assert sensor_columns(roles, 'accelerometer') == (1, 2, 3)
+    assert sensor_columns(roles, 'gyroscope') == (4, 5, 6)
+    # a qualifier or unit in the name: 'accelerometer_m_s2' is no magnetometer for its 'm'
+    px4 = column_roles(['accelerometer_m_s2[0]', 'accelerometer_m_s2[1]', 'accelerometer_m_s2[2]',
+                        'gyro_rad[0]', 'gyro_rad[1]', 'gyro_rad[2]'])
+    assert px4.sensors['magnetometer'] == ()
+    assert sensor_columns(px4, 'accelerometer') == (0, 1, 2)
+
+
+def test_out_of_range_rows_are_skipped_and_counted(tmp_path):
+    text = f'1,2,3\n1.7e308,2,3\n4,5,6\n{MAX_READING * 1.01:.17g},0,0\n'
+    recording = read(tmp_path, text)
+    np.testing.assert_array_equal(recording.samples, [[1, 2, 3], [4, 5, 6]])
+    assert recording.skipped == {'out_of_range': 2}
+    assert 'beyond' in recording.describe()
+    with pytest.raises(RecordingError, match='no usable rows.*2 beyond'):
+        read(tmp_path, '1.7e308,2,3\n-1.7e308,2,3\n')
+
+
+TOKENS = ['1', '-2.5', '3e2', '.5', '+7', 'nan', 'inf', '-Infinity', '1e309', '1.7e308', '1_0',
+          '0x10', 'abc', '"4"', "'5'", '', '1,', '#', '%9', '//', 'Mx', '1.5f', '١', 'iNf', '-0',
+          '1.', '.', '-.', 'e5', '1e', '+nan', '1e-400', ' 2 ', '0x1p3', '1d3', '"1,2"']
+
+
+@given(st.lists(st.lists(st.sampled_from(TOKENS), min_size=0, max_size=6), max_size=30),
+       st.sampled_from([',', ';', '\t', ' ', ', ']), st.booleans())
+def test_numpy_blocks_read_exactly_as_line_by_line(rows, separator, seen_rows):
+    """The fast path is an optimisation only: any block numpy accepts must give the rows and
+    counts the line-by-line parser gives."""
+    block = [separator.join(tokens) + '\n' for tokens in rows]
+    for fields in (3, 4):
+        layout = recordings.TextLayout((0, 1, 2), fields, 'fields 0,1,2', (),
+                                    None if separator == ' ' else separator.strip() or None,
+                                    fields)
+        fast, fast_skipped = recordings._parse_block(block, layout, seen_rows)
+        slow, slow_skipped = recordings._parse_block(
+            block, dataclasses.replace(layout, numpy_fields=None), seen_rows)
+        np.testing.assert_array_equal(fast, slow)
+        assert +fast_skipped == +slow_skipped
+
+
+def test_large_files_are_read_a_block_at_a_time(tmp_path):
+    rng = np.random.default_rng(3)
+    rows = rng.normal(size=(3 * recordings.BLOCK_LINES + 17, 3)).round(6)
+    text = 'mx,my,mz\n' + ''.join(f'{x!r},{y!r},{z!r}\n' for x, y, z in rows.tolist())
+    text = text.replace('\n', '\nnan,1,2\n', 1)  # a NaN row in the first block
+    recording = read(tmp_path, text, name='big.csv')
+    np.testing.assert_array_equal(recording.samples, rows)
+    assert recording.skipped == {'header': 1, 'non_finite': 1}
 
 
 def test_garbage_nan_and_inf_rows_are_skipped_and_counted(tmp_path):
@@ -192,6 +318,9 @@ def test_shared_recordings_read_with_their_documented_layouts(shared_data):
     assert txt.rows == 301 and txt.skipped == {}
     np.testing.assert_array_equal(txt.samples, csv.samples)
     # The serial log: banner lines (one with gyro offsets), acc x,y,z + mag x,y,z, a summary.
+    # Six unnamed numbers per line: the reader must not guess which three are the magnetometer.
+    with pytest.raises(RecordingError, match=r'6 numeric fields.*--columns 3,4,5'):
+        read_recording(lsm / 'cal_output_2.log')
     log = read_recording(lsm / 'cal_output_2.log', columns='3,4,5')
     np.testing.assert_array_equal(log.samples, txt.samples)
     assert log.skipped == {'header': 4, 'not_numeric': 2}
@@ -201,6 +330,8 @@ def test_shared_recordings_read_with_their_documented_layouts(shared_data):
     assert read_recording(gd / 'mag_raw_data_long.txt').rows == 1114
     deployed = read_recording(gd / 'deployment' / 'validation_data_step1en1.txt', columns='3,4,5')
     assert deployed.rows == 1505
+    with pytest.raises(RecordingError, match='6 numeric fields'):
+        read_recording(gd / 'deployment' / 'validation_data_step1en1.txt')
 
 
 # --- rosbag2 ---------------------------------------------------------------------------------
@@ -297,3 +428,20 @@ def test_corrupt_bag_is_a_one_line_error(tmp_path):
     assert '\n' not in str(error.value)
     with pytest.raises(RecordingError, match='no such file or bag directory'):
         read_recording(tmp_path / 'absent.mcap')
+
+
+def test_a_bag_without_the_rosbags_library_says_how_to_get_it(tmp_path, monkeypatch):
+    import builtins
+
+    real_import = builtins.__import__
+
+    def no_rosbags(name, *args, **kwargs):
+        if name.startswith('rosbags'):
+            raise ImportError(f'No module named {name!r}')
+        return real_import(name, *args, **kwargs)
+
+    bag = tmp_path / 'bag.mcap'
+    bag.write_bytes(b'\x89MCAP0\r\n')
+    monkeypatch.setattr(builtins, '__import__', no_rosbags)
+    with pytest.raises(RecordingError, match='pip install rosbags'):
+        read_recording(bag)

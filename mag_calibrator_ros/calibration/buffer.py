@@ -280,7 +280,7 @@ class SampleBuffer:
             self._readings[slot] = x
 
     def _admit(self, x: np.ndarray) -> str:
-        """The brief's rule for a screened sample; a sample that is not unique is merged."""
+        """The uniqueness rule for a screened sample; a sample that is not unique is merged."""
         n = self._fill
         if n == 0:
             self._store(0, x)

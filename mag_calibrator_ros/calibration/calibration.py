@@ -1,4 +1,9 @@
-"""The calibration value shared by every layer: ``corrected = M @ (raw - b)``."""
+"""The calibration value shared by every layer: ``corrected = R @ M @ (raw - b)``.
+
+``b`` and ``M`` (hard and soft iron) make the field a sphere; ``R`` rotates the corrected field
+into the IMU's frame (identity unless aligned to an accelerometer, see ``alignment``): a sphere
+fit cannot see a rotation, so ``R`` comes from gravity, never from the magnetometer alone.
+"""
 
 from __future__ import annotations
 
@@ -13,12 +18,16 @@ from numpy.typing import ArrayLike
 MODELS = ('sphere', 'axis', 'full', 'planar', 'auto')
 """Fit models. ``auto`` names a request only; a fitted calibration carries the model chosen."""
 
+ROTATION_TOLERANCE = 1e-4
+"""Largest |R^T R - I| element and |det R - 1| accepted for a rotation."""
+
 
 class CalibrationError(ValueError):
     """A calibration's numbers are unusable (wrong shape, non-finite, not positive definite)."""
 
 
-def calibration_problems(offset: ArrayLike, matrix: ArrayLike, field_strength: float) -> list[str]:
+def calibration_problems(offset: ArrayLike, matrix: ArrayLike, field_strength: float,
+                         rotation: ArrayLike | None = None) -> list[str]:
     """Say, in words a user can act on, everything wrong with these calibration numbers."""
     problems = []
     b = np.asarray(offset, dtype=float)
@@ -41,14 +50,41 @@ def calibration_problems(offset: ArrayLike, matrix: ArrayLike, field_strength: f
             )
     if not np.isfinite(field_strength) or field_strength <= 0.0:
         problems.append(f'field_strength must be a positive finite number, got {field_strength}')
+    if rotation is not None:
+        problems += rotation_problems(rotation)
     return problems
+
+
+def rotation_problems(rotation: ArrayLike) -> list[str]:
+    """Everything that keeps ``rotation`` from being a proper rotation (R^T R = I, det R = +1)."""
+    try:
+        r = np.asarray(rotation, dtype=float)
+    except (TypeError, ValueError):
+        return ['rotation must be a list of 9 numbers (row-major)']
+    if r.size != 9:
+        return [f'rotation must have 9 numbers, got {r.size}']
+    r = r.reshape(3, 3)
+    if not np.all(np.isfinite(r)):
+        return ['rotation has non-finite values']
+    error = float(np.max(np.abs(r.T @ r - np.eye(3))))
+    if error > ROTATION_TOLERANCE:
+        return [f'rotation is not orthonormal (R^T R differs from identity by {error:.2g}, '
+                f'tolerance {ROTATION_TOLERANCE:g})']
+    determinant = float(np.linalg.det(r))
+    if abs(determinant - 1.0) > ROTATION_TOLERANCE:
+        return [f'rotation has determinant {determinant:.6g}: a reflection, not a rotation']
+    return []
 
 
 @dataclass(frozen=True)
 class Calibration:
-    """Hard-iron offset ``b`` and soft-iron correction ``M``; ``|corrected|`` is about ``F``.
+    """Hard-iron offset ``b``, soft-iron correction ``M`` and rotation ``R`` into the IMU frame;
+    ``|corrected|`` is about ``F``.
 
-    Units are those of the raw input (tesla in the nodes, input units offline).
+    Units are those of the raw input (tesla in the nodes, input units offline). ``rotation``
+    None means identity; ``correction`` is the whole linear map ``R @ M`` (what ``apply`` uses
+    and what a covariance transforms by). ``rotation`` is not metadata: a metadata key of that
+    name is refused, so a rotation can never be silently ignored.
     """
 
     offset: np.ndarray
@@ -56,19 +92,39 @@ class Calibration:
     field_strength: float = 1.0
     model: str = 'full'
     metadata: Mapping[str, Any] = field(default_factory=dict)
+    rotation: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        problems = calibration_problems(self.offset, self.matrix, self.field_strength)
+        problems = calibration_problems(self.offset, self.matrix, self.field_strength,
+                                        self.rotation)
+        if 'rotation' in self.metadata:
+            problems.append("'rotation' is a field of the calibration, not metadata "
+                            '(Calibration(..., rotation=R))')
         if problems:
             raise CalibrationError('; '.join(problems))
         offset = np.array(self.offset, dtype=float).reshape(3)
         matrix = np.array(self.matrix, dtype=float).reshape(3, 3)
-        offset.flags.writeable = False
-        matrix.flags.writeable = False
+        rotation = (np.eye(3) if self.rotation is None
+                    else np.array(self.rotation, dtype=float).reshape(3, 3))
+        correction = rotation @ matrix
+        for array in (offset, matrix, rotation, correction):
+            array.flags.writeable = False
         object.__setattr__(self, 'offset', offset)
         object.__setattr__(self, 'matrix', matrix)
+        object.__setattr__(self, 'rotation', rotation)
         object.__setattr__(self, 'field_strength', float(self.field_strength))
         object.__setattr__(self, 'metadata', dict(self.metadata))
+        object.__setattr__(self, '_correction', correction)
+
+    @property
+    def correction(self) -> np.ndarray:
+        """``R @ M``: the linear part of the correction (3, 3)."""
+        return self._correction
+
+    @property
+    def aligned(self) -> bool:
+        """Whether a rotation other than identity is in the calibration."""
+        return not np.array_equal(self.rotation, np.eye(3))
 
     @classmethod
     def identity(cls, field_strength: float = 1.0) -> Calibration:
@@ -76,9 +132,19 @@ class Calibration:
         return cls(np.zeros(3), np.eye(3), field_strength, model='identity')
 
     def apply(self, raw: ArrayLike) -> np.ndarray:
-        """Correct one sample (3,) or many (n, 3)."""
+        """Correct one sample (3,) or many (n, 3): ``R @ M @ (raw - b)``."""
+        raw = np.asarray(raw, dtype=float)
+        return (raw - self.offset) @ self._correction.T
+
+    def unrotated(self, raw: ArrayLike) -> np.ndarray:
+        """``M @ (raw - b)``: corrected in the magnetometer's own axes (before ``R``)."""
         raw = np.asarray(raw, dtype=float)
         return (raw - self.offset) @ self.matrix.T
+
+    def with_rotation(self, rotation: ArrayLike | None, **metadata: Any) -> Calibration:
+        """A copy with rotation ``R`` (None: identity) and metadata entries added or replaced."""
+        return Calibration(self.offset, self.matrix, self.field_strength, self.model,
+                           {**self.metadata, **metadata}, rotation)
 
     def scaled(self, factor: float) -> Calibration:
         """The same calibration for input expressed in other units (``raw_new = factor * raw``)."""
@@ -88,6 +154,7 @@ class Calibration:
             self.field_strength * factor,
             self.model,
             self.metadata,
+            self.rotation,
         )
 
     def metadata_number(self, key: str) -> float | None:
@@ -109,4 +176,5 @@ class Calibration:
             self.field_strength,
             self.model,
             {**self.metadata, **metadata},
+            self.rotation,
         )

@@ -39,9 +39,11 @@ from numpy.typing import ArrayLike
 
 from mag_calibrator_ros.calibration.calibration import (
     MODELS,
+    ROTATION_TOLERANCE,
     Calibration,
     CalibrationError,
     calibration_problems,
+    rotation_problems,
 )
 from mag_calibrator_ros.calibration.params_yaml import (
     MAX_DEPTH,
@@ -67,11 +69,9 @@ DEFAULT_NODE_NAME = 'mag_calibrator'
 SECTION = 'calibration'
 REQUIRED_KEYS = ('offset', 'matrix', 'field_strength')
 ROTATION_KEY = 'rotation'
-RESERVED_KEYS = (*REQUIRED_KEYS, 'model')
+RESERVED_KEYS = (*REQUIRED_KEYS, 'model', ROTATION_KEY)
 FILE_MODELS = (*MODELS, 'identity')
 """Models a file may name: the fit models and 'identity' (:meth:`Calibration.identity`)."""
-ROTATION_TOLERANCE = 1e-4
-"""Largest |R^T R - I| element and |det R - 1| accepted for ``calibration.rotation``."""
 LEGACY_DEFAULT_PATH = '~/.ros/mag_calibrator/calibration.yaml'
 """The default file before per-node defaults; still read by ``/mag_calibrator`` (see
 :func:`default_load_path`)."""
@@ -208,14 +208,16 @@ def calibration_from_parameters(
     field_strength: float,
     model: str = 'full',
     metadata: Mapping[str, Any] | None = None,
+    rotation: ArrayLike | None = None,
 ) -> Calibration:
     """A :class:`Calibration` from parameter values (``--params-file`` or a loaded file).
 
     Integers are accepted wherever doubles are expected (``matrix: [1, 0, 0, ...]``,
     ``field_strength: 1``): a hand-written params file types them as integers. ``matrix`` is 9
-    values row-major (or 3x3 nested). ``metadata['rotation']``, when present, must be a proper
-    rotation (9 values row-major, orthonormal, det +1) and comes back as 9 floats. Metadata keys
-    that are not ROS parameter names are dropped (they could never be saved). Raises
+    values row-major (or 3x3 nested). ``rotation`` (``calibration.rotation``; also taken from
+    ``metadata['rotation']``, where the other ``calibration.*`` parameters arrive) must be a
+    proper rotation (9 values row-major, orthonormal, det +1); absent means identity. Metadata
+    keys that are not ROS parameter names are dropped (they could never be saved). Raises
     :class:`CalibrationError` naming every problem (type, shape, finiteness, definiteness).
     """
     problems: list[str] = []
@@ -229,13 +231,16 @@ def calibration_from_parameters(
         metadata = None
     extra, _dropped = _savable_metadata(metadata or {})
     if ROTATION_KEY in extra:
-        extra[ROTATION_KEY] = _rotation(extra[ROTATION_KEY], problems)
+        given = extra.pop(ROTATION_KEY)
+        rotation = given if rotation is None else rotation
+    rotation_values = None if rotation is None else _rotation(rotation, problems)
     if not problems:
         problems = calibration_problems(offset_values, np.reshape(matrix_values, (3, 3)), strength)
     if problems:
         raise CalibrationError('; '.join(problems))
     return Calibration(
-        np.array(offset_values), np.reshape(matrix_values, (3, 3)), strength, model, extra
+        np.array(offset_values), np.reshape(matrix_values, (3, 3)), strength, model, extra,
+        None if rotation_values is None else np.reshape(rotation_values, (3, 3)),
     )
 
 
@@ -288,19 +293,9 @@ def _rotation(value: Any, problems: list[str]) -> list[float]:
     values = _numbers(value, ROTATION_KEY, 9, problems)
     if not values:
         return []
-    rotation = np.reshape(values, (3, 3))
-    error = float(np.max(np.abs(rotation.T @ rotation - np.eye(3))))
-    determinant = float(np.linalg.det(rotation))
-    if error > ROTATION_TOLERANCE:
-        problems.append(
-            f'rotation is not orthonormal (R^T R differs from identity by {error:.2g}, '
-            f'tolerance {ROTATION_TOLERANCE:g})'
-        )
-    elif abs(determinant - 1.0) > ROTATION_TOLERANCE:
-        problems.append(
-            f'rotation has determinant {determinant:.6g}: a reflection, not a rotation'
-        )
-    return values
+    wrong = rotation_problems(values)
+    problems += wrong
+    return [] if wrong else values
 
 
 def _savable_metadata(
@@ -339,26 +334,36 @@ def calibration_yaml(calibration: Calibration, node_name: str = DEFAULT_NODE_NAM
     Raises :class:`CalibrationFileError` for metadata no parameters file can hold.
     """
     _check_section_key(node_name)
+    fields = _calibration_fields(calibration)
+    try:
+        return params_yaml(node_name, {SECTION: fields}, _COMMENTS)
+    except ParamsYamlError as error:
+        raise CalibrationFileError(str(error)) from None
+
+
+def _calibration_fields(calibration: Calibration) -> dict[str, Any]:
+    """The ``calibration`` section's values, in file order (metadata last)."""
     fields: dict[str, Any] = {
         'offset': [float(value) for value in calibration.offset],
         'matrix': [float(value) for value in calibration.matrix.reshape(9)],
+        ROTATION_KEY: [float(value) for value in calibration.rotation.reshape(9)],
     }
     metadata = dict(calibration.metadata)
     for key in RESERVED_KEYS:
         if key in metadata:
             raise CalibrationFileError(f'metadata key {key!r} would overwrite the calibration')
-    if ROTATION_KEY in metadata:
-        problems: list[str] = []
-        fields[ROTATION_KEY] = _rotation(metadata.pop(ROTATION_KEY), problems)
-        if problems:
-            raise CalibrationFileError('; '.join(problems))
     fields['field_strength'] = float(calibration.field_strength)
     fields['model'] = str(calibration.model)
     fields.update(metadata)
-    try:
-        return params_yaml(node_name, {SECTION: fields}, _COMMENTS)
-    except ParamsYamlError as error:
-        raise CalibrationFileError(str(error)) from None
+    return fields
+
+
+def calibration_parameters(calibration: Calibration) -> dict[str, Any]:
+    """The calibration as the node's ``calibration.*`` parameters (dotted names), exactly what
+    a saved file holds: ``ros2 param dump`` of the node then loads back with --params-file."""
+    flat: dict[str, Any] = {}
+    _flatten(_calibration_fields(calibration), f'{SECTION}.', flat)
+    return flat
 
 
 def save_calibration(
@@ -498,7 +503,7 @@ def _section_calibration(
     try:
         calibration = calibration_from_parameters(
             section['offset'], section['matrix'], section['field_strength'],
-            section.get('model', 'full'), metadata,
+            section.get('model', 'full'), metadata, section.get(ROTATION_KEY),
         )
     except CalibrationError as error:
         raise CalibrationFileError(f'{shown}: {error}') from None

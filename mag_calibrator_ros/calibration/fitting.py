@@ -30,7 +30,8 @@ from mag_calibrator_ros.calibration.coverage import (
 from mag_calibrator_ros.calibration.ellipsoid import (
     PARAMETER_COUNTS,
     EllipsoidFit,
-    fit_ellipsoid,
+    Normalisation,
+    fit_ellipsoids,
     information_criterion,
     normalise,
     thickness,
@@ -39,6 +40,17 @@ from mag_calibrator_ros.calibration.heading import fit_ring
 
 _HUGE = sys.float_info.max
 """Stands in for an infinite condition number or axis ratio: results never carry inf or NaN."""
+
+LARGEST_READING = sys.float_info.max / 4
+"""Readings beyond this magnitude (4.5e307) are refused: differences between them, which every fit
+takes, overflow float64. No magnetometer reads anything near it in any unit (a tesla reading in
+femtotesla is 1e11); such numbers come from wrong columns or a corrupt log."""
+
+GATE_MARGIN = 0.2
+"""A fit that took the fast path (see ellipsoid.py) stands only when it passes every gate by more
+than this share of the way from the ideal value (residual 0, condition and axis ratio 1, coverage
+1) to the gate. Nearer, or failing, it is redone on the robust path, so no gate decision rests on
+the shortcut."""
 
 
 @dataclass(frozen=True)
@@ -185,6 +197,15 @@ def fit_calibration(
             f'no usable samples: all {n_bad} rows contain NaN or Inf' if n_bad else 'no samples'
         )
         return _failure(options, reason, finite, 0, n_bad)
+    largest = float(np.max(np.abs(rows)))
+    if largest > LARGEST_READING:
+        return _failure(
+            options,
+            f'samples reach {largest:.3g}, beyond {LARGEST_READING:.2g} where the differences '
+            'between readings overflow: these are no magnetometer readings in any unit (wrong '
+            'columns, a corrupt log?)',
+            finite, n, n_bad,
+        )  # fmt: skip
     norm = normalise(rows)
     if norm is None:
         return _failure(
@@ -195,14 +216,16 @@ def fit_calibration(
     # Work in input units / 2^k (exact in floating point): tesla and counts alike are of order one.
     unit = 2.0 ** round(math.log2(norm.scale))
     rows = rows / unit
+    norm = Normalisation(norm.centre / unit, norm.scale / unit)  # normalise(rows), exactly
+    normalised = norm, norm.forward(rows)
     options = replace(
         options,
         field_strength=None if options.field_strength is None else options.field_strength / unit,
         prior=None if options.prior is None else options.prior.scaled(1.0 / unit),
     )
     with np.errstate(all='ignore'):
-        layer_thickness, _ = thickness(normalise(rows).forward(rows))
-        fitted, choice_note = _fit_model(rows, options, layer_thickness, weights)
+        layer_thickness, _ = thickness(normalised[1])
+        fitted, choice_note = _fit_model(rows, options, layer_thickness, weights, normalised)
         if fitted is None:
             reasons = [
                 _too_few(n, options)
@@ -216,7 +239,25 @@ def fit_calibration(
         result = _judge(
             rows, finite, fitted, options, layer_thickness, n_bad, choice_note, evidence
         )
+        if not fitted.robust and _near_a_gate(result, options):
+            refitted, note = _fit_model(rows, options, layer_thickness, weights, normalised, True)
+            if refitted is not None:
+                result = _judge(
+                    rows, finite, refitted, options, layer_thickness, n_bad, note, evidence
+                )
     return _in_input_units(result, unit)
+
+
+def _near_a_gate(result: FitResult, options: FitOptions) -> bool:
+    """True when a gate failed or is within GATE_MARGIN of failing."""
+    metrics, near = result.metrics, 1.0 - GATE_MARGIN
+    return (
+        not result.success
+        or metrics.residual_rms_pct >= near * options.max_residual_pct
+        or metrics.condition_number >= 1.0 + near * (options.max_condition - 1.0)
+        or metrics.axis_ratio >= 1.0 + near * (options.max_axis_ratio - 1.0)
+        or metrics.coverage <= options.min_coverage + GATE_MARGIN * (1.0 - options.min_coverage)
+    )
 
 
 def _in_input_units(result: FitResult, unit: float) -> FitResult:
@@ -249,7 +290,7 @@ def _usable_rows(samples: ArrayLike) -> tuple[np.ndarray, np.ndarray, str]:
             f'samples must be an (n, 3) array, got shape {array.shape}',
         )
     finite = np.all(np.isfinite(array), axis=1)
-    return array[finite], finite, ''
+    return (array if finite.all() else array[finite]), finite, ''
 
 
 def _usable_weights(weights: ArrayLike, finite: np.ndarray) -> tuple[np.ndarray | None, str]:
@@ -275,22 +316,31 @@ def _too_few(n: int, options: FitOptions) -> str:
 
 
 def _fit_model(
-    rows: np.ndarray, options: FitOptions, layer_thickness: float, weights: np.ndarray | None
+    rows: np.ndarray,
+    options: FitOptions,
+    layer_thickness: float,
+    weights: np.ndarray | None,
+    normalised: tuple[Normalisation, np.ndarray],
+    always_robust: bool = False,
 ) -> tuple[EllipsoidFit | None, str]:
-    """The requested model, or for ``auto`` the one the data determine with the lowest BIC."""
+    """The requested model, or for ``auto`` the one the data determine with the lowest BIC.
+    ``normalised``: ``normalise(rows)`` and the normalised rows (shared by every fit)."""
     prior = None
     if options.prior is not None:
         prior = (options.prior.offset, options.prior.matrix / options.prior.field_strength)
     threshold = options.outlier_threshold
+
+    def fit(*models: str) -> dict[str, EllipsoidFit | None]:
+        return fit_ellipsoids(rows, models, threshold, prior, weights, always_robust, normalised)
+
     if options.model != 'auto':
-        return fit_ellipsoid(rows, options.model, threshold, prior, weights), ''
+        return fit(options.model)[options.model], ''
     if layer_thickness < options.planar_thickness:
         note = f'auto: planar (samples lie near one plane, thickness {layer_thickness:.2f})'
-        return fit_ellipsoid(rows, 'planar', threshold, prior, weights), note
-    sphere = fit_ellipsoid(rows, 'sphere', threshold, weights=weights)
-    full = None
-    if len(rows) >= 2 * PARAMETER_COUNTS['full']:
-        full = fit_ellipsoid(rows, 'full', threshold, weights=weights)
+        return fit('planar')['planar'], note
+    models = ('sphere', 'full') if len(rows) >= 2 * PARAMETER_COUNTS['full'] else ('sphere',)
+    fits = fit(*models)
+    sphere, full = fits['sphere'], fits.get('full')
     determined = [
         fit for fit in (sphere, full) if fit is not None and fit.condition <= options.max_condition
     ]
@@ -300,7 +350,7 @@ def _fit_model(
         # missing.
         chosen = None
         if layer_thickness < 2.0 * options.planar_thickness:
-            chosen = fit_ellipsoid(rows, 'planar', threshold, prior, weights)
+            chosen = fit('planar')['planar']
         candidates = [fit for fit in (sphere, full) if fit is not None]
         if chosen is None and candidates:
             chosen = min(candidates, key=lambda fit: fit.condition)
@@ -518,12 +568,13 @@ def _coverage(
         if ring is None:  # a flat noise blob (a still sensor) has headings all round too
             return Coverage(0.0, 0, HEADING_SECTORS, problem)
         return heading_coverage(fitted.headings[fitted.inliers], fitted.plane_normal)
-    coverage = direction_coverage(rows[fitted.inliers], calibration, readings)
+    inliers = rows if fitted.inliers.all() else rows[fitted.inliers]
+    coverage = direction_coverage(inliers, calibration, readings)
     if coverage.occupied == 0 and calibration is not None:
         # A model too simple for the data (e.g. `axis` under rotated soft iron) leaves a shell too
         # thick to trust its directions; that is the residual gate's finding, not missing
         # rotation. Coverage is a property of the data: judge it by their own whitening.
-        own = direction_coverage(rows[fitted.inliers], None, readings)
+        own = direction_coverage(inliers, None, readings)
         if own.occupied > 0:
             return own
     return coverage

@@ -24,9 +24,19 @@ from typing import Any, Protocol
 import numpy as np
 
 from mag_calibrator_ros.calibration import fit_worker
+from mag_calibrator_ros.calibration.alignment import (
+    Alignment,
+    AlignmentOptions,
+    estimate_alignment,
+)
 from mag_calibrator_ros.calibration.buffer import DEFAULT_MAGNITUDE_TOLERANCE
 from mag_calibrator_ros.calibration.calibration import Calibration
 from mag_calibrator_ros.calibration.coverage import Coverage, direction_coverage
+from mag_calibrator_ros.calibration.earth_field import (
+    EarthCheck,
+    EarthReference,
+    disturbance_text,
+)
 from mag_calibrator_ros.calibration.ellipsoid import robust_sigma
 from mag_calibrator_ros.calibration.evidence import (
     Comparison,
@@ -80,6 +90,13 @@ class FitJob:
     """check: the held-out readings of the last MISFIT_WINDOW_S."""
     tracked: Calibration | None = None
     """check: the online tracker's calibration, compared with ``current`` on ``evidence``."""
+    attitudes: np.ndarray | None = None
+    """calibrate and refine: quasi-static (field, accel) attitudes (StaticAttitudes.snapshot);
+    the fitted calibration is aligned to the IMU with them when ``alignment`` is set."""
+    alignment: AlignmentOptions | None = None
+    earth: EarthReference | None = None
+    """calibrate and refine: the World Magnetic Model's field here; the fit is checked against
+    it (and fails beyond the tolerances when ``earth.gate``)."""
 
 
 @dataclass(frozen=True)
@@ -106,6 +123,10 @@ class JobOutcome:
     """check: the calibration in force judged on the recent evidence."""
     error: str = ''
     seconds: float = 0.0
+    alignment: Alignment | None = None
+    """The fit aligned to the IMU (its rotation is in the calibration when it succeeded)."""
+    earth_check: EarthCheck | None = None
+    """The fit against the World Magnetic Model."""
 
     @property
     def fitted(self) -> bool:
@@ -143,11 +164,41 @@ def _run(job: FitJob) -> JobOutcome:
             time=time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()), **job.metadata
         )
         result = replace(result, calibration=stamped)
+    result, alignment, earth_check = align_and_check(job, result)
     comparison = None
     if (result.success and job.current is not None and job.evidence is not None
             and len(job.evidence)):
         comparison = compare_on_evidence(job.current, result.calibration, job.evidence)
-    return JobOutcome(job, result, comparison=comparison, coverage=coverage)
+    return JobOutcome(job, result, comparison=comparison, coverage=coverage,
+                      alignment=alignment, earth_check=earth_check)
+
+
+def align_and_check(job: FitJob, result: FitResult
+                    ) -> tuple[FitResult, Alignment | None, EarthCheck | None]:
+    """The fit aligned to the IMU (its rotation put in the calibration when the alignment
+    succeeds) and judged against the World Magnetic Model (a failed gate when ``job.earth.gate``
+    and the field or the dip is off)."""
+    calibration = result.calibration
+    if calibration is None:
+        return result, None, None
+    alignment = None
+    if job.alignment is not None and job.attitudes is not None:
+        alignment = estimate_alignment(job.attitudes, calibration, job.alignment)
+        if alignment.success:
+            calibration = calibration.with_rotation(alignment.rotation, **alignment.metadata())
+    earth_check = None
+    if job.earth is not None:
+        dip = None
+        if alignment is not None and alignment.handedness != 'left' and (
+                alignment.dip_std_deg <= job.alignment.max_dip_std_deg):
+            dip = alignment.dip_deg
+        radius = calibration.field_strength / float(np.linalg.det(calibration.matrix)) ** (1 / 3)
+        earth_check = job.earth.check(radius, dip)
+        calibration = calibration.with_metadata(
+            declination_deg=round(job.earth.field.declination_deg, 4))
+        if earth_check.problems and job.earth.gate and result.success:
+            result = replace(result, success=False, reason=disturbance_text(earth_check))
+    return replace(result, calibration=calibration), alignment, earth_check
 
 
 def readiness(job: FitJob) -> tuple[Coverage, float]:
@@ -360,6 +411,7 @@ __all__ = [
     'JobOutcome',
     'ProcessRunner',
     'ReferenceFit',
+    'align_and_check',
     'moved',
     'prediction_sigma',
     'readiness',

@@ -16,7 +16,8 @@ is covered and the planar fit passes its gates, and every way out ends in a zero
 - ``fit_error``: the fit itself failed (an exception, the worker died), not merely its gates;
 - ``conflict``: another node started publishing on the command topic;
 - ``parameters``: a parameter changed (the settings it started with no longer hold);
-- ``shutdown``: the node is going down (Ctrl-C, SIGTERM, destroy).
+- ``shutdown``: the node is going down (Ctrl-C, SIGTERM, destroy);
+- ``error``: an unexpected error in the node's own rotation code (logged with its traceback).
 
 After a stop the zero is repeated for ZERO_HOLD_S, so a base that missed one message (a best
 effort subscriber, a late match) still stops; while turning the command is re-sent every
@@ -63,6 +64,7 @@ STOP_REASONS = {
     'conflict': 'another node publishes on the command topic',
     'parameters': 'a parameter changed',
     'shutdown': 'the node is shutting down',
+    'error': 'an unexpected error in the node (see the log)',
 }
 
 STATES = ('idle', 'turning', 'stopping')

@@ -15,7 +15,11 @@ returns the corrected field. Behind it, and nowhere else, it decides:
   after a misfit, by refinement only when it is better on held-out readings (``evidence``) and
   covers no less; on request whenever it passes the gates;
 - whether the calibration in force still fits the sensor (``evidence.MisfitMonitor``);
-- online tracking (``tracker``), judged on the same held-out readings.
+- online tracking (``tracker``), judged on the same held-out readings;
+- with an IMU (``process_imu``): which readings pair with an accelerometer sample and are held
+  still (``alignment.StaticAttitudes``), and whether a fit's rotation into the IMU frame goes in
+  force; with a location (``set_earth_field``): the target field strength and the checks of a
+  fit against the World Magnetic Model.
 
 What it decided comes out as ``SessionEvent``s for the node to log and act on (auto-save,
 service answers). Units are the caller's (tesla in the node); the engine is unit-free.
@@ -33,9 +37,24 @@ from typing import NamedTuple
 
 import numpy as np
 
+from mag_calibrator_ros.calibration.alignment import (
+    MAX_ANGLE_DEG,
+    Alignment,
+    AlignmentOptions,
+    StaticAttitudes,
+    rotation_angle_deg,
+)
 from mag_calibrator_ros.calibration.buffer import SampleBuffer
 from mag_calibrator_ros.calibration.calibration import MODELS, Calibration, CalibrationError
 from mag_calibrator_ros.calibration.coverage import HEADING_SECTORS, Coverage
+from mag_calibrator_ros.calibration.earth_field import (
+    MAX_DIP_ERROR_DEG,
+    MAX_FIELD_ERROR_PCT,
+    EarthCheck,
+    EarthField,
+    EarthReference,
+    disturbance_text,
+)
 from mag_calibrator_ros.calibration.evidence import (
     HOLD_OUT_EVERY,
     MIN_EVIDENCE,
@@ -95,6 +114,12 @@ disturbance would otherwise pull the calibration toward fitting that one directi
 
 MAX_EVENTS = 1000
 
+IMU_RING = 256
+"""Recent accelerometer samples kept to pair magnetometer readings with (256 ms at 1 kHz)."""
+PAIR_TOLERANCE_NS = 20_000_000
+"""A magnetometer reading pairs with the accelerometer sample nearest its stamp within 20 ms
+(a 50 Hz IMU); a still reading does not change in that time, a moving one is never still."""
+
 
 def _engine_defaults() -> tuple[int, int, FitOptions]:
     """Buffer size, k and fit gates as the engine chose them from its benchmarks."""
@@ -131,6 +156,15 @@ class SessionSettings:
     """Adopt a tracked calibration only when its residual is below this share of the current."""
     tracking_max_change_rate: float = 0.01
     """Per second: offset change as a share of the field, matrix change as a relative norm."""
+    align: bool = True
+    """With paired accelerometer readings (``process_imu``), align fits to the IMU frame."""
+    max_alignment_deg: float = MAX_ANGLE_DEG
+    """A larger rotation is reported as a mounting error (with the remap) and not applied."""
+    max_field_error_pct: float = MAX_FIELD_ERROR_PCT
+    max_dip_error_deg: float = MAX_DIP_ERROR_DEG
+    """Tolerances against the World Magnetic Model (``set_earth_field``)."""
+    earth_field_gate: bool = True
+    """Beyond them a fit fails (True) or is only warned about (False)."""
 
     @property
     def full_scale_limit(self) -> float | None:
@@ -168,6 +202,12 @@ class SessionSettings:
         if not math.isfinite(self.tracking_max_change_rate) or self.tracking_max_change_rate <= 0:
             problems.append(f'tracking_max_change_rate must be > 0 per second, got '
                             f'{self.tracking_max_change_rate}')
+        if not 0.0 <= self.max_alignment_deg <= 180.0:
+            problems.append(f'max_alignment_deg must be in [0, 180], got {self.max_alignment_deg}')
+        if not (math.isfinite(self.max_field_error_pct) and self.max_field_error_pct > 0.0):
+            problems.append(f'max_field_error_pct must be > 0, got {self.max_field_error_pct}')
+        if not 0.0 < self.max_dip_error_deg <= 90.0:
+            problems.append(f'max_dip_error_deg must be in (0, 90], got {self.max_dip_error_deg}')
         return problems
 
     def fit_options(self) -> FitOptions:
@@ -178,6 +218,12 @@ class SessionSettings:
             min_coverage=self.min_coverage,
             max_residual_pct=self.max_residual_pct,
         )
+
+
+    def alignment_options(self, earth: EarthField | None = None) -> AlignmentOptions:
+        return AlignmentOptions(
+            max_angle_deg=self.max_alignment_deg,
+            expected_inclination_deg=None if earth is None else earth.inclination_deg)
 
 
 class Processed(NamedTuple):
@@ -242,8 +288,9 @@ def magnitude_residual_pct(calibration: Calibration, samples: np.ndarray) -> flo
 
 
 def transform_covariance(matrix: np.ndarray, covariance: Sequence[float]) -> np.ndarray:
-    """``M C M^T`` for a known covariance; all-zero (unknown) and -1 (not reported) pass as is,
-    and a covariance with NaN/Inf (or one that overflows) becomes all-zero: unknown (REP-145)."""
+    """``A C A^T`` for a known covariance (``A`` = ``calibration.correction``, R M); all-zero
+    (unknown) and -1 (not reported) pass as is, and a covariance with NaN/Inf (or one that
+    overflows) becomes all-zero: unknown (REP-145)."""
     covariance = np.asarray(covariance, dtype=float).reshape(3, 3)
     if not np.all(np.isfinite(covariance)):
         return np.zeros(9)
@@ -277,6 +324,7 @@ def bounded_step(current: Calibration, target: Calibration, max_change: float) -
         current.field_strength,
         current.model,
         {**current.metadata, 'source': 'online_tracking'},
+        current.rotation,
     )
 
 
@@ -292,6 +340,8 @@ def calibration_summary(calibration: Calibration, units: str = 'T') -> str:
         text += f', coverage {100.0 * coverage:.0f} %'
     if samples is not None:
         text += f', {samples:.0f} samples'
+    if calibration.aligned:
+        text += f', rotated {rotation_angle_deg(calibration.rotation):.2f} deg into the IMU frame'
     return text
 
 
@@ -374,6 +424,23 @@ class CalibrationSession:
         self._latest: np.ndarray | None = None  # the latest accepted reading (heading hints)
         self._looked_at: np.ndarray | None = None  # the latest reading at the previous look
         self._turning = 0  # the way the heading last moved between two looks (+1 / -1)
+        self.attitudes = StaticAttitudes()
+        """Quasi-static (field, accel) attitudes paired from the IMU, for the alignment."""
+        self._imu: deque[tuple[int, float, float, float, tuple | None]] = deque(maxlen=IMU_RING)
+        self.imu_rate = _RateMeter()
+        self.imu_accepted = 0
+        self.imu_refused = 0
+        self.paired = 0
+        """Accepted magnetometer readings paired with an accelerometer sample."""
+        self.imu_frame_id = ''
+        self.earth: EarthField | None = None
+        """The World Magnetic Model's field here (``set_earth_field``), None while unknown."""
+        self.alignment: Alignment | None = None
+        """The latest fit's alignment to the IMU (applied or not)."""
+        self.earth_check: EarthCheck | None = None
+        """The latest fit against the model."""
+        self._alignment_warning = ''
+        self._earth_warning = ''
         if calibration is not None:
             self.apply_calibration(calibration, 'given')
 
@@ -414,15 +481,60 @@ class CalibrationSession:
         self.accepted += 1
         reading = np.array((x0, x1, x2))
         self._latest = reading
+        pair = self._pair(stamp_ns) if self._imu else None
         self._advance()
         if self._job is None and not self._held:
-            self._ingest(reading, stamp_ns)
+            self._ingest(reading, stamp_ns, pair)
         else:
-            self._hold(reading, stamp_ns)
+            self._hold(reading, stamp_ns, pair)
         calibration = self.calibration
         if calibration is None:
             return Processed(True, None, None)
         return Processed(True, calibration.apply(reading), calibration)
+
+    def process_imu(self, stamp_ns: int, frame_id: str, accel: Sequence[float],
+                    gyro: Sequence[float] | None = None) -> bool:
+        """Keep one accelerometer (and gyroscope, rad/s) sample to pair magnetometer readings
+        with; O(1). False when refused (non-finite or zero specific force). A gyroscope sample
+        with a non-finite value counts as none."""
+        self.imu_rate.count += 1
+        try:
+            ax, ay, az = (float(value) for value in accel)
+        except (TypeError, ValueError):
+            ax = ay = az = math.nan
+        if not (math.isfinite(ax + ay + az) and (ax or ay or az)):
+            self.imu_refused += 1
+            return False
+        rates = None
+        if gyro is not None:
+            try:
+                gx, gy, gz = (float(value) for value in gyro)
+            except (TypeError, ValueError):
+                gx = gy = gz = math.nan
+            rates = (gx, gy, gz) if math.isfinite(gx + gy + gz) else None
+        self._imu.append((int(stamp_ns), ax, ay, az, rates))
+        self.imu_accepted += 1
+        self.imu_frame_id = frame_id
+        return True
+
+    def _pair(self, stamp_ns: int) -> tuple[tuple[float, float, float], tuple | None] | None:
+        """The accelerometer sample nearest ``stamp_ns`` within PAIR_TOLERANCE_NS, searched from
+        the newest back (samples arrive in stamp order: a few steps)."""
+        best, best_gap = None, PAIR_TOLERANCE_NS + 1
+        for sample in reversed(self._imu):
+            gap = sample[0] - stamp_ns
+            if abs(gap) < best_gap:
+                best, best_gap = sample, abs(gap)
+            elif gap < 0:
+                break  # older still: only further away
+        if best is None:
+            return None
+        self.paired += 1
+        return (best[1], best[2], best[3]), best[4]
+
+    def set_earth_field(self, field: EarthField | None) -> None:
+        """The World Magnetic Model's field here (None: unknown); used by the next fits."""
+        self.earth = field
 
     def poll(self) -> None:
         """Take a finished fit's outcome and feed held readings; the node calls this on a timer
@@ -437,22 +549,23 @@ class CalibrationSession:
             self._job = None
             self._complete(outcome)
         while self._held and self._job is None and budget > 0:
-            reading, stamp_ns = self._held.popleft()
-            self._ingest(reading, stamp_ns)
+            self._ingest(*self._held.popleft())
             budget -= 1
         if self._job is None and not self._held and self._requests:
             self._submit('request')
 
-    def _hold(self, reading: np.ndarray, stamp_ns: int) -> None:
+    def _hold(self, reading: np.ndarray, stamp_ns: int, pair: tuple | None = None) -> None:
         if len(self._held) >= HOLD_LIMIT:
             self.hold_overflows += 1
             self._ingest(*self._held.popleft())
-        self._held.append((reading, stamp_ns))
+        self._held.append((reading, stamp_ns, pair))
 
-    def _ingest(self, reading: np.ndarray, stamp_ns: int) -> None:
+    def _ingest(self, reading: np.ndarray, stamp_ns: int, pair: tuple | None = None) -> None:
         """Everything a reading teaches, in stream order (the held ones after the fit)."""
         now = self.clock.advance(stamp_ns)
         self._ingested += 1
+        if pair is not None and self.settings.align:
+            self.attitudes.add(now, reading, pair[0], pair[1])
         # Evidence judges a calibration: none yet, none needed. The draw is pseudo-random (and
         # deterministic), so a recording replayed again holds out other readings.
         if self.calibration is not None and self._hold_out.random() * HOLD_OUT_EVERY < 1.0:
@@ -485,6 +598,12 @@ class CalibrationSession:
         return direction if np.any(direction) else reading
 
     def _update_centre(self) -> None:
+        radius = 0.0
+        if self.calibration is not None:
+            radius = field_radius(self.calibration)
+        elif self.buffer.fill >= 10:
+            radius = self.buffer.field_radius()
+        self.attitudes.field_scale = radius if radius > 0.0 else None
         if self._reference_source == 'fit':
             self._centre = self.buffer.reference.offset
         elif self.buffer.fill >= 10:
@@ -535,13 +654,35 @@ class CalibrationSession:
                           recent=recent, tracked=tracked)
         metadata = {**self.metadata, 'frame_id': self.screen.frame_id or ''}
         evidence = self.evidence.readings() if self.calibration is not None else None
+        attitudes = self.attitudes.snapshot() if self.settings.align else None
         return FitJob(
             'refine' if kind == 'refine' else 'calibrate', samples, weights, readings,
-            self.settings.fit_options(), metadata=metadata, current=self.calibration,
+            self._fit_options(), metadata=metadata, current=self.calibration,
             evidence=evidence, ticket=ticket,
             ready_coverage=self.settings.min_coverage if kind == 'calibrate' else None,
             reference=buffer.reference,
+            attitudes=attitudes if attitudes is not None and (len(attitudes) or self.paired)
+            else None,
+            alignment=self.settings.alignment_options(self.earth),
+            earth=self._earth_reference(),
         )
+
+    def _earth_reference(self) -> EarthReference | None:
+        if self.earth is None:
+            return None
+        settings = self.settings
+        return EarthReference(self.earth, self.units, settings.max_field_error_pct,
+                              settings.max_dip_error_deg, settings.earth_field_gate)
+
+    def _fit_options(self) -> FitOptions:
+        """The settings' fit options; with the model's field known (and field_strength 0), the
+        target field strength is the model's intensity."""
+        options = self.settings.fit_options()
+        if options.field_strength is None and self.earth is not None:
+            intensity = self.earth.intensity_in(self.units)
+            if intensity is not None:
+                options = replace(options, field_strength=intensity)
+        return options
 
     def _complete(self, outcome: JobOutcome) -> None:
         job = outcome.job
@@ -582,11 +723,14 @@ class CalibrationSession:
                 comparison = outcome.comparison
                 message += (f'; on held-out readings {comparison.current_pct:.2f} % before, '
                             f'{comparison.candidate_pct:.2f} % now')
+            message += self._reference_text(outcome)
             attempt = CalibrationAttempt(True, message, outcome)
             self._adopt(result.calibration, 'request')
         else:
-            attempt = CalibrationAttempt(False, f'calibration failed: {result.reason}{kept}',
-                                         outcome)
+            attempt = CalibrationAttempt(
+                False, f'calibration failed: {result.reason}{kept}{self._reference_text(outcome)}',
+                outcome)
+        self._note_reference(outcome)
         self.last_attempt = attempt
         self._answer(outcome.job.ticket, attempt)
 
@@ -605,6 +749,7 @@ class CalibrationSession:
         result = outcome.result
         if result is None:
             return  # not ready: coverage below min_coverage
+        self._note_reference(outcome)
         if not result.success:
             attempt = CalibrationAttempt(False, f'calibration failed: {result.reason}', outcome)
             self.last_attempt = attempt
@@ -613,8 +758,8 @@ class CalibrationSession:
         if self.calibration is not None and not self.misfit.misfit:
             return  # calibrated meanwhile (a request or a file): refinement takes over
         anew = self.calibration is not None
-        attempt = CalibrationAttempt(True, calibration_summary(result.calibration, self.units),
-                                     outcome)
+        attempt = CalibrationAttempt(True, calibration_summary(result.calibration, self.units)
+                                     + self._reference_text(outcome), outcome)
         self.last_attempt = attempt
         self._adopt(result.calibration, 'auto')
         what = 'recalibrated automatically' if anew else 'calibrated automatically'
@@ -642,7 +787,77 @@ class CalibrationSession:
                                 f'({candidate.model})', adopted=True)
         elif comparison is not None:
             self._event('debug', f'refinement kept the calibration: {comparison.reason}')
+        if not outcome.error:
+            self._note_reference(outcome)
+        if (not adopted and current is not None and current is outcome.job.current
+                and _passed_own_gates(outcome)):
+            self._realign(current, outcome.alignment)
         self.scheduler.refine_done(judged, adopted)
+
+    # -- the IMU and the Earth's field ---------------------------------------------------------
+
+    def _note_reference(self, outcome: JobOutcome) -> None:
+        """Remember a fit's alignment and model check; warn once per new finding (a mounting
+        error, a disturbed field), not at every refinement. Only a fit that passed its own gates
+        (the model's aside) says anything about the sensor or the place."""
+        if not _passed_own_gates(outcome):
+            return
+        if outcome.alignment is not None:
+            self.alignment = outcome.alignment
+            alignment = outcome.alignment
+            finding = ('' if alignment.success or not math.isfinite(alignment.dip_deg)
+                       else alignment.reason)
+            if finding and finding.split(':')[0] != self._alignment_warning.split(':')[0]:
+                self._event('warning', f'alignment to the IMU not applied: {finding}')
+            self._alignment_warning = finding
+        if outcome.earth_check is not None:
+            self.earth_check = outcome.earth_check
+            text = disturbance_text(outcome.earth_check)
+            if text and not self._earth_warning:
+                self._event('warning', f'against the World Magnetic Model: {text}')
+            self._earth_warning = text
+
+    def _realign(self, current: Calibration, alignment: Alignment | None) -> None:
+        """A refinement not adopted may still align better: put its rotation in force when the
+        calibration in force has none, or when it moved by more than its uncertainty."""
+        if alignment is None or not alignment.success:
+            return
+        change = rotation_angle_deg(alignment.rotation @ current.rotation.T)
+        if current.aligned and change <= max(3.0 * alignment.rotation_std_deg, 0.05):
+            return
+        self.calibration = current.with_rotation(alignment.rotation, **alignment.metadata())
+        self._restart_tracker()
+        self._event('info', f'{alignment.summary()} (changed by {change:.2f} deg)',
+                    adopted=True)
+
+    def _reference_text(self, outcome: JobOutcome) -> str:
+        """'; aligned to the IMU: ...; field 1.01x the model's ...' for an answer or a log."""
+        text = ''
+        if outcome.alignment is not None:
+            text += f'; {outcome.alignment.summary()}'
+        check = outcome.earth_check
+        if check is not None:
+            parts = []
+            if check.radius_ratio is not None:
+                parts.append(f"field {check.radius_ratio:.3f}x the model's")
+            if check.dip_error_deg is not None:
+                parts.append(f'dip {check.dip_error_deg:+.2f} deg against it')
+            parts.append(f'declination {check.declination_deg:.2f} deg')
+            text += f'; {self.earth.model if self.earth else "model"}: {", ".join(parts)}'
+        return text
+
+    def alignment_warning(self) -> str:
+        """A mounting error the latest alignment found, for a diagnostics WARN ('' if none)."""
+        return self._alignment_warning
+
+    def earth_warning(self) -> str:
+        """The calibration in force against the model, for a diagnostics WARN ('' if fine)."""
+        reference = self._earth_reference()
+        calibration = self.calibration
+        if reference is None or calibration is None:
+            return ''
+        check = reference.check(field_radius(calibration), calibration.metadata_number('dip_deg'))
+        return disturbance_text(check)
 
     def request_calibration(self) -> int:
         """Ask for a fit of the buffer (``~/calibrate``) once every reading received so far is
@@ -754,6 +969,7 @@ class CalibrationSession:
         self.scheduler.reset()
         self._provisional = None
         self._set_reference(None, None, None)
+        self.attitudes.clear()
 
     # -- online tracking -----------------------------------------------------------------------
 
@@ -830,13 +1046,24 @@ class CalibrationSession:
         self._provisional = None
         self._set_reference(self.calibration, None, 'calibration' if self.calibration else None)
         self._restart_tracker()
+        self.attitudes.clear()
+        self._imu.clear()
 
     def feed(self, samples: np.ndarray, rate_hz: float = 100.0, start_ns: int = 0,
-             frame_id: str = '') -> None:
-        """Stream recorded rows through ``process`` with stamps at ``rate_hz`` (offline use)."""
+             frame_id: str = '', accel: np.ndarray | None = None,
+             gyro: np.ndarray | None = None) -> None:
+        """Stream recorded rows through ``process`` with stamps at ``rate_hz`` (offline use);
+        ``accel`` (and ``gyro``, rad/s) rows, when given, go through ``process_imu`` first with
+        the same stamps."""
         step = 1e9 / rate_hz
+        accel_rows = None if accel is None else np.asarray(accel, dtype=float).tolist()
+        gyro_rows = None if gyro is None else np.asarray(gyro, dtype=float).tolist()
         for index, row in enumerate(np.asarray(samples, dtype=float).tolist()):
-            self.process(start_ns + round(index * step), frame_id, row)
+            stamp = start_ns + round(index * step)
+            if accel_rows is not None:
+                self.process_imu(stamp, frame_id, accel_rows[index],
+                                 None if gyro_rows is None else gyro_rows[index])
+            self.process(stamp, frame_id, row)
 
     # -- reporting -----------------------------------------------------------------------------
 
@@ -949,7 +1176,55 @@ class CalibrationSession:
             values['tracked_updates'] = self.tracked_updates
         if self.hold_overflows:
             values['hold_overflows'] = self.hold_overflows
+        values.update(self._reference_values(now))
         return values
+
+    def _reference_values(self, now: float) -> dict[str, object]:
+        """The IMU alignment and the model's field, for /diagnostics."""
+        values: dict[str, object] = {}
+        if self.imu_rate.count or self.imu_accepted:
+            values['imu_rate_hz'] = round(self.imu_rate.read(now), 2)
+            values['imu_messages_accepted'] = int(self.imu_accepted)
+            values['imu_messages_refused'] = int(self.imu_refused)
+            values['readings_paired'] = int(self.paired)
+            values['static_attitudes'] = int(self.attitudes.fill)
+        calibration = self.calibration
+        if calibration is not None and calibration.aligned:
+            for key in ('alignment_angle_deg', 'dip_deg', 'dip_std_deg', 'static_samples'):
+                number = calibration.metadata_number(key)
+                if number is not None:
+                    values[key] = round(number, 3)
+        if self.alignment is not None:
+            values['last_alignment'] = ('applied' if self.alignment.success
+                                        else self.alignment.reason)
+        if self.earth is not None:
+            values['earth_model'] = self.earth.model
+            values['model_intensity_uT'] = round(self.earth.intensity_nt / 1000.0, 3)
+            values['model_inclination_deg'] = round(self.earth.inclination_deg, 3)
+            values['declination_deg'] = round(self.earth.declination_deg, 3)
+            reference = self._earth_reference()
+            if calibration is not None and reference is not None:
+                check = reference.check(field_radius(calibration),
+                                        calibration.metadata_number('dip_deg'))
+                if check.radius_ratio is not None:
+                    values['field_ratio_to_model'] = round(check.radius_ratio, 4)
+                if check.dip_error_deg is not None:
+                    values['dip_error_deg'] = round(check.dip_error_deg, 3)
+        return values
+
+
+def _passed_own_gates(outcome: JobOutcome) -> bool:
+    """The fit passed its gates, or failed only the World Magnetic Model's."""
+    result, check = outcome.result, outcome.earth_check
+    if result is None or outcome.error:
+        return False
+    return result.success or (check is not None and result.reason == disturbance_text(check))
+
+
+def field_radius(calibration: Calibration) -> float:
+    """The raw field's mean radius the calibration describes: F / det(M)^(1/3)."""
+    determinant = float(np.linalg.det(calibration.matrix))
+    return calibration.field_strength / determinant ** (1.0 / 3.0) if determinant > 0 else 0.0
 
 
 def _coverage_pct(calibration: Calibration) -> str:
@@ -970,6 +1245,7 @@ __all__ = [
     'bounded_step',
     'calibration_summary',
     'coverage_kept',
+    'field_radius',
     'magnitude_residual_pct',
     'transform_covariance',
 ]

@@ -5,7 +5,13 @@ answer into registers (scale, saturation, quantisation), so physics and register
 apart. A motion is any ``motion.Trajectory``; the world is ENU with the earth's field from
 ``motion.earth_field`` and gravity straight down.
 
-- magnetometer: ``soft_iron @ (R.T @ earth) + hard_iron + noise`` (µT);
+- magnetometer: ``soft_iron @ (A.T @ R.T @ earth) + hard_iron + noise`` (µT), ``A`` the
+  magnetometer's misalignment against the accel/gyro frame (``mag_misalignment_deg``, a rotation
+  vector; identity by default): a calibration's rotation must recover ``A``;
+- the earth's field: ``field_ut`` / ``inclination_deg``, or with a location (``latitude``,
+  ``longitude``, ``altitude_m``) the World Magnetic Model's field there today (declination
+  included), in either case scaled by ``field_scale`` and dipped by ``inclination_offset_deg``
+  (a disturbed place, against the model);
 - accelerometer: specific force ``R.T @ (a_world - g_world) + bias + noise`` (m/s^2), so a board
   lying level reads +g on z;
 - gyroscope: body angular rate ``+ bias + noise`` (rad/s);
@@ -25,6 +31,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from mag_calibrator_ros import motion
+from mag_calibrator_ros.calibration.earth_field import EarthField, earth_field
 from mag_calibrator_ros.icm20948 import registers as reg
 
 if TYPE_CHECKING:
@@ -56,11 +63,31 @@ class BoardModel:
         self.config = config
         self.trajectory = (trajectory if trajectory is not None
                            else motion.make_trajectory(config.motion, config.seed))
-        self._earth_ut = motion.earth_field(config.field_ut, config.inclination_deg)
+        self.location_field: EarthField | None = None
+        """The World Magnetic Model's field at the configured location (None without one)."""
+        strength, inclination, declination = config.field_ut, config.inclination_deg, 0.0
+        if config.has_location:
+            self.location_field = earth_field(config.latitude, config.longitude,
+                                              config.altitude_m)
+            strength = self.location_field.intensity_nt / 1000.0
+            inclination = self.location_field.inclination_deg
+            declination = self.location_field.declination_deg
+        inclination = min(90.0, max(-90.0, inclination + config.inclination_offset_deg))
+        self._earth_ut = motion.earth_field(strength * config.field_scale, inclination,
+                                            declination)
+        self.mag_misalignment = motion.Rotation.from_rotvec(
+            np.radians(np.asarray(config.mag_misalignment_deg, dtype=float))).as_matrix()
+        """A: the magnetometer's axes in the accel/gyro frame; it reads A^T @ field."""
+        self._sensing = config.soft_iron_matrix @ self.mag_misalignment.T
         self._mag_rng = np.random.default_rng([config.seed, 10])
         self._imu_rng = np.random.default_rng([config.seed, 12])
         self._accel_bias = np.asarray(config.accel_bias_mps2, dtype=float)
         self._gyro_bias = np.radians(np.asarray(config.gyro_bias_dps, dtype=float))
+
+    @property
+    def earth_field_ut(self) -> np.ndarray:
+        """The world-frame (ENU) field the board is in, µT."""
+        return self._earth_ut.copy()
 
     def true_field_tesla(self, t: float) -> np.ndarray:
         """True chip-frame earth field (T) at time ``t``."""
@@ -69,7 +96,7 @@ class BoardModel:
     def magnetometer(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """(sensed field in µT with distortion and noise, true earth field in T), chip frame."""
         earth_chip_ut = self.trajectory.state(max(t, 0.0)).rotation.T @ self._earth_ut
-        sensed = self.config.soft_iron_matrix @ earth_chip_ut + self.config.hard_iron
+        sensed = self._sensing @ earth_chip_ut + self.config.hard_iron
         if self.config.noise_ut > 0.0:
             sensed = sensed + self._mag_rng.normal(0.0, self.config.noise_ut, 3)
         return sensed, earth_chip_ut * 1e-6

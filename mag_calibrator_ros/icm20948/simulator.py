@@ -36,6 +36,7 @@ import time
 import numpy as np
 
 from mag_calibrator_ros import motion
+from mag_calibrator_ros.calibration.earth_field import location_problems
 from mag_calibrator_ros.icm20948 import registers as reg
 from mag_calibrator_ros.icm20948.board import BoardModel, ImuTruth
 from mag_calibrator_ros.icm20948.driver import (
@@ -118,7 +119,13 @@ class SimConfig:
     Accel/gyro: constant biases (chip frame) and white-noise densities (per sample: density x
     sqrt(DLPF noise bandwidth)); die temperature starts at ``temperature_c`` and warms by
     ``temperature_rise_c``. ``who_am_i`` and ``ak09916_id`` let tests model a wrong chip.
+    Earth and mounting (``board.BoardModel``): ``mag_misalignment_deg``, a location, and a
+    disturbance (``field_scale``, ``inclination_offset_deg``).
     """
+
+    @property
+    def has_location(self) -> bool:
+        return not (math.isnan(self.latitude) and math.isnan(self.longitude))
 
     field_ut: float = 50.0
     inclination_deg: float = 60.0
@@ -137,6 +144,16 @@ class SimConfig:
     gyro_noise_density: float = GYRO_NOISE_DENSITY
     temperature_c: float = 25.0
     temperature_rise_c: float = 2.0
+    mag_misalignment_deg: Sequence[float] = (0.0, 0.0, 0.0)
+    """Rotation vector (deg) of the magnetometer's axes against the accel/gyro frame."""
+    latitude: float = math.nan
+    longitude: float = math.nan
+    altitude_m: float = 0.0
+    """A location (deg, m above WGS84): the field is then the World Magnetic Model's there
+    (``field_ut`` and ``inclination_deg`` unused). NaN: no location."""
+    field_scale: float = 1.0
+    inclination_offset_deg: float = 0.0
+    """A disturbed place: the field scaled and dipped against the model (or field_ut/incl.)."""
     # Derived, validated copies (filled in __post_init__).
     hard_iron: np.ndarray = field(init=False, repr=False, compare=False)
     soft_iron_matrix: np.ndarray = field(init=False, repr=False, compare=False)
@@ -198,6 +215,20 @@ def config_problems(config: SimConfig) -> list[str]:
             problems.append('soft_iron must be positive definite')
     vector('accel_bias_mps2', config.accel_bias_mps2, 'm/s^2')
     vector('gyro_bias_dps', config.gyro_bias_dps, 'deg/s')
+    vector('mag_misalignment_deg', config.mag_misalignment_deg, 'deg, a rotation vector')
+    if _numeric(config.mag_misalignment_deg) and np.asarray(
+            config.mag_misalignment_deg, dtype=float).shape == (3,) and np.linalg.norm(
+            np.asarray(config.mag_misalignment_deg, dtype=float)) > 180.0:
+        problems.append('mag_misalignment_deg must be a rotation of at most 180 deg')
+    if not (_nan(config.latitude) and _nan(config.longitude)):
+        problems += [f'location: {problem}' for problem in location_problems(
+            config.latitude, config.longitude, config.altitude_m)]
+    if finite('field_scale', config.field_scale) and not 0.0 < config.field_scale <= 10.0:
+        problems.append(f'field_scale must be in (0, 10], got {config.field_scale}')
+    if finite('inclination_offset_deg', config.inclination_offset_deg) and abs(
+            config.inclination_offset_deg) > 90.0:
+        problems.append(f'inclination_offset_deg must be within [-90, 90], got '
+                        f'{config.inclination_offset_deg}')
     for name in ('accel_noise_density', 'gyro_noise_density'):
         value = getattr(config, name)
         if finite(name, value) and value < 0.0:
@@ -211,6 +242,10 @@ def config_problems(config: SimConfig) -> list[str]:
         problems.append(f'temperature_rise_c must be within [-50, 50] degC, '
                         f'got {config.temperature_rise_c}')
     return problems
+
+
+def _nan(value: object) -> bool:
+    return isinstance(value, float) and math.isnan(value)
 
 
 def _numeric(values: object) -> bool:

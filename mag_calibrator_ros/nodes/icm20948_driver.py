@@ -177,8 +177,9 @@ PARAMETERS: dict[str, tuple[object, ParameterDescriptor]] = {
         'Simulator: white noise per axis (1 sigma) in microtesla.', float_range=(0.0, 100.0))),
     'sim.motion': ('tumble', _descriptor(
         'Simulator: how the board moves: tumble (hand), yaw (ground robot turning), still, or '
+        'poses (held still at one tilt after another: what aligning to the IMU needs), or '
         'cmd_vel (a ground robot turning in place only as commanded on cmd_vel).',
-        constraints='tumble | yaw | still | cmd_vel')),
+        constraints=' | '.join(motion.TRAJECTORY_KINDS))),
     'sim.i2c_error_rate': (0.0, _descriptor(
         'Simulator: probability that an I2C transaction fails with EREMOTEIO.',
         float_range=(0.0, 0.99))),
@@ -199,6 +200,25 @@ PARAMETERS: dict[str, tuple[object, ParameterDescriptor]] = {
     'sim.temperature_rise_c': (2.0, _descriptor(
         'Simulator: warm-up of the die after power-on in degC (time constant 10 min).',
         float_range=(-50.0, 50.0))),
+    'sim.mag_misalignment_deg': ([0.0, 0.0, 0.0], _descriptor(
+        'Simulator: rotation vector [x, y, z] in degrees of the magnetometer axes against the '
+        'accel/gyro frame (what aligning to the IMU recovers).',
+        constraints='3 finite doubles, at most 180 deg')),
+    'sim.latitude': (math.nan, _descriptor(
+        'Simulator: latitude in degrees; with sim.longitude the field is the World Magnetic '
+        "Model's there (sim.field_ut and sim.inclination_deg unused). NaN: no location.",
+        constraints='-90..90 or NaN')),
+    'sim.longitude': (math.nan, _descriptor(
+        'Simulator: longitude in degrees (-180..360) or NaN.', constraints='-180..360 or NaN')),
+    'sim.altitude': (0.0, _descriptor(
+        'Simulator: altitude in metres above the WGS84 ellipsoid (with a location).',
+        float_range=(-1000.0, 850000.0))),
+    'sim.field_scale': (1.0, _descriptor(
+        'Simulator: a disturbed place: the field strength times this (against the model).',
+        float_range=(0.01, 10.0))),
+    'sim.inclination_offset_deg': (0.0, _descriptor(
+        'Simulator: a disturbed place: the dip moved by this many degrees.',
+        float_range=(-90.0, 90.0))),
     # sim.motion cmd_vel: a ground robot following cmd_vel's angular z (Twist or TwistStamped)
     'sim.max_yaw_rate': (1.0, _descriptor(
         'Simulator (motion cmd_vel): largest yaw rate the robot turns at, rad/s.',
@@ -397,6 +417,12 @@ class Icm20948DriverNode(Node):
                     gyro_noise_density=values['sim.gyro_noise_density'],
                     temperature_c=values['sim.temperature_c'],
                     temperature_rise_c=values['sim.temperature_rise_c'],
+                    mag_misalignment_deg=tuple(values['sim.mag_misalignment_deg']),
+                    latitude=values['sim.latitude'],
+                    longitude=values['sim.longitude'],
+                    altitude_m=values['sim.altitude'],
+                    field_scale=values['sim.field_scale'],
+                    inclination_offset_deg=values['sim.inclination_offset_deg'],
                 )
             except ValueError as error:
                 problems.append(f'sim.*: {error}')
@@ -529,7 +555,8 @@ class Icm20948DriverNode(Node):
         backend = {'backend': self.settings.backend}
         self._diagnostics.publish([
             diagnostics.diagnostic_status(
-                f'{self.get_name()}: {status.stream}', self.hardware_id, LEVELS[status.level],
+                f'{self.get_fully_qualified_name()}: {status.stream}', self.hardware_id,
+                LEVELS[status.level],
                 status.message, {**backend, **status.values},
             )
             for status in self.supervisor.status()

@@ -1,8 +1,9 @@
 """``mag_calibrator`` node: raw ``imu/mag`` in, ``imu/mag_corrected`` out, services to calibrate.
 
-Wiring only: parameters, the subscription, the publisher, four std_srvs/Trigger services, a poll
-timer and the diagnostics timer. Every decision (screening, buffer, when to fit and whether to
-adopt, misfit detection, online tracking, progress text) lives in
+Wiring only: parameters, the subscriptions (``imu/mag``; ``imu/data_raw`` and ``gps/fix`` when
+present), the publisher, four std_srvs/Trigger services, a poll timer and the diagnostics timer.
+Every decision (screening, buffer, when to fit and whether to adopt, misfit detection, online
+tracking, alignment to the IMU, progress text) lives in
 :class:`~mag_calibrator_ros.calibration.session.CalibrationSession`; its fits run in a worker
 process (``ProcessRunner``) and file I/O on a thread, so the message callback never waits for
 either.
@@ -33,7 +34,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.task import Future
-from sensor_msgs.msg import MagneticField
+from sensor_msgs.msg import Imu, MagneticField, NavSatFix, NavSatStatus
 from std_srvs.srv import Trigger
 
 from mag_calibrator_ros.calibration.calibration import Calibration, CalibrationError
@@ -42,6 +43,7 @@ from mag_calibrator_ros.calibration.calibration_file import (
     CalibrationFileMissingError,
     LoadedCalibration,
     calibration_from_parameters,
+    calibration_parameters,
     default_calibration_path,
     default_load_path,
     read_calibration_file,
@@ -49,6 +51,12 @@ from mag_calibrator_ros.calibration.calibration_file import (
     save_calibration,
 )
 from mag_calibrator_ros.calibration.coverage import Coverage
+from mag_calibrator_ros.calibration.earth_field import (
+    EarthField,
+    EarthFieldError,
+    earth_field,
+    location_problems,
+)
 from mag_calibrator_ros.calibration.jobs import ProcessRunner
 from mag_calibrator_ros.calibration.rotation import (
     COMMAND_PERIOD_S,
@@ -63,6 +71,7 @@ from mag_calibrator_ros.calibration.session import (
     calibration_summary,
     transform_covariance,
 )
+from mag_calibrator_ros.calibration.view import calibration_view
 from mag_calibrator_ros.nodes.diagnostics import (
     ERROR,
     OK,
@@ -75,7 +84,8 @@ from mag_calibrator_ros.nodes.parameters import (
     declare_checked,
     refuse_to_start,
 )
-from mag_calibrator_ros.nodes.runtime import spin_node
+from mag_calibrator_ros.nodes.runtime import guarded, spin_node
+from mag_calibrator_ros.nodes.view import ViewPublisher
 
 NODE_NAME = 'mag_calibrator'
 DIAGNOSTICS_PERIOD_S = 1.0
@@ -166,6 +176,11 @@ PARAMETERS: dict[str, tuple[object, str, dict]] = {
     'progress_log_period': (5.0, 'Seconds between progress log lines while uncalibrated '
                                  '(0 = silent).',
                             {'floating_point_range': _float_range(0.0, 3600.0)}),
+    'view_period': (1.0, 'Seconds between RViz views (~/view/raw, ~/view/corrected, '
+                         '~/view/markers), drawn only while subscribed; 0 = never.',
+                    {'floating_point_range': _float_range(0.0, 3600.0)}),
+    'view_scale': (1e4, 'RViz view: metres per tesla (1e4: a 50 uT field is a 0.5 m sphere).',
+                   {'floating_point_range': _float_range(1e-3, 1e9)}),
     # ~/rotate_and_calibrate (ground robots): turning in place on cmd_vel
     'rotation_speed': (ROTATION_DEFAULTS.speed,
                        'rad/s of the turn in place ~/rotate_and_calibrate commands on cmd_vel '
@@ -180,19 +195,57 @@ PARAMETERS: dict[str, tuple[object, str, dict]] = {
     'cmd_vel_stamped': (False, "Publish geometry_msgs/TwistStamped on cmd_vel (as Jazzy's nav2 "
                                'and ros2_control use) instead of geometry_msgs/Twist.', {}),
     'cmd_vel_frame_id': ('base_link', 'header.frame_id of TwistStamped commands.', {}),
+    'use_imu': (True, 'Subscribe imu/data_raw (sensor_msgs/Imu, same frame as imu/mag) and align '
+                      'each calibration to the accelerometer from readings held still; without '
+                      'a publisher nothing changes.', {}),
+    'max_alignment_deg': (DEFAULTS.max_alignment_deg,
+                          'A larger rotation to the IMU is reported as a mounting or axis-remap '
+                          'error (with the remap that fixes it) and not applied.',
+                          {'floating_point_range': _float_range(0.0, 180.0)}),
+    'latitude': (math.nan, 'Degrees north (WGS84) for the World Magnetic Model; NaN: unknown '
+                           '(the first fix on gps/fix is used).', {}),
+    'longitude': (math.nan, 'Degrees east (WGS84) for the World Magnetic Model; NaN: unknown.',
+                  {}),
+    'altitude': (0.0, 'Metres above the WGS84 ellipsoid for the World Magnetic Model.',
+                 {'floating_point_range': _float_range(-1000.0, 850000.0)}),
+    'use_gps': (True, 'Without latitude/longitude, take the location from the first fix on '
+                      'gps/fix (sensor_msgs/NavSatFix).', {}),
+    'max_field_error_pct': (DEFAULTS.max_field_error_pct,
+                            'Largest difference, in %, between the fitted field and the World '
+                            "Magnetic Model's intensity before the field counts as disturbed.",
+                            {'floating_point_range': _float_range(1.0, 100.0)}),
+    'max_dip_error_deg': (DEFAULTS.max_dip_error_deg,
+                          "Largest difference between the measured dip and the model's "
+                          'inclination before the field counts as disturbed.',
+                          {'floating_point_range': _float_range(0.1, 90.0)}),
+    'earth_field_gate': (DEFAULTS.earth_field_gate,
+                         'A fit off the World Magnetic Model beyond the tolerances fails (true) '
+                         'or is only warned about (false).', {}),
 }
 SESSION_FIELDS = {f.name for f in fields(SessionSettings)}
 CALIBRATION_METADATA_KEYS = (
     'residual_rms_pct', 'coverage', 'samples', 'time', 'frame_id', 'units', 'source',
-    'plane_normal', 'unobserved',
+    'plane_normal', 'unobserved', 'alignment_angle_deg', 'dip_deg', 'dip_std_deg',
+    'static_samples', 'declination_deg',
 )
-"""Metadata the fit and the node write into a saved file (declared so --params-file keeps it)."""
+"""Metadata a saved file may carry (declared so --params-file keeps it)."""
 CALIBRATION_PARAMETERS: dict[str, str] = {
     'calibration.offset': 'Hard-iron offset b [3], tesla.',
     'calibration.matrix': 'Soft-iron matrix M [9], row-major.',
-    'calibration.field_strength': '|corrected| target F, tesla.',
-    'calibration.model': 'Model that produced the calibration.',
+    'calibration.field_strength': '|corrected| target F, tesla (0.0 with model none).',
+    'calibration.model': "Model of the calibration in force; 'none' while uncalibrated.",
+    'calibration.rotation': 'Rotation R [9] into the IMU frame, row-major (identity: none).',
 }
+NO_CALIBRATION = {
+    'calibration.offset': [0.0, 0.0, 0.0],
+    'calibration.matrix': [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+    'calibration.field_strength': 0.0,
+    'calibration.model': 'none',
+    'calibration.rotation': [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+}
+"""What calibration.* hold while uncalibrated (a dump of it loads back as 'no calibration')."""
+CALIBRATION_READ_ONLY = ('calibration.* show the calibration in force: change it with '
+                         '~/calibrate, ~/load, or --params-file at start-up')
 
 
 class MagCalibratorNode(Node):
@@ -225,14 +278,24 @@ class MagCalibratorNode(Node):
         self._save_wanted = False
         self._saving = False
         self._last_auto_save = -math.inf
+        self._imu_subscription = None
+        self._location_source = ''  # 'parameters' or 'gps/fix' once the model's field is known
+        self._location_wanted: tuple[float, float, float] | None = None
+        self._fix_used = False
         self._startup(startup_calibration)
-
+        self._showing = False
         self.add_on_set_parameters_callback(self._validate_parameters)
+        self._show_calibration()
         self.add_post_set_parameters_callback(self._apply_parameters)
         self._publisher = self.create_publisher(
             MagneticField, 'imu/mag_corrected', QoSProfile(depth=10)
         )
-        self.create_subscription(MagneticField, 'imu/mag', self._on_mag, INPUT_QOS)
+        self.create_subscription(MagneticField, 'imu/mag', guarded(self, 'imu/mag', self._on_mag),
+                                 INPUT_QOS)
+        self._sync_imu_subscription()
+        self.create_subscription(NavSatFix, 'gps/fix', guarded(self, 'gps/fix', self._on_fix),
+                                 INPUT_QOS)
+        self._locate_from_parameters()
         # The services wait for the fit worker and the I/O thread without blocking the executor;
         # a waiting service must not hold the default (mutually exclusive) group, or the poll
         # timer that completes it could never run.
@@ -242,8 +305,10 @@ class MagCalibratorNode(Node):
             self.create_service(Trigger, name, self._answering(name, callback),
                                 callback_group=waiting)
         self._diagnostics = DiagnosticsPublisher(self)
-        self.create_timer(POLL_PERIOD_S, self._on_poll)
-        self.create_timer(DIAGNOSTICS_PERIOD_S, self._on_tick)
+        self._view = ViewPublisher(self)
+        self._last_view = -math.inf
+        self.create_timer(POLL_PERIOD_S, guarded(self, 'poll', self._on_poll))
+        self.create_timer(DIAGNOSTICS_PERIOD_S, guarded(self, 'diagnostics', self._on_tick))
         self._start_rotation_wiring()
 
     def destroy_node(self) -> None:
@@ -262,6 +327,8 @@ class MagCalibratorNode(Node):
         return SessionSettings(**{k: v for k, v in values.items() if k in SESSION_FIELDS})
 
     def _validate_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
+        if any(p.name.startswith('calibration.') for p in parameters) and not self._showing:
+            return SetParametersResult(successful=False, reason=CALIBRATION_READ_ONLY)
         values = self._current_values()
         for parameter in parameters:
             if parameter.name in PARAMETERS:
@@ -279,38 +346,74 @@ class MagCalibratorNode(Node):
             resolve_calibration_path(str(values['calibration_file']))
         except CalibrationFileError as error:
             problems.append(f'calibration_file: {error}')
+        latitude, longitude = values['latitude'], values['longitude']
+        if not (_is_nan(latitude) and _is_nan(longitude)):  # NaN and NaN: no location
+            problems += location_problems(latitude, longitude, values['altitude'])
         return problems
 
     def _apply_parameters(self, parameters: list[Parameter]) -> None:
-        self.session.reconfigure(self._settings_from(self._current_values()))
+        if any(parameter.name in PARAMETERS for parameter in parameters):
+            self.session.reconfigure(self._settings_from(self._current_values()))
+        names = {parameter.name for parameter in parameters}
+        if 'use_imu' in names:
+            self._sync_imu_subscription()
+        if names & {'latitude', 'longitude', 'altitude'}:
+            self._locate_from_parameters()
 
     def _declare_calibration_parameters(self) -> dict[str, object]:
-        """Declare ``calibration.*`` (read-only, start-up): a saved file works as --params-file.
+        """Declare ``calibration.*``: what --params-file gave (a saved file or a dump works as
+        one) comes back; afterwards they always show the calibration in force.
 
         Dynamically typed, so a hand-written file with integers (``matrix: [1, 0, 0, ...]``) or
         a wrong type reaches calibration_from_parameters, which converts or says what is wrong,
         instead of rclpy refusing the whole node.
         """
         given = {}
-        for name, description in CALIBRATION_PARAMETERS.items():
-            descriptor = ParameterDescriptor(description=description, read_only=True,
-                                             dynamic_typing=True)
+        names = {**CALIBRATION_PARAMETERS,
+                 **{f'calibration.{key}': f'Calibration metadata ({key}); informational.'
+                    for key in CALIBRATION_METADATA_KEYS}}
+        for name, description in names.items():
+            descriptor = ParameterDescriptor(description=description, dynamic_typing=True)
             value = self.declare_parameter(name, None, descriptor).value
             if value is not None:
                 given[name] = value
-        for key in CALIBRATION_METADATA_KEYS:
-            name = f'calibration.{key}'
-            if self.has_parameter(name):
-                continue
-            descriptor = ParameterDescriptor(
-                description=f'Calibration metadata ({key}); informational.',
-                read_only=True,
-                dynamic_typing=True,
-            )
-            value = self.declare_parameter(name, None, descriptor).value
-            if value is not None:
-                given[name] = value
+        if given.get('calibration.model') == NO_CALIBRATION['calibration.model']:
+            return {}  # a dump of an uncalibrated node: no calibration given
         return given
+
+    def _show_calibration(self) -> None:
+        """Set ``calibration.*`` to the calibration in force (``ros2 param get/dump`` read it),
+        metadata it does not carry left unset, never NOT_SET: a dump loads back as given."""
+        calibration = self.session.calibration
+        self._shown_calibration = calibration
+        values = dict(NO_CALIBRATION)
+        if calibration is not None:
+            try:
+                values = calibration_parameters(calibration)
+            except CalibrationFileError as error:
+                self.get_logger().warning(f'calibration.* not updated: {error}')
+                return
+        parameters = []
+        for name, value in values.items():
+            try:
+                parameters.append(Parameter(name, value=value))
+            except TypeError:  # metadata no parameter can hold (a mixed list ...)
+                continue
+        kept = {parameter.name for parameter in parameters}
+        self._showing = True  # our own change: _validate_parameters lets it through
+        try:
+            for key in CALIBRATION_METADATA_KEYS:
+                name = f'calibration.{key}'
+                if name not in kept and self.has_parameter(name):
+                    self.undeclare_parameter(name)
+            for parameter in parameters:
+                if not self.has_parameter(parameter.name):
+                    self.declare_parameter(parameter.name, None, ParameterDescriptor(
+                        description='Calibration metadata; informational.',
+                        dynamic_typing=True))
+            self.set_parameters(parameters)
+        finally:
+            self._showing = False
 
     # -- start-up --------------------------------------------------------------------------------
 
@@ -354,6 +457,7 @@ class MagCalibratorNode(Node):
             field_strength=parameters.get('calibration.field_strength'),
             model=parameters.get('calibration.model', 'full'),
             metadata=metadata,
+            rotation=parameters.get('calibration.rotation'),
         )
 
     def _loaded(self, path: Path, loaded: LoadedCalibration | Exception) -> tuple[bool, str]:
@@ -386,7 +490,7 @@ class MagCalibratorNode(Node):
             out.magnetic_field.x, out.magnetic_field.y, out.magnetic_field.z = (
                 processed.corrected.tolist())
             out.magnetic_field_covariance = transform_covariance(
-                processed.calibration.matrix, msg.magnetic_field_covariance
+                processed.calibration.correction, msg.magnetic_field_covariance
             )
             self._publisher.publish(out)
         elif processed.accepted and self.get_parameter('publish_uncalibrated').value:
@@ -394,16 +498,86 @@ class MagCalibratorNode(Node):
         if self.session.has_events:
             self._handle_events()
 
+    def _on_imu(self, msg: Imu) -> None:
+        """O(1): the session keeps the sample to pair magnetometer readings with."""
+        stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        accel, rate = msg.linear_acceleration, msg.angular_velocity
+        gyro = None if msg.angular_velocity_covariance[0] == -1.0 else (rate.x, rate.y, rate.z)
+        self.session.process_imu(stamp_ns, msg.header.frame_id, (accel.x, accel.y, accel.z),
+                                 gyro)
+
+    def _sync_imu_subscription(self) -> None:
+        wanted = bool(self.get_parameter('use_imu').value)
+        if wanted and self._imu_subscription is None:
+            self._imu_subscription = self.create_subscription(
+                Imu, 'imu/data_raw', guarded(self, 'imu/data_raw', self._on_imu), INPUT_QOS)
+        elif not wanted and self._imu_subscription is not None:
+            self.destroy_subscription(self._imu_subscription)
+            self._imu_subscription = None
+
+    # -- the Earth's field here -------------------------------------------------------------------
+
+    def _locate_from_parameters(self) -> None:
+        latitude = float(self.get_parameter('latitude').value)
+        longitude = float(self.get_parameter('longitude').value)
+        if math.isnan(latitude) and math.isnan(longitude):
+            if self._location_source == 'parameters':
+                self._location_source = ''
+                self.session.set_earth_field(None)
+            return
+        self._locate(latitude, longitude, float(self.get_parameter('altitude').value),
+                     'parameters')
+
+    def _on_fix(self, msg: NavSatFix) -> None:
+        """The first usable fix locates the robot when the parameters do not (one evaluation
+        only, whatever its outcome: a fix stream never repeats it)."""
+        if (self._fix_used or not self.get_parameter('use_gps').value
+                or msg.status.status < NavSatStatus.STATUS_FIX
+                or not (_is_nan(self.get_parameter('latitude').value)
+                        and _is_nan(self.get_parameter('longitude').value))):
+            return
+        altitude = msg.altitude if math.isfinite(msg.altitude) else 0.0
+        if location_problems(msg.latitude, msg.longitude, altitude):
+            return
+        self._fix_used = True
+        self._locate(msg.latitude, msg.longitude, altitude, 'gps/fix')
+
+    def _locate(self, latitude: float, longitude: float, altitude: float, source: str) -> None:
+        """Evaluate the World Magnetic Model on the I/O thread (an import and ~30 ms)."""
+        where = (latitude, longitude, altitude)
+        self._location_wanted = where
+        self._run_io(lambda: earth_field(*where)).add_done_callback(
+            lambda future: self._located(where, source, future.result()))
+
+    def _located(self, where: tuple[float, float, float], source: str,
+                 result: EarthField | Exception) -> None:
+        if where != self._location_wanted:
+            return  # a newer location was asked for meanwhile
+        self._location_wanted = None
+        if isinstance(result, Exception):
+            what = '' if isinstance(result, EarthFieldError) else f'{type(result).__name__}: '
+            self.get_logger().warning(f'no World Magnetic Model field at {where} (from '
+                                      f'{source}): {what}{result}; running without it')
+            return
+        self._location_source = source
+        self.session.set_earth_field(result)
+        self.get_logger().info(f'earth field here (from {source}): {result.describe()}')
+        for note in result.notes:
+            self.get_logger().warning(note)
+
     # -- what the session decided -----------------------------------------------------------------
 
     def _on_poll(self) -> None:
-        """Collect finished fits and file operations; answer waiting services; auto-save."""
+        """Collect finished fits and file operations; answer waiting services; auto-save;
+        show a new calibration in force as calibration.* parameters."""
         self.session.poll()
         while not self._io_results.empty():
             future, result = self._io_results.get()
             future.set_result(result)
         if self.session.has_events:
             self._handle_events()
+        if self.session.calibration is not self._shown_calibration:
+            self._show_calibration()
         if self._save_wanted and not self._saving and (
                 time.monotonic() - self._last_auto_save >= AUTO_SAVE_MIN_INTERVAL_S):
             self._save_wanted = False
@@ -490,8 +664,10 @@ class MagCalibratorNode(Node):
         result = await self._run_io(self._save_file)
         response.success = not isinstance(result, Exception)
         response.message = str(result)
-        (self.get_logger().info if response.success else self.get_logger().warning)(
-            response.message if response.success else f'save failed: {result}')
+        if response.success:  # one call site per severity (rclpy refuses a change at one)
+            self.get_logger().info(response.message)
+        else:
+            self.get_logger().warning(f'save failed: {result}')
         return response
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response):
@@ -520,6 +696,17 @@ class MagCalibratorNode(Node):
         coverage = self.session.coverage()
         self._log_progress(now, coverage)
         self._publish_diagnostics(now, coverage)
+        self._publish_view(now)
+
+    def _publish_view(self, now: float) -> None:
+        period = float(self.get_parameter('view_period').value)
+        if period <= 0.0 or now - self._last_view < period or not self._view.watched:
+            return
+        self._last_view = now
+        buffer = self.session.buffer
+        view = calibration_view(buffer.samples, buffer.counts, self.session.calibration)
+        self._view.publish(view, self.session.screen.frame_id or 'imu_link',
+                           float(self.get_parameter('view_scale').value))
 
     def _log_progress(self, now: float, coverage: Coverage) -> None:
         period = float(self.get_parameter('progress_log_period').value)
@@ -529,12 +716,22 @@ class MagCalibratorNode(Node):
             return  # the rotation logs its own progress
         if now - self._last_progress_log >= period:
             self._last_progress_log = now
-            self.get_logger().info(self.session.progress_text(coverage))
+            if self.session.input_rate.rate == 0.0:
+                self.get_logger().info(self._no_input_text())
+            else:
+                self.get_logger().info(self.session.progress_text(coverage))
+
+    def _no_input_text(self) -> str:
+        topic = self.resolve_topic_name('imu/mag')
+        return (f'no input on {topic}: is the driver running, in this namespace? '
+                f'(ros2 topic info {topic})')
 
     def _publish_diagnostics(self, now: float, coverage: Coverage) -> None:
         values = self.session.diagnostic_values(now, coverage)
         values['calibration_file'] = str(self._calibration_file())
         values.update(self._rotation.diagnostic_values(now))
+        if self._location_source:
+            values['location_source'] = self._location_source
         state = self.session.state
         if self._problem is not None:
             level, message = ERROR, self._problem
@@ -543,16 +740,23 @@ class MagCalibratorNode(Node):
             level, message = WARN, f'{state}: input messages refused since last report: {counts}'
         elif state == 'calibrated-misfit':
             level, message = WARN, self.session.misfit_text()
+        elif state.startswith('calibrated') and (warning := self.session.earth_warning()):
+            level, message = WARN, f'{state}: {warning}'
+        elif state.startswith('calibrated') and (warning := self.session.alignment_warning()):
+            level, message = WARN, f'{state}: {warning}'
         elif state.startswith('calibrated'):
             level, message = OK, self.session.progress_text(coverage)
         elif values['input_rate_hz'] == 0.0:
-            level, message = WARN, f'{state}: no input on {self.resolve_topic_name("imu/mag")}'
+            level, message = WARN, f'{state}: {self._no_input_text()}'
         else:
             level, message = WARN, f'{state}: {self.session.progress_text(coverage)}'
-        hardware_id = self.session.screen.frame_id or self.get_fully_qualified_name()
+        # Names and hardware ids carry the namespace: robots on one host stay apart.
+        topic = self.resolve_topic_name('imu/mag')
+        frame = self.session.screen.frame_id
+        hardware_id = f'{topic} ({frame})' if frame else topic
         self._diagnostics.publish([
-            diagnostic_status(f'{self.get_name()}: calibration', hardware_id, level, message,
-                              values)
+            diagnostic_status(f'{self.get_fully_qualified_name()}: calibration', hardware_id,
+                              level, message, values)
         ])
 
     # -- turning in place: ~/rotate_and_calibrate, ~/stop_rotation -------------------------------
@@ -579,7 +783,7 @@ class MagCalibratorNode(Node):
                                ('~/stop_rotation', self._on_stop_rotation)):
             self.create_service(Trigger, name, self._answering(name, callback))
         self.add_post_set_parameters_callback(self._rotation_parameters_changed)
-        self.create_timer(COMMAND_PERIOD_S, self._on_rotation_timer)
+        self.create_timer(COMMAND_PERIOD_S, guarded(self, 'rotation', self._on_rotation_timer))
 
     def _input_age(self, now: float) -> float | None:
         """Seconds since a reading was last accepted (sampled every COMMAND_PERIOD_S)."""
@@ -593,6 +797,13 @@ class MagCalibratorNode(Node):
         return publishers - (self._command_publisher is not None)
 
     def _on_rotation_timer(self) -> None:
+        try:
+            self._rotation_tick()
+        except Exception:
+            self._stop_rotation('error')  # never keep turning on an error; guarded logs it
+            raise
+
+    def _rotation_tick(self) -> None:
         now = time.monotonic()
         input_age = self._input_age(now)
         if self._rotation.state == 'idle' and self._command_publisher is None:
@@ -692,6 +903,10 @@ class MagCalibratorNode(Node):
                 self._command_publisher = None
         except Exception as error:  # noqa: BLE001 - shutting down: report, never raise
             self.get_logger().error(f'could not command zero on shutdown: {error!r}')
+
+
+def _is_nan(value: object) -> bool:
+    return isinstance(value, float) and math.isnan(value)
 
 
 def _read_calibration(path: Path, node_name: str) -> LoadedCalibration | Exception | None:

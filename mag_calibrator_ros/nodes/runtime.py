@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 import signal
 import threading
+import traceback
 
 import rclpy
 from rclpy.context import Context
@@ -13,6 +14,22 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+def guarded(node: Node, name: str, callback: Callable) -> Callable:
+    """``callback`` that logs an unexpected exception (with its traceback, at most every 5 s)
+    instead of letting it end the executor's spin: a node keeps running on bad luck."""
+
+    def run(*args):
+        try:
+            return callback(*args)
+        except Exception:  # noqa: BLE001 - logged; the node must keep serving
+            if node.context.ok():  # not a callback caught by shutdown (Ctrl-C, SIGTERM)
+                node.get_logger().error(f'{name} failed:\n{traceback.format_exc()}',
+                                        throttle_duration_sec=5.0)
+            return None
+
+    return run
 
 
 def spin_node(node_factory: Callable[[], Node], args: Sequence[str] | None = None, *,

@@ -1,10 +1,13 @@
 """``mag_calibrator_demo``: the whole live pipeline on a simulated ICM-20948, in one process.
 
-The driver (sim backend, strong hard- and soft-iron distortion) and the calibrator run in one
-process, each node spun on its own thread (see NodeThreads), talking over DDS as on a robot.
-While the simulated board tumbles, a progress bar shows direction coverage and buffer fill; once
+The driver (sim backend, strong hard- and soft-iron distortion, a magnetometer mounted 3 degrees
+off the accelerometer) and the calibrator run in one process, each node spun on its own thread
+(see NodeThreads), talking over DDS as on a robot, imu/data_raw included. While the simulated
+board is turned from tilt to tilt and held still at each (``poses``: what aligning to gravity
+needs), a progress bar shows direction coverage and buffer fill; once
 coverage suffices the demo asks for a calibration through the real ``~/calibrate`` service,
-measures the raw and corrected streams against the simulator's true field, saves the file
+measures the raw and corrected streams against the simulator's true field (and the alignment it
+recovered against the misalignment simulated), saves the file
 through ``~/save`` and draws a before/after PNG. Exit status 0 when the calibration succeeded
 and everything was written.
 
@@ -39,7 +42,9 @@ from sensor_msgs.msg import MagneticField
 from std_srvs.srv import Trigger
 
 from mag_calibrator_ros import motion
+from mag_calibrator_ros.calibration.alignment import rotation_angle_deg
 from mag_calibrator_ros.calibration.coverage import direction_coverage
+from mag_calibrator_ros.calibration.earth_field import location_problems
 from mag_calibrator_ros.nodes.icm20948_driver import Icm20948DriverNode
 from mag_calibrator_ros.nodes.mag_calibrator import MagCalibratorNode
 from mag_calibrator_ros.nodes.runtime import NodeThreads
@@ -53,6 +58,8 @@ SOFT_IRON = (  # symmetric, scales 0.85-1.15, off-diagonals up to 0.12
     0.10, 0.85, 0.12,
     -0.08, 0.12, 1.00,
 )
+MISALIGNMENT_DEG = (1.8, -1.9, 1.4)
+"""The magnetometer's axes against the accelerometer's (a rotation vector): 3.0 deg."""
 NAMESPACE = 'mag_calibrator_demo'
 GROUND_HARD_IRON_UT = (55.0, -45.0, 25.0)
 """75 uT: three times the horizontal field (25 uT at 60 deg inclination)."""
@@ -89,11 +96,24 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument('--ground-robot', action='store_true',
                         help='a ground robot that only turns: the calibrator turns it in place '
                         'through cmd_vel (~/rotate_and_calibrate) and stops it when calibrated')
+    parser.add_argument('--motion', choices=[kind for kind in motion.TRAJECTORY_KINDS
+                                             if kind != 'cmd_vel'], default='poses',
+                        help='how the simulated board moves (default: %(default)s: held still '
+                        'at one tilt after another, so the calibration is also aligned to the '
+                        'accelerometer; tumble never holds still)')
+    parser.add_argument('--latitude', type=float, default=None,
+                        help='simulate the World Magnetic Model field at this latitude (with '
+                        '--longitude) and give the calibrator the location')
+    parser.add_argument('--longitude', type=float, default=None)
     args = parser.parse_args(argv)
     if not args.collect_timeout > 0 or not args.evaluate_seconds > 0:
         parser.error('--collect-timeout and --evaluate-seconds must be > 0')
     if not 0.0 < args.min_coverage <= 1.0:
         parser.error('--min-coverage must be in (0, 1]')
+    if (args.latitude is None) != (args.longitude is None):
+        parser.error('give both --latitude and --longitude')
+    if args.latitude is not None and location_problems(args.latitude, args.longitude):
+        parser.error('; '.join(location_problems(args.latitude, args.longitude)))
     return args
 
 
@@ -198,7 +218,7 @@ class DemoObserver(Node):
 def progress_bar(coverage: float, fill: int, capacity: int, elapsed: float, width: int = 30
                  ) -> str:
     done = int(round(width * min(max(coverage, 0.0), 1.0)))
-    return (f'\r  tumbling [{"#" * done}{"." * (width - done)}] coverage {100 * coverage:3.0f} %'
+    return (f'\r  turning [{"#" * done}{"." * (width - done)}] coverage {100 * coverage:3.0f} %'
             f'  buffer {fill:4d}/{capacity}  {elapsed:4.1f} s ')
 
 
@@ -227,8 +247,9 @@ def collect(calibrator: MagCalibratorNode, target: float, timeout_s: float) -> f
     return coverage
 
 
-def score(observer: DemoObserver, driver: Icm20948DriverNode, seconds: float):
-    """Raw vs truth and corrected vs truth over ``seconds`` of the live corrected stream."""
+def score(observer: DemoObserver, driver: Icm20948DriverNode, seconds: float, calibration=None):
+    """Raw vs truth and corrected vs truth over ``seconds`` of the live corrected stream (and,
+    given the calibration, the same corrected without its rotation: what aligning gained)."""
     observer.take_pairs()
     time.sleep(seconds)
     raw, corrected, truth = [], [], []
@@ -241,7 +262,12 @@ def score(observer: DemoObserver, driver: Icm20948DriverNode, seconds: float):
     if not truth:
         return 0, None, None
     truth = np.array(truth)
-    return len(truth), error_table(np.array(raw), truth), error_table(np.array(corrected), truth)
+    after = error_table(np.array(corrected), truth)
+    if calibration is not None and calibration.aligned:
+        unaligned = calibration.unrotated(np.array(raw))
+        after['direction, unaligned (deg)'] = ErrorStats.of(direction_errors_deg(unaligned,
+                                                                                 truth))
+    return len(truth), error_table(np.array(raw), truth), after
 
 
 def noise_free_direction_error(calibration, seed: int) -> ErrorStats:
@@ -249,7 +275,8 @@ def noise_free_direction_error(calibration, seed: int) -> ErrorStats:
     truth = motion.body_field_samples('tumble', 6000, 100.0, FIELD_UT * 1e-6, INCLINATION_DEG,
                                       seed + 1)
     soft_iron = np.reshape(SOFT_IRON, (3, 3))
-    readings = truth @ soft_iron.T + np.array(HARD_IRON_UT) * 1e-6
+    sensed = truth @ misalignment()  # the magnetometer reads A^T @ field
+    readings = sensed @ soft_iron.T + np.array(HARD_IRON_UT) * 1e-6
     return ErrorStats.of(direction_errors_deg(calibration.apply(readings), truth))
 
 
@@ -258,8 +285,8 @@ def print_summary(count: int, before: dict, after: dict) -> None:
           '(before = raw imu/mag, after = imu/mag_corrected):')
     print(f'  {"":24s} {"before RMS":>11s} {"before max":>11s} {"after RMS":>10s} '
           f'{"after max":>10s}')
-    for name in before:
-        b, a = before[name], after[name]
+    for name in after:
+        b, a = before.get(name, ErrorStats(math.nan, math.nan)), after[name]
         print(f'  {name:24s} {b.rms:11.3f} {b.max:11.3f} {a.rms:10.3f} {a.max:10.3f}')
 
 
@@ -276,7 +303,8 @@ def output_files(args: argparse.Namespace) -> tuple[Path, Path]:
 
 def simulated_board(context: Context, motion_kind: str, hard_iron_ut, seed: int,
                     namespace: str = NAMESPACE, **sim) -> Icm20948DriverNode:
-    """The driver on the simulated ICM-20948: the demo's field and soft iron, 100 Hz."""
+    """The driver on the simulated ICM-20948: the demo's field and soft iron, 100 Hz; ``sim``
+    sets further ``sim.*`` parameters by name."""
     overrides = [
         Parameter('backend', value='sim'),
         Parameter('rate_hz', value=100),
@@ -291,20 +319,49 @@ def simulated_board(context: Context, motion_kind: str, hard_iron_ut, seed: int,
                               parameter_overrides=overrides)
 
 
+def misalignment() -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(np.radians(MISALIGNMENT_DEG)).as_matrix()
+
+
+def print_alignment(calibration) -> None:
+    """The rotation recovered against the one simulated."""
+    if not calibration.aligned:
+        print('Not aligned to the IMU (no still tilts seen: see the ~/calibrate answer).')
+        return
+    error = rotation_angle_deg(calibration.rotation @ misalignment().T)
+    print(f'Alignment to the IMU: rotation {rotation_angle_deg(calibration.rotation):.2f} deg '
+          f'recovered (simulated {rotation_angle_deg(misalignment()):.2f} deg, error '
+          f'{error:.3f} deg); dip {calibration.metadata.get("dip_deg", math.nan):.2f} deg '
+          f'\u00b1 {calibration.metadata.get("dip_std_deg", math.nan):.2f} deg over '
+          f'{calibration.metadata.get("static_samples", 0)} still tilts.')
+
+
 def run(args: argparse.Namespace, context: Context) -> int:
     if args.ground_robot:
         return run_ground(args, context)
     calibration_file, plot_file = output_files(args)
 
-    print(f'Simulated ICM-20948: field {FIELD_UT:.0f} uT, inclination {INCLINATION_DEG:.0f} deg, '
-          f'hard iron {list(HARD_IRON_UT)} uT, soft iron {list(SOFT_IRON)} (row-major).')
-    driver = simulated_board(context, 'tumble', HARD_IRON_UT, args.seed)
+    located = args.latitude is not None
+    field = (f"the World Magnetic Model's at {args.latitude}, {args.longitude}" if located
+             else f'{FIELD_UT:.0f} uT, inclination {INCLINATION_DEG:.0f} deg')
+    print(f'Simulated ICM-20948: field {field}, hard iron {list(HARD_IRON_UT)} uT, soft iron '
+          f'{list(SOFT_IRON)} (row-major), magnetometer {rotation_angle_deg(misalignment()):.1f}'
+          f' deg off the accelerometer (rotation vector {list(MISALIGNMENT_DEG)} deg).')
+    sim = {'mag_misalignment_deg': list(MISALIGNMENT_DEG)}
     overrides = [
         Parameter('auto_calibrate', value=False),
         Parameter('calibration_file', value=str(calibration_file)),
-        Parameter('field_strength', value=FIELD_UT * 1e-6),  # the local field, as from a WMM
         Parameter('progress_log_period', value=0.0),
     ]
+    if located:  # the same place for both: the calibrator takes F from the model
+        sim.update(latitude=args.latitude, longitude=args.longitude)
+        overrides += [Parameter('latitude', value=args.latitude),
+                      Parameter('longitude', value=args.longitude)]
+    else:
+        overrides.append(Parameter('field_strength', value=FIELD_UT * 1e-6))  # the local field
+    driver = simulated_board(context, args.motion, HARD_IRON_UT, args.seed, **sim)
     if args.buffer_size is not None:
         overrides.append(Parameter('buffer_size', value=args.buffer_size))
     calibrator = MagCalibratorNode(namespace=NAMESPACE, context=context,
@@ -315,7 +372,8 @@ def run(args: argparse.Namespace, context: Context) -> int:
         spinning.add(node)
     try:
         target = args.min_coverage
-        print(f'Rotate the board through every orientation: collecting until coverage '
+        print(f'Turn the board through every orientation, holding it still now and then: '
+              f'collecting until coverage '
               f'{100 * target:.0f} % (at most {args.collect_timeout:.0f} s).')
         collect(calibrator, target, args.collect_timeout)
 
@@ -327,8 +385,10 @@ def run(args: argparse.Namespace, context: Context) -> int:
         if not response.success:
             return 1
 
+        calibration = calibrator.session.calibration
+        print_alignment(calibration)
         print(f'Scoring {args.evaluate_seconds:.0f} s of the corrected stream...')
-        count, before, after = score(observer, driver, args.evaluate_seconds)
+        count, before, after = score(observer, driver, args.evaluate_seconds, calibration)
         if count == 0:
             print('no corrected samples could be paired with the truth', file=sys.stderr)
             return 3

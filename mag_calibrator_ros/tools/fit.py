@@ -6,6 +6,10 @@ automatic calibration and refinement, at the same readings as the node) and the 
 fitted as the node does on ``~/calibrate``, so an offline result predicts what the robot gets;
 or, with ``--all``, every sample is fitted. The calibration is in the recording's own units.
 
+With ``--accel-columns`` (a text log with the accelerometer on each line) the calibration is
+aligned to the accelerometer from the readings held still, as the node does with imu/data_raw;
+with ``--latitude``/``--longitude`` it is checked against the World Magnetic Model there.
+
 Exit codes: 0 calibrated; 1 the fit failed a quality gate (the best-effort numbers are printed,
 marked NOT passing, and no calibration file is written: a robot must never load a calibration
 that failed its gates); 2 usage or input errors (one line on stderr, no traceback).
@@ -16,6 +20,7 @@ from __future__ import annotations
 import argparse
 from collections import Counter
 from collections.abc import Sequence
+from dataclasses import replace
 import json
 import math
 import os
@@ -25,11 +30,20 @@ from typing import Any, NoReturn, TextIO
 
 import numpy as np
 
+from mag_calibrator_ros.calibration.alignment import StaticAttitudes
 from mag_calibrator_ros.calibration.buffer import DEFAULT_CAPACITY, DEFAULT_K
 from mag_calibrator_ros.calibration.calibration import MODELS, Calibration
 from mag_calibrator_ros.calibration.calibration_file import CalibrationFileError, save_calibration
+from mag_calibrator_ros.calibration.earth_field import (
+    MAX_DIP_ERROR_DEG,
+    MAX_FIELD_ERROR_PCT,
+    EarthField,
+    EarthFieldError,
+    EarthReference,
+    earth_field,
+)
 from mag_calibrator_ros.calibration.fitting import FitOptions, FitResult
-from mag_calibrator_ros.calibration.jobs import FitJob, run_job
+from mag_calibrator_ros.calibration.jobs import FitJob, JobOutcome, run_job
 from mag_calibrator_ros.calibration.screening import VALUE_REASONS, reading_problem
 from mag_calibrator_ros.calibration.session import (
     CalibrationSession,
@@ -39,6 +53,7 @@ from mag_calibrator_ros.tools.recordings import (
     Recording,
     RecordingError,
     describe_skips,
+    read_paired_recording,
     read_recording,
 )
 
@@ -74,6 +89,9 @@ examples:
   {PROG} log.txt --columns 1,3,5           lines such as "Mx 144 My -270 Mz 415"
   {PROG} ~/bags/run1 --topic /imu/mag --output cal.yaml    rosbag2 (sqlite3 or mcap), tesla
   ros2 topic echo ... | {PROG} - --json    read text from stdin, machine-readable summary
+  {PROG} cal_output_2.log --accel-columns 0,1,2 --rate 3 --latitude 45.5 --longitude -122.7
+                                           align to the accelerometer logged beside the
+                                           magnetometer (3 rows/s) and check against the WMM
 
 field strength F (|corrected| = F): by default the fitted mean radius (magnitude kept, in input
 units); --normalise makes F = 1; --field-strength F sets it (e.g. the local field from WMM in the
@@ -117,7 +135,8 @@ def build_parser() -> argparse.ArgumentParser:
                         'or - for text on stdin')
     parser.add_argument('--model', choices=MODELS, default=DEFAULT_OPTIONS.model,
                         help='calibration model: full (hard + symmetric soft iron), axis (the '
-                        "brief's axis-aligned least squares), sphere (hard iron only), planar "
+                        'axis-aligned least squares of mag-calibrator-rs), sphere (hard iron '
+                        'only), planar '
                         '(motion in one plane, e.g. a ground robot turning in place), auto '
                         '(chosen by an information criterion; default)')
     mode = parser.add_mutually_exclusive_group()
@@ -133,7 +152,7 @@ def build_parser() -> argparse.ArgumentParser:
     strength.add_argument('--field-strength', type=float, metavar='F', default=None,
                           help='|corrected| = F in input units (default: the fitted mean radius)')
     strength.add_argument('--normalise', '--normalize', action='store_true',
-                          help="F = 1 (unit-length corrected field, as the brief's library)")
+                          help='F = 1 (unit-length corrected field, as mag-calibrator-rs)')
     parser.add_argument('--rate', type=float, metavar='HZ', default=DEFAULT_RATE_HZ,
                         help='sample rate of the recording: the live session times its fits by '
                         f'message stamps, replayed here at HZ (default {DEFAULT_RATE_HZ:g})')
@@ -162,6 +181,33 @@ def build_parser() -> argparse.ArgumentParser:
                         'input units) only if the fit passes every gate')
     parser.add_argument('--plot', metavar='FILE.png', default=None,
                         help='write before/after projections and a 3-D view (also on failure)')
+    imu = parser.add_argument_group(
+        "gravity and the Earth's field",
+        'Align the calibration to an accelerometer logged on the same lines (readings held '
+        'still for 0.2 s, judged by --rate; a slow log without time stamps needs its real '
+        '--rate) and check it against the World Magnetic Model at a location.')
+    imu.add_argument('--accel-columns', metavar='COLS', default=None,
+                     help="text input: the accelerometer's three zero-based field indices "
+                     '(e.g. 0,1,2) or header names (ax,ay,az); the magnetometer is then '
+                     '--columns or the first other numeric fields')
+    imu.add_argument('--max-alignment', type=float, metavar='DEG', default=None,
+                     help='a larger rotation to the accelerometer is reported as a mounting '
+                     'error with the remap that fixes it, not applied (default 15)')
+    imu.add_argument('--latitude', type=float, metavar='DEG', default=None)
+    imu.add_argument('--longitude', type=float, metavar='DEG', default=None)
+    imu.add_argument('--altitude', type=float, metavar='M', default=0.0,
+                     help='metres above the WGS84 ellipsoid (default 0)')
+    imu.add_argument('--date', metavar='YYYY-MM-DD', default=None,
+                     help='day of the recording for the model (default today)')
+    imu.add_argument('--max-field-error', type=float, metavar='PCT',
+                     default=MAX_FIELD_ERROR_PCT,
+                     help="quality gate: fitted field vs the model's intensity (default "
+                     f'{MAX_FIELD_ERROR_PCT:g} %%; needs --units)')
+    imu.add_argument('--max-dip-error', type=float, metavar='DEG', default=MAX_DIP_ERROR_DEG,
+                     help="quality gate: measured dip vs the model's inclination (default "
+                     f'{MAX_DIP_ERROR_DEG:g}; needs --accel-columns)')
+    imu.add_argument('--no-earth-gate', action='store_true',
+                     help='only warn when the fit is off the model, never fail')
     parser.add_argument('--json', action='store_true',
                         help='print a machine-readable summary on stdout instead of the text')
     parser.add_argument('--quiet', '-q', action='store_true',
@@ -176,7 +222,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as stop:  # --help (0) or a usage error (2, already printed)
         return int(stop.code) if isinstance(stop.code, int) else EXIT_USAGE
     try:
-        return run(args)
+        with np.errstate(all='ignore'):  # results are judged (finite, gated), never warned about
+            return run(args)
     except (UsageError, RecordingError, CalibrationFileError) as error:
         _error(str(error))
         return EXIT_USAGE
@@ -194,10 +241,20 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     settings = None if args.all else session_settings(args, options)
     progress = ProgressBar(sys.stderr, args.input)
 
-    recording = read_recording(args.input, columns=args.columns, topic=args.topic,
-                               min_rows=options.min_samples, progress=progress.reading)
+    earth = location(args)  # usage errors before reading anything
+    if args.accel_columns is not None:
+        if args.topic is not None:
+            raise UsageError('--accel-columns applies to text input, not to a rosbag2 bag')
+        recording = read_paired_recording(args.input, accel_columns=args.accel_columns,
+                                          columns=args.columns, min_rows=options.min_samples,
+                                          progress=progress.reading)
+    else:
+        recording = read_recording(args.input, columns=args.columns, topic=args.topic,
+                                   min_rows=options.min_samples, progress=progress.reading)
     progress.finish()
     units = input_units(args, recording)
+    reference = None if earth is None else EarthReference(
+        earth, units, args.max_field_error, args.max_dip_error, not args.no_earth_gate)
     metadata = {
         'units': units,
         'source': str(Path(recording.source).resolve()) if recording.source != 'stdin'
@@ -207,16 +264,29 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     session = None
     if settings is not None:
         session = CalibrationSession(settings, metadata=metadata)
-        stream(session, recording.samples, args.rate, progress)
+        session.set_earth_field(earth)
+        stream(session, recording.samples, args.rate, progress, recording.accel)
+        session.attitudes.finish()  # the recording ends: its last still stretch too
         attempt = session.calibrate_now()
         if attempt.outcome is None or attempt.outcome.result is None:
             raise UsageError(attempt.message)
-        result = attempt.outcome.result
+        outcome = attempt.outcome
         fitted = recording.samples  # plot the whole recording, corrected by the buffer's fit
         screening = None
     else:
         fitted, screening = screen_all(recording.samples, args.full_scale)
-        result = run_job(FitJob('calibrate', fitted, None, None, options, metadata)).result
+        attitudes = None
+        if recording.accel is not None:
+            attitudes = still_attitudes(recording.samples, recording.accel, args.rate,
+                                        args.full_scale)
+        if earth is not None and args.field_strength is None and not args.normalise:
+            intensity = earth.intensity_in(units)
+            if intensity is not None:  # the model's intensity is the target, as in the node
+                options = replace(options, field_strength=intensity)
+        outcome = run_job(FitJob(
+            'calibrate', fitted, None, None, options, metadata, attitudes=attitudes,
+            alignment=alignment_settings(args).alignment_options(earth), earth=reference))
+    result = outcome.result
     progress.finish()
 
     calibration = result.calibration
@@ -230,6 +300,7 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
 
     summary = build_summary(args, recording, units, result, calibration, session, screening,
                             written, plotted)
+    add_reference(summary, outcome, earth, args.rate)
     if args.json:
         json.dump(summary, out, indent=2, allow_nan=False)
         out.write('\n')
@@ -260,6 +331,52 @@ def fit_options(args: argparse.Namespace) -> FitOptions:
         raise UsageError(str(error)) from error
 
 
+def location(args: argparse.Namespace) -> EarthField | None:
+    """The World Magnetic Model's field at --latitude/--longitude/--altitude on --date."""
+    if args.latitude is None and args.longitude is None:
+        if args.date is not None:
+            raise UsageError('--date needs --latitude and --longitude')
+        return None
+    if args.latitude is None or args.longitude is None:
+        raise UsageError('give both --latitude and --longitude')
+    try:
+        return earth_field(args.latitude, args.longitude, args.altitude, args.date)
+    except EarthFieldError as error:
+        raise UsageError(str(error)) from error
+
+
+def alignment_settings(args: argparse.Namespace) -> SessionSettings:
+    """The alignment and model tolerances of this run (the rest: the node's defaults)."""
+    defaults = SessionSettings()
+    angle = defaults.max_alignment_deg if args.max_alignment is None else args.max_alignment
+    settings = replace(defaults, max_alignment_deg=angle,
+                       max_field_error_pct=args.max_field_error,
+                       max_dip_error_deg=args.max_dip_error,
+                       earth_field_gate=not args.no_earth_gate)
+    problems = [problem for problem in settings.problems()
+                if problem.startswith(('max_alignment', 'max_field', 'max_dip'))]
+    if problems:
+        raise UsageError('; '.join(problems).replace('max_', '--max-').replace('_deg', '')
+                         .replace('_pct', '').replace('_', '-'))
+    return settings
+
+
+def still_attitudes(samples: np.ndarray, accel: np.ndarray, rate_hz: float,
+                    full_scale: float | None) -> np.ndarray:
+    """--all: the rows' still stretches (StaticAttitudes), rows at ``rate_hz``; rows the fit
+    refuses (non-finite, zero, saturated) end a stretch."""
+    attitudes = StaticAttitudes()
+    span = np.ptp(samples, axis=0)
+    attitudes.field_scale = float(np.mean(span)) / 2.0 or None
+    for index, (field, force) in enumerate(zip(samples.tolist(), accel.tolist(), strict=True)):
+        if reading_problem(*field, full_scale) is None:
+            attitudes.add(index / rate_hz, field, force)
+        else:
+            attitudes.add(index / rate_hz, (math.nan,) * 3, force)
+    attitudes.finish()
+    return attitudes.snapshot()
+
+
 def session_settings(args: argparse.Namespace, options: FitOptions) -> SessionSettings:
     """The node's defaults with this run's buffer, model and gates, in the input's units."""
     capacity = DEFAULT_CAPACITY if args.buffer is None else args.buffer
@@ -271,8 +388,8 @@ def session_settings(args: argparse.Namespace, options: FitOptions) -> SessionSe
                          f'got {k}')
     if not (math.isfinite(args.rate) and args.rate > 0.0):
         raise UsageError(f'--rate must be a positive number of Hz, got {args.rate}')
-    return SessionSettings(
-        buffer_size=capacity, k=k, model=options.model,
+    return replace(
+        alignment_settings(args), buffer_size=capacity, k=k, model=options.model,
         field_strength=options.field_strength or 0.0, min_coverage=options.min_coverage,
         max_residual_pct=options.max_residual_pct, full_scale=args.full_scale or 0.0,
     )
@@ -288,22 +405,36 @@ def input_units(args: argparse.Namespace, recording: Recording) -> str:
 
 
 def stream(session: CalibrationSession, samples: np.ndarray, rate_hz: float,
-           progress: ProgressBar) -> None:
-    """Offer every sample in order, stamped at ``rate_hz``, as the node receives messages."""
+           progress: ProgressBar, accel: np.ndarray | None = None) -> None:
+    """Offer every sample in order, stamped at ``rate_hz``, as the node receives messages
+    (with its accelerometer row first, as imu/data_raw, when given)."""
     total = len(samples)
     step_ns = 1e9 / rate_hz
     for start in range(0, total, PROGRESS_CHUNK):
-        session.feed(samples[start:start + PROGRESS_CHUNK], rate_hz, round(start * step_ns))
+        chunk = slice(start, start + PROGRESS_CHUNK)
+        session.feed(samples[chunk], rate_hz, round(start * step_ns),
+                     accel=None if accel is None else accel[chunk])
         session.take_events()
         progress.fitting(min(start + PROGRESS_CHUNK, total), total)
 
 
+SCREEN_BLOCK = 1 << 16
+
+
 def screen_all(samples: np.ndarray, full_scale: float | None) -> tuple[np.ndarray, dict[str, int]]:
-    """--all: drop what the buffer would refuse outright (the same rule), counted by reason."""
-    problems = [reading_problem(*row, full_scale) for row in samples.tolist()]
-    keep = np.array([problem is None for problem in problems], dtype=bool)
-    counts = Counter(problem for problem in problems if problem is not None)
-    return samples[keep], dict(counts)
+    """--all: drop what the buffer would refuse outright (its own rule, reading_problem, applied
+    element-wise block by block), counted by reason; the rows are not copied when none goes."""
+    problem = np.frompyfunc(reading_problem, 4, 1)
+    keep = np.ones(len(samples), dtype=bool)
+    counts: Counter[str] = Counter()
+    for start in range(0, len(samples), SCREEN_BLOCK):
+        block = samples[start:start + SCREEN_BLOCK]
+        found = problem(block[:, 0], block[:, 1], block[:, 2], full_scale)
+        refused = found.astype(bool)  # None (a sample) is False, a reason is True
+        if refused.any():
+            keep[start:start + len(block)] = ~refused
+            counts.update(found[refused].tolist())
+    return (samples if keep.all() else samples[keep]), dict(counts)
 
 
 def write_plot(path: str, recording: Recording, fitted: np.ndarray,
@@ -394,6 +525,21 @@ def build_summary(
     return _finite(summary)
 
 
+def add_reference(summary: dict[str, Any], outcome: JobOutcome,
+                  earth: EarthField | None, rate_hz: float) -> None:
+    """The --json 'alignment' and 'earth_field' objects (when an accelerometer / a location
+    was given) and the calibration's rotation."""
+    calibration = outcome.result.calibration if outcome.result is not None else None
+    summary['rotation'] = None if calibration is None else _floats(calibration.rotation.reshape(9))
+    summary['rate_hz'] = float(rate_hz)
+    if outcome.alignment is not None:
+        summary['alignment'] = _finite(outcome.alignment.as_dict())
+    if outcome.earth_check is not None:
+        summary['earth_field'] = _finite(outcome.earth_check.as_dict())
+        summary['earth_model'] = f'{earth.model} at {earth.latitude_deg:g}, ' \
+                                 f'{earth.longitude_deg:g}, {earth.altitude_m:g} m, {earth.date}'
+
+
 def _row(values: Sequence[float]) -> str:
     return '[' + '  '.join(f'{value:>12.6g}' for value in values) + ' ]'
 
@@ -448,6 +594,7 @@ def human_summary(summary: dict[str, Any]) -> str:
     rejects = {reason: count for reason, count in summary['rejects'].items() if count}
     lines.append('rejects   ' + (', '.join(f'{count} {REJECT_WORDS.get(reason, reason)}'
                                           for reason, count in rejects.items()) or 'none'))
+    lines.extend(reference_lines(summary))
     outputs = summary['outputs']
     if outputs['calibration']:
         lines.append(f"output    calibration written to {outputs['calibration']}")
@@ -457,6 +604,41 @@ def human_summary(summary: dict[str, Any]) -> str:
         lines.append(f"FAILED    {summary['reason']}")
         lines.append('          no calibration file written (a failed fit never writes --output)')
     return '\n'.join(lines) + '\n'
+
+
+def reference_lines(summary: dict[str, Any]) -> list[str]:
+    """The alignment and model lines of the readable report."""
+    lines = []
+    alignment = summary.get('alignment')
+    if alignment is not None:
+        if alignment['dip_deg'] is None:
+            lines.append(f"alignment not determined: {alignment['reason']}")
+            lines.append(f"          (rows are taken {summary['rate_hz']:g} Hz apart (--rate): a "
+                         'log without time stamps needs its real rate to tell still rows)')
+        else:
+            verdict = 'applied' if alignment['applied'] else f"NOT applied: {alignment['reason']}"
+            lines.append(f"alignment rotation {alignment['angle_deg']:.2f} deg to the "
+                         f"accelerometer ({verdict})")
+            lines.append(f"          dip {alignment['dip_deg']:.2f} deg, scatter "
+                         f"{alignment['dip_std_deg']:.2f} deg over {alignment['static_samples']}"
+                         f" static attitudes ({alignment['dip_std_before_deg']:.2f} deg "
+                         'unaligned)')
+    earth = summary.get('earth_field')
+    if earth is not None:
+        intensity = ('' if earth['intensity'] is None
+                     else f"{earth['intensity']:.6g} {summary['units']}, ")
+        lines.append(f"earth     {summary['earth_model']}: {intensity}inclination "
+                     f"{earth['inclination_deg']:.2f} deg, declination "
+                     f"{earth['declination_deg']:.2f} deg")
+        checks = []
+        if earth['radius_ratio'] is not None:
+            checks.append(f"fitted field {earth['radius_ratio']:.3f}x the model's")
+        else:
+            checks.append('field not compared (give --units)')
+        if earth['dip_error_deg'] is not None:
+            checks.append(f"dip {earth['dip_error_deg']:+.2f} deg against it")
+        lines.append('          ' + ', '.join(checks))
+    return lines
 
 
 def _pct(value: float | None) -> str:

@@ -1,9 +1,10 @@
 """Before/after pictures of a magnetometer calibration, as PNG files (no display needed).
 
 Top row: the raw samples; bottom row: the corrected samples ``M (raw - b)``. Columns: the XY, YZ
-and ZX projections with the reference circle of radius F about the origin (as in the brief's
-notebook figures), a 3-D view with the sphere of radius F, and |field|/F per sample (raw: about
-the fitted centre) with its spread. A good calibration puts the corrected points on the circles
+and ZX projections with the reference circle of radius F about the origin (as in the figures of
+the gradient-descent notebook, github.com/antsundq/Magnetometer-Auto-Calibration), a 3-D view
+with the sphere of radius F, and |field|/F per sample (raw: about the fitted centre) with its
+spread. A good calibration puts the corrected points on the circles
 and on the sphere of radius F; the raw row shows how far off the sensor was (the fitted centre
 ``b`` is marked). Outliers found by the fit are drawn as red crosses.
 
@@ -20,13 +21,15 @@ state, safe from any thread.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
 import numpy as np
 from numpy.typing import ArrayLike
 
 from mag_calibrator_ros.calibration.calibration import Calibration
+
+if TYPE_CHECKING:  # matplotlib (0.3 s) is imported when a figure is drawn, not with this module
+    from matplotlib.figure import Figure
 
 MAX_POINTS = 5000
 """Points drawn per panel; longer recordings are thinned evenly (the fit still used every one)."""
@@ -80,6 +83,9 @@ def calibration_figure(
             mask = given
     keep = _thin(np.flatnonzero(finite))
     samples, mask = samples[keep], mask[keep]
+
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
     rows = 1 if calibration is None else 2
     figure = Figure(figsize=(21, 4.3 * rows + 0.6), layout='constrained')

@@ -3,32 +3,42 @@
 Text (a file or ``-`` for stdin): CSV, TSV, whitespace or ``;`` separated, with or without a
 header, LF or CRLF, and labelled lines such as ``Mx 144 My -270 Mz 415``. Each line is split into
 *fields* on whitespace, ``,``, ``;`` and ``=``. Without ``columns`` the layout is detected from the
-first lines: the most common pattern of numeric fields wins and its first three numeric fields are
-x, y, z (``Mx 144 My -270 Mz 415`` -> fields 1, 3, 5). ``columns`` chooses explicitly: three
-**zero-based** field indices (``'1,3,5'`` picks 144, -270, 415 from that line) or three header
-names (``'mx,my,mz'``).
+first lines: the most common pattern of numeric fields is the data; a header (or the labels in
+the lines) naming the magnetometer's x, y, z picks those fields (``mx``, ``mag_x``, ``magX``,
+``Bx``, ``Magnetic field x (µT)``, ``field.magnetic_field.x`` ..., see :func:`column_roles`), and
+without names the three numeric fields are x, y, z (``Mx 144 My -270 Mz 415`` -> fields 1, 3, 5).
+A file that does not say which fields are the magnetometer's (more numeric fields than three and
+no names, several magnetometer sets, only accelerometer or gyroscope names) raises
+``RecordingError`` naming the candidates: choose with ``columns``, three **zero-based** field
+indices (``'1,3,5'`` picks 144, -270, 415 from that line) or three header names
+(``'mx,my,mz'``). Lines are converted a block at a time (numpy for plain numbers), so millions of
+rows cost seconds and only the samples stay in memory.
 
 rosbag2 (a bag directory, or a single ``.db3`` / ``.mcap`` file): the
 ``sensor_msgs/msg/MagneticField`` topic named by ``topic``, or the only such topic in the bag.
 Values are tesla (REP-103).
 
 Nothing is dropped silently: every skipped line or message is counted by reason in
-``Recording.skipped``. Problems a user must fix raise ``RecordingError`` with a one-line message
-naming the source and what is wrong.
+``Recording.skipped`` (NaN/Inf, values beyond ``screening.MAX_READING``, ...). Problems a user
+must fix raise ``RecordingError`` with a one-line message naming the source and what is wrong.
 """
 
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 import itertools
+import math
 from pathlib import Path
 import re
 import sys
 from typing import TextIO
+import warnings
 
 import numpy as np
+
+from mag_calibrator_ros.calibration.screening import MAX_READING
 
 MAGNETIC_FIELD = 'sensor_msgs/msg/MagneticField'
 BAG_SUFFIXES = ('.db3', '.mcap')
@@ -40,7 +50,9 @@ FIELD_SEPARATORS = re.compile(r'[\s,;=]+')
 COMMENT_PREFIXES = ('#', '%', '//')
 LAYOUT_SAMPLE_LINES = 1000
 """Lines inspected to detect the layout (and find a header) before streaming the rest."""
-PROGRESS_EVERY_LINES = 8192
+BLOCK_LINES = 8192
+"""Text lines read and converted at a time: a block of plain numbers is one numpy call, and
+memory holds the samples, never the text or a Python object per value."""
 
 SKIP_REASONS = {
     'header': 'header',
@@ -49,6 +61,7 @@ SKIP_REASONS = {
     'too_few_fields': 'too few fields for the chosen columns',
     'not_numeric': 'not numeric',
     'non_finite': 'NaN/Inf',
+    'out_of_range': f'beyond ±{MAX_READING:.0e} (no magnetometer reads that in any unit)',
     'undecodable': 'undecodable message',
 }
 """Why a line or message was skipped: key -> words for the summary."""
@@ -76,6 +89,8 @@ class Recording:
     """Units implied by the format ('T' for bags); None when the file does not say."""
     notes: tuple[str, ...] = ()
     """Things the user should know, e.g. that more numeric fields were present than used."""
+    accel: np.ndarray | None = None
+    """(n, 3) accelerometer rows beside ``samples`` (``read_paired_recording``), else None."""
 
     @property
     def rows(self) -> int:
@@ -206,13 +221,17 @@ def _refuse_binary(path: Path, head: bytes) -> None:
 
 
 @dataclass(frozen=True)
-class _Layout:
-    """Which fields hold x, y, z; ``field_count`` set when every data line must have that many."""
+class TextLayout:
+    """Which fields hold x, y, z; ``field_count`` set when every data line must have that many.
+    ``numpy_fields``: the data lines are that many plain numbers split by ``delimiter`` (',',
+    ';', '\t', or None for white space), so numpy can convert a block of them at once."""
 
     indices: tuple[int, int, int]
     field_count: int | None
     description: str
     notes: tuple[str, ...] = ()
+    delimiter: str | None = None
+    numpy_fields: int | None = None
 
 
 def _split(line: str) -> list[str]:
@@ -235,39 +254,290 @@ def _is_comment(line: str) -> bool:
     return line.lstrip().startswith(COMMENT_PREFIXES)
 
 
-def _detect_layout(lines: list[str], source: str) -> _Layout:
-    """The most common pattern of numeric fields among the first lines; its first three."""
+# --- which columns are the magnetometer's ------------------------------------------------------
+
+SENSOR_ROLES = ('magnetometer', 'accelerometer', 'gyroscope')
+"""Sensors a header can name; :func:`column_roles` finds each one's x, y, z columns."""
+
+_ROLE_WORDS = {
+    'magnetometer': ('mag', {'magnetic', 'compass', 'bfield'}, {'m', 'b', 'h'}),
+    'accelerometer': ('acc', {'linear'}, {'a'}),
+    'gyroscope': ('gyr', {'omega', 'angular', 'rate'}, {'g', 'w'}),
+}
+"""Per sensor: the prefix of its words (mag, magn, magnetometer; acc, accel, acceleration; gyr,
+gyro), other words naming it (field.magnetic_field.x, linear_acceleration.x,
+angular_velocity.x) and its one-letter abbreviations (mx, Bx, Hx; ax; gx, wx), which count only
+next to the axis (``accelerometer_m_s2[0]`` is no magnetometer)."""
+_OTHER_WORDS = {
+    'offset', 'offsets', 'ofs', 'bias', 'mo', 'motor', 'orientation', 'quaternion', 'quat', 'q',
+    'euler', 'pos', 'position', 'pose', 'att', 'attitude', 'angle', 'gps', 'cov', 'covariance',
+    'std', 'var', 'scale', 'error', 'err',
+}
+"""Words naming x, y, z columns that are no sensor reading (ArduPilot's OfsX and MOX, a pose)."""
+_AXES = {'x': 0, 'y': 1, 'z': 2}
+_INDEX_AXIS = re.compile(r'\[([012])\]\s*$')  # PX4: magnetometer_ga[0]
+_UNITS = re.compile(r'\([^)]*\)|\[[^\]]*\]|\{[^}]*\}')  # "Bx (µT)", "mag_x [uT]"
+_CAMEL = re.compile(r'(?<=[a-z0-9])(?=[A-Z])')  # magX -> mag_X
+_COMPACT = re.compile(r'([a-z]+?)([xyz])')  # mx, gyrox, ofsx
+
+
+@dataclass(frozen=True)
+class ColumnRoles:
+    """What a header says about its columns: the x, y, z field indices of each sensor it names.
+
+    ``sensors`` maps a role from SENSOR_ROLES to its candidate (x, y, z) index triplets, in
+    header order; ``unlabelled`` holds triplets named by their axis alone (``x, y, z``, or a
+    prefix no rule knows); ``labels`` names every triplet for messages, e.g. 'mx,my,mz'.
+    """
+
+    sensors: dict[str, tuple[tuple[int, int, int], ...]]
+    unlabelled: tuple[tuple[int, int, int], ...]
+    labels: dict[tuple[int, int, int], str]
+
+    @property
+    def names_triplets(self) -> bool:
+        return bool(self.unlabelled) or any(self.sensors.values())
+
+    def describe(self, triplets: Sequence[tuple[int, int, int]]) -> str:
+        return '; '.join(f'{self.labels[t]} (fields {",".join(map(str, t))})' for t in triplets)
+
+
+def _axis_and_group(name: str) -> tuple[int, str, tuple[str, ...]] | None:
+    """(axis, role, words) for one column name, or None when it names no axis.
+
+    Units in brackets are dropped, camelCase is split, and the axis is the last x, y or z word
+    (``mag_x_raw``: the words after it qualify the group), a trailing [0]/[1]/[2] (PX4), or the
+    last letter of a short form (``mx``, ``gyrox``, ``mx_raw``).
+    """
+    index = _INDEX_AXIS.search(name)
+    axis = None if index is None else int(index.group(1))
+    text = _CAMEL.sub('_', _UNITS.sub(' ', name if index is None else name[:index.start()]))
+    before = re.findall(r'[a-z0-9]+', text.lower())
+    after: list[str] = []
+    if axis is None:
+        found = [i for i, word in enumerate(before) if word in _AXES]
+        if found:
+            position = found[-1]
+            axis = _AXES[before[position]]
+            before, after = before[:position], before[position + 1:]
+        else:
+            for position in reversed(range(len(before))):
+                compact = _COMPACT.fullmatch(before[position])
+                if compact and _known(compact.group(1)):
+                    axis = _AXES[compact.group(2)]
+                    before, after = [*before[:position], compact.group(1)], before[position + 1:]
+                    break
+    if axis is None:
+        return None
+    return axis, _role(before, after), (*before, '|', *after)
+
+
+def _known(word: str) -> bool:
+    """A word a short form may end in an axis after (``mx``, ``gyrox``, ``ofsx``; not
+    ``index``)."""
+    return word in _OTHER_WORDS or _role([word]) != 'unlabelled'
+
+
+def _role(before: Sequence[str], after: Sequence[str] = ()) -> str:
+    """'other' when a word names no reading; else the sensor a word names (a one-letter
+    abbreviation only right before the axis); else 'unlabelled'."""
+    words = [*before, *after]
+    if any(word in _OTHER_WORDS for word in words):
+        return 'other'
+    for word in words:
+        for role, (prefix, names, _) in _ROLE_WORDS.items():
+            if word.startswith(prefix) or word in names:
+                return role
+    if before:
+        for role, (_, _, letters) in _ROLE_WORDS.items():
+            if before[-1] in letters:
+                return role
+    return 'unlabelled'
+
+
+def column_roles(names: Sequence[str]) -> ColumnRoles:
+    """Group column names into the x, y, z triplets of each sensor they name.
+
+    Recognises the usual styles: ``mx``, ``mag_x``, ``magX``, ``MagX``, ``magnetometer_x``,
+    ``Bx``, ``Magnetic field x (µT)``, ``field.magnetic_field.x``, ``magnetometer_ga[0]``;
+    ``ax``/``acc_x``/``accelX``/``linear_acceleration.x`` for the accelerometer and
+    ``gx``/``gyro_x``/``angular_velocity.x`` for the gyroscope. Columns of one triplet share
+    everything but the axis (``mx_raw, my_raw, mz_raw`` and ``mx_cal ...`` are two triplets).
+    """
+    groups: dict[tuple[str, tuple[str, ...]], dict[int, list[int]]] = {}
+    for field_index, name in enumerate(names):
+        parsed = _axis_and_group(name)
+        if parsed is not None:
+            axis, role, words = parsed
+            groups.setdefault((role, words), {}).setdefault(axis, []).append(field_index)
+    sensors: dict[str, list[tuple[int, int, int]]] = {role: [] for role in SENSOR_ROLES}
+    unlabelled: list[tuple[int, int, int]] = []
+    labels: dict[tuple[int, int, int], str] = {}
+    for (role, _), axes in groups.items():
+        if sorted(axes) != [0, 1, 2] or any(len(fields) != 1 for fields in axes.values()):
+            continue
+        triplet = (axes[0][0], axes[1][0], axes[2][0])
+        labels[triplet] = ','.join(names[i].strip() for i in triplet)
+        if role in sensors:
+            sensors[role].append(triplet)
+        elif role == 'unlabelled':
+            unlabelled.append(triplet)
+    order = sorted  # header order: by the x column
+    return ColumnRoles({role: tuple(order(found)) for role, found in sensors.items()},
+                       tuple(order(unlabelled)), labels)
+
+
+def sensor_columns(
+    roles: ColumnRoles, role: str = 'magnetometer'
+) -> tuple[int, int, int] | str:
+    """The (x, y, z) fields of ``role``, or why the header does not say which (naming every
+    candidate, for a message asking for --columns)."""
+    own = roles.sensors[role]
+    if len(own) == 1:
+        return own[0]
+    if len(own) > 1:
+        return f'the header names {len(own)} {role} column sets: {roles.describe(own)}'
+    others = [(name, found) for name, found in roles.sensors.items() if name != role and found]
+    named = '; '.join(f'{name} {roles.describe(found)}' for name, found in others)
+    if len(roles.unlabelled) == 1 and not others and role == 'magnetometer':
+        return roles.unlabelled[0]  # a magnetometer log whose header says only x, y, z
+    if roles.unlabelled:
+        unnamed = roles.describe(roles.unlabelled)
+        beside = f' beside {named}' if named else ''
+        return f'the header names no {role} columns, only unlabelled {unnamed}{beside}'
+    if named:
+        return f'the header names no {role} columns, only {named}'
+    return 'the header names no x, y, z columns'
+
+
+def _header_cells(line: str, field_count: int) -> list[str] | None:
+    """A header line's names aligned with the data fields: split as data lines are, or on one
+    delimiter when names hold spaces ("Magnetic field x (µT)"); None when they do not align."""
+    text = line.strip()
+    for prefix in COMMENT_PREFIXES:  # '%time,field.magnetic_field.x' (rostopic echo -p)
+        if text.startswith(prefix):
+            text = text[len(prefix):].strip()
+    candidates = [_split(text)]
+    candidates += [[cell.strip().strip('"\'') for cell in text.split(delimiter)]
+                   for delimiter in (',', '\t', ';') if delimiter in text]
+    for cells in candidates:
+        if len(cells) == field_count:
+            return cells
+    return None
+
+
+def _inline_labels(tokens: list[str]) -> list[str]:
+    """'Mx 144 My -270 Mz 415': each number named by the word before it ('' when none)."""
+    return ['' if _number(token) is None or i == 0 or _number(tokens[i - 1]) is not None
+            else tokens[i - 1].rstrip(':') for i, token in enumerate(tokens)]
+
+
+def detect_layout(lines: list[str], source: str, role: str = 'magnetometer') -> TextLayout:
+    """Which fields hold ``role``'s x, y, z: named by a header or labels when there are any,
+    else the only three numeric fields of the most common data line. Raises RecordingError,
+    naming the candidates, when neither decides (more numeric fields than three and no names,
+    several candidate sets, or names for other sensors only)."""
+    found = _data_pattern(lines)
+    if found is None:
+        raise RecordingError(f'{source}: no line with three numeric fields in the first '
+                             f'{len(lines)} lines (not a magnetometer recording?)')
+    field_count, numeric, position = found
+    data_line = lines[position]
+    delimiter, numpy_fields = _numpy_reading(data_line, field_count, numeric)
+    roles = _named_roles(lines[:position], data_line, field_count)
+    if roles is not None:
+        chosen = sensor_columns(roles, role)
+        if isinstance(chosen, str):
+            raise RecordingError(f'{source}: {chosen}: choose the {role} columns with --columns '
+                                 '(three header names or zero-based field indices)')
+        others = [f'{name} {roles.describe(found)}' for name, found in roles.sensors.items()
+                  if name != role and found]
+        notes = (f'{role} columns {roles.labels[chosen]} (fields '
+                 f'{",".join(map(str, chosen))}) chosen by their names'
+                 + (f'; ignored {"; ".join(others)}' if others else ''),)
+        return TextLayout(chosen, field_count,
+                       f'columns {roles.labels[chosen]} (fields {",".join(map(str, chosen))})',
+                       notes, delimiter, numpy_fields)
+    if len(numeric) > 3:
+        example = ','.join(map(str, numeric[-3:]))
+        raise RecordingError(
+            f'{source}: lines have {len(numeric)} numeric fields '
+            f'({",".join(map(str, numeric))}) and no header names the {role} columns: choose '
+            f'its three with --columns (zero-based field indices, e.g. --columns {example}); '
+            f'first data line: {" ".join(data_line.split())[:80]}')
+    indices = (numeric[0], numeric[1], numeric[2])
+    return TextLayout(indices, field_count, f'fields {",".join(map(str, indices))}', (), delimiter,
+                   numpy_fields)
+
+
+def _data_pattern(lines: list[str]) -> tuple[int, tuple[int, ...], int] | None:
+    """The most common data line among ``lines``: (field count, numeric fields, position of its
+    first line); None when no line has three numeric fields."""
     patterns: Counter[tuple[int, tuple[int, ...]]] = Counter()
-    for line in lines:
+    first: dict[tuple[int, tuple[int, ...]], int] = {}
+    for position, line in enumerate(lines):
         if not line.strip() or _is_comment(line):
             continue
         tokens = _split(line)
         numeric = tuple(i for i, token in enumerate(tokens) if _number(token) is not None)
         if len(numeric) >= 3:
             patterns[(len(tokens), numeric)] += 1
+            first.setdefault((len(tokens), numeric), position)
     if not patterns:
-        raise RecordingError(f'{source}: no line with three numeric fields in the first '
-                             f'{len(lines)} lines (not a magnetometer recording?)')
+        return None
     (field_count, numeric), _ = patterns.most_common(1)[0]
-    indices = numeric[:3]
-    notes = ()
-    if len(numeric) > 3:
-        notes = (f'lines have {len(numeric)} numeric fields; used fields '
-                 f'{",".join(map(str, indices))} (choose others with --columns)',)
-    return _Layout(indices, field_count, f'fields {",".join(map(str, indices))}', notes)
+    return field_count, numeric, first[(field_count, numeric)]
 
 
-def _explicit_layout(spec: str, lines: list[str], source: str) -> _Layout:
+def _named_roles(before: list[str], data_line: str, field_count: int) -> ColumnRoles | None:
+    """The roles a header (the last line before the data whose names align with the fields) or
+    the data line's own labels name; None when nothing names a triplet."""
+    for line in reversed(before):
+        if not line.strip():
+            continue
+        cells = _header_cells(line, field_count)
+        if cells is not None:
+            roles = column_roles(cells)
+            if roles.names_triplets:
+                return roles
+        break
+    roles = column_roles(_inline_labels(_split(data_line)))
+    return roles if roles.names_triplets else None
+
+
+def _numpy_reading(
+    line: str, field_count: int, numeric: tuple[int, ...]
+) -> tuple[str | None, int | None]:
+    """(delimiter, field count) for numpy to read blocks of lines like this one, which it can
+    when every field is a number; else (None, None)."""
+    if len(numeric) != field_count:
+        return None, None
+    for delimiter in (',', ';', '\t'):
+        if delimiter in line:
+            return delimiter, field_count
+    return None, field_count
+
+
+def _explicit_layout(spec: str, lines: list[str], source: str) -> TextLayout:
     columns = parse_columns(spec)
+    found = _data_pattern(lines)
+    delimiter, numpy_fields = None, None
+    if found is not None:
+        delimiter, numpy_fields = _numpy_reading(lines[found[2]], found[0], found[1])
     if isinstance(columns[0], int):
         indices = tuple(int(c) for c in columns)
-        return _Layout(indices, None, f'fields {",".join(map(str, indices))}')  # type: ignore[arg-type]
+        return TextLayout(indices, None, f'fields {",".join(map(str, indices))}', (),  # type: ignore[arg-type]
+                       delimiter, numpy_fields)
     for line in lines:
-        tokens = [token.lower() for token in _split(line)]
-        if all(name in tokens for name in columns):
-            indices = tuple(tokens.index(str(name)) for name in columns)
-            return _Layout(indices, None, f'columns {",".join(map(str, columns))} '  # type: ignore[arg-type]
-                           f'(fields {",".join(map(str, indices))})')
+        candidates = [[token.lower() for token in _split(line)]]
+        candidates += [[cell.strip().strip('"\'').lower() for cell in line.split(delimiter)]
+                       for delimiter in (',', '\t', ';') if delimiter in line]
+        for tokens in candidates:
+            if all(name in tokens for name in columns):
+                indices = tuple(tokens.index(str(name)) for name in columns)
+                return TextLayout(indices, None, f'columns {",".join(map(str, columns))} '  # type: ignore[arg-type]
+                               f'(fields {",".join(map(str, indices))})', (), delimiter,
+                               numpy_fields)
     raise RecordingError(f"{source}: no header line names all of --columns '{spec}' "
                          f'in the first {len(lines)} lines')
 
@@ -283,23 +553,71 @@ def _read_lines(
     elif not any(line.strip() for line in first):
         raise RecordingError(f'{source}: empty (no data lines)')
     else:
-        layout = _detect_layout(first, source)
-    rows, skipped = _parse(itertools.chain(first, lines), layout, progress, total)
-    samples = np.array(rows, dtype=np.float64).reshape(-1, 3)
+        layout = detect_layout(first, source)
+    samples, skipped = _parse(itertools.chain(first, lines), layout, progress, total)
     return Recording(samples, source, 'text', layout.description, skipped, None, layout.notes)
 
 
 def _parse(
-    lines: Iterator[str], layout: _Layout, progress: ProgressCallback | None, total: int | None,
-) -> tuple[list[tuple[float, float, float]], dict[str, int]]:
+    lines: Iterator[str], layout: TextLayout, progress: ProgressCallback | None, total: int | None,
+) -> tuple[np.ndarray, dict[str, int]]:
+    """Every line, BLOCK_LINES at a time: numpy reads a block of plain numeric lines at once,
+    any other block goes line by line (with the same result, see _parse_block)."""
+    parts: list[np.ndarray] = []
+    skipped: Counter[str] = Counter()
+    consumed = 0
+    seen_rows = False
+    while block := list(itertools.islice(lines, BLOCK_LINES)):
+        rows, block_skipped = _parse_block(block, layout, seen_rows)
+        seen_rows = seen_rows or len(rows) > 0
+        parts.append(rows)
+        skipped.update(block_skipped)
+        consumed += sum(map(len, block))
+        if progress is not None:
+            progress(consumed, total)
+    if progress is not None and not parts:
+        progress(consumed, total if total is not None else consumed)
+    samples = np.concatenate(parts) if parts else np.empty((0, 3))
+    return samples, {reason: count for reason, count in skipped.items() if count}
+
+
+def _parse_block(
+    block: list[str], layout: TextLayout, seen_rows: bool
+) -> tuple[np.ndarray, Counter[str]]:
+    """(rows (m, 3), skips) of one block of lines. A block of plain numeric lines with the
+    layout's delimiter and field count is converted by numpy in one call; numpy refuses
+    anything else (text, missing or extra fields, comments), and such a block is parsed line by
+    line instead, so both give the same rows and the same counts."""
+    if layout.numpy_fields is not None and max(layout.indices) < layout.numpy_fields:
+        try:
+            with warnings.catch_warnings():  # a block of blank lines is no news
+                warnings.simplefilter('ignore', UserWarning)
+                table = np.loadtxt(block, delimiter=layout.delimiter, dtype=np.float64,
+                                   ndmin=2, comments=None, quotechar='"')
+        except ValueError:
+            table = None
+        if table is not None and table.shape[1] == layout.numpy_fields:
+            return _screen_rows(table[:, list(layout.indices)])
+    return _parse_lines(block, layout, seen_rows)
+
+
+def _screen_rows(rows: np.ndarray) -> tuple[np.ndarray, Counter[str]]:
+    """Drop rows with a NaN/Inf or a value beyond MAX_READING, counted."""
+    skipped: Counter[str] = Counter()
+    finite = np.all(np.isfinite(rows), axis=1)
+    in_range = np.all(np.abs(rows) <= MAX_READING, axis=1)  # False for NaN too
+    skipped['non_finite'] = int(np.count_nonzero(~finite))
+    skipped['out_of_range'] = int(np.count_nonzero(finite & ~in_range))
+    return (rows if in_range.all() else rows[in_range]), skipped
+
+
+def _parse_lines(
+    block: list[str], layout: TextLayout, seen_rows: bool
+) -> tuple[np.ndarray, Counter[str]]:
     rows: list[tuple[float, float, float]] = []
     skipped: Counter[str] = Counter()
     needed = max(layout.indices) + 1
-    consumed = 0
-    for count, line in enumerate(lines, start=1):
-        consumed += len(line)
-        if progress is not None and count % PROGRESS_EVERY_LINES == 0:
-            progress(consumed, total)
+    for line in block:
         if not line.strip():
             continue
         if _is_comment(line):
@@ -309,17 +627,15 @@ def _parse(
         reason, row = _parse_line(tokens, layout, needed)
         if row is not None:
             rows.append(row)
-        elif not rows and _is_text(tokens):
+        elif not (seen_rows or rows) and _is_text(tokens):
             skipped['header'] += 1
         else:
             skipped[reason] += 1
-    if progress is not None:
-        progress(consumed, total if total is not None else consumed)
-    return rows, dict(skipped)
+    return np.array(rows, dtype=np.float64).reshape(-1, 3), skipped
 
 
 def _parse_line(
-    tokens: list[str], layout: _Layout, needed: int,
+    tokens: list[str], layout: TextLayout, needed: int,
 ) -> tuple[str, tuple[float, float, float] | None]:
     if layout.field_count is not None and len(tokens) != layout.field_count:
         return 'wrong_field_count', None
@@ -329,8 +645,10 @@ def _parse_line(
     if any(value is None for value in values):
         return 'not_numeric', None
     x, y, z = values
-    if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+    if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
         return 'non_finite', None
+    if max(abs(x), abs(y), abs(z)) > MAX_READING:
+        return 'out_of_range', None
     return '', (x, y, z)  # type: ignore[return-value]
 
 
@@ -341,14 +659,21 @@ def read_rosbag(
     path: Path, *, topic: str | None = None, progress: ProgressCallback | None = None,
 ) -> Recording:
     """Read ``magnetic_field`` of every message on a MagneticField topic of a rosbag2 bag."""
-    from rosbags.rosbag2 import Reader, ReaderError
-    from rosbags.typesys import Stores, get_typestore
+    try:  # only bags need it (and apt ROS users may not have it: README, rosdep#979)
+        from rosbags.rosbag2 import Reader, ReaderError
+        from rosbags.typesys import Stores, get_typestore
+    except ImportError as error:
+        raise RecordingError(
+            f'{path}: reading rosbag2 bags needs the rosbags library ({error}): '
+            'pip install rosbags (in a venv, or --user --break-system-packages on Ubuntu 24.04)'
+        ) from None
 
     if not path.exists():
         raise RecordingError(f'{path}: no such file or bag directory')
     if path.is_dir() and not (path / 'metadata.yaml').exists():
         raise RecordingError(f'{path}: a directory but not a rosbag2 bag (no metadata.yaml)')
     typestore = get_typestore(Stores.ROS2_JAZZY)
+    parts: list[np.ndarray] = []
     rows: list[tuple[float, float, float]] = []
     skipped: Counter[str] = Counter()
     try:
@@ -360,26 +685,34 @@ def read_rosbag(
             count = 0
             for count, (connection, _, rawdata) in enumerate(
                     reader.messages(connections=info.connections), start=1):
-                if progress is not None and count % PROGRESS_EVERY_LINES == 0:
-                    progress(count, total)
+                if count % BLOCK_LINES == 0:
+                    parts.append(_screened(rows, skipped))
+                    rows = []
+                    if progress is not None:
+                        progress(count, total)
                 try:
                     vector = typestore.deserialize_cdr(rawdata, connection.msgtype).magnetic_field
                 except Exception:  # noqa: BLE001 - a corrupt message is counted, not fatal
                     skipped['undecodable'] += 1
                     continue
-                row = (float(vector.x), float(vector.y), float(vector.z))
-                if np.all(np.isfinite(row)):
-                    rows.append(row)
-                else:
-                    skipped['non_finite'] += 1
+                rows.append((float(vector.x), float(vector.y), float(vector.z)))
             if progress is not None:
                 progress(count, count)
     except RecordingError:
         raise
     except (ReaderError, OSError, ValueError, KeyError) as error:
         raise RecordingError(f'{path}: cannot read rosbag2 bag ({_one_line(error)})') from error
-    samples = np.array(rows, dtype=np.float64).reshape(-1, 3)
+    samples = np.concatenate([*parts, _screened(rows, skipped)])
+    skipped = Counter({reason: count for reason, count in skipped.items() if count})
     return Recording(samples, str(path), 'rosbag2', f'topic {chosen}', dict(skipped), 'T')
+
+
+def _screened(rows: list[tuple[float, float, float]], skipped: Counter[str]) -> np.ndarray:
+    """A block of message values as an array, NaN/Inf and out-of-range rows dropped and
+    counted."""
+    kept, block_skipped = _screen_rows(np.array(rows, dtype=np.float64).reshape(-1, 3))
+    skipped.update(block_skipped)
+    return kept
 
 
 def _choose_topic(path: Path, topics: dict[str, str | None], wanted: str | None) -> str:
@@ -403,3 +736,113 @@ def _choose_topic(path: Path, topics: dict[str, str | None], wanted: str | None)
 
 def _one_line(error: BaseException) -> str:
     return ' '.join(str(error).split()) or type(error).__name__
+
+
+# --- magnetometer and accelerometer on one line (alignment to the IMU) -----------------------
+
+
+def read_paired_recording(
+    source: str | Path,
+    *,
+    accel_columns: str,
+    columns: str | None = None,
+    min_rows: int = 1,
+    stdin: TextIO | None = None,
+    progress: ProgressCallback | None = None,
+) -> Recording:
+    """A text recording that logs the accelerometer beside the magnetometer on each line.
+
+    ``accel_columns``: three zero-based field indices or header names (``'0,1,2'``,
+    ``'ax,ay,az'``); ``columns`` the magnetometer's, by default the first three numeric fields
+    that are not the accelerometer's. A line is used only when all six values are numbers, so
+    ``Recording.samples`` and ``Recording.accel`` stay row for row.
+    """
+    if str(source) == STDIN:
+        stream = stdin if stdin is not None else sys.stdin
+        return _read_paired(stream, 'stdin', accel_columns, columns, min_rows, progress, None)
+    path = Path(source)
+    if is_rosbag(path):
+        raise RecordingError(f'{path}: --accel-columns applies to text input, not to a rosbag2 '
+                             'bag')
+    if not path.exists():
+        raise RecordingError(f'{path}: no such file')
+    try:
+        with path.open('rb') as probe:
+            head = probe.read(4096)
+        _refuse_binary(path, head)
+        with path.open(encoding='utf-8-sig', errors='replace', newline=None) as stream:
+            return _read_paired(stream, str(path), accel_columns, columns, min_rows, progress,
+                                path.stat().st_size)
+    except OSError as error:
+        raise RecordingError(f'{path}: cannot read ({error.strerror or error})') from error
+
+
+def _read_paired(stream: Iterable[str], source: str, accel_columns: str, columns: str | None,
+                 min_rows: int, progress: ProgressCallback | None, total: int | None
+                 ) -> Recording:
+    lines = iter(stream)
+    first = list(itertools.islice(lines, LAYOUT_SAMPLE_LINES))
+    accel = _explicit_layout(accel_columns, first, source)
+    notes: tuple[str, ...] = ()
+    if columns is not None:
+        mag = _explicit_layout(columns, first, source)
+    else:
+        try:  # a header naming the magnetometer's columns
+            mag = detect_layout(first, source, 'magnetometer')
+            notes = mag.notes
+        except RecordingError:
+            mag = _other_numeric_fields(first, accel.indices, source)
+            notes = (f'magnetometer from {mag.description}, the first numeric fields besides '
+                     'the accelerometer (choose others with --columns)',)
+    if set(mag.indices) & set(accel.indices):
+        raise RecordingError(f'{source}: the magnetometer fields {mag.description} overlap the '
+                             f'accelerometer fields {accel.description}')
+    needed = max(*mag.indices, *accel.indices) + 1
+    found = _data_pattern(first)
+    field_count = None if found is None else found[0]
+    mag = TextLayout(mag.indices, field_count, mag.description)
+    accel_layout = TextLayout(accel.indices, field_count, accel.description)
+    rows: list[tuple[float, ...]] = []
+    skipped: Counter[str] = Counter()
+    consumed = 0
+    for count, line in enumerate(itertools.chain(first, lines), start=1):
+        consumed += len(line)
+        if progress is not None and count % BLOCK_LINES == 0:
+            progress(consumed, total)
+        if not line.strip():
+            continue
+        if _is_comment(line):
+            skipped['comment'] += 1
+            continue
+        tokens = _split(line)
+        reason, field = _parse_line(tokens, mag, needed)
+        specific_force = None
+        if field is not None:
+            reason, specific_force = _parse_line(tokens, accel_layout, needed)
+        if field is not None and specific_force is not None:
+            rows.append((*field, *specific_force))
+        elif not rows and _is_text(tokens):
+            skipped['header'] += 1
+        else:
+            skipped[reason] += 1
+    if progress is not None:
+        progress(consumed, total if total is not None else consumed)
+    data = np.array(rows, dtype=np.float64).reshape(-1, 6)
+    layout = f'{mag.description}; accelerometer {accel.description}'
+    if len(data) < max(min_rows, 1):
+        found_rows = 'no usable rows' if len(data) == 0 else f'only {len(data)} usable rows'
+        need = f' (need at least {min_rows})' if min_rows > 1 else ''
+        raise RecordingError(f'{source}: {found_rows} from {layout}{need}')
+    return Recording(data[:, :3].copy(), source, 'text', layout, dict(skipped), None, notes,
+                     accel=data[:, 3:].copy())
+
+
+def _other_numeric_fields(lines: list[str], taken: tuple[int, ...], source: str) -> TextLayout:
+    """The first three numeric fields of the most common data line that are not in ``taken``."""
+    found = _data_pattern(lines)
+    free = [] if found is None else [index for index in found[1] if index not in taken][:3]
+    if len(free) < 3:
+        raise RecordingError(f'{source}: no three numeric fields besides the accelerometer '
+                             f'fields {",".join(map(str, taken))} in the first {len(lines)} '
+                             'lines; give --columns')
+    return TextLayout((free[0], free[1], free[2]), None, f'fields {",".join(map(str, free))}')

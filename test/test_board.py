@@ -1,0 +1,65 @@
+"""The simulated board's earth and mounting: a misaligned magnetometer, a location (the World
+Magnetic Model's field there) and a disturbed place."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from mag_calibrator_ros import motion
+from mag_calibrator_ros.calibration.earth_field import earth_field
+from mag_calibrator_ros.icm20948.board import BoardModel
+from mag_calibrator_ros.icm20948.simulator import SimConfig
+
+QUIET = dict(noise_ut=0.0, motion='poses')
+
+
+def test_misaligned_magnetometer_reads_the_rotated_field():
+    misalignment = np.array([2.0, -1.5, 3.0])
+    board = BoardModel(SimConfig(mag_misalignment_deg=tuple(misalignment), **QUIET))
+    rotation = Rotation.from_rotvec(np.radians(misalignment)).as_matrix()
+    np.testing.assert_allclose(board.mag_misalignment, rotation)
+    for t in (0.0, 1.9, 7.7):
+        sensed, truth_t = board.magnetometer(t)
+        np.testing.assert_allclose(rotation @ sensed, truth_t * 1e6, atol=1e-9)
+        np.testing.assert_allclose(truth_t, board.true_field_tesla(t), atol=1e-15)
+    aligned = BoardModel(SimConfig(**QUIET))
+    np.testing.assert_allclose(aligned.magnetometer(1.0)[0], aligned.true_field_tesla(1.0) * 1e6)
+
+
+def test_a_location_gives_the_world_magnetic_model_field_with_its_declination():
+    board = BoardModel(SimConfig(latitude=52.52, longitude=13.40, altitude_m=34.0, **QUIET))
+    expected = earth_field(52.52, 13.40, 34.0)
+    assert board.location_field == expected
+    np.testing.assert_allclose(
+        board.earth_field_ut,
+        motion.earth_field(expected.intensity_nt / 1000.0, expected.inclination_deg,
+                           expected.declination_deg))
+    east, north, _ = board.earth_field_ut
+    assert math.degrees(math.atan2(east, north)) == pytest.approx(expected.declination_deg)
+    assert BoardModel(SimConfig(**QUIET)).location_field is None
+
+
+def test_a_disturbed_place_scales_and_dips_the_field():
+    plain = BoardModel(SimConfig(field_ut=50.0, inclination_deg=60.0, **QUIET)).earth_field_ut
+    disturbed = BoardModel(SimConfig(field_ut=50.0, inclination_deg=60.0, field_scale=1.2,
+                                     inclination_offset_deg=8.0, **QUIET)).earth_field_ut
+    assert np.linalg.norm(disturbed) == pytest.approx(1.2 * np.linalg.norm(plain))
+    dip = math.degrees(math.asin(-disturbed[2] / np.linalg.norm(disturbed)))
+    assert dip == pytest.approx(68.0)
+
+
+@pytest.mark.parametrize(('kwargs', 'message'), [
+    ({'mag_misalignment_deg': (1.0, 2.0)}, 'mag_misalignment_deg must be 3 finite numbers'),
+    ({'mag_misalignment_deg': (200.0, 0.0, 0.0)}, 'at most 180 deg'),
+    ({'latitude': 52.0}, 'location: longitude must be within'),
+    ({'latitude': 95.0, 'longitude': 0.0}, 'location: latitude must be within'),
+    ({'field_scale': 0.0}, 'field_scale must be in'),
+    ({'inclination_offset_deg': math.inf}, 'inclination_offset_deg must be a finite number'),
+])
+def test_bad_earth_and_mounting_settings_are_named(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        SimConfig(**kwargs)

@@ -1,0 +1,136 @@
+"""mag_calibrator_fit with an accelerometer on each line (--accel-columns) and a location
+(--latitude/--longitude): the alignment and the World Magnetic Model, offline."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import numpy as np
+import pytest
+
+from mag_calibrator_ros.calibration.alignment import rotation_angle_deg
+from mag_calibrator_ros.calibration.calibration_file import load_calibration
+from mag_calibrator_ros.calibration.earth_field import earth_field
+from mag_calibrator_ros.icm20948.board import BoardModel
+from mag_calibrator_ros.icm20948.simulator import SimConfig
+from mag_calibrator_ros.tools import fit
+
+PORTLAND = ('--latitude', '45.5', '--longitude', '-122.7', '--date', '2026-11-23')
+ALIGNMENT_KEYS = {'rotation', 'angle_deg', 'dip_deg', 'dip_std_deg', 'static_samples'}
+EARTH_KEYS = {'intensity', 'inclination_deg', 'declination_deg', 'radius_ratio', 'dip_error_deg'}
+
+
+def run(argv, capsys):
+    status = fit.main([str(a) for a in argv])
+    captured = capsys.readouterr()
+    return status, captured.out, captured.err
+
+
+def simulated_log(path, seconds=50.0, **config) -> BoardModel:
+    """A CSV with a header (t, mx, my, mz in uT, ax, ay, az) at 100 Hz from the board."""
+    board = BoardModel(SimConfig(hard_iron_ut=(30.0, -20.0, 10.0), noise_ut=0.3,
+                                 motion='poses', seed=6, **config))
+    lines = ['t,mx,my,mz,ax,ay,az']
+    for k in range(int(seconds * 100)):
+        t = k / 100.0
+        field, _ = board.magnetometer(t)
+        accel, _, _ = board.inertial(t, 57.0, 57.0)
+        lines.append(','.join(f'{v:.5f}' for v in (t, *field, *accel)))
+    path.write_text('\n'.join(lines) + '\n')
+    return board
+
+
+@pytest.fixture(scope='module')
+def misaligned_log(tmp_path_factory):
+    path = tmp_path_factory.mktemp('imu') / 'log.csv'
+    board = simulated_log(path, mag_misalignment_deg=(1.8, -1.9, 1.4), latitude=45.5,
+                          longitude=-122.7)
+    return path, board
+
+
+def test_the_real_log_is_aligned_to_its_accelerometer(shared_data, capsys, tmp_path):
+    log = shared_data / 'lsm303dlhc-altimu10v3' / 'cal_output_2.log'
+    output = tmp_path / 'cal.yaml'
+    status, out, _ = run([log, '--accel-columns', '0,1,2', '--rate', '3', '--json',
+                          '-o', output], capsys)
+    summary = json.loads(out)
+    assert status == 0, summary['reason']
+    alignment = summary['alignment']
+    assert set(alignment) >= ALIGNMENT_KEYS and len(alignment['rotation']) == 9
+    assert alignment['applied'] and alignment['static_samples'] >= 100
+    # The lead's measurement: 3.16 deg of dip scatter, 3.12 deg after the best rotation; about a
+    # degree of misalignment. The inliers scatter less still.
+    assert alignment['dip_std_deg'] < alignment['dip_std_before_deg'] < 3.3
+    assert 0.3 < alignment['angle_deg'] < 2.0
+    assert 55.0 < alignment['dip_deg'] < 72.0  # the author's workshop: dip of the US northwest
+    assert 'earth_field' not in summary  # no location given
+    saved = load_calibration(output)
+    np.testing.assert_allclose(saved.rotation.reshape(9), alignment['rotation'], atol=1e-12)
+    assert saved.metadata['static_samples'] == alignment['static_samples']
+
+
+def test_without_the_rate_a_fast_log_is_never_still_and_says_why(shared_data, capsys):
+    log = shared_data / 'lsm303dlhc-altimu10v3' / 'cal_output_2.log'
+    status, out, _ = run([log, '--accel-columns', '0,1,2'], capsys)
+    assert status == 0  # the magnetometer calibration itself is fine
+    assert 'alignment not determined: too few static attitudes' in out
+    assert 'needs its real rate' in out
+
+
+@pytest.mark.parametrize('mode', [[], ['--all']])
+def test_a_simulated_misalignment_is_recovered_with_named_columns(misaligned_log, capsys, mode):
+    path, board = misaligned_log
+    status, out, _ = run([path, '--accel-columns', 'ax,ay,az', '--units', 'uT', *PORTLAND,
+                          '--json', *mode], capsys)
+    summary = json.loads(out)
+    assert status == 0, summary['reason']
+    assert summary['input']['layout'].startswith('columns mx,my,mz')
+    rotation = np.reshape(summary['alignment']['rotation'], (3, 3))
+    assert rotation_angle_deg(rotation @ board.mag_misalignment.T) < 0.2
+    assert summary['alignment']['dip_std_deg'] < 0.3
+    earth = summary['earth_field']
+    assert set(earth) == EARTH_KEYS
+    model = earth_field(45.5, -122.7, 0.0, '2026-11-23')
+    assert earth['intensity'] == pytest.approx(model.intensity_nt / 1000.0)
+    assert earth['radius_ratio'] == pytest.approx(1.0, abs=0.01)
+    assert abs(earth['dip_error_deg']) < 0.3
+    assert summary['field_strength'] == pytest.approx(model.intensity_nt / 1000.0)
+
+
+def test_a_disturbed_place_fails_the_gate_or_is_only_reported(tmp_path, capsys):
+    path = tmp_path / 'disturbed.csv'
+    simulated_log(path, 40.0, latitude=45.5, longitude=-122.7, inclination_offset_deg=8.0)
+    argv = [path, '--accel-columns', 'ax,ay,az', '--units', 'uT', *PORTLAND]
+    status, out, _ = run(argv + ['-o', tmp_path / 'cal.yaml'], capsys)
+    assert status == 1
+    assert 'dip 75.' in out and 'steel structure' in out
+    assert not (tmp_path / 'cal.yaml').exists()
+    status, out, _ = run(argv + ['--no-earth-gate'], capsys)
+    assert status == 0 and 'dip +8.' in out
+
+
+@pytest.mark.parametrize(('argv', 'message'), [
+    (['--latitude', '45'], 'give both --latitude and --longitude'),
+    (['--date', '2026-01-01'], '--date needs --latitude and --longitude'),
+    ([*PORTLAND[:4], '--date', 'today'], 'date must be YYYY-MM-DD'),
+    (['--latitude', '95', '--longitude', '0'], 'latitude must be within'),
+    (['--accel-columns', '0,1,2', '--columns', '1,2,3'], 'overlap'),
+    (['--accel-columns', '0,1'], 'bad --columns'),
+    (['--max-alignment', '200', '--accel-columns', '0,1,2'], '--max-alignment must be in'),
+])
+def test_bad_options_are_usage_errors(shared_data, capsys, argv, message):
+    log = shared_data / 'lsm303dlhc-altimu10v3' / 'cal_output_2.log'
+    status, _, err = run([log, *argv], capsys)
+    assert status == 2
+    assert message in err
+
+
+def test_accel_columns_need_text(tmp_path, capsys, monkeypatch):
+    bag = tmp_path / 'bag.mcap'
+    bag.write_bytes(b'\x89MCAP0\r\n')
+    status, _, err = run([bag, '--accel-columns', '0,1,2'], capsys)
+    assert status == 2 and 'applies to text input' in err
+    monkeypatch.setattr('sys.stdin', io.StringIO('1,2,3,4,5,6\n' * 5))
+    status, _, err = run(['-', '--accel-columns', '0,1,2'], capsys)
+    assert status == 2 and 'only 5 usable rows' in err
