@@ -63,6 +63,25 @@ def test_turning_is_yaw_only_from_the_first_quarter_turn_and_tumbling_is_not():
     assert not yaw_only(np.full((50, 3), np.nan))
 
 
+@pytest.mark.parametrize('arc_deg', [8.0, 12.0, 16.0])
+def test_the_first_degrees_of_a_turn_are_yaw_only(arc_deg):
+    """A short arc whose sagitta is still within the noise (its two smaller spreads both
+    noise-wide) is yaw-only: nothing yet says the motion is not a turn, so hints speak of
+    turning; a tumbling hand leaves the arc within seconds."""
+    rng = np.random.default_rng(int(arc_deg))
+    angles = np.radians(np.linspace(0.0, arc_deg, 100))
+    horizontal = FIELD_UT * math.cos(math.radians(60.0))
+    vertical = FIELD_UT * math.sin(math.radians(60.0))
+    body = np.column_stack([horizontal * np.cos(angles), horizontal * np.sin(angles),
+                            np.full_like(angles, vertical)])
+    arc = body @ SOFT_IRON.T + HARD_IRON_UT + rng.normal(0.0, 0.3, body.shape)
+    assert yaw_only(arc)
+    still = HARD_IRON_UT + rng.normal(0.0, 0.3, (100, 3))
+    assert not yaw_only(still)  # a noise blob is no arc
+    tumble = motion.body_field_samples('tumble', 1500, RATE_HZ, FIELD_UT, 60.0, seed=2)
+    assert not yaw_only(buffered(tumble @ SOFT_IRON.T + HARD_IRON_UT).samples)
+
+
 def test_a_full_turn_completes_the_heading_circle_half_a_turn_half_of_it():
     raw, yaw = turning(40.0)
     full = buffered(raw)

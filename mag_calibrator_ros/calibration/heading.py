@@ -62,6 +62,12 @@ start. A hand's tumble passes it within a second or two; one mostly about a sing
 near 15 % for seconds, which is why the looser share of the largest spread is not the rule
 throughout."""
 
+ARC_LINE = 0.35
+"""...or their second spread is less than this share of the largest: the readings so far lie
+along one short arc, as every motion begins (a robot's first seconds of turning, noise still as
+wide as the arc's sagitta). Nothing yet says the motion is not a turn, so hints speak of turning
+rather than ask a robot that may be on the ground to roll."""
+
 COMPLETE_HEADING_COVERAGE = (HEADING_SECTORS - 1) / HEADING_SECTORS
 """The heading circle counts as complete with at most one 10° sector missing: what a full turn
 gives, and what the automatic calibration of yaw-only data and ``~/rotate_and_calibrate`` wait
@@ -111,8 +117,8 @@ class Ring:
 
 
 def yaw_only(samples: ArrayLike) -> bool:
-    """Whether the readings lie near one plane, as turning about one axis leaves them (see
-    YAW_ONLY_THICKNESS and ARC_FLATNESS)."""
+    """Whether the readings lie near one plane, as turning about one axis leaves them, or along
+    one short arc so far (see YAW_ONLY_THICKNESS, ARC_FLATNESS and ARC_LINE)."""
     points = distinct_rows(finite_rows(samples))
     if len(points) < MIN_RING_POINTS:
         return False
@@ -123,8 +129,10 @@ def yaw_only(samples: ArrayLike) -> bool:
     if thickness(y)[0] < YAW_ONLY_THICKNESS:
         return True
     spreads = np.linalg.eigvalsh(np.cov(y, rowvar=False))
-    return bool(spreads[-1] > 0 and math.sqrt(max(spreads[0], 0.0) / spreads[-1])
-                < ARC_FLATNESS)
+    if not spreads[-1] > 0:
+        return False
+    smallest, second = (math.sqrt(max(spread, 0.0) / spreads[-1]) for spread in spreads[:2])
+    return bool(smallest < ARC_FLATNESS or second < ARC_LINE)
 
 
 def fit_ring(samples: ArrayLike, readings: ArrayLike | None = None) -> tuple[Ring | None, str]:
@@ -287,6 +295,7 @@ def turning_direction(previous: float | None, heading: float | None, known: int 
 
 __all__ = [
     'COMPLETE_HEADING_COVERAGE',
+    'ARC_LINE',
     'YAW_ONLY_THICKNESS',
     'HeadingCoverage',
     'Ring',
