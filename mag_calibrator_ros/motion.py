@@ -2,10 +2,12 @@
 
 A magnetometer calibration is only as good as the orientations it saw, so the simulator moves the
 sensor the way people and robots do: a hand tumbling the board (``tumble``), a ground robot
-turning in place with a little tilt (``yaw``), a board lying on the bench (``still``), or a hand
+turning in place with a little tilt (``yaw``), a board lying on the bench (``still``), a hand
 turning the board from pose to pose and holding each still for a moment (``poses``: what aligning
-the magnetometer to gravity needs, see ``calibration.alignment``). Every trajectory is
-deterministic for a seed so tests and benchmarks are repeatable.
+the magnetometer to gravity needs, see ``calibration.alignment``), or a ground robot turning only
+as commanded on ``cmd_vel`` (``cmd_vel``, closing the loop with the calibrator's
+``~/rotate_and_calibrate``). Every trajectory is deterministic for a seed (and, for ``cmd_vel``,
+its commands) so tests and benchmarks are repeatable.
 
 The inertial sensors need more than the orientation: ``state(t)`` gives the orientation, the body
 angular rate (what a gyroscope measures) and the linear acceleration (what an accelerometer adds to
@@ -19,8 +21,10 @@ body frame (rad/s), linear acceleration in the world frame (m/s^2, gravity exclu
 
 from __future__ import annotations
 
+from bisect import bisect_right
 from dataclasses import dataclass
 import math
+import threading
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -40,7 +44,7 @@ else:
 
     Rotation = _LazyRotation()
 
-TRAJECTORY_KINDS = ('tumble', 'yaw', 'still', 'poses')
+TRAJECTORY_KINDS = ('tumble', 'yaw', 'still', 'poses', 'cmd_vel')
 ZERO3 = np.zeros(3)
 ZERO3.setflags(write=False)
 
@@ -439,10 +443,162 @@ def _quat_matrix(quat) -> np.ndarray:
     ])
 
 
+class CmdVelTrajectory(Trajectory):
+    """A ground robot that turns in place only as commanded (``cmd_vel``'s angular z).
+
+    ``command(yaw_rate, t)`` sets the target yaw rate at simulated time ``t``; the yaw rate
+    follows it within ``max_rate`` (rad/s) and ``max_acceleration`` (rad/s^2), as a base's
+    velocity controller does, and falls back to zero when no command came for
+    ``command_timeout`` seconds, as bases with a command timeout do (ros2_control's
+    diff_drive_controller stops after 0.5 s by default): a commander that dies stops the robot
+    only if it kept re-sending while alive. Nothing moves without commands.
+
+    The tilt belongs to the floor under the wheels, so it is a function of the heading alone: roll
+    and pitch are sums of the first three harmonics of yaw (a slope, then bumps) with seeded
+    phases, peaking at ``wobble_deg``. A standing robot never wobbles; a turning one sees the
+    few degrees of tilt a planar calibration must tolerate.
+
+    Commands never change the past: one takes effect at ``t`` or at the latest time a state was
+    read, whichever is later, so everything the simulated sensors measured stays true (their
+    reads come nearly, not strictly, in time order). Yaw is integrated exactly, piecewise
+    (constant acceleration, then constant rate) from one command to the next. Thread-safe:
+    commands come from a ROS callback while the simulator's thread reads states.
+    """
+
+    kind = 'cmd_vel'
+    RETAIN_S = 60.0
+    """Commands older than this (before the latest state read) are forgotten: bounded memory."""
+    HARMONICS = 3
+
+    def __init__(
+        self,
+        seed: int = 0,
+        max_rate: float = 1.0,
+        max_acceleration: float = 1.0,
+        wobble_deg: float = 2.0,
+        command_timeout: float = 0.5,
+    ) -> None:
+        problems = cmd_vel_problems(max_rate, max_acceleration, wobble_deg, command_timeout)
+        if problems:
+            raise ValueError('invalid cmd_vel motion: ' + '; '.join(problems))
+        self.max_rate = float(max_rate)
+        self.max_acceleration = float(max_acceleration)
+        self.command_timeout = float(command_timeout)
+        rng = np.random.default_rng([seed, 5])
+        yaw0 = float(rng.uniform(-math.pi, math.pi))
+        orders = np.arange(1, self.HARMONICS + 1)
+        amplitudes = rng.uniform(0.3, 1.0, size=(2, self.HARMONICS)) / orders
+        phases = rng.uniform(0.0, 2.0 * math.pi, size=(2, self.HARMONICS))
+        grid = np.linspace(0.0, 2.0 * math.pi, 721)
+        tilt = np.sum(amplitudes[:, None, :] * np.sin(orders * grid[:, None] + phases[:, None, :]),
+                      axis=2)
+        peak = float(np.max(np.hypot(tilt[0], tilt[1])))
+        self._tilt_amplitudes = (amplitudes * math.radians(float(wobble_deg)) / peak).tolist()
+        self._tilt_phases = phases.tolist()
+        self._lock = threading.Lock()
+        # Knots: (time, yaw, yaw rate, target rate, time the target lapses to zero).
+        self._knots: list[tuple[float, float, float, float, float]] = [
+            (0.0, yaw0, 0.0, 0.0, math.inf)]
+        self._knot_times = [0.0]
+        self._latest = 0.0  # the latest time a state was read
+
+    def command(self, yaw_rate: float, t: float) -> float:
+        """Turn at ``yaw_rate`` rad/s (positive: counter-clockwise seen from above, REP-103)
+        from time ``t``; a non-finite rate is a stop. Returns the target after clamping."""
+        t = _checked_time(t)
+        try:
+            target = float(yaw_rate)
+        except (TypeError, ValueError):
+            target = 0.0
+        target = min(max(target, -self.max_rate), self.max_rate) if math.isfinite(target) else 0.0
+        with self._lock:
+            start = max(t, self._latest, self._knot_times[-1])
+            yaw, rate = self._evolve(self._knots[-1], start)
+            self._knots.append((start, yaw, rate, target, start + self.command_timeout))
+            self._knot_times.append(start)
+            old = bisect_right(self._knot_times, self._latest - self.RETAIN_S) - 1
+            if old > 0:
+                del self._knots[:old], self._knot_times[:old]
+        return target
+
+    def yaw_and_rate(self, t: float) -> tuple[float, float]:
+        """Yaw (rad, unwrapped) and yaw rate (rad/s) at time ``t``."""
+        t = _checked_time(t)
+        with self._lock:
+            self._latest = max(self._latest, t)
+            index = max(bisect_right(self._knot_times, t) - 1, 0)
+            return self._evolve(self._knots[index], t)
+
+    def _evolve(self, knot: tuple[float, float, float, float, float], end: float
+                ) -> tuple[float, float]:
+        start, yaw, rate, target, lapse = knot
+        end = max(end, start)
+        if lapse < end:  # no command for command_timeout: the base stops by itself
+            yaw, rate = self._ramp(yaw, rate, target, lapse - start)
+            start, target = lapse, 0.0
+        return self._ramp(yaw, rate, target, end - start)
+
+    def _ramp(self, yaw: float, rate: float, target: float, dt: float) -> tuple[float, float]:
+        """Rate towards ``target`` at the acceleration limit for ``dt`` s; exact yaw."""
+        change = target - rate
+        ramp_s = abs(change) / self.max_acceleration
+        if dt <= ramp_s:
+            acceleration = math.copysign(self.max_acceleration, change)
+            return yaw + rate * dt + 0.5 * acceleration * dt * dt, rate + acceleration * dt
+        return yaw + 0.5 * (rate + target) * ramp_s + target * (dt - ramp_s), target
+
+    def _tilt(self, yaw: float) -> tuple[float, float, float, float]:
+        """(roll, pitch) and their derivatives by yaw."""
+        values = []
+        for amplitudes, phases in zip(self._tilt_amplitudes, self._tilt_phases, strict=True):
+            angle = slope = 0.0
+            for order, (amplitude, phase) in enumerate(zip(amplitudes, phases, strict=True), 1):
+                angle += amplitude * math.sin(order * yaw + phase)
+                slope += order * amplitude * math.cos(order * yaw + phase)
+            values += [angle, slope]
+        return values[0], values[1], values[2], values[3]
+
+    def state(self, t: float) -> MotionState:
+        """Plain float arithmetic: the simulator calls it once per sample."""
+        yaw, yaw_rate = self.yaw_and_rate(t)
+        roll, roll_slope, pitch, pitch_slope = self._tilt(yaw)
+        return MotionState(
+            _zyx_matrix(yaw, pitch, roll),
+            _zyx_body_rate(yaw_rate, pitch, yaw_rate * pitch_slope, roll, yaw_rate * roll_slope),
+            ZERO3,
+        )
+
+    def orientation(self, t: float) -> np.ndarray:
+        return self.state(t).rotation
+
+    def rotations(self, times: np.ndarray) -> Rotation:
+        times = _checked_times(times)
+        if len(times) == 0:
+            return Rotation.from_quat(np.empty((0, 4)))
+        return Rotation.from_matrix(np.array([self.state(t).rotation for t in times]))
+
+
+def cmd_vel_problems(max_rate: float, max_acceleration: float, wobble_deg: float,
+                     command_timeout: float) -> list[str]:
+    """Every problem with a ``cmd_vel`` motion's limits (empty when usable)."""
+    problems = []
+    for name, value, low, high, unit in (
+        ('max_rate', max_rate, 0.0, 10.0, 'rad/s'),
+        ('max_acceleration', max_acceleration, 0.0, 100.0, 'rad/s^2'),
+        ('command_timeout', command_timeout, 0.0, 60.0, 's'),
+    ):
+        if not (isinstance(value, (int, float)) and low < value <= high):
+            problems.append(f'{name} must be in ({low:g}, {high:g}] {unit}, got {value!r}')
+    if not (isinstance(wobble_deg, (int, float)) and 0.0 <= wobble_deg <= 20.0):
+        problems.append(f'wobble_deg must be in [0, 20] degrees, got {wobble_deg!r}')
+    return problems
+
+
 def make_trajectory(kind: str, seed: int = 0) -> Trajectory:
-    """The trajectory named ``kind`` (TRAJECTORY_KINDS), deterministic for ``seed``."""
+    """The trajectory named ``kind`` (TRAJECTORY_KINDS), deterministic for ``seed``; ``cmd_vel``
+    with its default limits (standing until commanded)."""
     factories = {'tumble': TumbleTrajectory, 'yaw': YawTrajectory, 'still': StillTrajectory,
-                 'poses': PosesTrajectory}
+                 'poses': PosesTrajectory, 'cmd_vel': CmdVelTrajectory}
     if kind not in factories:
         raise ValueError(f"unknown motion {kind!r}; expected one of {', '.join(TRAJECTORY_KINDS)}")
     return factories[kind](seed=int(seed))

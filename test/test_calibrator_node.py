@@ -668,7 +668,10 @@ def test_two_robots_on_one_host_keep_their_own_calibration_files(ros):
         pairs[robot] = (driver, ros.calibrator(robot, progress_log_period=0.0))
     probe = Probe(ros, 'robot1')
     for robot, (_, calibrator) in pairs.items():
-        assert wait_for(lambda c=calibrator: c.session.calibration is not None, timeout_s=60.0)
+        # A tumble that starts with a full turn about one axis is yaw-only at first and may be
+        # calibrated planar (issue #13); the 3-D calibration follows once the board tumbles.
+        assert wait_for(lambda c=calibrator: c.session.calibration is not None
+                        and c.session.calibration.model != 'planar', timeout_s=120.0)
         assert probe.call(f'/{robot}/mag_calibrator/save').success
         assert f'{robot}__mag_calibrator.yaml' in str(calibrator._calibration_file())
     for robot, (driver, calibrator) in pairs.items():

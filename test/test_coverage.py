@@ -27,6 +27,7 @@ from mag_calibrator_ros.calibration.coverage import (
     missing_rotation_hint,
     whitened_directions,
 )
+from mag_calibrator_ros.calibration.heading import TURN_STILL_HINT
 from mag_calibrator_ros.calibration.session import CalibrationSession, SessionSettings
 from mag_calibrator_ros.motion import body_field_samples
 
@@ -384,13 +385,13 @@ def test_buffer_fed_a_tumble_after_lying_still_covers_the_sphere():
 
 def test_fitting_a_flat_still_blob_fails_with_the_rotate_reason():
     """One quiet axis makes a still sensor's noise flat: the planar model's headings of a flat
-    blob go all round, but it is still no rotation."""
+    blob go all round, but it is still no rotation (and the planar model says to turn)."""
     rng = np.random.default_rng(29)
     raw = np.array([20.0, -30.0, 40.0]) + rng.normal(0.0, 0.5, (600, 3)) * [1.0, 1.0, 0.02]
     result = fit_calibration(raw)
     assert result.metrics.model == 'planar'
     assert not result.success
-    assert result.reason == f'coverage 0 % is below 50 %: {STILL_HINT}'
+    assert result.reason == f'coverage 0 % is below 50 %: {TURN_STILL_HINT}'
 
 
 @settings(max_examples=40, deadline=None)

@@ -23,3 +23,14 @@ def test_demo_rejects_bad_options(capsys):
 
     with pytest.raises(SystemExit):
         demo.main(['--evaluate-seconds', '0'])
+
+
+def test_ground_robot_demo_turns_calibrates_stops_and_scores_the_heading(tmp_path, capsys):
+    out = tmp_path / 'ground_out'
+    status = demo.main(['--ground-robot', '--output-dir', str(out), '--seed', '2'])
+    printed = capsys.readouterr().out
+    assert status == 0, printed
+    assert 'rotation stopped after' in printed and 'calibrated (model planar' in printed
+    assert (out / 'calibration.png').stat().st_size > 10_000
+    assert load_calibration(out / 'calibration.yaml').model == 'planar'
+    assert 'heading error' in printed and 'DONE' in printed

@@ -177,6 +177,97 @@ def test_state_refuses_bad_times():
             motion.make_trajectory(kind).state(math.nan)
 
 
+# -- cmd_vel: a ground robot that turns only as commanded ----------------------------------------
+
+
+def commanded(rate: float, start: float, end: float, trajectory=None, period: float = 0.05,
+              **limits) -> motion.CmdVelTrajectory:
+    """A cmd_vel robot commanded ``rate`` from ``start`` to ``end``, re-sent every ``period``."""
+    trajectory = trajectory or motion.CmdVelTrajectory(seed=4, **limits)
+    for t in np.arange(start, end, period):
+        trajectory.command(rate, float(t))
+    return trajectory
+
+
+def test_cmd_vel_robot_never_moves_without_commands():
+    trajectory = motion.make_trajectory('cmd_vel', seed=2)
+    first = trajectory.state(0.0)
+    for t in (0.5, 10.0, 300.0):
+        state = trajectory.state(t)
+        np.testing.assert_array_equal(state.rotation, first.rotation)
+        np.testing.assert_array_equal(state.angular_velocity, np.zeros(3))
+        np.testing.assert_array_equal(state.linear_acceleration, np.zeros(3))
+
+
+def test_cmd_vel_robot_ramps_to_the_commanded_rate_and_integrates_it_exactly():
+    trajectory = commanded(0.3, 1.0, 30.0, max_acceleration=0.5)
+    assert trajectory.yaw_and_rate(1.0)[1] == 0.0
+    assert trajectory.yaw_and_rate(1.3)[1] == pytest.approx(0.15)  # 0.5 rad/s^2 for 0.3 s
+    assert trajectory.yaw_and_rate(2.0)[1] == pytest.approx(0.3)
+    times = np.arange(1.0, 20.0, 1e-3)
+    rates = np.array([trajectory.yaw_and_rate(t)[1] for t in times])
+    integrated = np.sum(0.5 * (rates[1:] + rates[:-1]) * np.diff(times))
+    turned = trajectory.yaw_and_rate(times[-1])[0] - trajectory.yaw_and_rate(1.0)[0]
+    assert turned == pytest.approx(integrated, abs=1e-6)
+    assert turned == pytest.approx(0.3 * (times[-1] - 1.0 - 0.3), abs=1e-9)  # a 0.6 s ramp: 0.3 s
+
+
+def test_cmd_vel_robot_honours_its_limits_and_stops_on_nan():
+    trajectory = commanded(5.0, 0.0, 10.0, max_rate=0.8, max_acceleration=2.0)
+    assert trajectory.yaw_and_rate(5.0)[1] == pytest.approx(0.8)
+    assert trajectory.command(-7.0, 10.0) == -0.8
+    assert trajectory.yaw_and_rate(10.5)[1] == pytest.approx(-0.2)  # 2 rad/s^2 from +0.8
+    assert trajectory.command(math.nan, 11.0) == 0.0
+    assert trajectory.yaw_and_rate(12.0)[1] == 0.0
+
+
+def test_cmd_vel_robot_stops_by_itself_when_commands_stop_coming():
+    trajectory = commanded(0.3, 0.0, 5.0, command_timeout=0.5, max_acceleration=1.0)
+    last = 4.95  # the last command
+    assert trajectory.yaw_and_rate(last + 0.49)[1] == pytest.approx(0.3)
+    assert trajectory.yaw_and_rate(last + 0.6)[1] == pytest.approx(0.2)  # decelerating
+    assert trajectory.yaw_and_rate(last + 1.0)[1] == 0.0
+    parked = trajectory.state(last + 1.0).rotation
+    np.testing.assert_array_equal(trajectory.state(100.0).rotation, parked)
+
+
+def test_cmd_vel_commands_never_change_what_was_already_measured():
+    trajectory = commanded(0.3, 0.0, 3.0)
+    before = trajectory.state(4.0).rotation  # a sensor read t = 4 s (the robot is stopping)
+    trajectory.command(1.0, 3.5)  # a late command, stamped before that read
+    np.testing.assert_array_equal(trajectory.state(4.0).rotation, before)
+    assert trajectory.yaw_and_rate(4.0)[1] < trajectory.yaw_and_rate(4.3)[1]  # takes effect now
+
+
+def test_cmd_vel_tilt_follows_the_heading_within_the_wobble():
+    trajectory = commanded(0.5, 0.0, 40.0, wobble_deg=2.0)
+    times = np.arange(1.0, 40.0, 0.05)
+    rotations = trajectory.rotations(times).as_matrix()
+    tilt = np.degrees(np.arccos(np.clip(rotations[:, 2, 2], -1.0, 1.0)))  # body z from up
+    assert 1.0 < tilt.max() <= 2.0 + 1e-9
+    yaw = np.array([trajectory.yaw_and_rate(t)[0] for t in times])
+    turn = np.argmin(np.abs(yaw - (yaw[0] + 2.0 * math.pi)))  # one full turn later
+    np.testing.assert_allclose(rotations[turn][2], rotations[0][2], atol=1e-3)  # same floor
+    flat = commanded(0.5, 0.0, 10.0, wobble_deg=0.0)
+    np.testing.assert_allclose(flat.state(5.0).rotation[2], [0.0, 0.0, 1.0], atol=1e-12)
+
+
+def test_cmd_vel_state_is_one_consistent_motion_while_turning():
+    trajectory = commanded(0.7, 0.0, 20.0, max_acceleration=3.0)
+    for t in (2.37, 7.1, 13.9):
+        state = trajectory.state(t)
+        np.testing.assert_allclose(state.angular_velocity, finite_difference_rate(trajectory, t),
+                                   atol=1e-6)
+
+
+@pytest.mark.parametrize('limits', [{'max_rate': 0.0}, {'max_acceleration': -1.0},
+                                    {'wobble_deg': 45.0}, {'command_timeout': math.nan},
+                                    {'max_rate': 'fast'}])
+def test_cmd_vel_limits_are_checked(limits):
+    with pytest.raises(ValueError, match='invalid cmd_vel motion'):
+        motion.CmdVelTrajectory(**limits)
+
+
 def test_poses_hold_still_then_turn_to_the_next_pose():
     trajectory = motion.PosesTrajectory(seed=4)
     held = [t for t in np.arange(0.0, 30.0, 0.01) if trajectory.holding(t)]

@@ -79,7 +79,7 @@ FEW_HINT = 'too few distinct readings yet: keep rotating the sensor through new 
 MIN_LEVELS = 8
 """Fewer distinct values than this on every axis (a still sensor read in counts, or the first few
 samples) describe no shell: any sphere fits a handful of quantisation steps exactly."""
-_RING_THICKNESS = 0.15
+RING_THICKNESS = 0.15
 """FitOptions.planar_thickness's default: thinner data are a ring from turning about one axis."""
 _FEW_CELLS = 4
 """A wobble of a few degrees seen through a good calibration touches at most about 4 cells."""
@@ -226,7 +226,7 @@ def _scatter_about(
 def _is_ring(points: np.ndarray) -> bool:
     """True when the readings lie near one plane (yaw only), as the fit's ``planar`` choice."""
     norm = normalise(points)
-    return norm is not None and thickness(norm.forward(points))[0] < _RING_THICKNESS
+    return norm is not None and thickness(norm.forward(points))[0] < RING_THICKNESS
 
 
 def _has_levels(points: np.ndarray, levels: int) -> bool:

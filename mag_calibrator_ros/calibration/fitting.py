@@ -18,6 +18,7 @@ from numpy.typing import ArrayLike
 
 from mag_calibrator_ros.calibration.calibration import MODELS, Calibration, CalibrationError
 from mag_calibrator_ros.calibration.coverage import (
+    HEADING_SECTORS,
     Coverage,
     direction_coverage,
     finite_rows,
@@ -35,6 +36,7 @@ from mag_calibrator_ros.calibration.ellipsoid import (
     normalise,
     thickness,
 )
+from mag_calibrator_ros.calibration.heading import fit_ring
 
 _HUGE = sys.float_info.max
 """Stands in for an infinite condition number or axis ratio: results never carry inf or NaN."""
@@ -562,9 +564,9 @@ def _coverage(
     """3-D direction coverage, or heading coverage in the plane for ``planar``; ``readings``:
     the readings behind the rows (see fit_calibration)."""
     if fitted.headings is not None and fitted.plane_normal is not None:
-        directions = direction_coverage(rows[fitted.inliers], readings=readings)
-        if directions.occupied == 0:
-            return directions  # a flat noise blob (a still sensor) has headings all round too
+        ring, problem = fit_ring(rows[fitted.inliers], readings)
+        if ring is None:  # a flat noise blob (a still sensor) has headings all round too
+            return Coverage(0.0, 0, HEADING_SECTORS, problem)
         return heading_coverage(fitted.headings[fitted.inliers], fitted.plane_normal)
     inliers = rows if fitted.inliers.all() else rows[fitted.inliers]
     coverage = direction_coverage(inliers, calibration, readings)

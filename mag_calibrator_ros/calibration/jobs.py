@@ -45,6 +45,11 @@ from mag_calibrator_ros.calibration.evidence import (
     compare_on_evidence,
 )
 from mag_calibrator_ros.calibration.fitting import FitOptions, FitResult, fit_calibration
+from mag_calibrator_ros.calibration.heading import (
+    COMPLETE_HEADING_COVERAGE,
+    heading_coverage_of,
+    yaw_only,
+)
 
 JOB_KINDS = ('reference', 'calibrate', 'refine', 'check')
 """reference: the buffer's own full fit, to screen and merge by; calibrate: a fit to put in force
@@ -150,8 +155,8 @@ def _run(job: FitJob) -> JobOutcome:
         return JobOutcome(job, result, reference=reference_fit(result, job, job.previous))
     coverage = None
     if job.ready_coverage is not None:
-        coverage = direction_coverage(job.samples, job.reference, job.readings)
-        if coverage.fraction < job.ready_coverage:
+        coverage, needed = readiness(job)
+        if coverage.fraction < needed:
             return JobOutcome(job, coverage=coverage)
     result = fit_calibration(job.samples, job.options, weights=job.weights, readings=job.readings)
     if result.calibration is not None:
@@ -194,6 +199,21 @@ def align_and_check(job: FitJob, result: FitResult
         if earth_check.problems and job.earth.gate and result.success:
             result = replace(result, success=False, reason=disturbance_text(earth_check))
     return replace(result, calibration=calibration), alignment, earth_check
+
+
+def readiness(job: FitJob) -> tuple[Coverage, float]:
+    """An automatic attempt's coverage and the share it needs before a fit is worth running.
+
+    Yaw-only data (model ``planar``, or ``auto`` on samples near one plane: a ground robot
+    turning) are judged by heading coverage and need the whole circle (heading.
+    COMPLETE_HEADING_COVERAGE): a turning robot can complete it, and an ellipse fitted to part
+    of it extrapolates the rest. Everything else: direction coverage, ``ready_coverage``.
+    """
+    model = job.options.model
+    if model == 'planar' or (model == 'auto' and yaw_only(job.samples)):
+        progress = heading_coverage_of(job.samples, job.readings)
+        return progress.coverage, max(job.ready_coverage, COMPLETE_HEADING_COVERAGE)
+    return direction_coverage(job.samples, job.reference, job.readings), job.ready_coverage
 
 
 def reference_fit(
@@ -394,6 +414,7 @@ __all__ = [
     'align_and_check',
     'moved',
     'prediction_sigma',
+    'readiness',
     'reference_fit',
     'run_job',
 ]

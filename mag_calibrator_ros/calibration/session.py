@@ -46,7 +46,7 @@ from mag_calibrator_ros.calibration.alignment import (
 )
 from mag_calibrator_ros.calibration.buffer import SampleBuffer
 from mag_calibrator_ros.calibration.calibration import MODELS, Calibration, CalibrationError
-from mag_calibrator_ros.calibration.coverage import Coverage
+from mag_calibrator_ros.calibration.coverage import HEADING_SECTORS, Coverage
 from mag_calibrator_ros.calibration.earth_field import (
     MAX_DIP_ERROR_DEG,
     MAX_FIELD_ERROR_PCT,
@@ -64,6 +64,12 @@ from mag_calibrator_ros.calibration.evidence import (
     MisfitMonitor,
 )
 from mag_calibrator_ros.calibration.fitting import FitOptions
+from mag_calibrator_ros.calibration.heading import (
+    COMPLETE_HEADING_COVERAGE,
+    HeadingCoverage,
+    heading_coverage_of,
+    yaw_only,
+)
 from mag_calibrator_ros.calibration.jobs import (
     REFERENCE_OPTIONS,
     FitJob,
@@ -415,6 +421,9 @@ class CalibrationSession:
         self._next_periodic = 0.0
         self._events: deque[SessionEvent] = deque(maxlen=MAX_EVENTS)
         self._reported_rejects = dict(self.screen.counts)
+        self._latest: np.ndarray | None = None  # the latest accepted reading (heading hints)
+        self._looked_at: np.ndarray | None = None  # the latest reading at the previous look
+        self._turning = 0  # the way the heading last moved between two looks (+1 / -1)
         self.attitudes = StaticAttitudes()
         """Quasi-static (field, accel) attitudes paired from the IMU, for the alignment."""
         self._imu: deque[tuple[int, float, float, float, tuple | None]] = deque(maxlen=IMU_RING)
@@ -471,6 +480,7 @@ class CalibrationSession:
             return _REFUSED
         self.accepted += 1
         reading = np.array((x0, x1, x2))
+        self._latest = reading
         pair = self._pair(stamp_ns) if self._imu else None
         self._advance()
         if self._job is None and not self._held:
@@ -1075,18 +1085,44 @@ class CalibrationSession:
         return {**self.screen.counts, **self.refusals}
 
     def coverage(self) -> Coverage:
-        """The buffer's direction coverage now (milliseconds: call at the reporting rate)."""
+        """The buffer's coverage now: of the heading circle when the motion is yaw-only (see
+        ``yaw_only``), else of the direction sphere (milliseconds: call at the reporting rate)."""
+        if self.yaw_only():
+            return self.heading_coverage().coverage
         return self.buffer.coverage()
+
+    def yaw_only(self) -> bool:
+        """Whether coverage, hints and the automatic gate are about the heading circle: model
+        ``planar``, or ``auto`` with the buffer's samples near one plane (a robot turning)."""
+        if self.settings.model == 'planar':
+            return True
+        return self.settings.model == 'auto' and yaw_only(self.buffer.samples)
+
+    def heading_coverage(self) -> HeadingCoverage:
+        """The buffer's heading coverage and the turn still needed, which way (milliseconds).
+
+        Each call is a look: the direction of turning is how the heading moved since the
+        previous look's latest reading."""
+        buffer = self.buffer
+        progress = heading_coverage_of(buffer.samples, buffer.readings, self._latest,
+                                       self._looked_at, self._turning)
+        self._looked_at, self._turning = self._latest, progress.turning
+        return progress
 
     def progress_text(self, coverage: Coverage | None = None) -> str:
         """What to do next, e.g. 'coverage 63 % - keep rotating about the pitch axis (y)'."""
         coverage = coverage or self.coverage()
         fill = f'buffer {self.buffer.fill}/{self.buffer.capacity}'
-        text = f'coverage {100.0 * coverage.fraction:.0f} %'
+        heading = coverage.cells == HEADING_SECTORS
+        text = f'{"heading " if heading else ""}coverage {100.0 * coverage.fraction:.0f} %'
         if self.calibration is not None:
             return f'{self.state} ({self.calibration.model}); {text}, {fill}'
-        if coverage.fraction < self.settings.min_coverage:
-            hint = coverage.hint or 'keep rotating the sensor through every orientation'
+        needed = self.settings.min_coverage
+        if heading and self.settings.auto_calibrate:
+            needed = max(needed, COMPLETE_HEADING_COVERAGE)  # see jobs.readiness
+        if coverage.fraction < needed:
+            hint = coverage.hint or ('keep turning in place' if heading
+                                     else 'keep rotating the sensor through every orientation')
             return f'{text} \u2014 {hint}; {fill}'
         if self.settings.auto_calibrate:
             return f'{text}, {fill} \u2014 enough to calibrate; calibrating automatically'
@@ -1110,6 +1146,7 @@ class CalibrationSession:
         values: dict[str, object] = {
             'state': self.state,
             'coverage_pct': round(100.0 * float(coverage.fraction), 1),
+            'coverage_kind': 'heading' if coverage.cells == HEADING_SECTORS else 'direction',
             'coverage_hint': coverage.hint,
             'buffer_fill': int(self.buffer.fill),
             'buffer_capacity': int(self.buffer.capacity),

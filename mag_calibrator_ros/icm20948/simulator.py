@@ -348,6 +348,12 @@ class SimulatedIcm20948Bus:
     def in_outage(self) -> bool:
         return self._clock() < self._outage_until
 
+    @property
+    def sim_time_s(self) -> float:
+        """Seconds since the simulated chip powered on: the time its trajectory is evaluated
+        at (a cmd_vel motion takes its commands on this clock)."""
+        return self._now()
+
     def _now(self) -> float:
         return self._clock() - self._t0
 

@@ -23,6 +23,7 @@ import math
 import sys
 import threading
 
+from geometry_msgs.msg import Twist, TwistStamped
 from rcl_interfaces.msg import (
     FloatingPointRange,
     IntegerRange,
@@ -30,6 +31,7 @@ from rcl_interfaces.msg import (
     SetParametersResult,
 )
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Imu, MagneticField, Temperature
@@ -92,6 +94,8 @@ class DriverSettings:
     accel_noise_density: float
     gyro_noise_density: float
     sim: SimConfig | None
+    cmd_vel: motion.CmdVelTrajectory | None = None
+    """The simulated robot following cmd_vel (sim.motion cmd_vel), else None."""
 
 
 def _descriptor(
@@ -173,7 +177,8 @@ PARAMETERS: dict[str, tuple[object, ParameterDescriptor]] = {
         'Simulator: white noise per axis (1 sigma) in microtesla.', float_range=(0.0, 100.0))),
     'sim.motion': ('tumble', _descriptor(
         'Simulator: how the board moves: tumble (hand), yaw (ground robot turning), still, or '
-        'poses (held still at one tilt after another: what aligning to the IMU needs).',
+        'poses (held still at one tilt after another: what aligning to the IMU needs), or '
+        'cmd_vel (a ground robot turning in place only as commanded on cmd_vel).',
         constraints=' | '.join(motion.TRAJECTORY_KINDS))),
     'sim.i2c_error_rate': (0.0, _descriptor(
         'Simulator: probability that an I2C transaction fails with EREMOTEIO.',
@@ -214,7 +219,25 @@ PARAMETERS: dict[str, tuple[object, ParameterDescriptor]] = {
     'sim.inclination_offset_deg': (0.0, _descriptor(
         'Simulator: a disturbed place: the dip moved by this many degrees.',
         float_range=(-90.0, 90.0))),
+    # sim.motion cmd_vel: a ground robot following cmd_vel's angular z (Twist or TwistStamped)
+    'sim.max_yaw_rate': (1.0, _descriptor(
+        'Simulator (motion cmd_vel): largest yaw rate the robot turns at, rad/s.',
+        float_range=(0.01, 10.0))),
+    'sim.max_yaw_acceleration': (1.0, _descriptor(
+        'Simulator (motion cmd_vel): largest yaw acceleration, rad/s^2.',
+        float_range=(0.01, 100.0))),
+    'sim.tilt_wobble_deg': (2.0, _descriptor(
+        'Simulator (motion cmd_vel): peak tilt while turning (an uneven floor: roll and pitch '
+        'follow the heading), degrees.', float_range=(0.0, 20.0))),
+    'sim.cmd_vel_timeout': (0.5, _descriptor(
+        'Simulator (motion cmd_vel): the robot stops by itself when no command came for this '
+        "long, seconds (as a base controller's command timeout).", float_range=(0.01, 60.0))),
 }
+CMD_VEL_TOPIC = 'cmd_vel'
+CMD_VEL_TYPES = {'geometry_msgs/msg/Twist': Twist, 'geometry_msgs/msg/TwistStamped': TwistStamped}
+RCLError = rclpy_implementation.RCLError
+CMD_VEL_CHECK_S = 0.25
+"""How often the sim's cmd_vel subscription checks which type the publishers use."""
 
 
 def settings_problems(values: dict[str, object]) -> list[str]:
@@ -235,7 +258,14 @@ def settings_problems(values: dict[str, object]) -> list[str]:
             f"sim.motion must be one of {', '.join(motion.TRAJECTORY_KINDS)}, "
             f"got {values['sim.motion']!r}"
         )
+    problems += [f'sim.{problem}' for problem in motion.cmd_vel_problems(*cmd_vel_limits(values))]
     return problems
+
+
+def cmd_vel_limits(values: dict[str, object]) -> tuple[object, object, object, object]:
+    """(max rate, max acceleration, wobble, command timeout) of a sim cmd_vel robot."""
+    return (values['sim.max_yaw_rate'], values['sim.max_yaw_acceleration'],
+            values['sim.tilt_wobble_deg'], values['sim.cmd_vel_timeout'])
 
 
 def imu_settings(values: dict[str, object]) -> ImuSettings:
@@ -280,7 +310,7 @@ class Icm20948DriverNode(Node):
         s = self.settings
         self.simulator: SimulatedIcm20948Bus | None = None
         if s.sim is not None:
-            self.simulator = SimulatedIcm20948Bus(s.sim)
+            self.simulator = SimulatedIcm20948Bus(s.sim, trajectory=s.cmd_vel)
         self.bus_name = 'sim' if s.backend == 'sim' else f'/dev/i2c-{s.i2c_bus}'
         self.hardware_id = f'icm20948@{self.bus_name}:{s.address:#04x}'
         self._frame_id = s.frame_id
@@ -326,6 +356,7 @@ class Icm20948DriverNode(Node):
         self._pump = threading.Thread(target=self.supervisor.run, args=(self._stop, self._deliver),
                                       daemon=True, name=f'{NODE_NAME} I2C')
         self._pump.start()
+        self._follow_cmd_vel_wiring()
 
     # --- counters the tests, the demo and the benchmark read -------------------------------------
 
@@ -395,6 +426,10 @@ class Icm20948DriverNode(Node):
                 )
             except ValueError as error:
                 problems.append(f'sim.*: {error}')
+        cmd_vel = None
+        if sim is not None and sim.motion == 'cmd_vel' and not problems:
+            rate, acceleration, wobble, timeout = cmd_vel_limits(values)
+            cmd_vel = motion.CmdVelTrajectory(sim.seed, rate, acceleration, wobble, timeout)
         if problems:
             message = 'refusing to start, invalid parameters:\n  ' + '\n  '.join(problems)
             self.get_logger().fatal(message)
@@ -413,6 +448,7 @@ class Icm20948DriverNode(Node):
             accel_noise_density=values['accel_noise_density'],
             gyro_noise_density=values['gyro_noise_density'],
             sim=sim,
+            cmd_vel=cmd_vel,
         )
 
     def _on_set_parameters(self, parameters) -> SetParametersResult:
@@ -525,6 +561,45 @@ class Icm20948DriverNode(Node):
             )
             for status in self.supervisor.status()
         ])
+
+    # --- sim.motion cmd_vel: the simulated robot turns as commanded --------------------------
+
+    def _follow_cmd_vel_wiring(self) -> None:
+        """With the cmd_vel motion: subscribe to cmd_vel in the type its publishers use (Twist,
+        or TwistStamped when only that is published: one topic has one type in DDS)."""
+        self.cmd_vel_received = 0
+        self._cmd_vel_subscription = None
+        self._cmd_vel_type = None
+        if self.settings.cmd_vel is None:
+            return
+        self._follow_cmd_vel_type()
+        self.create_timer(CMD_VEL_CHECK_S, self._follow_cmd_vel_type)
+
+    def _follow_cmd_vel_type(self) -> None:
+        topic = self.resolve_topic_name(CMD_VEL_TOPIC)
+        offered = {info.topic_type for info in self.get_publishers_info_by_topic(topic)}
+        wanted = ('geometry_msgs/msg/TwistStamped'
+                  if offered == {'geometry_msgs/msg/TwistStamped'} else 'geometry_msgs/msg/Twist')
+        if wanted == self._cmd_vel_type:
+            return
+        if self._cmd_vel_subscription is not None:
+            # the old type's topic goes with its last user: subscribe anew at the next check
+            self.destroy_subscription(self._cmd_vel_subscription)
+            self._cmd_vel_subscription = self._cmd_vel_type = None
+            return
+        try:
+            self._cmd_vel_subscription = self.create_subscription(
+                CMD_VEL_TYPES[wanted], CMD_VEL_TOPIC, self._on_cmd_vel, QoSProfile(depth=10))
+        except RCLError as error:  # the old type still held by DDS: the next check retries
+            self.get_logger().debug(f'subscribing {topic} as {wanted} failed: {error}')
+            return
+        self._cmd_vel_type = wanted
+
+    def _on_cmd_vel(self, message: Twist | TwistStamped) -> None:
+        """Turn in place at the commanded yaw rate (linear velocities are ignored)."""
+        twist = message.twist if isinstance(message, TwistStamped) else message
+        self.settings.cmd_vel.command(twist.angular.z, self.simulator.sim_time_s)
+        self.cmd_vel_received += 1
 
     def destroy_node(self) -> None:
         self._stop.set()

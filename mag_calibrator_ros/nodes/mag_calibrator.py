@@ -21,6 +21,7 @@ from queue import SimpleQueue
 import time
 import traceback
 
+from geometry_msgs.msg import Twist, TwistStamped
 from rcl_interfaces.msg import (
     FloatingPointRange,
     IntegerRange,
@@ -28,9 +29,10 @@ from rcl_interfaces.msg import (
     SetParametersResult,
 )
 from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import QoSProfile, qos_profile_sensor_data
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.task import Future
 from sensor_msgs.msg import Imu, MagneticField, NavSatFix, NavSatStatus
 from std_srvs.srv import Trigger
@@ -56,6 +58,12 @@ from mag_calibrator_ros.calibration.earth_field import (
     location_problems,
 )
 from mag_calibrator_ros.calibration.jobs import ProcessRunner
+from mag_calibrator_ros.calibration.rotation import (
+    COMMAND_PERIOD_S,
+    MAX_SPEED,
+    RotationController,
+    RotationSettings,
+)
 from mag_calibrator_ros.calibration.session import (
     FITTABLE_MODELS,
     CalibrationSession,
@@ -93,6 +101,12 @@ INPUT_QOS = QoSProfile(
     durability=qos_profile_sensor_data.durability,
 )
 DEFAULTS = SessionSettings()
+ROTATION_DEFAULTS = RotationSettings()
+COMMAND_TOPIC = 'cmd_vel'
+COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+"""Reliable: a stop must arrive (a best-effort subscriber still matches and gets the re-sends)."""
+SHUTDOWN_ACK_S = 0.5
+"""On shutdown, wait at most this long for subscribers to acknowledge the final zero."""
 
 
 def _float_range(low: float, high: float) -> list[FloatingPointRange]:
@@ -167,6 +181,20 @@ PARAMETERS: dict[str, tuple[object, str, dict]] = {
                     {'floating_point_range': _float_range(0.0, 3600.0)}),
     'view_scale': (1e4, 'RViz view: metres per tesla (1e4: a 50 uT field is a 0.5 m sphere).',
                    {'floating_point_range': _float_range(1e-3, 1e9)}),
+    # ~/rotate_and_calibrate (ground robots): turning in place on cmd_vel
+    'rotation_speed': (ROTATION_DEFAULTS.speed,
+                       'rad/s of the turn in place ~/rotate_and_calibrate commands on cmd_vel '
+                       '(positive: counter-clockwise seen from above, a left turn).',
+                       {'floating_point_range': _float_range(0.05, MAX_SPEED)}),
+    'rotation_acceleration': (ROTATION_DEFAULTS.acceleration,
+                              'rad/s^2 of the ramp from standstill to rotation_speed.',
+                              {'floating_point_range': _float_range(0.05, 10.0)}),
+    'rotation_timeout': (ROTATION_DEFAULTS.timeout_s,
+                         'Seconds of turning after which ~/rotate_and_calibrate stops without a '
+                         'calibration.', {'floating_point_range': _float_range(5.0, 3600.0)}),
+    'cmd_vel_stamped': (False, "Publish geometry_msgs/TwistStamped on cmd_vel (as Jazzy's nav2 "
+                               'and ros2_control use) instead of geometry_msgs/Twist.', {}),
+    'cmd_vel_frame_id': ('base_link', 'header.frame_id of TwistStamped commands.', {}),
     'use_imu': (True, 'Subscribe imu/data_raw (sensor_msgs/Imu, same frame as imu/mag) and align '
                       'each calibration to the accelerometer from readings held still; without '
                       'a publisher nothing changes.', {}),
@@ -281,8 +309,10 @@ class MagCalibratorNode(Node):
         self._last_view = -math.inf
         self.create_timer(POLL_PERIOD_S, guarded(self, 'poll', self._on_poll))
         self.create_timer(DIAGNOSTICS_PERIOD_S, guarded(self, 'diagnostics', self._on_tick))
+        self._start_rotation_wiring()
 
     def destroy_node(self) -> None:
+        self._stop_rotation_for_shutdown()
         self.session.close()
         self._io.shutdown(wait=True)
         super().destroy_node()
@@ -311,6 +341,7 @@ class MagCalibratorNode(Node):
     def _problems(self, values: dict[str, object]) -> list[str]:
         """Everything wrong with these parameter values (the same at start-up and at run time)."""
         problems = self._settings_from(values).problems()
+        problems += self._rotation_settings_from(values).problems()
         try:
             resolve_calibration_path(str(values['calibration_file']))
         except CalibrationFileError as error:
@@ -558,8 +589,13 @@ class MagCalibratorNode(Node):
     def _handle_events(self) -> None:
         logger = self.get_logger()
         for event in self.session.take_events():
-            log = {'info': logger.info, 'warning': logger.warning}.get(event.level, logger.debug)
-            log(event.message)
+            # one call site per severity: rclpy refuses a severity change at the same call site
+            if event.level == 'warning':
+                logger.warning(event.message)
+            elif event.level == 'info':
+                logger.info(event.message)
+            else:
+                logger.debug(event.message)
             if event.adopted:
                 self._problem = None
                 self._save_wanted = bool(self.get_parameter('auto_save').value)
@@ -628,8 +664,10 @@ class MagCalibratorNode(Node):
         result = await self._run_io(self._save_file)
         response.success = not isinstance(result, Exception)
         response.message = str(result)
-        (self.get_logger().info if response.success else self.get_logger().warning)(
-            response.message if response.success else f'save failed: {result}')
+        if response.success:  # one call site per severity (rclpy refuses a change at one)
+            self.get_logger().info(response.message)
+        else:
+            self.get_logger().warning(f'save failed: {result}')
         return response
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response):
@@ -674,6 +712,8 @@ class MagCalibratorNode(Node):
         period = float(self.get_parameter('progress_log_period').value)
         if period <= 0.0 or self.session.calibration is not None:
             return
+        if self._rotation.state == 'turning':
+            return  # the rotation logs its own progress
         if now - self._last_progress_log >= period:
             self._last_progress_log = now
             if self.session.input_rate.rate == 0.0:
@@ -689,6 +729,7 @@ class MagCalibratorNode(Node):
     def _publish_diagnostics(self, now: float, coverage: Coverage) -> None:
         values = self.session.diagnostic_values(now, coverage)
         values['calibration_file'] = str(self._calibration_file())
+        values.update(self._rotation.diagnostic_values(now))
         if self._location_source:
             values['location_source'] = self._location_source
         state = self.session.state
@@ -718,6 +759,151 @@ class MagCalibratorNode(Node):
                               level, message, values)
         ])
 
+    # -- turning in place: ~/rotate_and_calibrate, ~/stop_rotation -------------------------------
+    # Every decision is the RotationController's; this wires it: a 20 Hz timer publishes what it
+    # commands, every stop path publishes zero at once, and the publisher on cmd_vel exists only
+    # while a rotation runs (and for its zero hold).
+
+    @staticmethod
+    def _rotation_settings_from(values: dict[str, object]) -> RotationSettings:
+        return RotationSettings(speed=float(values['rotation_speed']),
+                                acceleration=float(values['rotation_acceleration']),
+                                timeout_s=float(values['rotation_timeout']))
+
+    def _start_rotation_wiring(self) -> None:
+        self._rotation = RotationController(
+            self._rotation_settings_from(self._current_values()),
+            input_topic=self.resolve_topic_name('imu/mag'),
+            command_topic=self.resolve_topic_name(COMMAND_TOPIC))
+        self._command_publisher = None
+        self._command_stamped = False
+        self._accepted_seen = self.session.accepted
+        self._last_input: float | None = None  # monotonic time the accepted count last grew
+        for name, callback in (('~/rotate_and_calibrate', self._on_rotate),
+                               ('~/stop_rotation', self._on_stop_rotation)):
+            self.create_service(Trigger, name, self._answering(name, callback))
+        self.add_post_set_parameters_callback(self._rotation_parameters_changed)
+        self.create_timer(COMMAND_PERIOD_S, guarded(self, 'rotation', self._on_rotation_timer))
+
+    def _input_age(self, now: float) -> float | None:
+        """Seconds since a reading was last accepted (sampled every COMMAND_PERIOD_S)."""
+        if self.session.accepted != self._accepted_seen:
+            self._accepted_seen = self.session.accepted
+            self._last_input = now
+        return None if self._last_input is None else now - self._last_input
+
+    def _other_commanders(self) -> int:
+        publishers = self.count_publishers(self.resolve_topic_name(COMMAND_TOPIC))
+        return publishers - (self._command_publisher is not None)
+
+    def _on_rotation_timer(self) -> None:
+        try:
+            self._rotation_tick()
+        except Exception:
+            self._stop_rotation('error')  # never keep turning on an error; guarded logs it
+            raise
+
+    def _rotation_tick(self) -> None:
+        now = time.monotonic()
+        input_age = self._input_age(now)
+        if self._rotation.state == 'idle' and self._command_publisher is None:
+            return
+        step = self._rotation.update(now, input_age, self._other_commanders(),
+                                     lambda: self.session.heading_coverage().coverage)
+        self._rotation_log(step.messages)
+        if step.calibrate:
+            self._request_rotation_fit()  # its answer may already have stopped the rotation
+        self._publish_command(self._rotation.command(now))
+
+    def _publish_command(self, yaw_rate: float | None) -> None:
+        """Publish a turn command (None: nothing; the publisher goes once a stop's zeros are
+        sent)."""
+        if yaw_rate is None:
+            if self._command_publisher is not None:
+                self.destroy_publisher(self._command_publisher)
+                self._command_publisher = None
+            return
+        if self._command_publisher is None:
+            self._command_stamped = bool(self.get_parameter('cmd_vel_stamped').value)
+            self._command_publisher = self.create_publisher(
+                TwistStamped if self._command_stamped else Twist, COMMAND_TOPIC, COMMAND_QOS)
+        twist = Twist()
+        twist.angular.z = float(yaw_rate)
+        if self._command_stamped:
+            message = TwistStamped(twist=twist)
+            message.header.stamp = self.get_clock().now().to_msg()
+            message.header.frame_id = str(self.get_parameter('cmd_vel_frame_id').value)
+        else:
+            message = twist
+        self._command_publisher.publish(message)
+
+    def _rotation_log(self, messages) -> None:
+        for message in messages:
+            if message:
+                self.get_logger().info(message)
+
+    def _stop_rotation(self, reason: str, detail: str = '') -> str | None:
+        """Stop for ``reason`` and publish the zero at once (not at the next tick)."""
+        now = time.monotonic()
+        line = self._rotation.stop(now, reason, detail)
+        if line is not None:
+            self._rotation_log([line])
+            self._publish_command(self._rotation.command(now))
+        return line
+
+    def _on_rotate(self, request: Trigger.Request, response: Trigger.Response):
+        now = time.monotonic()
+        started, message = self._rotation.start(now, self._input_age(now),
+                                                self._other_commanders())
+        if started:
+            self.session.reset()  # a rotation calibrates from what it sees, not older samples
+            self._publish_command(self._rotation.command(now))
+            self.get_logger().info(message)
+        else:
+            self.get_logger().warning(f'~/rotate_and_calibrate refused: {message}')
+        response.success, response.message = started, message
+        return response
+
+    def _on_stop_rotation(self, request: Trigger.Request, response: Trigger.Response):
+        line = self._stop_rotation('requested')
+        response.success = True
+        response.message = line or f'not rotating ({self._rotation.progress_text(0.0)})'
+        return response
+
+    def _request_rotation_fit(self) -> None:
+        waiting = Future()
+        waiting.add_done_callback(self._rotation_fit_done)
+        self._requests[self.session.request_calibration()] = waiting
+        self._handle_events()  # an immediate answer
+
+    def _rotation_fit_done(self, future: Future) -> None:
+        attempt = future.result()
+        error = attempt.outcome is not None and bool(attempt.outcome.error)
+        now = time.monotonic()
+        line = self._rotation.calibration_answered(now, attempt.success, error, attempt.message)
+        if line is not None:
+            self._rotation_log([line])
+            self._publish_command(self._rotation.command(now))
+
+    def _rotation_parameters_changed(self, parameters: list[Parameter]) -> None:
+        self._rotation.settings = self._rotation_settings_from(self._current_values())
+        changed = [p.name for p in parameters if not p.name.startswith('calibration.')]
+        if changed:
+            self._stop_rotation('parameters', ', '.join(changed))
+
+    def _stop_rotation_for_shutdown(self) -> None:
+        """Zero on the way out, acknowledged by the subscribers if they can (bounded)."""
+        try:
+            self._stop_rotation('shutdown')
+            publisher = self._command_publisher
+            if publisher is not None:
+                self._publish_command(0.0)
+                publisher.wait_for_all_acked(Duration(nanoseconds=int(SHUTDOWN_ACK_S * 1e9)))
+                self.destroy_publisher(publisher)
+                self._command_publisher = None
+        except Exception as error:  # noqa: BLE001 - shutting down: report, never raise
+            self.get_logger().error(f'could not command zero on shutdown: {error!r}')
+
 
 def _is_nan(value: object) -> bool:
     return isinstance(value, float) and math.isnan(value)
@@ -737,8 +923,8 @@ def _read_calibration(path: Path, node_name: str) -> LoadedCalibration | Excepti
 def main(args: Sequence[str] | None = None) -> int:
     """Console script ``mag_calibrator`` (also ``ros2 run mag_calibrator_ros mag_calibrator``):
     exit 0 on a normal stop, 2 on invalid parameters."""
-    try:
-        return spin_node(MagCalibratorNode, args)
+    try:  # on Ctrl-C/SIGTERM the node still publishes a final zero on cmd_vel
+        return spin_node(MagCalibratorNode, args, publish_on_shutdown=True)
     except ConfigurationError:
         return 2  # already logged as FATAL with every problem
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+import signal
 import threading
 import traceback
 
@@ -10,6 +11,9 @@ import rclpy
 from rclpy.context import Context
 from rclpy.executors import ExternalShutdownException, ShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
+
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
 def guarded(node: Node, name: str, callback: Callable) -> Callable:
@@ -28,12 +32,22 @@ def guarded(node: Node, name: str, callback: Callable) -> Callable:
     return run
 
 
-def spin_node(node_factory: Callable[[], Node], args: Sequence[str] | None = None) -> int:
+def spin_node(node_factory: Callable[[], Node], args: Sequence[str] | None = None, *,
+              publish_on_shutdown: bool = False) -> int:
     """Init rclpy, build the node, spin until Ctrl-C or an external shutdown, clean up.
 
+    ``publish_on_shutdown``: Ctrl-C and SIGTERM stop spinning but leave the context up until
+    the node is destroyed, so ``destroy_node`` can still publish (a final zero on cmd_vel).
+    rclpy's own handlers shut the context down first, and a publish then fails.
     Returns a process exit code (0 on a normal stop) so console scripts can ``sys.exit`` it.
     """
-    rclpy.init(args=args)
+    previous = None
+    if publish_on_shutdown:
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+        stop = _StopOnSignal()  # one for both: the first of either signal counts
+        previous = {number: signal.signal(number, stop) for number in STOP_SIGNALS}
+    else:
+        rclpy.init(args=args)
     node = None
     try:
         node = node_factory()
@@ -44,7 +58,23 @@ def spin_node(node_factory: Callable[[], Node], args: Sequence[str] | None = Non
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+        for number, handler in (previous or {}).items():
+            signal.signal(number, handler)
     return 0
+
+
+class _StopOnSignal:
+    """The first SIGINT or SIGTERM ends spinning (as KeyboardInterrupt, in the main thread);
+    further ones are ignored until the clean-up is done, so a second Ctrl-C cannot cut the
+    node's shutdown (its final publishes) short."""
+
+    def __init__(self) -> None:
+        self.received: int | None = None
+
+    def __call__(self, number: int, frame: object) -> None:
+        if self.received is None:
+            self.received = number
+            raise KeyboardInterrupt
 
 
 class NodeThreads:

@@ -10,6 +10,12 @@ measures the raw and corrected streams against the simulator's true field (and t
 recovered against the misalignment simulated), saves the file
 through ``~/save`` and draws a before/after PNG. Exit status 0 when the calibration succeeded
 and everything was written.
+
+``--ground-robot``: the simulated board is a ground robot that turns only as commanded on
+``cmd_vel`` (``sim.motion: cmd_vel``, 2° of tilt wobble). The demo calls
+``~/rotate_and_calibrate``; the calibrator turns the robot until the heading circle is covered
+and the fit passes, then stops it. The demo then turns the robot once more itself (as a teleop
+would) to score the heading before and after against the simulator's truth.
 """
 
 from __future__ import annotations
@@ -24,9 +30,11 @@ import sys
 import threading
 import time
 
+from geometry_msgs.msg import Twist
 import numpy as np
 import rclpy
 from rclpy.context import Context
+from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
@@ -53,6 +61,11 @@ SOFT_IRON = (  # symmetric, scales 0.85-1.15, off-diagonals up to 0.12
 MISALIGNMENT_DEG = (1.8, -1.9, 1.4)
 """The magnetometer's axes against the accelerometer's (a rotation vector): 3.0 deg."""
 NAMESPACE = 'mag_calibrator_demo'
+GROUND_HARD_IRON_UT = (55.0, -45.0, 25.0)
+"""75 uT: three times the horizontal field (25 uT at 60 deg inclination)."""
+GROUND_WOBBLE_DEG = 2.0
+CHECK_TURN_RATE = 0.6
+"""rad/s of the demo's own turn that scores the calibration over a full circle."""
 LEVEL_HORIZONTAL_SHARE = math.cos(math.radians(INCLINATION_DEG))
 """Heading is scored on samples whose true field is at least as horizontal (in the chip x-y
 plane) as a level-mounted sensor sees it; near the chip z axis a heading has no meaning."""
@@ -80,7 +93,11 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument('--buffer-size', type=int, default=None,
                         help="calibrator buffer size (default: the calibrator's)")
     parser.add_argument('--seed', type=int, default=1, help='simulated motion and noise seed')
-    parser.add_argument('--motion', choices=motion.TRAJECTORY_KINDS, default='poses',
+    parser.add_argument('--ground-robot', action='store_true',
+                        help='a ground robot that only turns: the calibrator turns it in place '
+                        'through cmd_vel (~/rotate_and_calibrate) and stops it when calibrated')
+    parser.add_argument('--motion', choices=[kind for kind in motion.TRAJECTORY_KINDS
+                                             if kind != 'cmd_vel'], default='poses',
                         help='how the simulated board moves (default: %(default)s: held still '
                         'at one tilt after another, so the calibration is also aligned to the '
                         'accelerometer; tumble never holds still)')
@@ -125,8 +142,14 @@ def heading_errors_deg(vectors: np.ndarray, truth: np.ndarray) -> np.ndarray:
     """Azimuth about the chip z axis (a level compass's heading), wrapped to [-180, 180)."""
     horizontal = np.linalg.norm(truth[:, :2], axis=1) / np.linalg.norm(truth, axis=1)
     keep = horizontal >= LEVEL_HORIZONTAL_SHARE - 1e-9
-    difference = (np.arctan2(vectors[keep, 1], vectors[keep, 0])
-                  - np.arctan2(truth[keep, 1], truth[keep, 0]))
+    return azimuth_errors_deg(vectors[keep], truth[keep])
+
+
+def azimuth_errors_deg(vectors: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Azimuth about the chip z axis of every vector against the truth, wrapped to [-180, 180)
+    (a ground robot's z is its yaw axis: every sample has a heading)."""
+    difference = (np.arctan2(vectors[:, 1], vectors[:, 0])
+                  - np.arctan2(truth[:, 1], truth[:, 0]))
     return np.degrees((difference + np.pi) % (2.0 * np.pi) - np.pi)
 
 
@@ -142,8 +165,8 @@ def error_table(vectors: np.ndarray, truth: np.ndarray) -> dict[str, ErrorStats]
 class DemoObserver(Node):
     """Watches raw and corrected streams and calls the calibrator's services, like a user."""
 
-    def __init__(self, context: Context) -> None:
-        super().__init__('demo_observer', namespace=NAMESPACE, context=context)
+    def __init__(self, context: Context, namespace: str = NAMESPACE) -> None:
+        super().__init__('demo_observer', namespace=namespace, context=context)
         self._lock = threading.Lock()
         self._raw_by_stamp: dict[tuple[int, int], np.ndarray] = {}
         self.raw: list[np.ndarray] = []
@@ -267,6 +290,35 @@ def print_summary(count: int, before: dict, after: dict) -> None:
         print(f'  {name:24s} {b.rms:11.3f} {b.max:11.3f} {a.rms:10.3f} {a.max:10.3f}')
 
 
+def output_files(args: argparse.Namespace) -> tuple[Path, Path]:
+    """(calibration file, plot) in --output-dir, both removed: the demo starts uncalibrated and
+    writes both anew."""
+    output_dir = Path(args.output_dir).expanduser().resolve()
+    output_dir.mkdir(parents=True, exist_ok=True)
+    files = output_dir / 'calibration.yaml', output_dir / 'calibration.png'
+    for stale in files:
+        stale.unlink(missing_ok=True)
+    return files
+
+
+def simulated_board(context: Context, motion_kind: str, hard_iron_ut, seed: int,
+                    namespace: str = NAMESPACE, **sim) -> Icm20948DriverNode:
+    """The driver on the simulated ICM-20948: the demo's field and soft iron, 100 Hz; ``sim``
+    sets further ``sim.*`` parameters by name."""
+    overrides = [
+        Parameter('backend', value='sim'),
+        Parameter('rate_hz', value=100),
+        Parameter('sim.field_ut', value=FIELD_UT),
+        Parameter('sim.inclination_deg', value=INCLINATION_DEG),
+        Parameter('sim.hard_iron_ut', value=list(hard_iron_ut)),
+        Parameter('sim.soft_iron', value=list(SOFT_IRON)),
+        Parameter('sim.motion', value=motion_kind),
+        Parameter('sim.seed', value=seed),
+    ] + [Parameter(f'sim.{name}', value=value) for name, value in sim.items()]
+    return Icm20948DriverNode(namespace=namespace, context=context,
+                              parameter_overrides=overrides)
+
+
 def misalignment() -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
@@ -287,12 +339,9 @@ def print_alignment(calibration) -> None:
 
 
 def run(args: argparse.Namespace, context: Context) -> int:
-    output_dir = Path(args.output_dir).expanduser().resolve()
-    output_dir.mkdir(parents=True, exist_ok=True)
-    calibration_file = output_dir / 'calibration.yaml'
-    plot_file = output_dir / 'calibration.png'
-    for stale in (calibration_file, plot_file):
-        stale.unlink(missing_ok=True)  # the demo starts uncalibrated and rewrites both
+    if args.ground_robot:
+        return run_ground(args, context)
+    calibration_file, plot_file = output_files(args)
 
     located = args.latitude is not None
     field = (f"the World Magnetic Model's at {args.latitude}, {args.longitude}" if located
@@ -300,30 +349,19 @@ def run(args: argparse.Namespace, context: Context) -> int:
     print(f'Simulated ICM-20948: field {field}, hard iron {list(HARD_IRON_UT)} uT, soft iron '
           f'{list(SOFT_IRON)} (row-major), magnetometer {rotation_angle_deg(misalignment()):.1f}'
           f' deg off the accelerometer (rotation vector {list(MISALIGNMENT_DEG)} deg).')
-    sim = [
-        Parameter('backend', value='sim'),
-        Parameter('rate_hz', value=100),
-        Parameter('sim.field_ut', value=FIELD_UT),
-        Parameter('sim.inclination_deg', value=INCLINATION_DEG),
-        Parameter('sim.hard_iron_ut', value=list(HARD_IRON_UT)),
-        Parameter('sim.soft_iron', value=list(SOFT_IRON)),
-        Parameter('sim.motion', value=args.motion),
-        Parameter('sim.seed', value=args.seed),
-        Parameter('sim.mag_misalignment_deg', value=list(MISALIGNMENT_DEG)),
-    ]
+    sim = {'mag_misalignment_deg': list(MISALIGNMENT_DEG)}
     overrides = [
         Parameter('auto_calibrate', value=False),
         Parameter('calibration_file', value=str(calibration_file)),
         Parameter('progress_log_period', value=0.0),
     ]
     if located:  # the same place for both: the calibrator takes F from the model
-        where = [Parameter('latitude', value=args.latitude),
-                 Parameter('longitude', value=args.longitude)]
-        sim += [Parameter(f'sim.{p.name}', value=p.value) for p in where]
-        overrides += where
+        sim.update(latitude=args.latitude, longitude=args.longitude)
+        overrides += [Parameter('latitude', value=args.latitude),
+                      Parameter('longitude', value=args.longitude)]
     else:
         overrides.append(Parameter('field_strength', value=FIELD_UT * 1e-6))  # the local field
-    driver = Icm20948DriverNode(namespace=NAMESPACE, context=context, parameter_overrides=sim)
+    driver = simulated_board(context, args.motion, HARD_IRON_UT, args.seed, **sim)
     if args.buffer_size is not None:
         overrides.append(Parameter('buffer_size', value=args.buffer_size))
     calibrator = MagCalibratorNode(namespace=NAMESPACE, context=context,
@@ -373,6 +411,172 @@ def run(args: argparse.Namespace, context: Context) -> int:
         direction = after['direction error (deg)']
         print(f'\nDONE: calibrated ({calibration.model}); corrected direction error '
               f'{direction.rms:.2f} deg RMS, {direction.max:.2f} deg max on the live stream.')
+        return 0
+    finally:
+        spinning.shutdown()
+
+
+class GroundObserver(DemoObserver):
+    """The demo's user of a ground robot: the rotation services, and a teleop for a check turn."""
+
+    def __init__(self, context: Context, namespace: str = NAMESPACE) -> None:
+        super().__init__(context, namespace)
+        self.rotate = self.create_client(Trigger, 'mag_calibrator/rotate_and_calibrate')
+        self.stop_rotation = self.create_client(Trigger, 'mag_calibrator/stop_rotation')
+        self.teleop = None
+
+    def turn(self, rate: float) -> None:
+        if self.teleop is None:
+            self.teleop = self.create_publisher(Twist, 'cmd_vel', 10)
+        twist = Twist()
+        twist.angular.z = float(rate)
+        self.teleop.publish(twist)
+
+    def release(self) -> None:
+        """Zero, then leave cmd_vel to others."""
+        if self.teleop is not None:
+            self.turn(0.0)
+            self.teleop.wait_for_all_acked(Duration(seconds=1))
+            self.destroy_publisher(self.teleop)
+            self.teleop = None
+
+
+def heading_bar(coverage: float, elapsed: float, state: str, width: int = 30) -> str:
+    done = int(round(width * min(max(coverage, 0.0), 1.0)))
+    return (f'\r  turning [{"#" * done}{"." * (width - done)}] heading coverage '
+            f'{100 * coverage:3.0f} %  {elapsed:5.1f} s  {state:9s}')
+
+
+def watch_rotation(calibrator: MagCalibratorNode, timeout_s: float) -> float:
+    """Show the heading coverage until the rotation has ended; returns the seconds it took."""
+    interactive = sys.stdout.isatty()
+    start = time.monotonic()
+    last_line = -math.inf
+    rotation = calibrator._rotation
+    while True:
+        elapsed = time.monotonic() - start
+        coverage = rotation.coverage.fraction if rotation.coverage is not None else 0.0
+        if interactive or elapsed - last_line >= 2.0 or rotation.state != 'turning':
+            line = heading_bar(coverage, elapsed, rotation.state)
+            print(line if interactive else line.strip(), end='' if interactive else '\n',
+                  flush=True)
+            last_line = elapsed
+        if rotation.state != 'turning' or elapsed >= timeout_s:
+            break
+        time.sleep(0.2)
+    if interactive:
+        print()
+    return time.monotonic() - start
+
+
+def check_turn(observer: GroundObserver, driver: Icm20948DriverNode, timeout_s: float):
+    """Turn the robot one full circle (the demo as a teleop), pairing the corrected stream with
+    the simulator's truth; then stop it. Returns (count, raw errors, corrected errors)."""
+    trajectory = driver.settings.cmd_vel
+    start_yaw = trajectory.yaw_and_rate(driver.simulator.sim_time_s)[0]
+    observer.take_pairs()
+    raw, corrected, truth = [], [], []
+    deadline = time.monotonic() + timeout_s
+    try:
+        while time.monotonic() < deadline:
+            observer.turn(CHECK_TURN_RATE)
+            time.sleep(0.05)
+            for raw_sample, corrected_sample in observer.take_pairs():
+                true_field = driver.simulator.truth_for_reading(raw_sample)
+                if true_field is not None:
+                    raw.append(raw_sample)
+                    corrected.append(corrected_sample)
+                    truth.append(true_field)
+            yaw = trajectory.yaw_and_rate(driver.simulator.sim_time_s)[0]
+            if abs(yaw - start_yaw) >= 2.0 * math.pi:
+                break
+    finally:
+        observer.release()
+    if not truth:
+        return 0, None, None
+    truth = np.array(truth)
+    # heading only: turning cannot tell the vertical field (a planar calibration reports it
+    # unobserved), so the corrected magnitude means nothing here
+    tables = [{'heading error (deg)': ErrorStats.of(azimuth_errors_deg(np.array(v), truth))}
+              for v in (raw, corrected)]
+    return len(truth), tables[0], tables[1]
+
+
+def noise_free_heading_error(calibration, driver: Icm20948DriverNode) -> ErrorStats:
+    """The calibration alone: its heading over a full turn of the same floor, without noise."""
+    config = driver.simulator.config
+    trajectory = motion.CmdVelTrajectory(seed=config.seed, wobble_deg=GROUND_WOBBLE_DEG)
+    earth = motion.earth_field(config.field_ut, config.inclination_deg) * 1e-6
+    truth = []
+    for t in np.arange(0.0, 30.0, 0.02):
+        trajectory.command(CHECK_TURN_RATE, float(t))
+        truth.append(trajectory.state(float(t)).rotation.T @ earth)
+    truth = np.array(truth)
+    raw = truth @ config.soft_iron_matrix.T + config.hard_iron * 1e-6
+    return ErrorStats.of(azimuth_errors_deg(calibration.apply(raw), truth))
+
+
+def run_ground(args: argparse.Namespace, context: Context) -> int:
+    """--ground-robot: ~/rotate_and_calibrate turns the simulated robot until calibrated."""
+    calibration_file, plot_file = output_files(args)
+    print(f'Simulated ground robot (ICM-20948 on it): field {FIELD_UT:.0f} uT, inclination '
+          f'{INCLINATION_DEG:.0f} deg, hard iron {list(GROUND_HARD_IRON_UT)} uT (3x the '
+          f'horizontal field), soft iron {list(SOFT_IRON)}, tilt wobble {GROUND_WOBBLE_DEG} deg; '
+          'it turns only as commanded on cmd_vel.')
+    driver = simulated_board(context, 'cmd_vel', GROUND_HARD_IRON_UT, args.seed,
+                             tilt_wobble_deg=GROUND_WOBBLE_DEG)
+    overrides = [Parameter('calibration_file', value=str(calibration_file)),
+                 Parameter('progress_log_period', value=0.0)]
+    if args.buffer_size is not None:
+        overrides.append(Parameter('buffer_size', value=args.buffer_size))
+    calibrator = MagCalibratorNode(namespace=NAMESPACE, context=context,
+                                   parameter_overrides=overrides)
+    observer = GroundObserver(context)
+    spinning = NodeThreads(context)
+    for node in (driver, calibrator, observer):
+        spinning.add(node)
+    try:
+        response = None
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline:  # until the first readings have arrived
+            response = observer.call(observer.rotate)
+            if response is None or response.success or 'no input' not in response.message:
+                break
+            time.sleep(0.5)
+        if response is None:
+            print('~/rotate_and_calibrate did not answer', file=sys.stderr)
+            return 2
+        print(f'~/rotate_and_calibrate -> success={response.success}: {response.message}')
+        if not response.success:
+            return 1
+        took = watch_rotation(calibrator, args.collect_timeout + 120.0)
+        reason, message = calibrator._rotation.last_stop or ('', 'still turning')
+        print(f'{message}')
+        if reason != 'done':
+            return 1
+        calibration = calibrator.session.calibration
+        print(f'Calibrated by turning in place for {took:.1f} s ({calibration.model}).')
+
+        print(f'Turning once more at {CHECK_TURN_RATE} rad/s to score the heading...')
+        count, before, after = check_turn(observer, driver, 60.0)
+        if count == 0:
+            print('no corrected samples could be paired with the truth', file=sys.stderr)
+            return 3
+        print_summary(count, before, after)
+        saved = observer.call(observer.save)
+        if saved is None or not saved.success:
+            print(f'~/save failed: {saved.message if saved else "no answer"}', file=sys.stderr)
+            return 4
+        plot_calibration(observer.raw_samples() * 1e6, calibration.scaled(1e6), plot_file,
+                         title='mag_calibrator_demo --ground-robot', units='uT')
+        print(f'\nCalibration file: {calibration_file}\nBefore/after plot: {plot_file}')
+        own = noise_free_heading_error(calibration, driver)
+        print(f'Calibration alone (noise-free readings, a full turn on the same floor): heading '
+              f'error {own.rms:.2f} deg RMS, {own.max:.2f} deg max.')
+        heading = after['heading error (deg)']
+        print(f'\nDONE: calibrated ({calibration.model}) in {took:.1f} s of turning; corrected '
+              f'heading error {heading.rms:.2f} deg RMS, {heading.max:.2f} deg max on the live '
+              'stream.')
         return 0
     finally:
         spinning.shutdown()

@@ -1,0 +1,120 @@
+"""The live session with yaw-only motion (a ground robot turning in place), without ROS: heading
+coverage drives the automatic gate, the hints and the diagnostics; the defaults calibrate."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+import sys
+
+import numpy as np
+import pytest
+
+from mag_calibrator_ros.calibration.fitting import FitOptions
+from mag_calibrator_ros.calibration.jobs import FitJob, readiness, run_job
+from mag_calibrator_ros.calibration.session import CalibrationSession, SessionSettings
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_heading import (  # noqa: E402  (one robot, one place)
+    HARD_IRON_UT,
+    RATE_HZ,
+    ROTATION_WORDS,
+    SOFT_IRON,
+    turning,
+)
+
+UT = 1e-6
+
+
+def stream(session: CalibrationSession, raw_ut: np.ndarray, start_s: float = 0.0) -> None:
+    session.feed(raw_ut * UT, RATE_HZ, start_ns=round(start_s * 1e9), frame_id='imu_link')
+
+
+def heading_error_deg(calibration, seed: int = 9, wobble_deg: float = 2.0) -> float:
+    """RMS azimuth error about the chip z axis over a full turn of noise-free readings (another
+    floor than the calibration saw)."""
+    truth_raw, _ = turning(30.0, seed=seed, wobble_deg=wobble_deg, noise_ut=0.0)
+    truth = np.linalg.solve(SOFT_IRON, (truth_raw - HARD_IRON_UT).T).T
+    corrected = calibration.apply(truth_raw * UT)
+    error = (np.arctan2(corrected[:, 1], corrected[:, 0])
+             - np.arctan2(truth[:, 1], truth[:, 0]))
+    error = np.mod(error + math.pi, 2.0 * math.pi) - math.pi
+    return float(np.degrees(np.sqrt(np.mean(error[int(5 * RATE_HZ):] ** 2))))
+
+
+def test_turning_in_place_calibrates_by_itself_with_the_defaults_after_a_full_turn():
+    raw, yaw = turning(45.0)
+    session = CalibrationSession()
+    turned_at_calibration = None
+    for second in range(45):
+        chunk = slice(int(second * RATE_HZ), int((second + 1) * RATE_HZ))
+        stream(session, raw[chunk], start_s=second)
+        if session.calibration is not None and turned_at_calibration is None:
+            turned_at_calibration = math.degrees(abs(yaw[chunk.stop - 1] - yaw[0]))
+    assert session.calibration is not None, session.progress_text()
+    assert session.calibration.model == 'planar'
+    assert session.adoptions.get('auto') == 1
+    assert 330.0 <= turned_at_calibration <= 420.0  # the whole circle, not half of it
+    assert heading_error_deg(session.calibration) < 3.0  # mag alone: wobble limits it
+    values = session.diagnostic_values(0.0)
+    assert values['coverage_kind'] == 'heading' and values['coverage_pct'] >= 97.0
+    assert 'heading coverage' in session.progress_text()
+
+
+def test_a_level_turn_calibrates_heading_within_half_a_degree():
+    raw, _ = turning(40.0, wobble_deg=0.0)
+    session = CalibrationSession()
+    stream(session, raw)
+    assert session.calibration is not None and session.calibration.model == 'planar'
+    assert heading_error_deg(session.calibration, wobble_deg=0.0) < 0.5
+
+
+def test_hints_speak_of_turning_and_nothing_is_adopted_before_the_circle_closes():
+    raw, yaw = turning(40.0)
+    half = np.flatnonzero(np.abs(yaw - yaw[0]) <= math.radians(200.0))[-1]
+    session = CalibrationSession()
+    texts = []
+    for second in range(int(half / RATE_HZ)):
+        stream(session, raw[int(second * RATE_HZ):int((second + 1) * RATE_HZ)], second)
+        texts.append(session.progress_text())
+        texts.append(str(session.diagnostic_values(float(second))['coverage_hint']))
+    assert session.calibration is None
+    assert any('turn another' in text and 'to the left' in text for text in texts), texts
+    for text in texts:
+        assert not any(word in text for word in ROTATION_WORDS), text
+    assert session.yaw_only()
+
+
+def test_model_planar_uses_heading_coverage_whatever_the_motion():
+    session = CalibrationSession(SessionSettings(model='planar'))
+    raw, _ = turning(4.0)
+    stream(session, raw)
+    assert session.yaw_only()
+    assert session.coverage().cells == 36
+
+
+def planar_job(raw_ut: np.ndarray, model: str = 'auto') -> FitJob:
+    return FitJob('calibrate', raw_ut * UT, None, raw_ut * UT, FitOptions(model=model),
+                  ready_coverage=0.5)
+
+
+@pytest.mark.parametrize('model', ['auto', 'planar'])
+def test_automatic_readiness_of_yaw_only_data_is_the_whole_heading_circle(model):
+    raw, yaw = turning(40.0)
+    most = np.flatnonzero(np.abs(yaw - yaw[0]) <= math.radians(300.0))[-1]
+    coverage, needed = readiness(planar_job(raw[:most:5], model))
+    assert coverage.cells == 36 and needed > 0.95
+    assert coverage.fraction < needed
+    assert run_job(planar_job(raw[:most:5], model)).result is None  # not fitted: not ready
+    coverage, needed = readiness(planar_job(raw[::5], model))
+    assert coverage.fraction >= needed
+    outcome = run_job(planar_job(raw[::5], model))
+    assert outcome.result is not None and outcome.result.success, outcome.result.reason
+
+
+def test_tumbling_keeps_direction_coverage():
+    from mag_calibrator_ros import motion
+
+    tumble = motion.body_field_samples('tumble', 1500, RATE_HZ, 50.0, 60.0, seed=2)
+    coverage, needed = readiness(planar_job(tumble @ SOFT_IRON.T + HARD_IRON_UT))
+    assert coverage.cells == 80 and needed == 0.5

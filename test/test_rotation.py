@@ -1,0 +1,211 @@
+"""RotationController without ROS: every decision of ~/rotate_and_calibrate on an injected clock --
+refusals, the ramp, when a fit is asked for, and that every way out commands zero."""
+
+from __future__ import annotations
+
+import pytest
+
+from mag_calibrator_ros.calibration.coverage import Coverage
+from mag_calibrator_ros.calibration.rotation import (
+    COMMAND_PERIOD_S,
+    INPUT_TIMEOUT_S,
+    RETRY_S,
+    STOP_REASONS,
+    ZERO_HOLD_S,
+    RotationController,
+    RotationSettings,
+)
+
+
+class Robot:
+    """Drives a controller as the node does: a tick every COMMAND_PERIOD_S with fresh input."""
+
+    def __init__(self, **settings) -> None:
+        self.rotation = RotationController(RotationSettings(**settings), '/imu/mag', '/cmd_vel')
+        self.now = 100.0
+        self.fraction = 0.0
+        self.looks = 0
+        self.input_age: float | None = 0.01
+        self.others = 0
+        self.commands: list[float | None] = []
+        self.fits = 0
+
+    def coverage(self) -> Coverage:
+        self.looks += 1
+        return Coverage(self.fraction, round(36 * self.fraction), 36, '')
+
+    def start(self) -> tuple[bool, str]:
+        return self.rotation.start(self.now, self.input_age, self.others)
+
+    def tick(self, seconds: float = COMMAND_PERIOD_S):
+        """Advance ``seconds`` in ticks; returns the steps."""
+        steps = []
+        for _ in range(max(1, round(seconds / COMMAND_PERIOD_S))):
+            self.now += COMMAND_PERIOD_S
+            step = self.rotation.update(self.now, self.input_age, self.others, self.coverage)
+            self.commands.append(step.command)
+            self.fits += step.calibrate
+            steps.append(step)
+        return steps
+
+
+def test_refuses_without_fresh_input_beside_another_commander_or_twice():
+    robot = Robot()
+    robot.input_age = None
+    started, message = robot.start()
+    assert not started and 'no input on /imu/mag' in message
+    robot.input_age = INPUT_TIMEOUT_S + 0.1
+    started, message = robot.start()
+    assert not started and 'for 0.6 s' in message
+    robot.input_age, robot.others = 0.01, 1
+    started, message = robot.start()
+    assert not started and 'other publisher' in message and '/cmd_vel' in message
+    robot.others = 0
+    assert robot.start()[0]
+    started, message = robot.start()
+    assert not started and 'already rotating' in message
+    assert robot.rotation.state == 'turning'
+
+
+def test_ramps_up_to_the_speed_and_resends_it_every_tick():
+    robot = Robot(speed=0.3, acceleration=0.5)
+    assert robot.rotation.command(robot.now) is None  # idle: nothing published
+    robot.start()
+    assert robot.rotation.command(robot.now) == 0.0
+    robot.tick(0.3)
+    assert robot.commands[-1] == pytest.approx(0.15)
+    robot.tick(2.0)
+    assert robot.commands[-1] == pytest.approx(0.3)
+    assert all(c is not None for c in robot.commands)  # one command per tick while turning
+    assert max(robot.commands) == pytest.approx(0.3)
+
+
+def test_looks_at_coverage_twice_a_second_not_every_tick():
+    robot = Robot()
+    robot.start()
+    robot.tick(10.0)
+    assert 18 <= robot.looks <= 21
+
+
+def stopped(robot: Robot, reason: str) -> None:
+    """The stop happened for ``reason`` and the very next command is zero, held, then none."""
+    assert robot.rotation.state == 'stopping'
+    assert robot.rotation.last_stop[0] == reason
+    assert robot.rotation.command(robot.now) == 0.0
+    robot.tick(ZERO_HOLD_S / 2)
+    assert robot.commands[-1] == 0.0
+    robot.tick(ZERO_HOLD_S)
+    assert robot.commands[-1] is None and robot.rotation.state == 'idle'
+
+
+def test_asks_for_a_fit_once_the_circle_is_complete_and_stops_when_it_passes():
+    robot = Robot()
+    robot.start()
+    robot.fraction = 0.9
+    robot.tick(3.0)
+    assert robot.fits == 0
+    robot.fraction = 1.0
+    robot.tick(3.0)
+    assert robot.fits == 1  # one at a time, while it is being fitted
+    line = robot.rotation.calibration_answered(robot.now, True, False, 'model planar, ...')
+    assert 'calibrated' in line and 'model planar' in line
+    stopped(robot, 'done')
+
+
+def test_a_failed_gate_is_retried_after_more_turning_and_an_error_stops():
+    robot = Robot()
+    robot.start()
+    robot.fraction = 1.0
+    robot.tick(0.5)
+    assert robot.fits == 1
+    line = robot.rotation.calibration_answered(robot.now, False, False, 'residual 7 %')
+    assert 'turning on' in line and robot.rotation.state == 'turning'
+    robot.tick(RETRY_S - 0.2)
+    assert robot.fits == 1
+    robot.tick(0.5)
+    assert robot.fits == 2
+    assert robot.commands[-1] > 0.0
+    robot.rotation.calibration_answered(robot.now, False, True, 'fit worker process ended')
+    stopped(robot, 'fit_error')
+
+
+def test_stops_when_input_stops():
+    robot = Robot()
+    robot.start()
+    robot.tick(1.0)
+    robot.input_age = INPUT_TIMEOUT_S + 0.01
+    robot.tick()
+    stopped(robot, 'no_input')
+
+
+def test_stops_at_the_timeout():
+    robot = Robot(timeout_s=10.0)
+    robot.start()
+    robot.tick(9.9)
+    assert robot.rotation.state == 'turning'
+    robot.tick(0.2)
+    stopped(robot, 'timeout')
+
+
+def test_stops_when_another_commander_appears():
+    robot = Robot()
+    robot.start()
+    robot.tick(1.0)
+    robot.others = 1
+    robot.tick()
+    stopped(robot, 'conflict')
+
+
+@pytest.mark.parametrize('reason', ['requested', 'parameters', 'shutdown'])
+def test_stops_on_request_parameter_change_and_shutdown(reason):
+    robot = Robot()
+    robot.start()
+    robot.tick(2.0)
+    line = robot.rotation.stop(robot.now, reason, 'detail')
+    assert STOP_REASONS[reason] in line and 'detail' in line
+    stopped(robot, reason)
+    assert robot.rotation.stop(robot.now, reason) is None  # nothing to stop
+
+
+def test_a_late_answer_after_a_stop_changes_nothing():
+    robot = Robot()
+    robot.start()
+    robot.fraction = 1.0
+    robot.tick(0.5)
+    robot.rotation.stop(robot.now, 'requested')
+    assert robot.rotation.calibration_answered(robot.now, True, False, 'ok') is None
+    assert robot.rotation.last_stop[0] == 'requested'
+
+
+def test_may_start_again_while_its_zero_is_still_held():
+    robot = Robot()
+    robot.start()
+    robot.tick(1.0)
+    robot.rotation.stop(robot.now, 'requested')
+    robot.tick(0.1)
+    assert robot.start()[0]
+    assert robot.rotation.command(robot.now) == 0.0  # a new ramp from standstill
+    robot.tick(1.0)
+    assert robot.commands[-1] > 0.0
+
+
+def test_settings_and_reasons_are_checked():
+    for settings in ({'speed': 0.0}, {'speed': 5.0}, {'acceleration': -1.0},
+                     {'timeout_s': float('nan')}):
+        with pytest.raises(ValueError):
+            RotationController(RotationSettings(**settings))
+    with pytest.raises(ValueError):
+        RotationController().stop(0.0, 'bored')
+
+
+def test_reports_progress_and_diagnostics():
+    robot = Robot()
+    assert robot.rotation.diagnostic_values(robot.now) == {'rotation': 'idle'}
+    robot.start()
+    robot.fraction = 0.5
+    robot.tick(6.0)
+    values = robot.rotation.diagnostic_values(robot.now)
+    assert values['rotation'] == 'turning' and values['rotation_heading_coverage_pct'] == 50.0
+    assert 'heading coverage 50 %' in robot.rotation.progress_text(robot.now)
+    robot.rotation.stop(robot.now, 'requested')
+    assert robot.rotation.diagnostic_values(robot.now)['rotation_last_stop'] == 'requested'
