@@ -14,6 +14,7 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+SPIN_TIMEOUT_S = 0.05
 
 
 def guarded(node: Node, name: str, callback: Callable) -> Callable:
@@ -41,7 +42,7 @@ def spin_node(node_factory: Callable[[], Node], args: Sequence[str] | None = Non
     rclpy's own handlers shut the context down first, and a publish then fails.
     Returns a process exit code (0 on a normal stop) so console scripts can ``sys.exit`` it.
     """
-    previous = None
+    previous, stop = None, None
     if publish_on_shutdown:
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
         stop = _StopOnSignal()  # one for both: the first of either signal counts
@@ -51,8 +52,11 @@ def spin_node(node_factory: Callable[[], Node], args: Sequence[str] | None = Non
     node = None
     try:
         node = node_factory()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
+        if stop is None:
+            rclpy.spin(node)
+        else:
+            _spin_until(node, stop)
+    except (KeyboardInterrupt, ExternalShutdownException, ShutdownException):
         pass
     finally:
         if node is not None:
@@ -64,9 +68,10 @@ def spin_node(node_factory: Callable[[], Node], args: Sequence[str] | None = Non
 
 
 class _StopOnSignal:
-    """The first SIGINT or SIGTERM ends spinning (as KeyboardInterrupt, in the main thread);
-    further ones are ignored until the clean-up is done, so a second Ctrl-C cannot cut the
-    node's shutdown (its final publishes) short."""
+    """The first SIGINT or SIGTERM ends spinning; further ones are ignored until the clean-up is
+    done, so a second Ctrl-C cannot cut the node's shutdown (its final publishes) short. It only
+    sets a flag: an exception raised from a signal handler can land inside a pybind11 call of
+    rclpy, which turns it into a RuntimeError ("Unable to convert call argument") and exit 1."""
 
     def __init__(self) -> None:
         self.received: int | None = None
@@ -74,7 +79,19 @@ class _StopOnSignal:
     def __call__(self, number: int, frame: object) -> None:
         if self.received is None:
             self.received = number
-            raise KeyboardInterrupt
+
+
+def _spin_until(node: Node, stop: _StopOnSignal) -> None:
+    """Spin ``node`` until ``stop`` has seen a signal. Python runs the handler once the wait
+    returns (the node's timers wake it at least every SPIN_TIMEOUT_S)."""
+    executor = SingleThreadedExecutor(context=node.context)
+    executor.add_node(node)
+    try:
+        while stop.received is None and node.context.ok():
+            executor.spin_once(timeout_sec=SPIN_TIMEOUT_S)
+    finally:
+        executor.remove_node(node)
+        executor.shutdown()
 
 
 class NodeThreads:
