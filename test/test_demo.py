@@ -6,7 +6,7 @@ from mag_calibrator_ros.tools import demo
 
 def test_demo_runs_calibrates_and_writes_outputs(tmp_path, capsys):
     out = tmp_path / 'demo_out'
-    status = demo.main(['--output-dir', str(out), '--collect-timeout', '30', '--min-coverage',
+    status = demo.main(['--output-dir', str(out), '--collect-timeout', '180', '--min-coverage',
                         '0.6', '--evaluate-seconds', '1.5'])
     printed = capsys.readouterr().out
     assert status == 0, printed
