@@ -10,6 +10,7 @@ import sys
 import numpy as np
 import pytest
 
+from mag_calibrator_ros import motion
 from mag_calibrator_ros.calibration.fitting import FitOptions
 from mag_calibrator_ros.calibration.jobs import FitJob, readiness, run_job
 from mag_calibrator_ros.calibration.session import CalibrationSession, SessionSettings
@@ -21,6 +22,7 @@ from test_heading import (  # noqa: E402  (one robot, one place)
     ROTATION_WORDS,
     SOFT_IRON,
     turning,
+    turning_imu,
 )
 
 UT = 1e-6
@@ -118,3 +120,42 @@ def test_tumbling_keeps_direction_coverage():
     tumble = motion.body_field_samples('tumble', 1500, RATE_HZ, 50.0, 60.0, seed=2)
     coverage, needed = readiness(planar_job(tumble @ SOFT_IRON.T + HARD_IRON_UT))
     assert coverage.cells == 80 and needed == 0.5
+
+
+def tumbling_raw(seconds: float, seed: int = 1) -> np.ndarray:
+    field = motion.body_field_samples('tumble', int(seconds * RATE_HZ), RATE_HZ, 50.0, 60.0,
+                                      seed=seed)
+    noise = np.random.default_rng(seed).normal(0.0, 0.3, field.shape)
+    return field @ SOFT_IRON.T + HARD_IRON_UT + noise
+
+
+@pytest.mark.parametrize('with_imu', [False, True])
+def test_a_planar_calibration_gives_way_to_a_full_one_once_the_sensor_tumbles(with_imu):
+    raw, _, up, _ = turning_imu(30.0, seed=1)
+    session = CalibrationSession()
+    session.feed(raw * UT, RATE_HZ, frame_id='imu_link', accel=up * 9.81 if with_imu else None)
+    assert session.calibration.model == 'planar'
+    session.take_events()
+    stream(session, tumbling_raw(40.0), start_s=30.0)
+    events = session.take_events()
+    messages = [event.message for event in events]
+    assert any('moved out of the plane' in message for message in messages)
+    # Not taken for a wrong calibration: the planar one is judged in its plane only.
+    assert not any(event.level == 'warning' for event in events), messages
+    assert session.calibration.model == 'full'
+    assert session.adoptions.get('refine', 0) >= 1
+
+
+def test_a_bump_in_the_floor_does_not_leave_the_plane():
+    raw, _, up, _ = turning_imu(30.0, seed=1)
+    session = CalibrationSession()
+    session.feed(raw * UT, RATE_HZ, frame_id='imu_link', accel=up * 9.81)
+    session.take_events()
+    bump = tumbling_raw(1.0, seed=2)  # a second of wild tilts
+    stream(session, bump, start_s=30.0)
+    more, _, more_up, _ = turning_imu(20.0, seed=1)
+    session.feed(more * UT, RATE_HZ, start_ns=int(31e9), frame_id='imu_link',
+                 accel=more_up * 9.81)
+    messages = [event.message for event in session.take_events()]
+    assert not any('moved out of the plane' in message for message in messages)
+    assert session.calibration.model == 'planar'

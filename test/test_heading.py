@@ -33,18 +33,30 @@ ROTATION_WORDS = ('roll', 'pitch', 'rotating about')
 def turning(seconds: float, rate: float = 0.3, seed: int = 0, wobble_deg: float = 2.0,
             noise_ut: float = 0.3, start_s: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """(raw readings uT, true yaw rad) of a cmd_vel robot turning at ``rate`` from ``start_s``."""
+    raw, _, _, yaw = turning_imu(seconds, rate, seed, wobble_deg, noise_ut, start_s)
+    return raw, yaw
+
+
+def turning_imu(seconds: float, rate: float = 0.3, seed: int = 0, wobble_deg: float = 2.0,
+                noise_ut: float = 0.3, start_s: float = 0.0, inclination_deg: float = 60.0
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(raw uT, true field in the chip frame uT, gravity's unit direction up in the chip frame,
+    true yaw) of the same robot."""
     trajectory = motion.CmdVelTrajectory(seed=seed, wobble_deg=wobble_deg,
                                          max_acceleration=0.5)
-    earth = motion.earth_field(FIELD_UT, 60.0)
+    earth = motion.earth_field(FIELD_UT, inclination_deg)
     rng = np.random.default_rng(seed)
-    raw, yaw = [], []
+    raw, truth, up, yaw = [], [], [], []
     for t in np.arange(0.0, seconds, 1.0 / RATE_HZ):
         if t >= start_s:
             trajectory.command(rate, float(t))
-        body = trajectory.state(float(t)).rotation.T @ earth
+        rotation = trajectory.state(float(t)).rotation
+        body = rotation.T @ earth
+        truth.append(body)
+        up.append(rotation.T @ np.array([0.0, 0.0, 1.0]))
         raw.append(SOFT_IRON @ body + HARD_IRON_UT + rng.normal(0.0, noise_ut, 3))
         yaw.append(trajectory.yaw_and_rate(float(t))[0])
-    return np.array(raw), np.array(yaw)
+    return np.array(raw), np.array(truth), np.array(up), np.array(yaw)
 
 
 def buffered(raw: np.ndarray) -> SampleBuffer:

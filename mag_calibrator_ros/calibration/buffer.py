@@ -67,10 +67,13 @@ DEFAULT_MAGNITUDE_TOLERANCE = 0.3
 outlier (a spike or a magnet nearby). Good data under a calibration that passed the fit gates stays
 within a few per cent, so this never rejects it."""
 
-READING_SAMPLE_SIZE = 256
+READING_SAMPLE_SIZE = 1024
 """Readings kept as a random draw of the recent stream (``readings``): the evidence that the
 buffer's shell is the field sphere and not the rim of a still sensor's noise (see
-coverage.shell_directions). 256 tell a share of one half to within about 3 %."""
+coverage.shell_directions; 256 would tell a share of one half to within about 3 %), and what a
+ground robot's turn is levelled by gravity on (levelled.py), where the vertical field shows only
+through tilts of a degree or two: a quarter as many readings doubled its heading error in
+benchmarks/bench_ground.py."""
 
 READING_HORIZON = 2048
 """The draw favours the last ~2,048 readings (each survives a geometric time of that mean), so
@@ -100,6 +103,7 @@ class SampleBuffer:
         self._merging = False  # the reference may also merge (a full fit of the buffer itself)
         self._projection: _MagnitudeScreen | None = None  # the latest that merged: places means
         self._readings = np.zeros((READING_SAMPLE_SIZE, 3))
+        self._reading_ups = np.full((READING_SAMPLE_SIZE, 3), np.nan)
         self._recorded = 0  # readings offered: the draw's population
         self._draw = random.Random(0)  # deterministic: the same stream, the same draw
 
@@ -111,6 +115,7 @@ class SampleBuffer:
         self._counts = np.zeros(capacity)
         self._sums = np.zeros((capacity, 3))
         self._moments = np.zeros((capacity, 6))  # upper triangle: xx xy xz yy yz zz
+        self._up_sums = np.zeros((capacity, 3))  # gravity directions of the paired readings
         self._nbr_dist = np.full((capacity, k), np.inf)  # distances to the k nearest others
         self._nbr_index = np.full((capacity, k), -1, dtype=np.intp)
         self._kth = np.full(capacity, np.inf)  # largest of those: a closer newcomer enters
@@ -194,6 +199,27 @@ class SampleBuffer:
         return self._readings[: min(self._recorded, READING_SAMPLE_SIZE)].copy()
 
     @property
+    def reading_ups(self) -> np.ndarray:
+        """Gravity's unit direction paired with each of ``readings`` (NaN rows: none), a copy."""
+        return self._reading_ups[: min(self._recorded, READING_SAMPLE_SIZE)].copy()
+
+    @property
+    def ups(self) -> np.ndarray:
+        """Gravity's mean unit direction behind each buffered point, (fill, 3), NaN rows where
+        no reading of it came paired with the accelerometer (see ``add``)."""
+        sums = self._up_sums[: self._fill]
+        norms = np.linalg.norm(sums, axis=1)
+        with np.errstate(invalid='ignore', divide='ignore'):
+            ups = sums / norms[:, None]
+        ups[~(norms > 0)] = np.nan
+        return ups
+
+    @property
+    def paired(self) -> int:
+        """Buffered points with a gravity direction."""
+        return int(np.count_nonzero(np.any(self._up_sums[: self._fill] != 0.0, axis=1)))
+
+    @property
     def anchors(self) -> np.ndarray:
         """The samples that won their places, (fill, 3), a copy: what the uniqueness rule
         measures (``samples`` differ from them only by what was merged in)."""
@@ -248,8 +274,10 @@ class SampleBuffer:
 
     # -- feeding -------------------------------------------------------------------------------
 
-    def add(self, sample: ArrayLike) -> str:
+    def add(self, sample: ArrayLike, up: Sequence[float] | None = None) -> str:
         """Offer one screened reading (3,); returns the outcome (see :data:`OUTCOMES`).
+        ``up``: gravity's unit direction paired with it (the accelerometer), or None; a buffered
+        point carries the mean direction of its readings (``ups``).
 
         Raises ValueError for a malformed, non-finite or all-zero sample: screening is the
         caller's job (:mod:`~mag_calibrator_ros.calibration.screening`), done once per message.
@@ -266,24 +294,26 @@ class SampleBuffer:
         self._seen += 1
         if self._reference is not None and self._reference.check((x0, x1, x2)):
             return 'magnitude_outlier'
-        self._record_reading(x)
-        return self._admit(x)
+        self._record_reading(x, up)
+        return self._admit(x, up)
 
-    def _record_reading(self, x: np.ndarray) -> None:
+    def _record_reading(self, x: np.ndarray, up: Sequence[float] | None) -> None:
         """Reservoir sampling (Algorithm R) over a population capped at READING_HORIZON."""
         self._recorded += 1
         if self._recorded <= READING_SAMPLE_SIZE:
-            self._readings[self._recorded - 1] = x
-            return
-        slot = int(self._draw.random() * min(self._recorded, READING_HORIZON))
-        if slot < READING_SAMPLE_SIZE:
-            self._readings[slot] = x
+            slot = self._recorded - 1
+        else:
+            slot = int(self._draw.random() * min(self._recorded, READING_HORIZON))
+            if slot >= READING_SAMPLE_SIZE:
+                return
+        self._readings[slot] = x
+        self._reading_ups[slot] = np.nan if up is None else up
 
-    def _admit(self, x: np.ndarray) -> str:
+    def _admit(self, x: np.ndarray, up: Sequence[float] | None = None) -> str:
         """The uniqueness rule for a screened sample; a sample that is not unique is merged."""
         n = self._fill
         if n == 0:
-            self._store(0, x)
+            self._store(0, x, up)
             self._fill = 1
             self._refresh_all()
             return 'added'
@@ -293,20 +323,20 @@ class SampleBuffer:
         if distances[nearest] == 0.0 and np.array_equal(self._points[nearest], x):
             return 'duplicate'
         if n < self._capacity:
-            self._place(n, x, distances)
+            self._place(n, x, distances, up)
             return 'added'
         k = self._k
         own_score = float(np.partition(distances, k - 1)[:k].mean())
         # Strictly higher: a candidate only as unique as the weakest sample changes nothing.
         if own_score > self._weakest_score:
-            self._place(self._weakest, x, distances)
+            self._place(self._weakest, x, distances, up)
             return 'replaced'
         if self._merging:
-            self._merge(nearest, x)
+            self._merge(nearest, x, up)
             self.merged += 1
         return 'not_unique'
 
-    def _merge(self, slot: int, x: np.ndarray) -> None:
+    def _merge(self, slot: int, x: np.ndarray, up: Sequence[float] | None = None) -> None:
         """Add reading ``x`` to ``slot``'s count, sum and second moment (about the anchor, so
         a large hard-iron offset costs no precision). Plain floats: this runs per sample."""
         a0, a1, a2 = self._points[slot].tolist()
@@ -315,6 +345,8 @@ class SampleBuffer:
         self._counts[slot] += 1.0
         self._sums[slot] += (d0, d1, d2)
         self._moments[slot] += (d0 * d0, d0 * d1, d0 * d2, d1 * d1, d1 * d2, d2 * d2)
+        if up is not None:
+            self._up_sums[slot] += up
 
     def add_many(self, samples: ArrayLike) -> dict[str, int]:
         """Offer many samples (n, 3) in order; returns how often each outcome happened."""
@@ -398,7 +430,7 @@ class SampleBuffer:
 
     def _per_point(self) -> tuple[np.ndarray, ...]:
         """Every per-point array but the neighbour lists (those are rebuilt)."""
-        return self._points, self._counts, self._sums, self._moments
+        return self._points, self._counts, self._sums, self._moments, self._up_sums
 
     def _reallocate(self, capacity: int, k: int) -> None:
         n = self._fill
@@ -428,12 +460,13 @@ class SampleBuffer:
 
     # -- neighbour bookkeeping -----------------------------------------------------------------
 
-    def _place(self, slot: int, x: np.ndarray, distances: np.ndarray) -> None:
+    def _place(self, slot: int, x: np.ndarray, distances: np.ndarray,
+               up: Sequence[float] | None = None) -> None:
         """Store ``x`` in ``slot`` (append or replace); ``distances``: x to the old rows."""
         n_before = self._fill
         n_after = max(n_before, slot + 1)
         if n_after - 1 <= self._k:  # still filling the first k + 1: every row changes
-            self._store(slot, x)
+            self._store(slot, x, up)
             self._fill = n_after
             self._refresh_all()
             return
@@ -449,7 +482,7 @@ class SampleBuffer:
             rebuild = np.array([slot])
         if slot < n_before and self._merging:
             self._fold_displaced(slot)
-        self._store(slot, x)
+        self._store(slot, x, up)
         self._fill = n_after
         gain = np.flatnonzero(enters)
         if len(gain):  # the newcomer takes the place of their farthest neighbour: O(k) each
@@ -461,11 +494,12 @@ class SampleBuffer:
             self._score[gain] = nearest.mean(axis=1)
         self._refresh_rows(rebuild)
 
-    def _store(self, slot: int, x: np.ndarray) -> None:
+    def _store(self, slot: int, x: np.ndarray, up: Sequence[float] | None = None) -> None:
         self._points[slot] = x
         self._counts[slot] = 1.0
         self._sums[slot] = 0.0
         self._moments[slot] = 0.0
+        self._up_sums[slot] = 0.0 if up is None else up
 
     def _fold_displaced(self, slot: int) -> None:
         """The replaced point's readings join its nearest neighbour: nothing measured is lost.
@@ -485,6 +519,7 @@ class SampleBuffer:
         self._counts[target] += count
         self._sums[target] += sums + count * shift
         self._moments[target] += moments[_TRIU]
+        self._up_sums[target] += self._up_sums[slot]
 
     def _remove(self, slot: int) -> None:
         """Remove the sample in ``slot``; the last sample moves into it."""

@@ -22,6 +22,7 @@ import numpy as np
 
 from mag_calibrator_ros.calibration.calibration import Calibration
 from mag_calibrator_ros.calibration.coverage import CELL_COUNT, cell_index, direction_coverage
+from mag_calibrator_ros.calibration.heading import heading_coverage_of, yaw_only
 
 HOLD_OUT_EVERY = 4
 """While a calibration is in force, one accepted reading in four (a deterministic pseudo-random
@@ -103,9 +104,13 @@ def relative_errors(calibration: Calibration, readings: np.ndarray) -> np.ndarra
 
 def evidence_span(readings: np.ndarray, minimum: int = MIN_EVIDENCE) -> float:
     """Share of direction cells the readings span, judged by their own shape (centred and
-    whitened by themselves), so a calibration that is badly off cannot hide their spread."""
+    whitened by themselves), so a calibration that is badly off cannot hide their spread. Readings
+    of a robot turning about one axis span the heading circle, not the sphere: their share of
+    heading sectors (on their own ring) counts then, or a ground robot could never be judged."""
     if len(readings) < minimum:
         return 0.0
+    if yaw_only(readings):
+        return float(heading_coverage_of(readings).coverage.fraction)
     return float(direction_coverage(readings, None, readings).fraction)
 
 

@@ -37,6 +37,7 @@ from mag_calibrator_ros.calibration.ellipsoid import (
     thickness,
 )
 from mag_calibrator_ros.calibration.heading import fit_ring
+from mag_calibrator_ros.calibration.levelled import level_planar
 
 _HUGE = sys.float_info.max
 """Stands in for an infinite condition number or axis ratio: results never carry inf or NaN."""
@@ -174,6 +175,8 @@ def fit_calibration(
     options: FitOptions | None = None,
     weights: ArrayLike | None = None,
     readings: ArrayLike | None = None,
+    ups: ArrayLike | None = None,
+    reading_ups: ArrayLike | None = None,
 ) -> FitResult:
     """Fit ``options.model`` to (n, 3) raw samples; never raises on data, never returns NaN/Inf.
 
@@ -183,6 +186,10 @@ def fit_calibration(
     ``readings`` (m, 3), optional: the sensor's readings behind selected samples
     (SampleBuffer.readings), so the coverage gate tells the field's sphere from the rim of a
     still sensor's noise (see coverage.shell_directions).
+    ``ups`` (n, 3), optional: gravity's direction in the sensor frame behind each sample (the
+    paired accelerometer; NaN rows: none); ``reading_ups`` (m, 3) the same behind ``readings``,
+    preferred when given (an unbiased draw). A planar fit without a prior is then levelled by it
+    (see levelled.py): a ground robot's tilts explained, its heading right on a tilted floor.
     """
     options = options or FitOptions()
     rows, finite, problem = _usable_rows(samples)
@@ -223,9 +230,12 @@ def fit_calibration(
         field_strength=None if options.field_strength is None else options.field_strength / unit,
         prior=None if options.prior is None else options.prior.scaled(1.0 / unit),
     )
+    gravity = _gravity(rows, unit, weights, finite, ups, readings, reading_ups)
     with np.errstate(all='ignore'):
         layer_thickness, _ = thickness(normalised[1])
-        fitted, choice_note = _fit_model(rows, options, layer_thickness, weights, normalised)
+        fitted, choice_note = _fit_model(
+            rows, options, layer_thickness, weights, normalised, gravity=gravity
+        )
         if fitted is None:
             reasons = [
                 _too_few(n, options)
@@ -240,7 +250,9 @@ def fit_calibration(
             rows, finite, fitted, options, layer_thickness, n_bad, choice_note, evidence
         )
         if not fitted.robust and _near_a_gate(result, options):
-            refitted, note = _fit_model(rows, options, layer_thickness, weights, normalised, True)
+            refitted, note = _fit_model(
+                rows, options, layer_thickness, weights, normalised, True, gravity
+            )
             if refitted is not None:
                 result = _judge(
                     rows, finite, refitted, options, layer_thickness, n_bad, note, evidence
@@ -306,6 +318,48 @@ def _usable_weights(weights: ArrayLike, finite: np.ndarray) -> tuple[np.ndarray 
     return array[finite], ''
 
 
+def _gravity(
+    rows: np.ndarray,
+    unit: float,
+    weights: np.ndarray | None,
+    finite: np.ndarray,
+    ups: ArrayLike | None,
+    readings: ArrayLike | None,
+    reading_ups: ArrayLike | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None] | None:
+    """What to level a planar fit with: the readings and their gravity directions when both are
+    given and usable, else the samples' (``rows`` are the finite samples / ``unit``)."""
+    if readings is not None and reading_ups is not None:
+        points, directions = _paired_rows(readings, reading_ups)
+        if points is not None:
+            return points / unit, directions, None
+    if ups is not None:
+        directions = _paired_rows(np.zeros((len(finite), 3)), ups)[1]
+        if directions is not None:
+            return rows, directions[finite], weights
+    return None
+
+
+def _paired_rows(points: ArrayLike, ups: ArrayLike
+                 ) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(finite points, their gravity directions with NaN where unusable), or (None, None) when the
+    shapes differ or no direction is usable."""
+    try:
+        points = np.asarray(points, dtype=float)
+        ups = np.asarray(ups, dtype=float)
+    except (TypeError, ValueError):
+        return None, None
+    if points.ndim != 2 or points.shape[1:] != (3,) or ups.shape != points.shape:
+        return None, None
+    keep = np.all(np.isfinite(points), axis=1)
+    points, ups = points[keep], ups[keep].copy()
+    usable = np.all(np.isfinite(ups), axis=1) & np.any(ups != 0.0, axis=1)
+    if not usable.any():
+        return None, None
+    ups[~usable] = np.nan
+    return points, ups
+
+
 def _too_few(n: int, options: FitOptions) -> str:
     if n >= options.min_samples:
         return ''
@@ -322,9 +376,31 @@ def _fit_model(
     weights: np.ndarray | None,
     normalised: tuple[Normalisation, np.ndarray],
     always_robust: bool = False,
+    gravity: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None,
 ) -> tuple[EllipsoidFit | None, str]:
-    """The requested model, or for ``auto`` the one the data determine with the lowest BIC.
+    """The requested model, or for ``auto`` the one the data determine with the lowest BIC;
+    a planar fit without a prior levelled by ``gravity`` (points in the rows' units, their
+    gravity directions, weights) when that stands (levelled.py).
     ``normalised``: ``normalise(rows)`` and the normalised rows (shared by every fit)."""
+    fitted, note = _choose_model(rows, options, layer_thickness, weights, normalised,
+                                 always_robust)
+    if fitted is None or fitted.model != 'planar' or gravity is None or options.prior is not None:
+        return fitted, note
+    levelling = level_planar(*gravity[:2], fitted, gravity[2], options.outlier_threshold)
+    if levelling.offset is None:
+        return fitted, note
+    return (levelling.ellipsoid_fit(rows, fitted, options.outlier_threshold),
+            '; '.join(part for part in (note, levelling.note) if part))
+
+
+def _choose_model(
+    rows: np.ndarray,
+    options: FitOptions,
+    layer_thickness: float,
+    weights: np.ndarray | None,
+    normalised: tuple[Normalisation, np.ndarray],
+    always_robust: bool,
+) -> tuple[EllipsoidFit | None, str]:
     prior = None
     if options.prior is not None:
         prior = (options.prior.offset, options.prior.matrix / options.prior.field_strength)

@@ -17,6 +17,7 @@ REP-103 frames. Mounted upside down, left and right swap; the amount to turn doe
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 import math
 
@@ -307,3 +308,70 @@ __all__ = [
     'turning_direction',
     'yaw_only',
 ]
+
+
+PLANE_BAND = 0.25
+"""A reading counts as off the plane a planar calibration was turned in when it lies off it by
+more than a quarter of the ring's radius (a tilt of about 15°): a floor's wobble of a few degrees
+stays inside, a robot picked up or a sensor tumbled does not."""
+
+OFF_PLANE_WINDOW = 200
+OFF_PLANE_SHARE = 0.25
+"""The motion has left the plane once a quarter of the last 200 readings were off it: sustained
+(2 s at 100 Hz), not a bump in the floor."""
+
+
+class PlaneWatch:
+    """Tells when readings leave the plane a planar calibration was fitted in: O(1) a reading.
+
+    A planar calibration knows nothing off its plane, so the buffer screened by it would refuse
+    a tumble's readings until the calibration is declared a misfit; the owner stops screening by
+    it once the motion has left the plane, so a full calibration can be collected at once.
+    """
+
+    def __init__(self, normal: np.ndarray, centre: float, band: float) -> None:
+        self._normal = [float(v) for v in normal]
+        self._centre = float(centre)
+        self._band = float(band)
+        self._recent: list[bool] = []
+        self._next = 0
+        self.off = 0
+
+    @classmethod
+    def of(cls, plane_normal: ArrayLike | None, samples: np.ndarray) -> PlaneWatch | None:
+        """From a planar calibration's raw plane normal and the samples it was fitted to; None
+        when either is unusable."""
+        try:
+            normal = np.asarray(plane_normal, dtype=float).reshape(3)
+        except (TypeError, ValueError):
+            return None
+        length = float(np.linalg.norm(normal))
+        points = finite_rows(samples)
+        if not (math.isfinite(length) and length > 0) or len(points) < MIN_RING_POINTS:
+            return None
+        normal = normal / length
+        along = points @ normal
+        in_plane = points - np.outer(along, normal)
+        radius = float(np.median(np.linalg.norm(in_plane - in_plane.mean(axis=0), axis=1)))
+        if not (math.isfinite(radius) and radius > 0):
+            return None
+        return cls(normal, float(np.median(along)), PLANE_BAND * radius)
+
+    def near(self, points: np.ndarray) -> np.ndarray:
+        """Which of ``points`` (n, 3) lie in the plane's band: what a planar calibration can be
+        judged on."""
+        return np.abs(points @ np.array(self._normal) - self._centre) <= self._band
+
+    def add(self, reading: Sequence[float]) -> bool:
+        """Count one reading; True once the motion has left the plane."""
+        n = self._normal
+        off = abs(reading[0] * n[0] + reading[1] * n[1] + reading[2] * n[2]
+                  - self._centre) > self._band
+        if len(self._recent) < OFF_PLANE_WINDOW:
+            self._recent.append(off)
+        else:
+            self.off -= self._recent[self._next]
+            self._recent[self._next] = off
+            self._next = (self._next + 1) % OFF_PLANE_WINDOW
+        self.off += off
+        return self.off >= OFF_PLANE_SHARE * OFF_PLANE_WINDOW

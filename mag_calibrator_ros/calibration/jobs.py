@@ -97,6 +97,11 @@ class FitJob:
     earth: EarthReference | None = None
     """calibrate and refine: the World Magnetic Model's field here; the fit is checked against
     it (and fails beyond the tolerances when ``earth.gate``)."""
+    ups: np.ndarray | None = None
+    """calibrate and refine: gravity's direction behind each sample (SampleBuffer.ups, NaN
+    where unpaired): a planar fit is levelled by it (levelled.py)."""
+    reading_ups: np.ndarray | None = None
+    """The same behind each of ``readings`` (SampleBuffer.reading_ups), preferred."""
 
 
 @dataclass(frozen=True)
@@ -158,7 +163,8 @@ def _run(job: FitJob) -> JobOutcome:
         coverage, needed = readiness(job)
         if coverage.fraction < needed:
             return JobOutcome(job, coverage=coverage)
-    result = fit_calibration(job.samples, job.options, weights=job.weights, readings=job.readings)
+    result = fit_calibration(job.samples, job.options, weights=job.weights, readings=job.readings,
+                             ups=job.ups, reading_ups=job.reading_ups)
     if result.calibration is not None:
         stamped = result.calibration.with_metadata(
             time=time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()), **job.metadata

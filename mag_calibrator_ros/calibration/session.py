@@ -67,6 +67,7 @@ from mag_calibrator_ros.calibration.fitting import FitOptions
 from mag_calibrator_ros.calibration.heading import (
     COMPLETE_HEADING_COVERAGE,
     HeadingCoverage,
+    PlaneWatch,
     heading_coverage_of,
     yaw_only,
 )
@@ -422,6 +423,8 @@ class CalibrationSession:
         self._events: deque[SessionEvent] = deque(maxlen=MAX_EVENTS)
         self._reported_rejects = dict(self.screen.counts)
         self._latest: np.ndarray | None = None  # the latest accepted reading (heading hints)
+        self._plane: PlaneWatch | None = None  # a planar calibration's plane, while screened by it
+        self._calibration_plane: PlaneWatch | None = None  # the plane of a planar one in force
         self._looked_at: np.ndarray | None = None  # the latest reading at the previous look
         self._turning = 0  # the way the heading last moved between two looks (+1 / -1)
         self.attitudes = StaticAttitudes()
@@ -571,7 +574,9 @@ class CalibrationSession:
         if self.calibration is not None and self._hold_out.random() * HOLD_OUT_EVERY < 1.0:
             self.evidence.add(reading, self._direction(reading), now)
         else:
-            outcome = self.buffer.add(reading)
+            if self._plane is not None and self._plane.add(reading):
+                self._leave_plane()
+            outcome = self.buffer.add(reading, None if pair is None else _up(pair[0]))
             if outcome in self.refusals:
                 self.refusals[outcome] += 1
             else:
@@ -648,6 +653,8 @@ class CalibrationSession:
                           previous=self._provisional)
         if kind == 'check':
             recent = self.evidence.readings(since_s=self.clock.now - MISFIT_WINDOW_S)
+            if self._calibration_plane is not None:  # a planar one knows nothing off its plane
+                recent = recent[self._calibration_plane.near(recent)]
             tracked = None if self.tracker is None else self.tracker.calibration
             return FitJob('check', np.empty((0, 3)), None, None, self.settings.fit_options(),
                           current=self.calibration, evidence=self.evidence.readings(),
@@ -665,6 +672,8 @@ class CalibrationSession:
             else None,
             alignment=self.settings.alignment_options(self.earth),
             earth=self._earth_reference(),
+            ups=buffer.ups if buffer.paired else None,
+            reading_ups=buffer.reading_ups if buffer.paired else None,
         )
 
     def _earth_reference(self) -> EarthReference | None:
@@ -890,6 +899,10 @@ class CalibrationSession:
 
     def _adopt(self, calibration: Calibration, source: str) -> None:
         self.calibration = calibration
+        self._calibration_plane = None
+        if calibration.model == 'planar':
+            self._calibration_plane = PlaneWatch.of(calibration.metadata.get('plane_normal'),
+                                                    self.buffer.samples)
         self.adoptions[source] = self.adoptions.get(source, 0) + 1
         self.misfit.reset()
         self.scheduler.calibration_changed()
@@ -899,6 +912,7 @@ class CalibrationSession:
 
     def _set_reference(self, calibration: Calibration | None, tolerance: float | None,
                        source: str | None) -> None:
+        self._plane = self._calibration_plane if source == 'calibration' else None
         if calibration is None:
             self.buffer.set_reference(None)
         elif tolerance is None:
@@ -907,6 +921,17 @@ class CalibrationSession:
             self.buffer.set_reference(calibration, tolerance, merge=source == 'fit')
         self._reference_source = source if calibration is not None else None
         self._reference_window = (0, 0)
+
+    def _leave_plane(self) -> None:
+        """The sensor left the plane its planar calibration was turned in: stop screening the
+        buffer by it (it knows nothing off the plane) and refine from the first interval, so a
+        full calibration is collected and judged at once. The planar one stays in force."""
+        self._set_reference(None, None, None)
+        self.scheduler.calibration_changed()
+        self._event('info', 'the sensor moved out of the plane it was calibrated turning in: '
+                            'collecting in 3-D for a full calibration (keep turning it through '
+                            'every orientation); the planar calibration stays in force until a '
+                            'better one is found')
 
     def _check_reference(self) -> None:
         """Set the buffer's reference aside once it refuses most of a window of readings."""
@@ -1249,3 +1274,11 @@ __all__ = [
     'magnitude_residual_pct',
     'transform_covariance',
 ]
+
+
+def _up(accel: Sequence[float]) -> tuple[float, float, float]:
+    """Gravity's unit direction from a paired specific force (never zero: process_imu refuses
+    that)."""
+    ax, ay, az = accel
+    norm = math.sqrt(ax * ax + ay * ay + az * az)
+    return ax / norm, ay / norm, az / norm

@@ -1,0 +1,286 @@
+"""Planar calibration levelled by gravity: a ground robot that tilts while it turns.
+
+A robot turning on a real floor tilts a few degrees, and a tilt of θ moves about V θ of the
+vertical field V into the chip's x-y plane: the horizontal readings no longer lie on one ellipse,
+and a fit that cannot see the tilt takes part of it for soft iron (about 1.5° of heading error
+for 2° of wobble at 60° inclination). Even on a level floor a 2-D fit leaves the corrected ring
+in the plane of the raw readings, which soft iron tilts off the yaw axis, and the heading in the
+chip frame then carries a second-harmonic error.
+
+With the accelerometer paired to each reading, ``up`` (gravity's direction in the chip frame,
+the accelerometer at rest: specific force points up) is known per sample. In the frame it
+levels, the true field has a constant horizontal magnitude H and a constant vertical component V
+(the angle between field and gravity is fixed: the invariant joint accelerometer-magnetometer
+calibration rests on, Papafotis and Sotiriadis, "Accelerometer and Magnetometer Joint
+Calibration and Axes Alignment", Technologies 8(1):11, 2020). Fitting both to
+``c = M (x - b)`` with ``M`` symmetric fixes what a turn about one axis leaves open: the
+corrected ring is perpendicular to gravity, its heading (rotation about the vertical) is the
+symmetric one, and a tilt explains the wobble instead of bending the shape. As in the plain
+planar fit, the out-of-plane scale is held at the in-plane one; the offset along the plane normal
+(and with it V, the dip) is fitted when the tilts determine it, else held at the plain fit's.
+
+Residuals are relative to H (H = 1: the horizontal ring has unit radius), so no scale can shrink
+them. The result is an :class:`EllipsoidFit` like every other (``|unit| ≈ 1`` on the full field),
+so gates, evidence and the magnitude checks judge it the same way.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .ellipsoid import EllipsoidFit, robust_sigma
+
+MIN_PAIRED_SHARE = 0.8
+"""Share of the readings that must carry gravity: a ring half of whose readings came without it
+(an IMU that started late, dropped messages) levels only part of the turn."""
+
+MAX_UP_TO_NORMAL_DEG = 30.0
+"""Gravity must lie within this of the plane of the turn's normal: soft iron tilts the raw plane
+a few degrees (up to about 10° for off-diagonals of 0.15), a turn about another axis is no
+ground robot turning, and levelling it by gravity would be wrong."""
+
+MIN_POINTS = 12
+"""Fewest paired readings to level with: twice the parameters."""
+
+MAX_NORMAL_OFFSET_STD = 0.05
+"""The offset along the normal (hence the dip) is reported as observed when its 1-sigma is below
+5 % of the field (the plain planar fit's bar). A less certain one still levels the tilts far
+better than none: its error leaks into the heading only times the tilt (0.1 H x 2° is 0.2°)."""
+
+MAX_CONDITION = 1e6
+"""Condition number of the column-scaled Jacobian beyond which the offset along the normal and
+the dip are not determined at all (a level floor: they trade one for the other exactly); the
+plain fit's offset is then held, which a level floor's heading does not depend on."""
+
+MAX_RESIDUAL_GROWTH = 1.1
+"""The levelled fit replaces the plain one only if its horizontal residual (in the frame gravity
+levels) is at most 10 % above the plain fit's on the same samples: gravity explains tilt, it
+must not buy a worse ring (a disturbed field, an accelerometer shaken by the drive)."""
+
+
+@dataclass(frozen=True)
+class Levelling:
+    """What levelling by gravity gave: ``unit = matrix (x - offset)``, ``|unit| ≈ 1`` on the full
+    field (None: the plain fit stands, ``note`` says why)."""
+
+    offset: np.ndarray | None
+    matrix: np.ndarray | None
+    note: str
+    dip_deg: float | None = None
+    """The fitted inclination when the tilts determined it, else None."""
+
+    def ellipsoid_fit(self, rows: np.ndarray, plain: EllipsoidFit,
+                      outlier_threshold: float) -> EllipsoidFit:
+        """The levelled calibration judged on ``rows`` (the samples the plain fit was judged on):
+        magnitude residuals and inliers as every model reports them."""
+        corrected = (rows - self.offset) @ self.matrix.T
+        residuals = np.linalg.norm(corrected, axis=1) - 1.0
+        inliers = np.abs(residuals) <= outlier_threshold * robust_sigma(residuals)
+        normal = plain.plane_normal
+        basis = _basis(normal)
+        in_plane = corrected @ basis
+        block = (basis.T @ self.matrix @ basis)[:2, :2]
+        eigenvalues = np.linalg.eigvalsh(block)
+        return EllipsoidFit(
+            'planar', self.offset, self.matrix, residuals, inliers, plain.condition,
+            float(np.linalg.det(self.matrix) ** (-1.0 / 3.0)),
+            float(eigenvalues.max() / eigenvalues.min()), plain.parameter_std,
+            unobserved=('matrix_normal',) if self.dip_deg is not None
+            else ('offset_normal', 'matrix_normal'),
+            plane_normal=normal, headings=np.arctan2(in_plane[:, 1], in_plane[:, 0]),
+            robust=plain.robust,
+        )  # fmt: skip
+
+
+def level_planar(
+    points: np.ndarray,
+    ups: np.ndarray,
+    plain: EllipsoidFit,
+    weights: np.ndarray | None = None,
+    outlier_threshold: float = 4.0,
+) -> Levelling:
+    """Refit the planar fit ``plain`` on ``points`` (n, 3) with gravity directions ``ups`` (n, 3;
+    NaN rows: none paired). Best on an unbiased draw of readings (SampleBuffer.readings): the
+    most spread-out samples of a thin ring are the noisiest ones. Points off the plain fit by
+    more than ``outlier_threshold`` robust sigmas are left out, then flagged again on the result.
+    """
+    if plain.plane_normal is None or len(points) != len(ups):
+        return Levelling(None, None, 'no plane to level')
+    paired = np.all(np.isfinite(ups), axis=1) & np.all(np.isfinite(points), axis=1)
+    paired[paired] = np.linalg.norm(ups[paired], axis=1) > 0
+    if paired.sum() < MIN_PAIRED_SHARE * len(points) or paired.sum() < MIN_POINTS:
+        return Levelling(None, None,
+                         f'{int(paired.sum())} of {len(points)} readings paired with gravity')
+    up = np.full_like(points, np.nan)
+    up[paired] = ups[paired] / np.linalg.norm(ups[paired], axis=1)[:, None]
+    normal = np.asarray(plain.plane_normal, dtype=float)
+    normal = normal / np.linalg.norm(normal)
+    mean_up = np.mean(up[paired], axis=0)
+    mean_up /= np.linalg.norm(mean_up)
+    angle = float(np.degrees(np.arccos(min(abs(float(mean_up @ normal)), 1.0))))
+    if angle > MAX_UP_TO_NORMAL_DEG:
+        return Levelling(None, None,
+                         f'gravity is {angle:.0f} deg off the turn axis: not a ground turn')
+    model = _Model(points, up, _basis(normal), weights)
+    start = model.start(plain, paired)
+    if start is None:
+        return Levelling(None, None, 'the plain fit gives no start')
+    residuals = model.horizontal_residuals(start)
+    inliers = paired.copy()
+    inliers[paired] = np.abs(residuals[paired]) <= outlier_threshold * robust_sigma(
+        residuals[paired])
+    if inliers.sum() < MIN_POINTS:
+        return Levelling(None, None, 'too few readings near the plain fit')
+    fitted = model.solve(start, inliers, free_normal=True)
+    held = fitted is None or model.degenerate()
+    if held:
+        fitted = model.solve(start, inliers, free_normal=False)
+    if fitted is None:
+        return Levelling(None, None, 'the levelled fit did not converge')
+    observed = not held and model.normal_determined(fitted, inliers)
+    level = model.horizontal_residuals(fitted)
+    refit = paired.copy()
+    refit[paired] = np.abs(level[paired]) <= outlier_threshold * robust_sigma(level[paired])
+    if refit.sum() >= MIN_POINTS and not np.array_equal(refit, inliers):
+        again = model.solve(fitted, refit, free_normal=not held)
+        if again is not None:
+            fitted, inliers = again, refit
+            level = model.horizontal_residuals(fitted)
+    plain_rms = float(np.sqrt(np.mean(residuals[inliers] ** 2)))
+    level_rms = float(np.sqrt(np.mean(level[inliers] ** 2)))
+    if not level_rms <= MAX_RESIDUAL_GROWTH * plain_rms:
+        return Levelling(None, None, f'levelled residual {100 * level_rms:.2f} % exceeds the '
+                         f"plain fit's {100 * plain_rms:.2f} %")
+    offset, matrix = model.calibration(fitted)
+    if not (np.all(np.isfinite(matrix)) and np.all(np.isfinite(offset))
+            and np.linalg.eigvalsh(matrix).min() > 0):
+        return Levelling(None, None, 'the levelled soft-iron matrix is not positive definite')
+    dip = float(np.degrees(np.arctan(abs(fitted[8]))))
+    note = 'levelled by gravity' + (f' (dip {dip:.1f} deg fitted)' if observed else '')
+    return Levelling(offset, matrix, note, dip if observed else None)
+
+
+def _plane_normal(rows: np.ndarray, plain: EllipsoidFit) -> np.ndarray:
+    if plain.plane_normal is not None and np.all(np.isfinite(plain.plane_normal)):
+        normal = np.asarray(plain.plane_normal, dtype=float)
+    else:
+        normal = np.linalg.svd(rows - rows.mean(axis=0), full_matrices=False)[2][-1]
+    return normal / np.linalg.norm(normal)
+
+
+def _basis(normal: np.ndarray) -> np.ndarray:
+    """Orthonormal columns (u, v, n), right-handed, n the plane normal."""
+    helper = np.eye(3)[int(np.argmin(np.abs(normal)))]
+    u = np.cross(helper, normal)
+    u /= np.linalg.norm(u)
+    return np.column_stack([u, np.cross(normal, u), normal])
+
+
+class _Model:
+    """Parameters p = [A_uu, A_uv, A_vv, k_u, k_v, b_u, b_v, b_n, V] in the plane's frame:
+    ``M = [[A, k], [kᵀ, sqrt(det A)]]``, offset ``b``, vertical component V (H = 1)."""
+
+    def __init__(self, rows: np.ndarray, up: np.ndarray, basis: np.ndarray,
+                 weights: np.ndarray | None) -> None:
+        self.basis = basis
+        self.mean = np.nanmean(rows, axis=0)
+        self.w = (rows - self.mean) @ basis
+        self.up = up @ basis
+        self.root = None if weights is None else np.sqrt(np.asarray(weights, dtype=float))
+
+    @staticmethod
+    def matrix(p: np.ndarray) -> np.ndarray:
+        a = np.array([[p[0], p[1]], [p[1], p[2]]])
+        m = np.empty((3, 3))
+        m[:2, :2] = a
+        m[:2, 2] = m[2, :2] = p[3:5]
+        m[2, 2] = np.sqrt(max(float(np.linalg.det(a)), 1e-300))
+        return m
+
+    def start(self, plain: EllipsoidFit, paired: np.ndarray) -> np.ndarray | None:
+        matrix = self.basis.T @ plain.matrix @ self.basis
+        offset = self.basis.T @ (plain.offset - self.mean)
+        corrected = (self.w[paired] - offset) @ matrix.T
+        up = self.up[paired]
+        vertical = np.einsum('ij,ij->i', corrected, up)
+        horizontal = np.linalg.norm(corrected - vertical[:, None] * up, axis=1)
+        scale = float(np.median(horizontal))
+        if not (np.isfinite(scale) and scale > 0):
+            return None
+        matrix = matrix / scale
+        v = float(np.median(vertical)) / scale
+        return np.array([matrix[0, 0], matrix[0, 1], matrix[1, 1], matrix[0, 2], matrix[1, 2],
+                         *offset, v])
+
+    def parts(self, p: np.ndarray, rows: np.ndarray | slice = slice(None)
+              ) -> tuple[np.ndarray, np.ndarray]:
+        corrected = (self.w[rows] - p[5:8]) @ self.matrix(p).T
+        up = self.up[rows]
+        vertical = np.einsum('ij,ij->i', corrected, up)
+        horizontal = np.linalg.norm(corrected - vertical[:, None] * up, axis=1)
+        return horizontal, vertical
+
+    def horizontal_residuals(self, p: np.ndarray) -> np.ndarray:
+        return self.parts(p)[0] - 1.0
+
+    def _residuals(self, p: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        horizontal, vertical = self.parts(p, rows)
+        e = np.concatenate([horizontal - 1.0, vertical - p[8]])
+        if self.root is not None:
+            e = e * np.tile(self.root[rows], 2)
+        return e
+
+    def solve(self, start: np.ndarray, rows: np.ndarray, free_normal: bool) -> np.ndarray | None:
+        from scipy.optimize import least_squares  # the fit worker's import, not a node start-up
+
+        free = np.ones(9, dtype=bool)
+        if not free_normal:
+            free[7] = False
+
+        def residuals(q: np.ndarray) -> np.ndarray:
+            p = start.copy()
+            p[free] = q
+            return self._residuals(p, rows)
+
+        try:
+            solution = least_squares(residuals, start[free], method='lm', x_scale='jac')
+        except (ValueError, np.linalg.LinAlgError):
+            return None
+        p = start.copy()
+        p[free] = solution.x
+        if not (np.all(np.isfinite(p)) and np.linalg.eigvalsh(self.matrix(p)).min() > 0):
+            return None
+        self._jacobian = solution.jac
+        self._cost = float(2.0 * solution.cost)
+        self._free = free
+        return p
+
+    def degenerate(self) -> bool:
+        """Whether the last solve's parameters are not all determined (column-scaled)."""
+        norms = np.linalg.norm(self._jacobian, axis=0)
+        if not np.all(norms > 0):
+            return True
+        singular = np.linalg.svd(self._jacobian / norms, compute_uv=False)
+        return not singular[-1] * MAX_CONDITION > singular[0]
+
+    def normal_determined(self, p: np.ndarray, rows: np.ndarray) -> bool:
+        """The offset along the normal's 1-sigma, from the last (free) solve's Jacobian,
+        relative to the field."""
+        jacobian, dof = self._jacobian, 2 * int(rows.sum()) - int(self._free.sum())
+        if dof <= 0:
+            return False
+        try:
+            covariance = np.linalg.inv(jacobian.T @ jacobian) * (self._cost / dof)
+        except np.linalg.LinAlgError:
+            return False
+        std = float(np.sqrt(max(covariance[7, 7], 0.0)))  # b_n, in the plane frame's units
+        scale = float(np.sqrt(np.linalg.det(self.matrix(p)[:2, :2])))  # 1 / H in those units
+        return bool(np.isfinite(std) and std * scale <= MAX_NORMAL_OFFSET_STD * np.hypot(1, p[8]))
+
+    def calibration(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(offset, matrix) in input units, ``|unit| = 1`` on the full field (H = 1, V)."""
+        field = float(np.hypot(1.0, p[8]))
+        matrix = self.basis @ self.matrix(p) @ self.basis.T / field
+        return self.mean + self.basis @ p[5:8], matrix

@@ -1,0 +1,119 @@
+"""Planar fits levelled by gravity (levelled.py): a ground robot that tilts while it turns, with
+its accelerometer paired, gets its heading right; anything that is no ground turn is left to
+the plain fit."""
+
+from __future__ import annotations
+
+from pathlib import Path
+import sys
+
+import numpy as np
+import pytest
+
+from mag_calibrator_ros.calibration.buffer import SampleBuffer
+from mag_calibrator_ros.calibration.ellipsoid import fit_ellipsoid
+from mag_calibrator_ros.calibration.fitting import FitOptions, fit_calibration
+from mag_calibrator_ros.calibration.levelled import level_planar
+from mag_calibrator_ros.calibration.session import CalibrationSession
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_ground_session import heading_error_deg  # noqa: E402
+from test_heading import RATE_HZ, turning_imu  # noqa: E402
+
+UT = 1e-6
+G = 9.80665
+
+
+@pytest.mark.parametrize('seed', [0, 1, 2])
+def test_gravity_levels_a_wobbling_turn_that_the_plain_fit_gets_wrong(seed):
+    raw, _, up, _ = turning_imu(40.0, seed=seed, wobble_deg=2.0)
+    raw = raw * UT
+    plain = fit_calibration(raw, FitOptions(model='planar'))
+    levelled = fit_calibration(raw, FitOptions(model='planar'), ups=up)
+    assert plain.success and levelled.success
+    assert 'levelled by gravity' in levelled.reason and 'levelled' not in plain.reason
+    assert heading_error_deg(plain.calibration) > 1.0  # the wobble, taken for soft iron
+    assert heading_error_deg(levelled.calibration) < 0.3  # another floor than it saw
+    assert 'dip' in levelled.reason  # the tilts determine the vertical component
+    assert 'offset_normal' not in levelled.calibration.metadata['unobserved']
+
+
+def test_a_level_turn_is_levelled_too_but_its_vertical_stays_unobserved():
+    raw, _, up, _ = turning_imu(40.0, wobble_deg=0.0)
+    raw = raw * UT
+    plain = fit_calibration(raw, FitOptions(model='planar'))
+    levelled = fit_calibration(raw, FitOptions(model='planar'), ups=up)
+    # The 2-D fit leaves the ring in the raw plane, which soft iron tilts off the yaw axis.
+    assert heading_error_deg(plain.calibration, wobble_deg=0.0) > 0.2
+    assert heading_error_deg(levelled.calibration, wobble_deg=0.0) < 0.1
+    assert 'offset_normal' in levelled.calibration.metadata['unobserved']
+
+
+def test_gravity_off_the_turn_axis_is_no_ground_turn():
+    raw, _, up, _ = turning_imu(40.0)
+    sideways = np.roll(up, 1, axis=1)  # gravity along chip x: the turn is about another axis
+    plain = fit_ellipsoid(raw, 'planar')
+    levelling = level_planar(raw, sideways, plain)
+    assert levelling.offset is None and 'off the turn axis' in levelling.note
+    result = fit_calibration(raw, FitOptions(model='planar'), ups=sideways)
+    assert 'levelled' not in result.reason
+
+
+@pytest.mark.parametrize('case', ['nan', 'zeros', 'few', 'shape', 'text'])
+def test_unusable_gravity_leaves_the_plain_fit(case):
+    raw, _, up, _ = turning_imu(40.0)
+    ups = up.copy()
+    if case == 'nan':
+        ups[:] = np.nan
+    elif case == 'zeros':
+        ups[:] = 0.0
+    elif case == 'few':
+        ups[len(ups) // 2:] = np.nan
+    elif case == 'shape':
+        ups = ups[:10]
+    else:
+        ups = 'garbage'
+    plain = fit_calibration(raw, FitOptions(model='planar'))
+    result = fit_calibration(raw, FitOptions(model='planar'), ups=ups)
+    assert result.success and 'levelled' not in result.reason
+    np.testing.assert_allclose(result.calibration.matrix, plain.calibration.matrix)
+
+
+def test_a_tumble_is_never_levelled():
+    rng = np.random.default_rng(3)
+    directions = rng.normal(size=(600, 3))
+    raw = 50.0 * directions / np.linalg.norm(directions, axis=1)[:, None] + (10.0, -5.0, 3.0)
+    ups = np.tile([0.0, 0.0, 1.0], (600, 1))
+    result = fit_calibration(raw, FitOptions(), ups=ups)
+    assert result.success and result.calibration.model != 'planar'
+    assert 'levelled' not in result.reason
+
+
+def test_the_buffer_carries_gravity_with_its_samples_and_readings():
+    buffer = SampleBuffer(capacity=20, k=3)
+    raw, _, up, _ = turning_imu(30.0)
+    for index, (reading, direction) in enumerate(zip(raw, up, strict=True)):
+        buffer.add(reading, None if index % 2 else tuple(direction))
+    ups, readings, reading_ups = buffer.ups, buffer.readings, buffer.reading_ups
+    assert ups.shape == (buffer.fill, 3) and reading_ups.shape == readings.shape
+    paired = np.all(np.isfinite(ups), axis=1)
+    assert 0 < paired.sum() < buffer.fill == 20 and buffer.paired == int(paired.sum())
+    np.testing.assert_allclose(np.linalg.norm(ups[paired], axis=1), 1.0)
+    for reading, direction in zip(readings, reading_ups, strict=True):
+        index = int(np.flatnonzero(np.all(raw == reading, axis=1))[0])
+        if index % 2:
+            assert np.all(np.isnan(direction))
+        else:
+            np.testing.assert_allclose(direction, up[index])
+
+
+def test_the_live_session_levels_a_wobbling_robot_with_its_accelerometer():
+    raw, _, up, _ = turning_imu(45.0, seed=1)
+    results = {}
+    for accel in (None, up * G):
+        session = CalibrationSession()
+        session.feed(raw * UT, RATE_HZ, frame_id='imu_link', accel=accel)
+        assert session.calibration is not None and session.calibration.model == 'planar'
+        results['imu' if accel is not None else 'mag'] = heading_error_deg(session.calibration)
+    assert results['mag'] > 1.0
+    assert results['imu'] < 0.5
