@@ -320,7 +320,7 @@ def test_extreme_but_valid_scales_calibrate_without_warnings(tmp_path, capsys):
        st.sampled_from([None, 400.0, 1.0]))
 def test_all_mode_screens_with_the_buffers_own_rule(rows, full_scale):
     samples = np.array(rows, dtype=float).reshape(-1, 3)
-    kept, counts = fit.screen_all(samples, full_scale)
+    kept, counts, _ = fit.screen_all(samples, full_scale)
     problems = [reading_problem(*row, full_scale) for row in samples.tolist()]
     np.testing.assert_array_equal(kept, samples[[problem is None for problem in problems]])
     assert counts == dict(Counter(problem for problem in problems if problem is not None))

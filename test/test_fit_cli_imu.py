@@ -134,3 +134,25 @@ def test_accel_columns_need_text(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr('sys.stdin', io.StringIO('1,2,3,4,5,6\n' * 5))
     status, _, err = run(['-', '--accel-columns', '0,1,2'], capsys)
     assert status == 2 and 'only 5 usable rows' in err
+
+
+@pytest.mark.parametrize('mode', [[], ['--all']])
+def test_a_ground_robots_turn_is_levelled_by_its_accelerometer(tmp_path, capsys, mode):
+    """A robot turning on a wobbly floor, logged with its accelerometer: the planar fit is
+    levelled by gravity whether the log streams through the buffer or is fitted whole."""
+    path = tmp_path / 'turn.csv'
+    board = BoardModel(SimConfig(hard_iron_ut=(55.0, -45.0, 25.0), noise_ut=0.3, motion='yaw',
+                                 seed=2))
+    lines = ['t,mx,my,mz,ax,ay,az']
+    for k in range(4000):
+        t = k / 100.0
+        field, _ = board.magnetometer(t)
+        accel, _, _ = board.inertial(t, 57.0, 57.0)
+        lines.append(','.join(f'{v:.5f}' for v in (t, *field, *accel)))
+    path.write_text('\n'.join(lines) + '\n')
+    status, out, _ = run([path, '--accel-columns', 'ax,ay,az', '--units', 'uT', '--json',
+                          *mode], capsys)
+    summary = json.loads(out)
+    assert status == 0, summary['reason']
+    assert summary['model'] == 'planar'
+    assert 'levelled by gravity' in summary['reason']

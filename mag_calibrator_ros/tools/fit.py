@@ -274,18 +274,20 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
         fitted = recording.samples  # plot the whole recording, corrected by the buffer's fit
         screening = None
     else:
-        fitted, screening = screen_all(recording.samples, args.full_scale)
-        attitudes = None
+        fitted, screening, kept = screen_all(recording.samples, args.full_scale)
+        attitudes = ups = None
         if recording.accel is not None:
             attitudes = still_attitudes(recording.samples, recording.accel, args.rate,
                                         args.full_scale)
+            ups = gravity_directions(recording.accel[kept])
         if earth is not None and args.field_strength is None and not args.normalise:
             intensity = earth.intensity_in(units)
             if intensity is not None:  # the model's intensity is the target, as in the node
                 options = replace(options, field_strength=intensity)
         outcome = run_job(FitJob(
             'calibrate', fitted, None, None, options, metadata, attitudes=attitudes,
-            alignment=alignment_settings(args).alignment_options(earth), earth=reference))
+            alignment=alignment_settings(args).alignment_options(earth), earth=reference,
+            ups=ups))
     result = outcome.result
     progress.finish()
 
@@ -421,9 +423,11 @@ def stream(session: CalibrationSession, samples: np.ndarray, rate_hz: float,
 SCREEN_BLOCK = 1 << 16
 
 
-def screen_all(samples: np.ndarray, full_scale: float | None) -> tuple[np.ndarray, dict[str, int]]:
+def screen_all(samples: np.ndarray, full_scale: float | None
+               ) -> tuple[np.ndarray, dict[str, int], np.ndarray]:
     """--all: drop what the buffer would refuse outright (its own rule, reading_problem, applied
-    element-wise block by block), counted by reason; the rows are not copied when none goes."""
+    element-wise block by block), counted by reason; the rows are not copied when none goes.
+    Also returns which rows were kept."""
     problem = np.frompyfunc(reading_problem, 4, 1)
     keep = np.ones(len(samples), dtype=bool)
     counts: Counter[str] = Counter()
@@ -434,7 +438,18 @@ def screen_all(samples: np.ndarray, full_scale: float | None) -> tuple[np.ndarra
         if refused.any():
             keep[start:start + len(block)] = ~refused
             counts.update(found[refused].tolist())
-    return (samples if keep.all() else samples[keep]), dict(counts)
+    return (samples if keep.all() else samples[keep]), dict(counts), keep
+
+
+def gravity_directions(accel: np.ndarray) -> np.ndarray:
+    """--all: gravity's unit direction from each accelerometer row (NaN where it is unusable),
+    so a planar fit is levelled as in the node."""
+    force = np.asarray(accel, dtype=float)
+    norms = np.linalg.norm(force, axis=1)
+    with np.errstate(invalid='ignore', divide='ignore'):
+        ups = force / norms[:, None]
+    ups[~(np.isfinite(norms) & (norms > 0))] = np.nan
+    return ups
 
 
 def write_plot(path: str, recording: Recording, fitted: np.ndarray,
