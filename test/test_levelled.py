@@ -14,7 +14,7 @@ from mag_calibrator_ros.calibration.buffer import SampleBuffer
 from mag_calibrator_ros.calibration.ellipsoid import fit_ellipsoid
 from mag_calibrator_ros.calibration.fitting import FitOptions, fit_calibration
 from mag_calibrator_ros.calibration.levelled import level_planar
-from mag_calibrator_ros.calibration.session import CalibrationSession
+from mag_calibrator_ros.calibration.session import CalibrationSession, calibration_summary
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_ground_session import heading_error_deg  # noqa: E402
@@ -35,6 +35,8 @@ def test_gravity_levels_a_wobbling_turn_that_the_plain_fit_gets_wrong(seed):
     assert heading_error_deg(plain.calibration) > 1.0  # the wobble, taken for soft iron
     assert heading_error_deg(levelled.calibration) < 0.3  # another floor than it saw
     assert 'dip' in levelled.reason  # the tilts determine the vertical component
+    assert levelled.calibration.metadata['levelled_by_gravity'] is True
+    assert abs(levelled.calibration.metadata['levelled_dip_deg'] - 60.0) < 3.0
     assert 'offset_normal' not in levelled.calibration.metadata['unobserved']
 
 
@@ -115,5 +117,7 @@ def test_the_live_session_levels_a_wobbling_robot_with_its_accelerometer():
         session.feed(raw * UT, RATE_HZ, frame_id='imu_link', accel=accel)
         assert session.calibration is not None and session.calibration.model == 'planar'
         results['imu' if accel is not None else 'mag'] = heading_error_deg(session.calibration)
+        summary = calibration_summary(session.calibration)
+        assert ('levelled by gravity' in summary) == (accel is not None), summary
     assert results['mag'] > 1.0
     assert results['imu'] < 0.5

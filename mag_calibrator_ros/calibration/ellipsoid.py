@@ -201,6 +201,10 @@ class EllipsoidFit:
     plane_normal: np.ndarray | None = None
     headings: np.ndarray | None = field(default=None, repr=False)
     robust: bool = True
+    levelled: bool = False
+    """planar: levelled by gravity (levelled.py)."""
+    dip_deg: float | None = None
+    """The inclination a levelled fit determined from the tilts, else None."""
 
 
 def thickness(y: np.ndarray) -> tuple[float, np.ndarray]:

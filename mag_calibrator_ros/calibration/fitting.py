@@ -506,6 +506,10 @@ def _judge(
             extra['plane_normal'] = fitted.plane_normal.tolist()
         if fitted.unobserved:
             extra['unobserved'] = list(fitted.unobserved)
+        if fitted.levelled:
+            extra['levelled_by_gravity'] = True
+            if fitted.dip_deg is not None:
+                extra['levelled_dip_deg'] = round(fitted.dip_deg, 3)
         calibration = calibration.with_metadata(
             residual_rms_pct=residual_rms,
             coverage=float(coverage.fraction),

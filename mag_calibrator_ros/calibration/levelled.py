@@ -90,7 +90,7 @@ class Levelling:
             unobserved=('matrix_normal',) if self.dip_deg is not None
             else ('offset_normal', 'matrix_normal'),
             plane_normal=normal, headings=np.arctan2(in_plane[:, 1], in_plane[:, 0]),
-            robust=plain.robust,
+            robust=plain.robust, levelled=True, dip_deg=self.dip_deg,
         )  # fmt: skip
 
 

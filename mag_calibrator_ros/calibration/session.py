@@ -341,6 +341,9 @@ def calibration_summary(calibration: Calibration, units: str = 'T') -> str:
         text += f', coverage {100.0 * coverage:.0f} %'
     if samples is not None:
         text += f', {samples:.0f} samples'
+    if calibration.metadata.get('levelled_by_gravity') is True:
+        dip = calibration.metadata_number('levelled_dip_deg')
+        text += ', levelled by gravity' + ('' if dip is None else f' (dip {dip:.1f} deg)')
     if calibration.aligned:
         text += f', rotated {rotation_angle_deg(calibration.rotation):.2f} deg into the IMU frame'
     return text
