@@ -91,22 +91,24 @@ def test_a_tumble_is_never_levelled():
     assert 'levelled' not in result.reason
 
 
-def test_the_buffer_carries_gravity_with_its_samples_and_readings():
+def test_the_buffer_carries_gravity_with_its_samples_and_paired_readings():
     buffer = SampleBuffer(capacity=20, k=3)
     raw, _, up, _ = turning_imu(30.0)
     for index, (reading, direction) in enumerate(zip(raw, up, strict=True)):
         buffer.add(reading, None if index % 2 else tuple(direction))
-    ups, readings, reading_ups = buffer.ups, buffer.readings, buffer.reading_ups
-    assert ups.shape == (buffer.fill, 3) and reading_ups.shape == readings.shape
+    ups = buffer.ups
+    assert ups.shape == (buffer.fill, 3)
     paired = np.all(np.isfinite(ups), axis=1)
     assert 0 < paired.sum() < buffer.fill == 20 and buffer.paired == int(paired.sum())
     np.testing.assert_allclose(np.linalg.norm(ups[paired], axis=1), 1.0)
-    for reading, direction in zip(readings, reading_ups, strict=True):
+    readings, directions = buffer.paired_readings
+    assert len(readings) == len(directions) > 100 and len(buffer.readings) > 100
+    for reading, direction in zip(readings, directions, strict=True):
         index = int(np.flatnonzero(np.all(raw == reading, axis=1))[0])
-        if index % 2:
-            assert np.all(np.isnan(direction))
-        else:
-            np.testing.assert_allclose(direction, up[index])
+        assert index % 2 == 0  # only readings that came with gravity
+        np.testing.assert_allclose(direction, up[index])
+    buffer.clear()
+    assert len(buffer.paired_readings[0]) == 0
 
 
 def test_the_live_session_levels_a_wobbling_robot_with_its_accelerometer():

@@ -67,13 +67,16 @@ DEFAULT_MAGNITUDE_TOLERANCE = 0.3
 outlier (a spike or a magnet nearby). Good data under a calibration that passed the fit gates stays
 within a few per cent, so this never rejects it."""
 
-READING_SAMPLE_SIZE = 1024
+READING_SAMPLE_SIZE = 256
 """Readings kept as a random draw of the recent stream (``readings``): the evidence that the
 buffer's shell is the field sphere and not the rim of a still sensor's noise (see
-coverage.shell_directions; 256 would tell a share of one half to within about 3 %), and what a
-ground robot's turn is levelled by gravity on (levelled.py), where the vertical field shows only
-through tilts of a degree or two: a quarter as many readings doubled its heading error in
-benchmarks/bench_ground.py."""
+coverage.shell_directions). 256 tell a share of one half to within about 3 %."""
+
+PAIRED_SAMPLE_SIZE = 1024
+"""Readings that came paired with the accelerometer, kept with gravity's direction as a random
+draw of the same recent stream (``paired_readings``): what a ground robot's turn is levelled by
+(levelled.py). The vertical field shows there only through tilts of a degree or two, so it takes
+many readings: a quarter as many doubled the heading error in benchmarks/bench_ground.py."""
 
 READING_HORIZON = 2048
 """The draw favours the last ~2,048 readings (each survives a geometric time of that mean), so
@@ -103,7 +106,9 @@ class SampleBuffer:
         self._merging = False  # the reference may also merge (a full fit of the buffer itself)
         self._projection: _MagnitudeScreen | None = None  # the latest that merged: places means
         self._readings = np.zeros((READING_SAMPLE_SIZE, 3))
-        self._reading_ups = np.full((READING_SAMPLE_SIZE, 3), np.nan)
+        self._paired = np.zeros((PAIRED_SAMPLE_SIZE, 6))  # reading, gravity's direction
+        self._paired_recorded = 0
+        self._paired_draw = random.Random(1)
         self._recorded = 0  # readings offered: the draw's population
         self._draw = random.Random(0)  # deterministic: the same stream, the same draw
 
@@ -199,9 +204,11 @@ class SampleBuffer:
         return self._readings[: min(self._recorded, READING_SAMPLE_SIZE)].copy()
 
     @property
-    def reading_ups(self) -> np.ndarray:
-        """Gravity's unit direction paired with each of ``readings`` (NaN rows: none), a copy."""
-        return self._reading_ups[: min(self._recorded, READING_SAMPLE_SIZE)].copy()
+    def paired_readings(self) -> tuple[np.ndarray, np.ndarray]:
+        """(readings (m, 3), gravity's unit direction beside each (m, 3)): a uniform random draw
+        of the recent screened readings that came paired with the accelerometer, copies."""
+        rows = self._paired[: min(self._paired_recorded, PAIRED_SAMPLE_SIZE)]
+        return rows[:, :3].copy(), rows[:, 3:].copy()
 
     @property
     def ups(self) -> np.ndarray:
@@ -294,20 +301,31 @@ class SampleBuffer:
         self._seen += 1
         if self._reference is not None and self._reference.check((x0, x1, x2)):
             return 'magnitude_outlier'
-        self._record_reading(x, up)
+        self._record_reading(x)
+        if up is not None:
+            self._record_paired(x, up)
         return self._admit(x, up)
 
-    def _record_reading(self, x: np.ndarray, up: Sequence[float] | None) -> None:
+    def _record_reading(self, x: np.ndarray) -> None:
         """Reservoir sampling (Algorithm R) over a population capped at READING_HORIZON."""
         self._recorded += 1
         if self._recorded <= READING_SAMPLE_SIZE:
-            slot = self._recorded - 1
-        else:
-            slot = int(self._draw.random() * min(self._recorded, READING_HORIZON))
-            if slot >= READING_SAMPLE_SIZE:
+            self._readings[self._recorded - 1] = x
+            return
+        slot = int(self._draw.random() * min(self._recorded, READING_HORIZON))
+        if slot < READING_SAMPLE_SIZE:
+            self._readings[slot] = x
+
+    def _record_paired(self, x: np.ndarray, up: Sequence[float]) -> None:
+        """The same draw over the paired readings, with gravity's direction."""
+        self._paired_recorded += 1
+        slot = self._paired_recorded - 1
+        if slot >= PAIRED_SAMPLE_SIZE:
+            slot = int(self._paired_draw.random() * min(self._paired_recorded, READING_HORIZON))
+            if slot >= PAIRED_SAMPLE_SIZE:
                 return
-        self._readings[slot] = x
-        self._reading_ups[slot] = np.nan if up is None else up
+        self._paired[slot, :3] = x
+        self._paired[slot, 3:] = up
 
     def _admit(self, x: np.ndarray, up: Sequence[float] | None = None) -> str:
         """The uniqueness rule for a screened sample; a sample that is not unique is merged."""
@@ -455,6 +473,8 @@ class SampleBuffer:
         self._seen = 0
         self._recorded = 0
         self._draw = random.Random(0)
+        self._paired_recorded = 0
+        self._paired_draw = random.Random(1)
         self.evicted = 0
         self.merged = 0
 

@@ -176,7 +176,7 @@ def fit_calibration(
     weights: ArrayLike | None = None,
     readings: ArrayLike | None = None,
     ups: ArrayLike | None = None,
-    reading_ups: ArrayLike | None = None,
+    paired: tuple[ArrayLike, ArrayLike] | None = None,
 ) -> FitResult:
     """Fit ``options.model`` to (n, 3) raw samples; never raises on data, never returns NaN/Inf.
 
@@ -187,9 +187,10 @@ def fit_calibration(
     (SampleBuffer.readings), so the coverage gate tells the field's sphere from the rim of a
     still sensor's noise (see coverage.shell_directions).
     ``ups`` (n, 3), optional: gravity's direction in the sensor frame behind each sample (the
-    paired accelerometer; NaN rows: none); ``reading_ups`` (m, 3) the same behind ``readings``,
-    preferred when given (an unbiased draw). A planar fit without a prior is then levelled by it
-    (see levelled.py): a ground robot's tilts explained, its heading right on a tilted floor.
+    paired accelerometer; NaN rows: none); ``paired`` (readings (m, 3), their gravity
+    directions (m, 3)), preferred when given (SampleBuffer.paired_readings: an unbiased draw). A
+    planar fit without a prior is then levelled by them (see levelled.py): a ground robot's tilts
+    explained, its heading right on a tilted floor.
     """
     options = options or FitOptions()
     rows, finite, problem = _usable_rows(samples)
@@ -230,7 +231,7 @@ def fit_calibration(
         field_strength=None if options.field_strength is None else options.field_strength / unit,
         prior=None if options.prior is None else options.prior.scaled(1.0 / unit),
     )
-    gravity = _gravity(rows, unit, weights, finite, ups, readings, reading_ups)
+    gravity = _gravity(rows, unit, weights, finite, ups, paired)
     with np.errstate(all='ignore'):
         layer_thickness, _ = thickness(normalised[1])
         fitted, choice_note = _fit_model(
@@ -324,13 +325,12 @@ def _gravity(
     weights: np.ndarray | None,
     finite: np.ndarray,
     ups: ArrayLike | None,
-    readings: ArrayLike | None,
-    reading_ups: ArrayLike | None,
+    paired: tuple[ArrayLike, ArrayLike] | None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None] | None:
-    """What to level a planar fit with: the readings and their gravity directions when both are
+    """What to level a planar fit with: the paired readings and their gravity directions when
     given and usable, else the samples' (``rows`` are the finite samples / ``unit``)."""
-    if readings is not None and reading_ups is not None:
-        points, directions = _paired_rows(readings, reading_ups)
+    if paired is not None and len(paired) == 2:
+        points, directions = _paired_rows(*paired)
         if points is not None:
             return points / unit, directions, None
     if ups is not None:

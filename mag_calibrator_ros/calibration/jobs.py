@@ -100,8 +100,8 @@ class FitJob:
     ups: np.ndarray | None = None
     """calibrate and refine: gravity's direction behind each sample (SampleBuffer.ups, NaN
     where unpaired): a planar fit is levelled by it (levelled.py)."""
-    reading_ups: np.ndarray | None = None
-    """The same behind each of ``readings`` (SampleBuffer.reading_ups), preferred."""
+    paired: tuple[np.ndarray, np.ndarray] | None = None
+    """SampleBuffer.paired_readings: readings with gravity's direction, preferred for levelling."""
 
 
 @dataclass(frozen=True)
@@ -164,7 +164,7 @@ def _run(job: FitJob) -> JobOutcome:
         if coverage.fraction < needed:
             return JobOutcome(job, coverage=coverage)
     result = fit_calibration(job.samples, job.options, weights=job.weights, readings=job.readings,
-                             ups=job.ups, reading_ups=job.reading_ups)
+                             ups=job.ups, paired=job.paired)
     if result.calibration is not None:
         stamped = result.calibration.with_metadata(
             time=time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()), **job.metadata

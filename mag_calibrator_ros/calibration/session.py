@@ -676,7 +676,7 @@ class CalibrationSession:
             alignment=self.settings.alignment_options(self.earth),
             earth=self._earth_reference(),
             ups=buffer.ups if buffer.paired else None,
-            reading_ups=buffer.reading_ups if buffer.paired else None,
+            paired=buffer.paired_readings if buffer.paired else None,
         )
 
     def _earth_reference(self) -> EarthReference | None:
