@@ -313,7 +313,7 @@ def test_stuck_data_ready_is_detected_and_recovered(harness_factory):
     h = harness_factory(sim__seed=8)
     assert h.spin_until(lambda: len(h.messages) >= 10)
     # Only the magnetometer resets (back to power-down): no bus error, DRDY simply never comes.
-    h.node.simulator.write_byte_data(reg.AK09916_ADDRESS, reg.CNTL3, reg.CNTL3_SRST)
+    h.node.simulator.write_magnetometer(reg.CNTL3, reg.CNTL3_SRST)
     count = len(h.messages)
     assert h.spin_until(lambda: h.node.reinitialisations >= 1 and len(h.messages) > count + 10)
     assert 'CNTL2' in h.node.supervisor.last_error
