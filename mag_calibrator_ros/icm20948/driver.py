@@ -286,8 +286,7 @@ class Icm20948:
         self.mag_rate_hz = self.imu = None
         self.aux_master = False
         self._mag_pending = None
-        # After its soft reset the AK09916's data registers and ST2 read 0 until the first sample.
-        self._mag_last_copy = bytes(reg.MAG_MASTER_LENGTH - 1)
+        self._mag_last_copy = b''
         self._imu_synced_at = None
         self._check_icm20948_identity()
         self._write_icm(reg.PWR_MGMT_1, reg.PWR_MGMT_1_DEVICE_RESET)
@@ -609,12 +608,13 @@ class Icm20948:
         the next look comes at least MASTER_SAMPLES_PER_MAG - MAG_DUE_LEAD_PERIODS = 1.5 rounds
         later, so that copy is never taken twice) or if its data differ from the last sample
         taken (the DRDY round was missed: a failed burst, a late poll; the copy always holds the
-        AK09916's newest sample). A new sample equal to the previous one in every byte is lost
-        if its DRDY round was missed (never one taken twice)."""
+        AK09916's newest sample). A new sample equal to the previous one in every byte, or all
+        zero as the registers read after a reset, is lost if its DRDY round was missed (never one
+        taken twice, never a reset's zeros)."""
         st1, data = copy[0], bytes(copy[1:])
         drdy = bool(st1 & reg.ST1_DRDY)
-        if not drdy and data == self._mag_last_copy:
-            return  # not there yet: keep lengthening the burst
+        if not drdy and (data == self._mag_last_copy or not any(data)):
+            return  # not there yet (all zero: the AK09916 just reset): keep lengthening
         self._mag_last_copy = data
         self._mag_pending = (st1, data)
         # With DRDY the sample arrived within the last round, the next one is due a period on;
