@@ -309,6 +309,23 @@ def test_status_windows_rates_and_bus_load():
     assert mag.values['i2c bytes/s'] == pytest.approx(
         (after.wire_bytes - before.wire_bytes) / elapsed, rel=0.02)
     assert imu.values['accel range (g)'] == 4 and imu.values['dlpf'].startswith('3 (')
+    # The magnetometer's own share (issue #11): 8 bytes per look through the I2C master.
+    assert mag.values['path'] == 'I2C master'
+    assert 8 * 99 <= mag.values['magnetometer i2c bytes/s'] <= 10.5 * 101
+
+
+def test_magnetometer_only_stays_in_bypass_with_its_bytes_measured():
+    run = Run(SimConfig(seed=4), imu=None)
+    run.advance(0.5)
+    run.supervisor.status()
+    run.advance(2.0)
+    (mag,) = run.supervisor.status()
+    assert mag.values['path'] == 'bypass' and not run.supervisor.aux_master
+    # 1.5 ST1 polls (4 wire bytes) and one HXL..ST2 burst (11) per sample: all of it the
+    # magnetometer's.
+    assert mag.values['magnetometer i2c bytes/s'] == pytest.approx(
+        mag.values['i2c bytes/s'], rel=0.01)
+    assert mag.values['magnetometer i2c bytes/s'] == pytest.approx(1700, rel=0.05)
 
 
 def test_a_defect_in_a_step_becomes_a_fault_not_a_dead_thread():

@@ -161,6 +161,7 @@ class Icm20948Supervisor:
         self._last_celsius: float | None = None
         self._window_start = clock()
         self._window_bus = BusCounters()
+        self._window_mag_bus = BusCounters()
         self._window_counts = (0, 0, 0)  # errors, overflows, saturated
         mag_period = 1.0 / mag_rate_hz
         self._mag = _Stream(mag_period, mag_period / POLLS_PER_SAMPLE,
@@ -433,6 +434,8 @@ class Icm20948Supervisor:
             now = self._clock()
             elapsed = max(now - self._window_start, 1e-9)
             bus_window = self.monitor.counters - self._window_bus
+            mag_bus = self.monitor.share(MAG_SHARE)
+            mag_window, self._window_mag_bus = mag_bus - self._window_mag_bus, mag_bus
             counts = (self.i2c_errors, self.overflows, self.imu_saturated)
             errors, overflows, saturated = (
                 a - b for a, b in zip(counts, self._window_counts, strict=True))
@@ -466,6 +469,8 @@ class Icm20948Supervisor:
                 **shared,
                 'overflows (HOFL)': self.overflows,
                 'overruns (DOR)': self.overruns,
+                'path': 'I2C master' if self.aux_master else 'bypass',
+                'magnetometer i2c bytes/s': mag_window.wire_bytes / elapsed,
             })]
             if self._imu is not None:
                 settings = self.imu_settings
