@@ -264,3 +264,23 @@ def test_a_sleeping_chip_fails_the_slv4_probe():
     sim.write_byte_data(ICM, reg.PWR_MGMT_1, reg.PWR_MGMT_1_RESET_VALUE)  # asleep: no rounds
     with pytest.raises(AuxiliaryBusError, match='did not finish'):
         driver.measurement_mode()
+
+
+def test_an_outage_is_recognised_by_the_failing_reads_not_the_silent_magnetometer():
+    """Through the master read_mag touches no bus: it must not count as a successful read
+    between failing accel/gyro reads (the outage was only noticed by the stuck check, 0.25 s)."""
+    clock, sim = make(SimConfig(seed=6))
+    logs = []
+    supervisor = Icm20948Supervisor(lambda: sim, imu=IMU, clock=clock, sleep=clock.sleep,
+                                    stamp=clock, log=lambda *entry: logs.append(entry))
+    end = clock.now + 1.0
+    while clock.now < end:
+        clock.now = max(clock.now, min(supervisor.next_due(), end)) + 20e-6
+        supervisor.step()
+    sim.start_outage(2.0)
+    end = clock.now + 0.5
+    while clock.now < end:
+        clock.now = max(clock.now, min(supervisor.next_due(), end)) + 20e-6
+        supervisor.step()
+    errors = [message for level, message in logs if level == 'error']
+    assert len(errors) == 1 and 'I2C reads failed in a row' in errors[0]

@@ -364,7 +364,8 @@ class Icm20948Supervisor:
         except OSError as error:
             self._read_error(error, now)
             return
-        self._consecutive_errors = 0
+        if not self.aux_master:  # through the master read_mag touches no bus: proves nothing
+            self._consecutive_errors = 0
         if self._driver.overflows != overflows:
             stream.last_ready = now  # a sample arrived, it was just unusable
             self._warn('overflow', 'AK09916 magnetic overflow (ST2 HOFL): sample discarded; a '
