@@ -7,7 +7,9 @@ and imu/temperature and measures what arrives (header stamps). The node reports 
 (wire bytes: address, register and data bytes; bus share = bit times incl. ACK/START/STOP over a
 400 kHz clock). Scenarios, in a private ROS_DOMAIN_ID on localhost, magnetometer at 100 Hz:
 
-- mag only: publish_imu and publish_temperature false (the magnetometer's own bus cost);
+- mag only: publish_imu and publish_temperature false (accel/gyro off: the AK09916 in bypass);
+  every row reports the magnetometer's own wire bytes (BusMonitor share), through the chip's I2C
+  master in the IMU rows;
 - IMU 200 Hz and 1 kHz requested (the chip runs 225 Hz and 1125 Hz), nominal;
 - the same with sim.i2c_error_rate 0.05;
 - a 2 s outage 5 s in (the device comes back power-cycled): rates outside it, recovery time.
