@@ -137,7 +137,8 @@ def test_equal_readings_of_different_samples_are_all_handed_out():
                         gyro_noise_density=0.0, temperature_rise_c=0.0, seed=3))
     run.advance(2.0)
     mag = run.of(MagSample)
-    assert len({tuple(s.reading.counts) for s in mag}) == 1 and len(mag) >= 195
+    assert len({tuple(s.reading.counts) for s in mag}) == 1 and len(mag) >= 190
+    assert len(mag) == run.sim.samples_measured  # every one measured (bring-up: 0.07 s)
     assert len({s.reading.counts for s in run.of(ImuSample)}) == 1
     assert_each_sample_once(run)
 
@@ -195,7 +196,7 @@ def test_chip_reset_is_detected_and_recovered():
 def test_stuck_magnetometer_data_ready_is_diagnosed_from_cntl2_and_recovered():
     run = Run(SimConfig(seed=8))
     run.advance(0.5)
-    run.sim.write_byte_data(reg.AK09916_ADDRESS, reg.CNTL3, reg.CNTL3_SRST)  # power-down
+    run.sim.write_magnetometer(reg.CNTL3, reg.CNTL3_SRST)  # power-down (I2C master path)
     run.advance(0.5)
     assert 'CNTL2 expected 0x08, found 0x00' in run.supervisor.last_error
     count = len(run.of(MagSample))
@@ -215,7 +216,8 @@ def test_stuck_imu_data_ready_is_diagnosed_as_asleep_and_recovered():
 
 
 def test_a_foreign_partial_read_that_locks_the_magnetometer_is_recovered():
-    run = Run(SimConfig(seed=10))
+    """Bypass only: through the master, the next round's ST2 read releases the lock itself."""
+    run = Run(SimConfig(seed=10), mag_via_master=False)
     run.advance(0.5)
     run.sim.read_i2c_block_data(reg.AK09916_ADDRESS, reg.ST1, 7)  # no ST2: data stays locked
     run.advance(0.5)
@@ -307,6 +309,23 @@ def test_status_windows_rates_and_bus_load():
     assert mag.values['i2c bytes/s'] == pytest.approx(
         (after.wire_bytes - before.wire_bytes) / elapsed, rel=0.02)
     assert imu.values['accel range (g)'] == 4 and imu.values['dlpf'].startswith('3 (')
+    # The magnetometer's own share (issue #11): 8 bytes per look through the I2C master.
+    assert mag.values['path'] == 'I2C master'
+    assert 8 * 99 <= mag.values['magnetometer i2c bytes/s'] <= 10.5 * 101
+
+
+def test_magnetometer_only_stays_in_bypass_with_its_bytes_measured():
+    run = Run(SimConfig(seed=4), imu=None)
+    run.advance(0.5)
+    run.supervisor.status()
+    run.advance(2.0)
+    (mag,) = run.supervisor.status()
+    assert mag.values['path'] == 'bypass' and not run.supervisor.aux_master
+    # 1.5 ST1 polls (4 wire bytes) and one HXL..ST2 burst (11) per sample: all of it the
+    # magnetometer's.
+    assert mag.values['magnetometer i2c bytes/s'] == pytest.approx(
+        mag.values['i2c bytes/s'], rel=0.01)
+    assert mag.values['magnetometer i2c bytes/s'] == pytest.approx(1700, rel=0.05)
 
 
 def test_a_defect_in_a_step_becomes_a_fault_not_a_dead_thread():

@@ -53,9 +53,15 @@ class BusCounters:
 
 class BusMonitor:
     """Totals and per-address recent outcomes; outlives any one opened bus (re-opened after a
-    fault), so counts and the "answered recently" memory survive re-initialisation."""
+    fault), so counts and the "answered recently" memory survive re-initialisation.
 
-    def __init__(self) -> None:
+    Shares: the wire cost of one sensor, measured apart from the rest: whole successful
+    transactions to an address in ``labels``, plus parts of transactions a driver ``attribute``s
+    (bytes a burst carries for another sensor: issue #11's magnetometer cost)."""
+
+    def __init__(self, labels: dict[int, str] | None = None) -> None:
+        self._labels = dict(labels or {})
+        self._shares: dict[str, list[int]] = {}
         self._transactions = 0
         self._errors = 0
         self._wire_bytes = 0
@@ -68,11 +74,24 @@ class BusMonitor:
         self._bits += bits
         if not ok:
             self._errors += 1
+        elif address in self._labels:
+            self.attribute(self._labels[address], wire_bytes, bits)
         self._recent.setdefault(address, deque(maxlen=RECENT_TRANSACTIONS)).append(ok)
 
     @property
     def counters(self) -> BusCounters:
         return BusCounters(self._transactions, self._errors, self._wire_bytes, self._bits)
+
+    def attribute(self, label: str, wire_bytes: int, bits: int) -> None:
+        """Count ``wire_bytes`` / ``bits`` already recorded as part of ``label``'s share."""
+        share = self._shares.setdefault(label, [0, 0])
+        share[0] += wire_bytes
+        share[1] += bits
+
+    def share(self, label: str) -> BusCounters:
+        """Cumulative wire bytes and bits attributed to ``label`` (transactions/errors 0)."""
+        wire_bytes, bits = self._shares.get(label, (0, 0))
+        return BusCounters(0, 0, wire_bytes, bits)
 
     def recent(self, address: int) -> tuple[int, int]:
         """(transactions, failures) among the last ``RECENT_TRANSACTIONS`` to ``address``."""

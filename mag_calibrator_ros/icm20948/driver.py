@@ -8,7 +8,16 @@ failures surface as ``OSError`` so a caller (``Icm20948Supervisor``) can back of
 re-initialise; identity problems raise errors that name bus, address, expected and found values.
 
 Data-ready is polled (no interrupt line): INT_STATUS_1 for the accel/gyro/temperature sample
-(then one coherent 14-byte burst), ST1 for the magnetometer (then the 8-byte HXL..ST2 burst).
+(then one coherent 14-byte burst). The magnetometer is reached one of two ways:
+
+- I2C bypass (``aux_master=False``; the only way with accel and gyro off): the AK09916 sits on the
+  host bus; ST1 is polled, the 8-byte HXL..ST2 burst read on DRDY (15 wire bytes per sample plus
+  4 per idle poll).
+- the ICM-20948's own I2C master (``aux_master=True``): its slaves 0 and 1 read ST1..HZH and ST2
+  on every accel/gyro sample into EXT_SLV_SENS_DATA_00..07, right after TEMP_OUT_L, and the host
+  reads them by lengthening the accel/gyro burst by 8 bytes only while a magnetometer sample is
+  due: 8-10 wire bytes per sample. The AK09916 is configured through single SLV4 transfers.
+
 Register facts: TDK DS-000189 and the AKM AK09916 datasheet, collected in ``registers``.
 """
 
@@ -23,7 +32,7 @@ import time
 import numpy as np
 
 from mag_calibrator_ros.icm20948 import registers as reg
-from mag_calibrator_ros.icm20948.bus import CountingBus, SmbusLike
+from mag_calibrator_ros.icm20948.bus import BusMonitor, CountingBus, SmbusLike
 
 INIT_TRANSACTION_ATTEMPTS = 3  # per register access during bring-up
 # Per read transaction while running: one immediate retry. The sample stays latched until the next
@@ -32,6 +41,14 @@ READ_ATTEMPTS = 2
 # The ICM-20948's sample clock is its own oscillator: assume consecutive samples can come this
 # much sooner than the nominal period when judging whether a read straddled one.
 CLOCK_TOLERANCE = 0.10
+# Through the I2C master the AK09916 is read once per accel/gyro sample: at least this many of
+# those per magnetometer period, so a copy holding a new sample never outlives the gap after which
+# the driver looks for the next one (the copied DRDY is then seen at most once per sample).
+MASTER_SAMPLES_PER_MAG = 2.0
+# After a new magnetometer sample, the burst is lengthened again from this long before the next
+# one is expected (in accel/gyro sample periods): early enough to catch its DRDY at the first copy.
+MAG_DUE_LEAD_PERIODS = 0.5
+MAG_SHARE = 'magnetometer'  # BusMonitor label of the magnetometer's wire bytes
 
 
 class DeviceNotFoundError(OSError):
@@ -52,6 +69,10 @@ class ModeNotAcceptedError(OSError):
 
 class ConfigNotAcceptedError(OSError):
     """An ICM-20948 configuration register reads back differently from what was written."""
+
+
+class AuxiliaryBusError(OSError):
+    """A transfer of the ICM-20948's I2C master (SLV4) was not acknowledged or never finished."""
 
 
 @dataclass(frozen=True)
@@ -195,7 +216,8 @@ _TESLA_PER_COUNT = np.asarray(reg.AXIS_SIGNS) * reg.TESLA_PER_LSB
 
 
 class Icm20948:
-    """Brings up the whole chip (AK09916 in bypass mode) and reads each sensor on data-ready.
+    """Brings up the whole chip (AK09916 through bypass or the chip's I2C master) and reads each
+    sensor on data-ready.
 
     Counters: ``overruns`` (ST1 DOR: magnetometer samples skipped because we read too late),
     ``overflows`` (ST2 HOFL: magnetic overflow, sample discarded), ``imu_resyncs`` (an IMU read
@@ -214,7 +236,8 @@ class Icm20948:
             raise ValueError(
                 f'ICM-20948 address must be 0x68 or 0x69, got {address:#04x} on {bus_name}'
             )
-        self.bus = bus if isinstance(bus, CountingBus) else CountingBus(bus)
+        self.bus = bus if isinstance(bus, CountingBus) else CountingBus(
+            bus, BusMonitor({reg.AK09916_ADDRESS: MAG_SHARE}))
         self.address = address
         self.bus_name = bus_name
         self._sleep = sleep
@@ -224,15 +247,23 @@ class Icm20948:
         self.overruns = 0
         self.overflows = 0
         self.imu_resyncs = 0
+        self.aux_master = False
+        self._mag_due_at = 0.0  # master path: lengthen the burst from this clock time on
+        self._mag_last_copy = b''  # HXL..HZH, ST2 of the last sample taken from a copy
+        self._mag_pending: tuple[int, bytes] | None = None  # (ST1, HXL..HZH ST2) not yet taken
+        self._mag_period = self._imu_period = 0.0
         self._imu_synced_at: float | None = None  # last INT_STATUS_1 read with nothing pending
         self._imu_window = 0.0
         self._accel_scale = self._gyro_scale = 0.0
 
     # --- bring-up --------------------------------------------------------------------------------
 
-    def initialise(self, mag_rate_hz: int = 100, imu: ImuSettings | None = None) -> None:
-        """Reset the chip, configure accel/gyro (or power them down when ``imu`` is None), route
-        the AK09916 to the host bus and start its continuous measurement.
+    def initialise(self, mag_rate_hz: int = 100, imu: ImuSettings | None = None,
+                   aux_master: bool = False) -> None:
+        """Reset the chip, configure accel/gyro (or power them down when ``imu`` is None), reach
+        the AK09916 (``aux_master``: through the chip's I2C master, which needs ``imu`` running at
+        least ``MASTER_SAMPLES_PER_MAG`` times the magnetometer rate; else bypass) and start its
+        continuous measurement.
 
         Raises ``DeviceNotFoundError`` / ``UnreliableBusError`` (OSErrors) when the chip does not
         answer, ``WrongDeviceError`` (a ValueError) on a wrong identity, ``OSError`` on a bus
@@ -246,7 +277,16 @@ class Icm20948:
             )
         if imu is not None and imu.problems():
             raise ValueError('; '.join(imu.problems()))
+        if aux_master and not master_possible(mag_rate_hz, imu):
+            raise ValueError(
+                f'the I2C master path needs the accelerometer/gyroscope running at least '
+                f'{MASTER_SAMPLES_PER_MAG:g} x the magnetometer rate ({mag_rate_hz} Hz), got '
+                f'{"none" if imu is None else f"{imu.odr_hz:.1f} Hz"}'
+            )
         self.mag_rate_hz = self.imu = None
+        self.aux_master = False
+        self._mag_pending = None
+        self._mag_last_copy = b''
         self._imu_synced_at = None
         self._check_icm20948_identity()
         self._write_icm(reg.PWR_MGMT_1, reg.PWR_MGMT_1_DEVICE_RESET)
@@ -260,13 +300,20 @@ class Icm20948:
         else:
             self._write_icm(reg.PWR_MGMT_2, reg.PWR_MGMT_2_ALL_ON)
             self._configure_inertial(imu)
-        user_ctrl = self._retry(self.bus.read_byte_data, self.address, reg.USER_CTRL)
-        self._write_icm(reg.USER_CTRL, user_ctrl & ~reg.USER_CTRL_I2C_MST_EN & 0xFF)
-        pin_cfg = self._retry(self.bus.read_byte_data, self.address, reg.INT_PIN_CFG)
-        self._write_icm(reg.INT_PIN_CFG, pin_cfg | reg.INT_PIN_CFG_BYPASS_EN)
-        self._start_magnetometer(mag_rate_hz)
+        if aux_master:
+            self._start_master(mag_rate_hz, imu)
+        else:
+            user_ctrl = self._retry(self.bus.read_byte_data, self.address, reg.USER_CTRL)
+            self._write_icm(reg.USER_CTRL, user_ctrl & ~reg.USER_CTRL_I2C_MST_EN & 0xFF)
+            pin_cfg = self._retry(self.bus.read_byte_data, self.address, reg.INT_PIN_CFG)
+            self._write_icm(reg.INT_PIN_CFG, pin_cfg | reg.INT_PIN_CFG_BYPASS_EN)
+            self._start_magnetometer(mag_rate_hz)
         self.mag_rate_hz = mag_rate_hz
+        self.aux_master = aux_master
+        self._mag_period = 1.0 / mag_rate_hz
+        self._mag_due_at = self._clock()
         if imu is not None:
+            self._imu_period = 1.0 / imu.odr_hz
             self.imu = imu
             self._accel_scale = accel_scale(imu.accel_range_g)
             self._gyro_scale = gyro_scale(imu.gyro_range_dps)
@@ -330,8 +377,105 @@ class Icm20948:
                 f'continuous mode {rate_hz} Hz: CNTL2 expected {mode:#04x}, found {found:#04x}'
             )
 
+    # --- the I2C master path ---------------------------------------------------------------------
+
+    def _start_master(self, rate_hz: int, imu: ImuSettings) -> None:
+        """Bypass off, master on (slave 0 idle), the AK09916 reset and started through SLV4,
+        then slave 0 reading ST1..ST2 on every sample (DS-000189 I2C master; AK09916 sequence as
+        in ``_start_magnetometer``)."""
+        pin_cfg = self._retry(self.bus.read_byte_data, self.address, reg.INT_PIN_CFG)
+        self._write_icm(reg.INT_PIN_CFG, pin_cfg & ~reg.INT_PIN_CFG_BYPASS_EN & 0xFF)
+        self._select_bank(reg.MASTER_BANK)
+        try:
+            self._write_icm(reg.I2C_SLV0_CTRL, 0)
+            self._write_icm(reg.I2C_SLV0_CTRL + reg.I2C_SLV_STRIDE, 0)
+            self._write_icm(reg.I2C_MST_CTRL, reg.I2C_MST_CTRL_P_NSR | reg.I2C_MST_CLK_345_KHZ)
+            self._write_icm(reg.I2C_MST_DELAY_CTRL, reg.I2C_MST_DELAY_ES_SHADOW)
+        finally:
+            self._select_bank(0)
+        user_ctrl = self._retry(self.bus.read_byte_data, self.address, reg.USER_CTRL)
+        self._write_icm(reg.USER_CTRL, user_ctrl | reg.USER_CTRL_I2C_MST_EN)
+        # The first master round comes with the first sample after the sensors' start-up.
+        first_round = reg.SENSOR_STARTUP_S
+        period = 1.0 / imu.odr_hz
+        # A NACK or a round that never comes raises AuxiliaryBusError naming the AK09916; the
+        # ICM-20948 itself answered its identity check moments ago.
+        found = [self._slv4(reg.WIA1, period, first_round), self._slv4(reg.WIA2, period)]
+        self._check_ak09916_ids(found)
+        self._slv4(reg.CNTL3, period, value=reg.CNTL3_SRST)
+        self._sleep(reg.SOFT_RESET_WAIT_S)
+        self._slv4(reg.CNTL2, period, value=reg.MODE_POWER_DOWN)
+        self._sleep(reg.MODE_CHANGE_WAIT_S)
+        mode = reg.CONTINUOUS_MODES[rate_hz]
+        self._slv4(reg.CNTL2, period, value=mode)
+        found_mode = self._slv4(reg.CNTL2, period)
+        if found_mode != mode:
+            raise ModeNotAcceptedError(
+                f'AK09916 behind the ICM-20948 at {self.address:#04x} on {self.bus_name} did not '
+                f'accept continuous mode {rate_hz} Hz: CNTL2 expected {mode:#04x}, found '
+                f'{found_mode:#04x}'
+            )
+        self._select_bank(reg.MASTER_BANK)
+        try:
+            for offset, register, length in ((0, reg.ST1, reg.MAG_MASTER_SLV0_LENGTH),
+                                             (reg.I2C_SLV_STRIDE, reg.ST2, 1)):
+                self._write_icm(reg.I2C_SLV0_ADDR + offset,
+                                reg.I2C_SLV_RNW | reg.AK09916_ADDRESS)
+                self._write_icm(reg.I2C_SLV0_REG + offset, register)
+                self._write_icm(reg.I2C_SLV0_CTRL + offset, reg.I2C_SLV_EN | length)
+        finally:
+            self._select_bank(0)
+
+    def _slv4(self, register: int, period: float, extra_wait: float = 0.0,
+              value: int | None = None) -> int | None:
+        """One SLV4 transfer with the AK09916 (a write of ``value``, else a read): set it up in
+        bank 3, start it, poll I2C_MST_STATUS (bank 0, read-to-clear) for I2C_SLV4_DONE; the
+        master runs it on its next round. Returns the byte read (I2C_SLV4_DI). Leaves bank 0."""
+        read = value is None
+        self._select_bank(reg.MASTER_BANK)
+        try:
+            self._write_icm(reg.I2C_SLV4_ADDR,
+                            (reg.I2C_SLV_RNW if read else 0) | reg.AK09916_ADDRESS)
+            self._write_icm(reg.I2C_SLV4_REG, register)
+            if not read:
+                self._write_icm(reg.I2C_SLV4_DO, value)
+            self._select_bank(0)
+            self._retry(self.bus.read_byte_data, self.address, reg.I2C_MST_STATUS)  # stale bits
+            self._select_bank(reg.MASTER_BANK)
+            self._write_icm(reg.I2C_SLV4_CTRL, reg.I2C_SLV_EN)
+        finally:
+            self._select_bank(0)
+        polls = math.ceil(2.0 * (extra_wait / period + reg.SLV4_TIMEOUT_PERIODS))
+        for poll in range(polls + 1):  # counted, not timed: a stalled clock cannot hang it
+            self._sleep(period / 2.0)
+            status = self._retry(self.bus.read_byte_data, self.address, reg.I2C_MST_STATUS)
+            if status & reg.I2C_MST_STATUS_SLV4_DONE:
+                break
+            if poll == polls:
+                raise AuxiliaryBusError(
+                    f'the I2C master of the ICM-20948 at {self.address:#04x} on {self.bus_name} '
+                    f'did not finish a transfer with the AK09916 (register {register:#04x}) '
+                    f'within {reg.SLV4_TIMEOUT_PERIODS} sample periods: asleep or reset?'
+                )
+        if status & reg.I2C_MST_STATUS_SLV4_NACK:
+            raise AuxiliaryBusError(
+                f'AK09916 at {reg.AK09916_ADDRESS:#04x} on the auxiliary bus of the ICM-20948 at '
+                f'{self.address:#04x} ({self.bus_name}) did not acknowledge register '
+                f'{register:#04x} (I2C_SLV4_NACK)'
+            )
+        if not read:
+            return None
+        self._select_bank(reg.MASTER_BANK)
+        try:
+            return self._retry(self.bus.read_byte_data, self.address, reg.I2C_SLV4_DI)
+        finally:
+            self._select_bank(0)
+
     def measurement_mode(self) -> int:
-        """CNTL2 as the AK09916 reports it now (0 after a reset: the chip stopped measuring)."""
+        """CNTL2 as the AK09916 reports it now (0 after a reset: the chip stopped measuring);
+        through the master a single SLV4 read, which never finishes on a sleeping chip."""
+        if self.aux_master:
+            return self._slv4(reg.CNTL2, self._imu_period)
         return self.bus.read_byte_data(reg.AK09916_ADDRESS, reg.CNTL2)
 
     def power_state(self) -> int:
@@ -396,6 +540,9 @@ class Icm20948:
                 f'(expected WIA1/WIA2 {reg.WIA1_VALUE:#04x}/{reg.WIA2_VALUE:#04x}; bus error: '
                 f'{error})',
             ) from error
+        self._check_ak09916_ids(found)
+
+    def _check_ak09916_ids(self, found: list[int]) -> None:
         expected = [reg.WIA1_VALUE, reg.WIA2_VALUE]
         if list(found) != expected:
             raise WrongDeviceError(
@@ -428,12 +575,18 @@ class Icm20948:
         self._imu_synced_at = polled_at
         if not status & reg.INT_STATUS_1_RAW_DATA_0_RDY:
             return None
-        raw = self._read(self.bus.read_i2c_block_data, self.address, reg.IMU_BURST_START,
-                         reg.IMU_BURST_LENGTH)
-        if len(raw) != reg.IMU_BURST_LENGTH:
+        length = reg.IMU_BURST_LENGTH
+        burst_at = self._clock()
+        if self.aux_master and burst_at >= self._mag_due_at:
+            length += reg.MAG_MASTER_LENGTH  # through EXT_SLV_SENS_DATA_07 (the copied ST2)
+        raw = self._read(self.bus.read_i2c_block_data, self.address, reg.IMU_BURST_START, length)
+        if len(raw) != length:
             raise OSError(f'short read from ICM-20948 at {self.address:#04x} on '
-                          f'{self.bus_name}: expected {reg.IMU_BURST_LENGTH} bytes, '
-                          f'got {len(raw)}')
+                          f'{self.bus_name}: expected {length} bytes, got {len(raw)}')
+        if length > reg.IMU_BURST_LENGTH:
+            extra = length - reg.IMU_BURST_LENGTH  # 9 bit times each with its ACK
+            self.bus.monitor.attribute(MAG_SHARE, extra, 9 * extra)
+            self._take_mag_copy(raw[reg.IMU_BURST_LENGTH:], burst_at)
         if self._clock() - since >= self._imu_window:
             self.imu_resyncs += 1
             self._imu_synced_at = None
@@ -441,7 +594,27 @@ class Icm20948:
                 self._resync_imu()
             except OSError:
                 pass  # still unsynced: the next call starts with the resync
-        return self._decode_imu(raw)
+        return self._decode_imu(raw[:reg.IMU_BURST_LENGTH])
+
+    def _take_mag_copy(self, copy: list[int], burst_at: float) -> None:
+        """The master's copy of ST1, HXL..HZH, ST2 as of this sample. It holds a sample not yet
+        taken if its copied DRDY is set (only the round that found the sample copies DRDY, and
+        the next look comes at least MASTER_SAMPLES_PER_MAG - MAG_DUE_LEAD_PERIODS = 1.5 rounds
+        later, so that copy is never taken twice) or if its data differ from the last sample
+        taken (the DRDY round was missed: a failed burst, a late poll; the copy always holds the
+        AK09916's newest sample). A new sample equal to the previous one in every byte, or all
+        zero as the registers read after a reset, is lost if its DRDY round was missed (never one
+        taken twice, never a reset's zeros)."""
+        st1, data = copy[0], bytes(copy[1:])
+        drdy = bool(st1 & reg.ST1_DRDY)
+        if not drdy and (data == self._mag_last_copy or not any(data)):
+            return  # not there yet (all zero: the AK09916 just reset): keep lengthening
+        self._mag_last_copy = data
+        self._mag_pending = (st1, data)
+        # With DRDY the sample arrived within the last round, the next one is due a period on;
+        # found without, it arrived at least a round earlier than this look.
+        lead = MAG_DUE_LEAD_PERIODS + (0.0 if drdy else 1.0)
+        self._mag_due_at = burst_at + self._mag_period - lead * self._imu_period
 
     @staticmethod
     def _read(operation: Callable, *args: int):
@@ -466,9 +639,13 @@ class Icm20948:
         )
 
     def read_mag(self) -> MagReading | None:
-        """Poll ST1 (one byte); on DRDY read HXL..ST2 (8 bytes, ST2 last so the data registers
-        never stay locked). Returns None when no new sample is ready or the sample overflowed
-        (counted in ``overflows``). ``OSError`` from the bus propagates."""
+        """Bypass: poll ST1 (one byte); on DRDY read HXL..ST2 (8 bytes, ST2 last so the data
+        registers never stay locked). Master: the sample the last ``read_imu`` found, no bus
+        traffic. Returns None when no new sample is ready or the sample overflowed (counted in
+        ``overflows``). ``OSError`` from the bus propagates."""
+        if self.aux_master:
+            pending, self._mag_pending = self._mag_pending, None
+            return None if pending is None else self._decode_mag(*pending)
         st1 = self._read(self.bus.read_byte_data, reg.AK09916_ADDRESS, reg.ST1)
         if not st1 & reg.ST1_DRDY:
             return None
@@ -484,10 +661,14 @@ class Icm20948:
                 f'short read from AK09916 at {reg.AK09916_ADDRESS:#04x} on {self.bus_name}: '
                 f'expected {reg.MAG_BURST_LENGTH} bytes, got {len(raw)}'
             )
+        return self._decode_mag(st1, bytes(raw))
+
+    def _decode_mag(self, st1: int, raw: bytes) -> MagReading | None:
+        """ST1 and HXL..HZH (TMPS) ST2 -> a reading, or None for an overflow (counted)."""
         overrun = bool(st1 & reg.ST1_DOR)
         if overrun:
             self.overruns += 1
-        words = _MAG_WORDS.unpack(bytes(raw[:6]))
+        words = _MAG_WORDS.unpack(raw[:6])
         if raw[-1] & reg.ST2_HOFL or max(abs(w) for w in words) > reg.MEASUREMENT_LIMIT:
             self.overflows += 1
             return None
@@ -501,3 +682,9 @@ class Icm20948:
             self.bus.read_byte_data(reg.AK09916_ADDRESS, reg.ST2)
         except OSError:
             pass
+
+
+def master_possible(mag_rate_hz: int, imu: ImuSettings | None) -> bool:
+    """Whether the I2C master path can carry the magnetometer: its rounds come with the
+    accel/gyro samples, at least ``MASTER_SAMPLES_PER_MAG`` of them per magnetometer period."""
+    return imu is not None and imu.odr_hz >= MASTER_SAMPLES_PER_MAG * mag_rate_hz

@@ -20,6 +20,7 @@ WHO_AM_I_VALUE = 0xEA
 USER_CTRL = 0x03
 USER_CTRL_I2C_MST_EN = 1 << 5
 USER_CTRL_I2C_MST_RST = 1 << 1
+LP_CONFIG = 0x05  # bit 6 I2C_MST_CYCLE: duty-cycled master at I2C_MST_ODR_CONFIG (left 0)
 PWR_MGMT_1 = 0x06
 PWR_MGMT_1_DEVICE_RESET = 1 << 7
 PWR_MGMT_1_SLEEP = 1 << 6
@@ -31,6 +32,10 @@ PWR_MGMT_2_DISABLE_GYRO = 0x07  # bits 2:0
 PWR_MGMT_2_ALL_ON = 0x00  # reset value: accel and gyro on
 INT_PIN_CFG = 0x0F
 INT_PIN_CFG_BYPASS_EN = 1 << 1
+I2C_MST_STATUS = 0x17  # bank 0; read-to-clear (DS-000189 register 0x17)
+I2C_MST_STATUS_SLV4_DONE = 1 << 6  # the SLV4 single transfer finished (with or without ACK)
+I2C_MST_STATUS_SLV4_NACK = 1 << 4  # SLV4's slave did not acknowledge
+I2C_MST_STATUS_SLV0_NACK = 1 << 0
 INT_STATUS_1 = 0x1A
 INT_STATUS_1_RAW_DATA_0_RDY = 1 << 0  # new accel/gyro/temp data; cleared by reading INT_STATUS_1
 ACCEL_XOUT_H = 0x2D  # ACCEL_X/Y/Z, GYRO_X/Y/Z, TEMP: int16 big-endian, contiguous
@@ -39,6 +44,11 @@ TEMP_OUT_H = 0x39
 TEMP_OUT_L = 0x3A
 IMU_BURST_START = ACCEL_XOUT_H
 IMU_BURST_LENGTH = TEMP_OUT_L - ACCEL_XOUT_H + 1  # 14 bytes: one coherent sample
+# EXT_SLV_SENS_DATA_00..23 (bank 0, 0x3B..0x52) directly follow TEMP_OUT_L: the I2C master copies
+# what its slaves 0-3 read there, in slave order, on every sample (DS-000189 registers 59-82). So
+# one host burst from ACCEL_XOUT_H can carry the accel/gyro/temperature sample and the AK09916's.
+EXT_SLV_SENS_DATA_00 = 0x3B
+EXT_SLV_SENS_DATA_COUNT = 24
 
 # Bank 2 (configuration; reached through REG_BANK_SEL, then back to bank 0 for data)
 CONFIG_BANK = 2
@@ -53,6 +63,32 @@ CONFIG_FS_SHIFT = 1
 CONFIG_FCHOICE = 1 << 0
 GYRO_CONFIG_1_RESET_VALUE = 0x01
 ACCEL_CONFIG_RESET_VALUE = 0x01
+
+# Bank 3: the ICM-20948's own I2C master on the auxiliary bus, where the AK09916 sits
+# (DS-000189 section "I2C master", bank 3 register map). With the gyroscope on, the master runs
+# one round (slaves 0-3, then a pending SLV4 transfer) per gyro sample, i.e. at the gyro ODR;
+# I2C_MST_ODR_CONFIG only sets its rate when accelerometer and gyroscope are both off.
+MASTER_BANK = 3
+I2C_MST_ODR_CONFIG = 0x00
+I2C_MST_CTRL = 0x01  # bit 7 MULT_MST_EN, bit 4 I2C_MST_P_NSR, bits 3:0 I2C_MST_CLK
+I2C_MST_CTRL_P_NSR = 1 << 4  # stop (not repeated start) between slave reads
+I2C_MST_CLK_345_KHZ = 0x07  # the datasheet's recommended setting (345.6 kHz, 46.67 % duty)
+I2C_MST_DELAY_CTRL = 0x02  # bit 7 DELAY_ES_SHADOW, bit 4 I2C_SLV4_DELAY_EN, bits 3:0 SLVn
+I2C_MST_DELAY_ES_SHADOW = 1 << 7  # shadow EXT_SLV_SENS_DATA only once every slave's data is in
+I2C_SLV0_ADDR = 0x03  # bit 7 I2C_SLV0_RNW (1 = read), bits 6:0 the slave's 7-bit address
+I2C_SLV0_REG = 0x04  # first register of the slave to read
+I2C_SLV0_CTRL = 0x05  # bit 7 EN, bit 6 BYTE_SW, bit 5 REG_DIS, bit 4 GRP, bits 3:0 LENG
+I2C_SLV0_DO = 0x06
+I2C_SLV_STRIDE = 4  # SLV1..SLV3 repeat ADDR/REG/CTRL/DO at +4, +8, +12
+I2C_SLV4_ADDR = 0x13
+I2C_SLV4_REG = 0x14
+I2C_SLV4_CTRL = 0x15  # bit 7 EN (one transfer), bit 6 INT_EN, bit 5 REG_DIS, bits 4:0 DLY
+I2C_SLV4_DO = 0x16  # byte SLV4 writes
+I2C_SLV4_DI = 0x17  # byte SLV4 read
+I2C_SLV_RNW = 1 << 7
+I2C_SLV_EN = 1 << 7
+I2C_SLV_REG_DIS = 1 << 5
+I2C_SLV_LENG_MASK = 0x0F
 
 # Output data rate with the DLPF on: 1125 / (1 + divider) Hz for both sensors (DS-000189 gives
 # 1.125 kHz for the accelerometer and rounds the gyroscope's to 1.1 kHz). The dividers only act
@@ -91,12 +127,23 @@ ST1 = 0x10
 ST1_DRDY = 1 << 0
 ST1_DOR = 1 << 1
 HXL = 0x11  # HXL, HXH, HYL, HYH, HZL, HZH: int16 little-endian
+HZH = 0x16
 TMPS = 0x17  # dummy register between the data and ST2
 ST2 = 0x18
 ST2_HOFL = 1 << 3
 CNTL2 = 0x31
 CNTL3 = 0x32
 CNTL3_SRST = 1 << 0  # soft reset, self-clearing
+
+# Through the I2C master, every round slave 0 reads ST1..HZH (7 bytes) and slave 1 ST2 (1 byte;
+# reading it ends the AK09916's data read and releases the next sample), so the copy is ST1,
+# HXL..HZH, ST2 in EXT_SLV_SENS_DATA_00..07, without the dummy TMPS: 8 bytes per look. The copied
+# ST1 says whether that round found a new sample (DRDY).
+MAG_MASTER_SLV0_LENGTH = HZH - ST1 + 1
+MAG_MASTER_LENGTH = MAG_MASTER_SLV0_LENGTH + 1
+# A round of the master ends in a few hundred microseconds; a single SLV4 transfer is done by the
+# next round, i.e. within one sample period: the driver polls I2C_MST_STATUS for this many.
+SLV4_TIMEOUT_PERIODS = 4
 
 # A data read starts at HXL (clears DRDY/DOR, protects the data) and must end with ST2 (releases
 # it): polling ST1 alone is cheap and the 8-byte burst runs only when DRDY is set.

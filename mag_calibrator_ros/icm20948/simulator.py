@@ -6,9 +6,13 @@ bank 2, data in bank 0), WHO_AM_I, reset and sleep, the sensors' start-up time, 
 dividers, full-scale ranges, DLPF settings (noise bandwidth), the raw-data-ready flag (cleared by
 reading INT_STATUS_1, set again by every new sample), big-endian int16 accel/gyro/temperature
 with saturation at the rails; the I2C bypass (the AK09916 answers at 0x0C only with the ICM's I2C
-master off and bypass on), the AK09916 measurement modes driven by a clock, ST1/ST2 semantics
-(DRDY, DOR, HOFL, data protection from the first data read until ST2), int16 saturation and
-0.15 uT quantisation.
+master off and bypass on) and the I2C master (bank 3: slaves 0-3 read or write the AK09916 once
+per accel/gyro sample, reads copied into EXT_SLV_SENS_DATA after TEMP_OUT_L; single SLV4
+transfers finishing at the next sample with I2C_SLV4_DONE, or SLV4_NACK for an address nobody
+answers, in the read-to-clear I2C_MST_STATUS; no rounds while asleep or with accel and gyro off,
+the duty-cycled I2C_MST_ODR_CONFIG mode is not modelled), the AK09916 measurement modes driven
+by a clock, ST1/ST2 semantics (DRDY, DOR, HOFL, data protection from the first data read until
+ST2), int16 saturation and 0.15 uT quantisation.
 
 Physics (``board.BoardModel``): the board moves along a ``motion`` trajectory through the earth's
 field and gravity. Faults: random I2C errors, an outage (device vanishes) and a chip reset
@@ -16,7 +20,8 @@ mid-run, on every transaction of either die. Truth: ``truth_for_reading`` (magne
 ``imu_truth_for_reading`` (accel/gyro/temperature) give the error-free values behind a reading;
 ``mag_samples_read``/``mag_repeated_reads`` and ``imu_samples_read``/``imu_repeated_reads`` count
 data reads of new samples and of samples already read, so a test can tell a sample read twice
-from two samples that happen to be equal.
+from two samples that happen to be equal (through the master: host reads of the copied data; a
+copy of an already read sample counts as repeated only if its copied ST1 claims DRDY).
 
 Thread-safe: a test may inject faults while a driver thread polls.
 """
@@ -56,6 +61,7 @@ IDENTITY = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
 ACCEL_NOISE_DENSITY = 2.26e-3  # (m/s^2)/sqrt(Hz)
 GYRO_NOISE_DENSITY = 2.62e-4  # (rad/s)/sqrt(Hz)
 IMU_DATA = range(reg.ACCEL_XOUT_H, reg.TEMP_OUT_L + 1)
+EXT_DATA = range(reg.EXT_SLV_SENS_DATA_00, reg.EXT_SLV_SENS_DATA_00 + reg.EXT_SLV_SENS_DATA_COUNT)
 _IMU_WORDS = struct.Struct('>7h')
 
 
@@ -95,14 +101,19 @@ class _ReadCounter:
         self.latched = self.last_read = self.latched_truth = None
 
     def data_read(self) -> None:
-        if self.latched is None:
+        self.read_of(self.latched, self.latched_truth, claims_new=True)
+
+    def read_of(self, sample_id: int | None, truth: object, claims_new: bool) -> None:
+        """A data read of ``sample_id`` (a copy of it, through the I2C master); reading one
+        already read counts as repeated only if the read ``claims_new`` (DRDY said so)."""
+        if sample_id is None:
             return
-        if self.latched == self.last_read:
-            self.repeated += 1
+        if sample_id == self.last_read:
+            self.repeated += claims_new
         else:
             self.fresh += 1
-            self.last_read = self.latched
-            self.delivered.append(self.latched_truth)
+            self.last_read = sample_id
+            self.delivered.append(truth)
 
 
 def _nack(what: str) -> OSError:
@@ -296,6 +307,7 @@ class SimulatedIcm20948Bus:
         self._mag_reads = _ReadCounter()
         self._imu_reads = _ReadCounter()
         self._sample_id = 0  # every latched sample of either sensor gets a new id
+        self._at: float | None = None  # sim time of an I2C master round being run
         self._power_on()
 
     # --- power and faults ------------------------------------------------------------------------
@@ -317,6 +329,11 @@ class SimulatedIcm20948Bus:
         self._imu_index = -1  # newest sample index latched since the origin
         self._imu_ready = False
         self._imu_reads.forget()
+        self._mst_status = 0  # I2C_MST_STATUS, cleared by reading it
+        self._master_index = -1  # last sample index the I2C master ran its round on
+        # The AK09916 sample in the EXT_SLV_SENS_DATA copy: (sample id, truth, copied DRDY,
+        # first and last EXT register of its HXL..HZH), for counting host reads of it.
+        self._ext_mag: tuple[int | None, object, bool, int, int] | None = None
 
     def _ak_power_on(self) -> None:
         self._mode = reg.MODE_POWER_DOWN
@@ -329,6 +346,13 @@ class SimulatedIcm20948Bus:
         self._locked = False
         self._pending: tuple[bytearray, np.ndarray] | None = None
         self._mag_reads.forget()
+
+    @_locked
+    def write_magnetometer(self, register: int, value: int) -> None:
+        """A write reaching the AK09916 by whatever path (fault injection: a foreign master, a
+        glitch), bypass on or not."""
+        self._advance()
+        self._write_ak(register, value & 0xFF)
 
     @_locked
     def chip_reset(self) -> None:
@@ -355,6 +379,8 @@ class SimulatedIcm20948Bus:
         return self._now()
 
     def _now(self) -> float:
+        if self._at is not None:
+            return self._at
         return self._clock() - self._t0
 
     def _transaction(self, i2c_addr: int, what: str) -> None:
@@ -446,6 +472,9 @@ class SimulatedIcm20948Bus:
         if self._bank == 0 and register == reg.INT_STATUS_1:
             ready, self._imu_ready = self._imu_ready, False  # cleared by this read
             return reg.INT_STATUS_1_RAW_DATA_0_RDY if ready else 0
+        if self._bank == 0 and register == reg.I2C_MST_STATUS:
+            status, self._mst_status = self._mst_status, 0  # read-to-clear
+            return status
         return self._banks[self._bank][register]
 
     def _write_register(self, i2c_addr: int, register: int, value: int) -> None:
@@ -456,9 +485,10 @@ class SimulatedIcm20948Bus:
         if register == reg.REG_BANK_SEL:
             self._bank = (value & reg.BANK_MASK) >> reg.BANK_SHIFT
             return
-        if self._bank == 0 and register in (reg.WHO_AM_I, reg.INT_STATUS_1) or (
-            self._bank == 0 and register in IMU_DATA
-        ):
+        if self._bank == 0 and (register in (reg.WHO_AM_I, reg.INT_STATUS_1, reg.I2C_MST_STATUS)
+                                or register in IMU_DATA or register in EXT_DATA):
+            return  # read-only
+        if self._bank == reg.MASTER_BANK and register == reg.I2C_SLV4_DI:
             return  # read-only
         if self._bank == 0 and register == reg.PWR_MGMT_1 and value & reg.PWR_MGMT_1_DEVICE_RESET:
             # Resets the ICM-20948 die only; the AK09916 keeps its state.
@@ -527,6 +557,12 @@ class SimulatedIcm20948Bus:
         due = int(math.floor(elapsed * config.odr_hz + 1e-9))
         if due <= self._imu_index:
             return
+        if self._banks[0][reg.USER_CTRL] & reg.USER_CTRL_I2C_MST_EN:
+            # One master round per sample, each on its own sample's time, so the AK09916 sees
+            # every read (DRDY cleared, no overrun) even when the host polled rarely.
+            for index in range(max(self._imu_index + 1, self._master_index + 1), due + 1):
+                self._master_round(self._imu_origin + index / config.odr_hz)
+            self._master_index = due
         self._imu_index = due
         sample_time = self._imu_origin + due / config.odr_hz
         accel, gyro, truth = self.board.inertial(
@@ -546,12 +582,69 @@ class SimulatedIcm20948Bus:
         if len(self._imu_truth) > IMU_TRUTH_LOG_SIZE:
             self._imu_truth.popitem(last=False)
 
+    # --- the I2C master (bank 3) -----------------------------------------------------------------
+
+    def _master_round(self, t: float) -> None:
+        """What the I2C master does on the sample at sim time ``t``: slaves 0-3 in order (reads
+        copied into EXT_SLV_SENS_DATA, packed in slave order), then a pending SLV4 transfer."""
+        bank3 = self._banks[3]
+        self._at = t
+        try:
+            copy = bytearray()
+            ext_mag = None
+            for slave in range(4):
+                base = slave * reg.I2C_SLV_STRIDE
+                address = bank3[reg.I2C_SLV0_ADDR + base]
+                register = bank3[reg.I2C_SLV0_REG + base]
+                ctrl = bank3[reg.I2C_SLV0_CTRL + base]
+                length = ctrl & reg.I2C_SLV_LENG_MASK
+                if not ctrl & reg.I2C_SLV_EN or length == 0:
+                    continue
+                if address & 0x7F != reg.AK09916_ADDRESS:
+                    self._mst_status |= 1 << slave  # I2C_SLVn_NACK; its bytes stay as they were
+                    copy += self._banks[0][reg.EXT_SLV_SENS_DATA_00 + len(copy):][:length]
+                    continue
+                self._advance()
+                if address & reg.I2C_SLV_RNW:
+                    values = [self._read_ak(register + i) for i in range(length)]
+                    if register <= reg.HXL and register + length - 1 >= reg.HZH:
+                        start = reg.EXT_SLV_SENS_DATA_00 + len(copy) + reg.HXL - register
+                        drdy = register <= reg.ST1 and bool(values[reg.ST1 - register]
+                                                            & reg.ST1_DRDY)
+                        ext_mag = (self._mag_reads.latched, self._mag_reads.latched_truth,
+                                   drdy, start, start + reg.HZH - reg.HXL)
+                    copy += bytes(values)
+                else:
+                    self._write_ak(register, bank3[reg.I2C_SLV0_DO + base])
+            end = reg.EXT_SLV_SENS_DATA_00 + min(len(copy), reg.EXT_SLV_SENS_DATA_COUNT)
+            self._banks[0][reg.EXT_SLV_SENS_DATA_00:end] = copy[:end - reg.EXT_SLV_SENS_DATA_00]
+            self._ext_mag = ext_mag
+            ctrl = bank3[reg.I2C_SLV4_CTRL]
+            if ctrl & reg.I2C_SLV_EN:
+                bank3[reg.I2C_SLV4_CTRL] = ctrl & ~reg.I2C_SLV_EN & 0xFF  # one transfer
+                address = bank3[reg.I2C_SLV4_ADDR]
+                if address & 0x7F != reg.AK09916_ADDRESS:
+                    self._mst_status |= reg.I2C_MST_STATUS_SLV4_NACK
+                else:
+                    self._advance()
+                    if address & reg.I2C_SLV_RNW:
+                        bank3[reg.I2C_SLV4_DI] = self._read_ak(bank3[reg.I2C_SLV4_REG])
+                    else:
+                        self._write_ak(bank3[reg.I2C_SLV4_REG], bank3[reg.I2C_SLV4_DO])
+                self._mst_status |= reg.I2C_MST_STATUS_SLV4_DONE
+        finally:
+            self._at = None
+
     def _note_data_read(self, i2c_addr: int, register: int, length: int) -> None:
         """Count a read of sensor data: a new sample, or one that was already read."""
         last = register + length - 1
         if i2c_addr == self.config.address and self._bank == 0:
             if register <= reg.TEMP_OUT_L and last >= reg.ACCEL_XOUT_H:
                 self._imu_reads.data_read()
+            if self._ext_mag is not None and register <= self._ext_mag[3] \
+                    and last >= self._ext_mag[4]:
+                sample_id, truth, drdy, _, _ = self._ext_mag
+                self._mag_reads.read_of(sample_id, truth, claims_new=drdy)
         elif i2c_addr == reg.AK09916_ADDRESS and register <= reg.TMPS and last >= reg.HXL:
             self._mag_reads.data_read()
 

@@ -9,6 +9,8 @@ say. ``step()`` does whatever is due at the injected clock's "now" and returns t
 Polling: each data-ready flag is checked ``POLLS_PER_SAMPLE`` times per sample period; both
 sensors hold a sample until the next one arrives, so a poll may come a third of a period late
 before anything is lost, while an idle poll costs one byte of payload (ST1 / INT_STATUS_1).
+Through the chip's I2C master (the default whenever the accelerometer/gyroscope run fast
+enough) the magnetometer has no poll of its own: its samples come with the accel/gyro reads.
 """
 
 from __future__ import annotations
@@ -21,11 +23,13 @@ import time
 from mag_calibrator_ros.icm20948 import registers as reg
 from mag_calibrator_ros.icm20948.bus import BusCounters, BusMonitor, CountingBus, SmbusLike
 from mag_calibrator_ros.icm20948.driver import (
+    MAG_SHARE,
     Icm20948,
     ImuReading,
     ImuSettings,
     MagReading,
     WrongDeviceError,
+    master_possible,
 )
 
 POLLS_PER_SAMPLE = 1.5
@@ -95,7 +99,9 @@ class Icm20948Supervisor:
     ``open_bus`` returns a fresh smbus2-like bus (called again after a fault: a USB adapter may
     come back as a new device). ``imu`` None leaves the accelerometer and gyroscope powered down.
     ``stamp`` gives the stamp attached to each sample (the node passes its ROS clock); ``log``
-    receives (level, message) with level 'info' | 'warning' | 'error'.
+    receives (level, message) with level 'info' | 'warning' | 'error'. ``mag_via_master``: read
+    the AK09916 through the chip's I2C master whenever ``master_possible`` (accel/gyro running
+    at least twice the magnetometer rate), else in bypass.
     """
 
     def __init__(
@@ -108,6 +114,7 @@ class Icm20948Supervisor:
         imu: ImuSettings | None = None,
         publish_imu: bool = True,
         publish_temperature: bool = True,
+        mag_via_master: bool = True,
         clock: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], None] = time.sleep,
         stamp: Callable[[], object] | None = None,
@@ -127,12 +134,13 @@ class Icm20948Supervisor:
         self.imu_settings = imu
         self.publish_imu = publish_imu
         self.publish_temperature = publish_temperature
+        self.aux_master = mag_via_master and master_possible(mag_rate_hz, imu)
         self._clock = clock
         self._sleep = sleep
         self._stamp = stamp if stamp is not None else time.time_ns
         self._log = log if log is not None else (lambda level, message: None)
         self._lock = threading.Lock()
-        self.monitor = BusMonitor()
+        self.monitor = BusMonitor({reg.AK09916_ADDRESS: MAG_SHARE})
         self._bus: CountingBus | None = None
         self._driver: Icm20948 | None = None
         self.running = False
@@ -153,6 +161,7 @@ class Icm20948Supervisor:
         self._last_celsius: float | None = None
         self._window_start = clock()
         self._window_bus = BusCounters()
+        self._window_mag_bus = BusCounters()
         self._window_counts = (0, 0, 0)  # errors, overflows, saturated
         mag_period = 1.0 / mag_rate_hz
         self._mag = _Stream(mag_period, mag_period / POLLS_PER_SAMPLE,
@@ -217,6 +226,8 @@ class Icm20948Supervisor:
             samples: list[Sample] = []
             if self._imu is not None and now >= self._imu.next_poll:
                 self._poll_imu(now, samples)
+                if self.running and self.aux_master:
+                    self._poll_mag(now, samples)  # what that read brought, no bus traffic
             if self.running and now >= self._mag.next_poll:
                 self._poll_mag(now, samples)
             return samples
@@ -248,7 +259,7 @@ class Icm20948Supervisor:
             if self._bus is None:
                 self._bus = CountingBus(self._open_bus(), self.monitor)
             driver = Icm20948(self._bus, self.address, self.bus_name, self._sleep, self._clock)
-            driver.initialise(self.mag_rate_hz, self.imu_settings)
+            driver.initialise(self.mag_rate_hz, self.imu_settings, self.aux_master)
         except (OSError, WrongDeviceError) as error:
             self._fault(f'initialisation failed: {error}', now)
             self._close_bus()  # a USB adapter may come back as a new device: reopen next time
@@ -263,6 +274,8 @@ class Icm20948Supervisor:
             if stream is not None:
                 stream.next_poll = started + stream.poll_period
                 stream.last_ready = started
+        if self.aux_master:
+            self._mag.next_poll = float('inf')  # taken with each accel/gyro read instead
         if self._episode_start is not None:
             self.last_recovery_s = started - self._episode_start
             self.reinitialisations += 1
@@ -351,7 +364,8 @@ class Icm20948Supervisor:
         except OSError as error:
             self._read_error(error, now)
             return
-        self._consecutive_errors = 0
+        if not self.aux_master:  # through the master read_mag touches no bus: proves nothing
+            self._consecutive_errors = 0
         if self._driver.overflows != overflows:
             stream.last_ready = now  # a sample arrived, it was just unusable
             self._warn('overflow', 'AK09916 magnetic overflow (ST2 HOFL): sample discarded; a '
@@ -379,7 +393,16 @@ class Icm20948Supervisor:
                                f'({error}); retrying', now)
 
     def _check_mag_stuck(self, now: float) -> None:
-        """No DRDY for too long: did the AK09916 leave continuous mode?"""
+        """No DRDY for too long: did the AK09916 leave continuous mode? Through the master a
+        sleeping ICM-20948 (a reset) stops it too: that is asked first, as for the IMU."""
+        if self.aux_master:
+            try:
+                asleep = self._driver.power_state() & reg.PWR_MGMT_1_SLEEP
+            except OSError:
+                asleep = False  # the CNTL2 probe below says it does not answer
+            if asleep:
+                self._check_imu_stuck(now)
+                return
         expected = reg.CONTINUOUS_MODES[self.mag_rate_hz]
         self._stuck(now, self._mag, 'magnetometer', 'AK09916', self._driver.measurement_mode,
                     lambda mode: f'AK09916 left continuous mode (CNTL2 expected {expected:#04x}, '
@@ -412,6 +435,8 @@ class Icm20948Supervisor:
             now = self._clock()
             elapsed = max(now - self._window_start, 1e-9)
             bus_window = self.monitor.counters - self._window_bus
+            mag_bus = self.monitor.share(MAG_SHARE)
+            mag_window, self._window_mag_bus = mag_bus - self._window_mag_bus, mag_bus
             counts = (self.i2c_errors, self.overflows, self.imu_saturated)
             errors, overflows, saturated = (
                 a - b for a, b in zip(counts, self._window_counts, strict=True))
@@ -445,6 +470,8 @@ class Icm20948Supervisor:
                 **shared,
                 'overflows (HOFL)': self.overflows,
                 'overruns (DOR)': self.overruns,
+                'path': 'I2C master' if self.aux_master else 'bypass',
+                'magnetometer i2c bytes/s': mag_window.wire_bytes / elapsed,
             })]
             if self._imu is not None:
                 settings = self.imu_settings
