@@ -64,6 +64,7 @@ from mag_calibrator_ros.tools.demo import (  # noqa: E402
     GroundObserver,
     azimuth_errors_deg,
     simulated_board,
+    turn_full_circle,
 )
 
 WOBBLE_DEG = 2.0
@@ -179,19 +180,7 @@ def heading_rms(calibration, driver, seed: int, wobble_deg: float) -> float:
 
 def live_heading_rms(station: Station, driver) -> tuple[float, int]:
     """Turn once more (the benchmark as a teleop) and score the corrected stream."""
-    start = yaw(driver)[0]
-    station.take_pairs()
-    corrected, truth = [], []
-    deadline = time.monotonic() + 60.0
-    while time.monotonic() < deadline and abs(yaw(driver)[0] - start) < 2.0 * math.pi:
-        station.turn(CHECK_RATE)
-        time.sleep(0.05)
-        for raw, out in station.take_pairs():
-            true_field = driver.simulator.truth_for_reading(raw)
-            if true_field is not None:
-                corrected.append(out)
-                truth.append(true_field)
-    station.release()
+    _, corrected, truth = turn_full_circle(station, driver, CHECK_RATE, 60.0)
     if not truth:
         return math.nan, 0
     errors = azimuth_errors_deg(np.array(corrected), np.array(truth))
