@@ -58,7 +58,7 @@ from mag_calibrator_ros import motion  # noqa: E402
 from mag_calibrator_ros.calibration.jobs import InlineRunner, JobOutcome  # noqa: E402
 from mag_calibrator_ros.calibration.rotation import INPUT_TIMEOUT_S  # noqa: E402
 from mag_calibrator_ros.nodes.mag_calibrator import MagCalibratorNode  # noqa: E402
-from mag_calibrator_ros.nodes.runtime import NodeThreads  # noqa: E402
+from mag_calibrator_ros.nodes.runtime import NodeThreads, wait_until  # noqa: E402
 from mag_calibrator_ros.tools.demo import (  # noqa: E402
     GROUND_HARD_IRON_UT,
     GroundObserver,
@@ -112,12 +112,8 @@ class Station(GroundObserver):
 
 
 def wait(condition, timeout_s: float, step_s: float = 0.01) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if condition():
-            return True
-        time.sleep(step_s)
-    return condition()
+    """10 ms steps: the stop latencies below are read to that."""
+    return wait_until(condition, timeout_s, step_s)
 
 
 class Bench:
