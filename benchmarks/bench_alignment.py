@@ -42,6 +42,7 @@ from mag_calibrator_ros.calibration.earth_field import EarthField
 from mag_calibrator_ros.calibration.session import CalibrationSession, SessionSettings
 from mag_calibrator_ros.icm20948.board import BoardModel
 from mag_calibrator_ros.icm20948.simulator import SimConfig
+from mag_calibrator_ros.motion import board_readings
 from mag_calibrator_ros.tools import fit
 from mag_calibrator_ros.tools.recordings import read_paired_recording
 
@@ -64,15 +65,7 @@ def board_stream(seconds: float, seed: int, remap: np.ndarray | None = None, **c
     magnetometer's axes (a driver publishing them wrongly)."""
     board = BoardModel(SimConfig(hard_iron_ut=HARD_IRON_UT, soft_iron=SOFT_IRON, noise_ut=0.3,
                                  motion='poses', seed=seed, **config))
-    mag, accel, gyro = [], [], []
-    for k in range(int(seconds * RATE_HZ)):
-        t = k / RATE_HZ
-        field, _ = board.magnetometer(t)
-        force, rate, _ = board.inertial(t, 57.0, 57.0)
-        mag.append((field if remap is None else remap @ field) * 1e-6)
-        accel.append(force)
-        gyro.append(rate)
-    return np.array(mag), np.array(accel), np.array(gyro), board
+    return (*board_readings(board, seconds, RATE_HZ, remap), board)
 
 
 def session_calibrate(mag, accel, gyro, earth=None, **settings):

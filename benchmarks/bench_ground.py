@@ -58,12 +58,13 @@ from mag_calibrator_ros import motion  # noqa: E402
 from mag_calibrator_ros.calibration.jobs import InlineRunner, JobOutcome  # noqa: E402
 from mag_calibrator_ros.calibration.rotation import INPUT_TIMEOUT_S  # noqa: E402
 from mag_calibrator_ros.nodes.mag_calibrator import MagCalibratorNode  # noqa: E402
-from mag_calibrator_ros.nodes.runtime import NodeThreads  # noqa: E402
+from mag_calibrator_ros.nodes.runtime import NodeThreads, wait_until  # noqa: E402
 from mag_calibrator_ros.tools.demo import (  # noqa: E402
     GROUND_HARD_IRON_UT,
     GroundObserver,
     azimuth_errors_deg,
     simulated_board,
+    turn_full_circle,
 )
 
 WOBBLE_DEG = 2.0
@@ -111,12 +112,8 @@ class Station(GroundObserver):
 
 
 def wait(condition, timeout_s: float, step_s: float = 0.01) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if condition():
-            return True
-        time.sleep(step_s)
-    return condition()
+    """10 ms steps: the stop latencies below are read to that."""
+    return wait_until(condition, timeout_s, step_s)
 
 
 class Bench:
@@ -179,19 +176,7 @@ def heading_rms(calibration, driver, seed: int, wobble_deg: float) -> float:
 
 def live_heading_rms(station: Station, driver) -> tuple[float, int]:
     """Turn once more (the benchmark as a teleop) and score the corrected stream."""
-    start = yaw(driver)[0]
-    station.take_pairs()
-    corrected, truth = [], []
-    deadline = time.monotonic() + 60.0
-    while time.monotonic() < deadline and abs(yaw(driver)[0] - start) < 2.0 * math.pi:
-        station.turn(CHECK_RATE)
-        time.sleep(0.05)
-        for raw, out in station.take_pairs():
-            true_field = driver.simulator.truth_for_reading(raw)
-            if true_field is not None:
-                corrected.append(out)
-                truth.append(true_field)
-    station.release()
+    _, corrected, truth = turn_full_circle(station, driver, CHECK_RATE, 60.0)
     if not truth:
         return math.nan, 0
     errors = azimuth_errors_deg(np.array(corrected), np.array(truth))

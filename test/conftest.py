@@ -46,3 +46,14 @@ def never_written(monkeypatch):
 
     monkeypatch.setattr(tempfile, 'mkstemp', refuse)
     monkeypatch.setattr(os, 'replace', refuse)
+
+
+@pytest.fixture(scope='module')
+def ros():
+    """One rclpy context a module, every node on its own thread (node_helpers.Ros); imported
+    here, not at the top, so tests without ROS never load rclpy."""
+    from node_helpers import Ros
+
+    ros = Ros()
+    yield ros
+    ros.close()

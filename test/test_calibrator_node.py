@@ -7,162 +7,39 @@ each test has its own namespace, so streams never mix.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 import json
 import math
 from pathlib import Path
+import sys
 import threading
 import time
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from diagnostic_msgs.msg import DiagnosticStatus
 import numpy as np
 import pytest
-from rcl_interfaces.srv import SetParameters
 import rclpy
 from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import MagneticField
-from std_srvs.srv import Trigger
 import yaml
 
 from mag_calibrator_ros.calibration.calibration_file import load_calibration
-from mag_calibrator_ros.nodes.icm20948_driver import Icm20948DriverNode
 from mag_calibrator_ros.nodes.mag_calibrator import MagCalibratorNode
-from mag_calibrator_ros.nodes.runtime import NodeThreads
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from node_helpers import (  # noqa: E402  (the DDS helpers, one place)
+    WAIT_S,
+    Probe,
+    angle_deg,
+    set_parameter_over_service,
+    vector,
+    wait_for,
+)
 
 HARD_IRON_UT = [120.0, -80.0, 60.0]
 SOFT_IRON = [1.15, 0.10, -0.08, 0.10, 0.85, 0.12, -0.08, 0.12, 1.00]  # strong, symmetric
-WAIT_S = 20.0
 REPO_ROOT = Path(__file__).resolve().parents[1]
-
-
-def wait_for(condition: Callable[[], bool], timeout_s: float = WAIT_S, step_s: float = 0.05
-             ) -> bool:
-    """Poll ``condition`` until true or ``timeout_s`` (a bound on waiting, not an assertion)."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if condition():
-            return True
-        time.sleep(step_s)
-    return condition()
-
-
-class Ros:
-    """One context for the module; every node spins on its own thread (see NodeThreads)."""
-
-    def __init__(self) -> None:
-        self.context = Context()
-        rclpy.init(args=[], context=self.context)
-        self.spinning = NodeThreads(self.context)
-
-    def add(self, node: Node) -> Node:
-        return self.spinning.add(node)
-
-    def remove(self, node: Node) -> None:
-        self.spinning.remove(node)
-
-    def calibrator(self, namespace: str, **parameters) -> MagCalibratorNode:
-        overrides = [Parameter(name, value=value) for name, value in parameters.items()]
-        return self.add(MagCalibratorNode(
-            namespace=namespace, context=self.context, parameter_overrides=overrides))
-
-    def driver(self, namespace: str, **parameters) -> Icm20948DriverNode:
-        values = {'backend': 'sim', 'rate_hz': 100, **parameters}
-        overrides = [Parameter(name, value=value) for name, value in values.items()]
-        return self.add(Icm20948DriverNode(
-            namespace=namespace, context=self.context, parameter_overrides=overrides))
-
-    def close(self) -> None:
-        self.spinning.shutdown()
-        rclpy.try_shutdown(context=self.context)
-
-
-class Probe(Node):
-    """A user of the calibrator: raw publisher, corrected subscriber, service clients."""
-
-    def __init__(self, ros: Ros, namespace: str) -> None:
-        super().__init__('probe', namespace=namespace, context=ros.context)
-        self._lock = threading.Lock()
-        self.raw: dict[tuple[int, int], np.ndarray] = {}
-        self.corrected: list[MagneticField] = []
-        self.diagnostics: list[DiagnosticStatus] = []
-        self.publisher = self.create_publisher(MagneticField, 'imu/mag', 10)
-        self.create_subscription(MagneticField, 'imu/mag', self._on_raw, 100)
-        self.create_subscription(MagneticField, 'imu/mag_corrected', self._on_corrected, 100)
-        self.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 10)
-        ros.add(self)
-
-    def _on_raw(self, msg: MagneticField) -> None:
-        with self._lock:
-            self.raw[(msg.header.stamp.sec, msg.header.stamp.nanosec)] = vector(msg)
-
-    def _on_corrected(self, msg: MagneticField) -> None:
-        with self._lock:
-            self.corrected.append(msg)
-
-    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
-        with self._lock:
-            self.diagnostics.extend(msg.status)
-
-    def take_corrected(self) -> list[MagneticField]:
-        with self._lock:
-            taken, self.corrected = self.corrected, []
-        return taken
-
-    def raw_for(self, msg: MagneticField) -> np.ndarray | None:
-        with self._lock:
-            return self.raw.get((msg.header.stamp.sec, msg.header.stamp.nanosec))
-
-    def statuses(self, name_part: str) -> list[DiagnosticStatus]:
-        with self._lock:
-            return [s for s in self.diagnostics if name_part in s.name]
-
-    def statuses_of(self, node: Node) -> list[DiagnosticStatus]:
-        """The statuses ``node`` published: names carry its fully qualified name."""
-        prefix = f'{node.get_fully_qualified_name()}: '
-        with self._lock:
-            return [s for s in self.diagnostics if s.name.startswith(prefix)]
-
-    def call(self, service: str) -> Trigger.Response:
-        client = self.create_client(Trigger, service)
-        assert client.wait_for_service(timeout_sec=WAIT_S), f'{service} not available'
-        future = client.call_async(Trigger.Request())
-        assert wait_for(future.done), f'{service} did not answer'
-        self.destroy_client(client)
-        return future.result()
-
-    def send(self, field_t, sec: int, nanosec: int = 0, frame_id: str = 'imu_link',
-             covariance=None) -> None:
-        msg = MagneticField()
-        msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
-        msg.header.frame_id = frame_id
-        msg.magnetic_field.x, msg.magnetic_field.y, msg.magnetic_field.z = (
-            float(v) for v in field_t)
-        if covariance is not None:
-            msg.magnetic_field_covariance = np.asarray(covariance, dtype=float).reshape(9)
-        self.publisher.publish(msg)
-
-    def connected_to(self, calibrator: Node) -> bool:
-        return (self.publisher.get_subscription_count() >= 1
-                and self.count_publishers(
-                    calibrator.resolve_topic_name('imu/mag_corrected')) >= 1)
-
-
-def vector(msg: MagneticField) -> np.ndarray:
-    return np.array([msg.magnetic_field.x, msg.magnetic_field.y, msg.magnetic_field.z])
-
-
-def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
-    cosine = float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)))
-    return math.degrees(math.acos(min(1.0, max(-1.0, cosine))))
-
-
-@pytest.fixture(scope='module')
-def ros():
-    ros = Ros()
-    yield ros
-    ros.close()
 
 
 @pytest.fixture(scope='module')
@@ -442,18 +319,6 @@ def test_bad_messages_are_counted_and_never_published(ros, live):
         assert rejects[reason] == expected, (reason, rejects)
     ros.remove(probe)
     ros.remove(node)
-
-
-def set_parameter_over_service(probe: Node, node: Node, name: str, value) -> tuple[bool, str]:
-    service = f'{node.get_fully_qualified_name()}/set_parameters'
-    client = probe.create_client(SetParameters, service)
-    assert client.wait_for_service(timeout_sec=WAIT_S)
-    parameter = Parameter(name, value=value).to_parameter_msg()
-    future = client.call_async(SetParameters.Request(parameters=[parameter]))
-    assert wait_for(future.done)
-    probe.destroy_client(client)
-    result = future.result().results[0]
-    return result.successful, result.reason
 
 
 def test_parameter_changes_are_validated(ros, tmp_path):

@@ -8,33 +8,18 @@ from __future__ import annotations
 import math
 
 from diagnostic_msgs.msg import DiagnosticStatus
+from node_helpers import WAIT_S, Probe, angle_deg, vector, wait_for
 import numpy as np
 import pytest
 from rclpy.node import Node
 from sensor_msgs.msg import NavSatFix, NavSatStatus
-from test_calibrator_node import (
-    HARD_IRON_UT,
-    SOFT_IRON,
-    WAIT_S,
-    Probe,
-    Ros,
-    angle_deg,
-    vector,
-    wait_for,
-)
+from test_calibrator_node import HARD_IRON_UT, SOFT_IRON
 
 from mag_calibrator_ros.calibration.alignment import rotation_angle_deg
 from mag_calibrator_ros.calibration.earth_field import earth_field
 
 BERLIN = (52.52, 13.40, 34.0)
 MISALIGNMENT_DEG = [1.8, -1.9, 1.4]  # 3.0 deg
-
-
-@pytest.fixture(scope='module')
-def ros():
-    ros = Ros()
-    yield ros
-    ros.close()
 
 
 def values_of(status: DiagnosticStatus) -> dict[str, str]:

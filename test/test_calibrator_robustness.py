@@ -22,18 +22,11 @@ from mag_calibrator_ros.nodes.mag_calibrator import MagCalibratorNode
 from mag_calibrator_ros.nodes.parameters import ConfigurationError
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from test_calibrator_node import Probe, Ros, vector, wait_for  # noqa: E402
+from node_helpers import Probe, vector, wait_for  # noqa: E402
 
 CALIBRATION = Calibration(np.array([20e-6, -10e-6, 5e-6]), np.diag([1.1, 0.9, 1.0]), 50e-6,
                           'full', {'residual_rms_pct': 0.5, 'coverage': 0.9})
 GOOD = np.array([40e-6, -20e-6, 10e-6])
-
-
-@pytest.fixture(scope='module')
-def ros():
-    ros = Ros()
-    yield ros
-    ros.close()
 
 
 @pytest.fixture(scope='module')

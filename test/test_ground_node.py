@@ -25,9 +25,9 @@ from mag_calibrator_ros.calibration.jobs import InlineRunner, JobOutcome
 from mag_calibrator_ros.nodes.mag_calibrator import MagCalibratorNode
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_calibrator_node import (  # noqa: E402  (the module's DDS helpers, one place)
-    WAIT_S,
+from node_helpers import (  # noqa: E402  (the DDS helpers, one place)
     Ros,
+    call_trigger,
     set_parameter_over_service,
     wait_for,
 )
@@ -73,12 +73,7 @@ class Commander(Node):
             return [z for t, z in self.twists if t >= moment]
 
     def call(self, service: str) -> Trigger.Response:
-        client = self.create_client(Trigger, service)
-        assert client.wait_for_service(timeout_sec=WAIT_S), f'{service} not available'
-        future = client.call_async(Trigger.Request())
-        assert wait_for(future.done), f'{service} did not answer'
-        self.destroy_client(client)
-        return future.result()
+        return call_trigger(self, service)
 
 
 def sim_robot(ros: Ros, namespace: str, **parameters):
@@ -117,13 +112,6 @@ def remove_all(ros: Ros, *nodes) -> None:
     for node in nodes:
         if node is not None:
             ros.remove(node)
-
-
-@pytest.fixture(scope='module')
-def ros():
-    ros = Ros()
-    yield ros
-    ros.close()
 
 
 def test_rotate_and_calibrate_turns_the_robot_until_calibrated_and_stops(ros, tmp_path):

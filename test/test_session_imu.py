@@ -22,6 +22,7 @@ from mag_calibrator_ros.calibration.session import (
 )
 from mag_calibrator_ros.icm20948.board import BoardModel
 from mag_calibrator_ros.icm20948.simulator import SimConfig
+from mag_calibrator_ros.motion import board_readings
 
 RATE_HZ = 100.0
 SOFT_IRON = (1.15, 0.10, -0.08, 0.10, 0.85, 0.12, -0.08, 0.12, 1.00)
@@ -34,15 +35,7 @@ def recording(seconds: float = 60.0, motion: str = 'poses', seed: int = 0, **con
     """(mag T, accel m/s^2, gyro rad/s) rows at RATE_HZ from the simulated board, and the board."""
     board = BoardModel(SimConfig(hard_iron_ut=HARD_IRON_UT, soft_iron=SOFT_IRON, noise_ut=0.3,
                                  motion=motion, seed=seed, **config))
-    mag, accel, gyro = [], [], []
-    for k in range(int(seconds * RATE_HZ)):
-        t = k / RATE_HZ
-        field, _ = board.magnetometer(t)
-        force, rate, _ = board.inertial(t, 57.0, 57.0)
-        mag.append(field * 1e-6)
-        accel.append(force)
-        gyro.append(rate)
-    return np.array(mag), np.array(accel), np.array(gyro), board
+    return (*board_readings(board, seconds, RATE_HZ), board)
 
 
 @pytest.fixture(scope='module')

@@ -18,7 +18,8 @@ from mag_calibrator_ros.calibration.view import calibration_surface, calibration
 from mag_calibrator_ros.nodes.view import point_cloud
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from test_calibrator_node import HARD_IRON_UT, SOFT_IRON, Ros, wait_for  # noqa: E402
+from node_helpers import Ros, wait_for  # noqa: E402
+from test_calibrator_node import HARD_IRON_UT, SOFT_IRON  # noqa: E402
 
 CALIBRATION = Calibration(np.array([120e-6, -80e-6, 60e-6]),
                           np.array([[1.1, 0.1, 0.0], [0.1, 0.9, 0.05], [0.0, 0.05, 1.0]]), 50e-6)

@@ -428,14 +428,19 @@ def _dominant_missing_direction(empty: np.ndarray) -> str:
     return f'+{name} and -{name} of the sensor'
 
 
+def sector_of(angles: np.ndarray) -> np.ndarray:
+    """Heading sector (0..35) of each finite angle (radians): the planar fit's gate and the
+    heading coverage of a turning robot (``heading``) count the same sectors."""
+    finite = angles[np.isfinite(angles)]
+    sector = (np.mod(finite, 2.0 * np.pi) / (2.0 * np.pi) * HEADING_SECTORS).astype(int)
+    return np.minimum(sector, HEADING_SECTORS - 1)
+
+
 def heading_coverage(angles: np.ndarray, normal: np.ndarray) -> Coverage:
     """In-plane coverage for planar motion: share of 36 heading sectors seen, hint about the
     gap."""
     occupied = np.zeros(HEADING_SECTORS, dtype=bool)
-    finite = angles[np.isfinite(angles)]
-    if finite.size:
-        sector = (np.mod(finite, 2.0 * np.pi) / (2.0 * np.pi) * HEADING_SECTORS).astype(int)
-        occupied[np.minimum(sector, HEADING_SECTORS - 1)] = True
+    occupied[sector_of(angles)] = True
     count = int(occupied.sum())
     hint = ''
     if count < HEADING_SECTORS:

@@ -33,6 +33,7 @@ from mag_calibrator_ros.calibration.coverage import (
     distinct_rows,
     finite_rows,
     readings_barely_change,
+    sector_of,
 )
 from mag_calibrator_ros.calibration.ellipsoid import (
     Normalisation,
@@ -244,13 +245,6 @@ def _heading(ring: Ring, reading: ArrayLike) -> float | None:
         return None
     value = float(ring.headings(rows)[0])
     return value if math.isfinite(value) else None
-
-
-def sector_of(angles: np.ndarray) -> np.ndarray:
-    """Heading sector (0..35) of each finite angle (radians)."""
-    finite = angles[np.isfinite(angles)]
-    sector = (np.mod(finite, 2.0 * np.pi) / (2.0 * np.pi) * HEADING_SECTORS).astype(int)
-    return np.minimum(sector, HEADING_SECTORS - 1)
 
 
 def turn_needed(occupied: np.ndarray, heading: float, direction: int) -> int:

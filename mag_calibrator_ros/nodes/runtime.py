@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 import signal
 import threading
+import time
 import traceback
 
 import rclpy
@@ -133,3 +134,15 @@ class NodeThreads:
     def shutdown(self) -> None:
         for node in list(self._spinning):
             self.remove(node)
+
+
+def wait_until(condition: Callable[[], bool], timeout_s: float, step_s: float = 0.05) -> bool:
+    """Poll ``condition`` every ``step_s`` until it holds or ``timeout_s`` has passed; its last
+    answer. A bound on waiting for another thread or process (tests, benchmarks), never a
+    timing assertion."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(step_s)
+    return condition()

@@ -29,6 +29,7 @@ from pathlib import Path
 import sys
 import threading
 import time
+from typing import TypeVar
 
 from geometry_msgs.msg import Twist
 import numpy as np
@@ -215,6 +216,9 @@ class DemoObserver(Node):
         return future.result() if future.done() else None
 
 
+ObserverT = TypeVar('ObserverT', bound=DemoObserver)
+
+
 def progress_bar(coverage: float, fill: int, capacity: int, elapsed: float, width: int = 30
                  ) -> str:
     done = int(round(width * min(max(coverage, 0.0), 1.0)))
@@ -247,18 +251,25 @@ def collect(calibrator: MagCalibratorNode, target: float, timeout_s: float) -> f
     return coverage
 
 
-def score(observer: DemoObserver, driver: Icm20948DriverNode, seconds: float, calibration=None):
-    """Raw vs truth and corrected vs truth over ``seconds`` of the live corrected stream (and,
-    given the calibration, the same corrected without its rotation: what aligning gained)."""
-    observer.take_pairs()
-    time.sleep(seconds)
-    raw, corrected, truth = [], [], []
+def take_true_pairs(observer: DemoObserver, driver: Icm20948DriverNode, raw: list,
+                    corrected: list, truth: list) -> None:
+    """Append the observer's (raw, corrected) pairs that the simulator knows the true field of
+    to ``raw``, ``corrected`` and ``truth``; the others are dropped."""
     for raw_sample, corrected_sample in observer.take_pairs():
         true_field = driver.simulator.truth_for_reading(raw_sample)
         if true_field is not None:
             raw.append(raw_sample)
             corrected.append(corrected_sample)
             truth.append(true_field)
+
+
+def score(observer: DemoObserver, driver: Icm20948DriverNode, seconds: float, calibration=None):
+    """Raw vs truth and corrected vs truth over ``seconds`` of the live corrected stream (and,
+    given the calibration, the same corrected without its rotation: what aligning gained)."""
+    observer.take_pairs()
+    time.sleep(seconds)
+    raw, corrected, truth = [], [], []
+    take_true_pairs(observer, driver, raw, corrected, truth)
     if not truth:
         return 0, None, None
     truth = np.array(truth)
@@ -288,6 +299,32 @@ def print_summary(count: int, before: dict, after: dict) -> None:
     for name in after:
         b, a = before.get(name, ErrorStats(math.nan, math.nan)), after[name]
         print(f'  {name:24s} {b.rms:11.3f} {b.max:11.3f} {a.rms:10.3f} {a.max:10.3f}')
+
+
+def answered(service: str, response: Trigger.Response | None) -> int:
+    """Print the service's answer. Returns 0 when it succeeded, or the demo's exit status: 2
+    when it did not answer, 1 when it refused."""
+    if response is None:
+        print(f'{service} did not answer', file=sys.stderr)
+        return 2
+    print(f'{service} -> success={response.success}: {response.message}')
+    return 0 if response.success else 1
+
+
+def summarise_and_save(observer: DemoObserver, count: int, before: dict | None,
+                       after: dict | None) -> int:
+    """The before/after table, then the file saved through ~/save. Returns 0, or the demo's
+    exit status: 3 when no corrected sample could be paired with the truth, 4 when the save
+    failed."""
+    if count == 0:
+        print('no corrected samples could be paired with the truth', file=sys.stderr)
+        return 3
+    print_summary(count, before, after)
+    saved = observer.call(observer.save)
+    if saved is None or not saved.success:
+        print(f'~/save failed: {saved.message if saved else "no answer"}', file=sys.stderr)
+        return 4
+    return 0
 
 
 def output_files(args: argparse.Namespace) -> tuple[Path, Path]:
@@ -338,6 +375,26 @@ def print_alignment(calibration) -> None:
           f'{calibration.metadata.get("static_samples", 0)} still tilts.')
 
 
+def start_pipeline(context: Context, args: argparse.Namespace, driver: Icm20948DriverNode,
+                   observer_type: type[ObserverT], calibration_file: Path,
+                   overrides: Sequence[Parameter] = ()
+                   ) -> tuple[MagCalibratorNode, ObserverT, NodeThreads]:
+    """The calibrator beside ``driver`` (writing ``calibration_file``, no progress log, the
+    --buffer-size asked for, then ``overrides``) and the demo's observer, every node spinning
+    on its own thread; the caller shuts the NodeThreads down."""
+    parameters = [Parameter('calibration_file', value=str(calibration_file)),
+                  Parameter('progress_log_period', value=0.0), *overrides]
+    if args.buffer_size is not None:
+        parameters.append(Parameter('buffer_size', value=args.buffer_size))
+    calibrator = MagCalibratorNode(namespace=NAMESPACE, context=context,
+                                   parameter_overrides=parameters)
+    observer = observer_type(context)
+    spinning = NodeThreads(context)
+    for node in (driver, calibrator, observer):
+        spinning.add(node)
+    return calibrator, observer, spinning
+
+
 def run(args: argparse.Namespace, context: Context) -> int:
     if args.ground_robot:
         return run_ground(args, context)
@@ -350,11 +407,7 @@ def run(args: argparse.Namespace, context: Context) -> int:
           f'{list(SOFT_IRON)} (row-major), magnetometer {rotation_angle_deg(misalignment()):.1f}'
           f' deg off the accelerometer (rotation vector {list(MISALIGNMENT_DEG)} deg).')
     sim = {'mag_misalignment_deg': list(MISALIGNMENT_DEG)}
-    overrides = [
-        Parameter('auto_calibrate', value=False),
-        Parameter('calibration_file', value=str(calibration_file)),
-        Parameter('progress_log_period', value=0.0),
-    ]
+    overrides = [Parameter('auto_calibrate', value=False)]
     if located:  # the same place for both: the calibrator takes F from the model
         sim.update(latitude=args.latitude, longitude=args.longitude)
         overrides += [Parameter('latitude', value=args.latitude),
@@ -362,14 +415,8 @@ def run(args: argparse.Namespace, context: Context) -> int:
     else:
         overrides.append(Parameter('field_strength', value=FIELD_UT * 1e-6))  # the local field
     driver = simulated_board(context, args.motion, HARD_IRON_UT, args.seed, **sim)
-    if args.buffer_size is not None:
-        overrides.append(Parameter('buffer_size', value=args.buffer_size))
-    calibrator = MagCalibratorNode(namespace=NAMESPACE, context=context,
-                                   parameter_overrides=overrides)
-    observer = DemoObserver(context)
-    spinning = NodeThreads(context)
-    for node in (driver, calibrator, observer):
-        spinning.add(node)
+    calibrator, observer, spinning = start_pipeline(context, args, driver, DemoObserver,
+                                                    calibration_file, overrides)
     try:
         target = args.min_coverage
         print(f'Turn the board through every orientation, holding it still now and then: '
@@ -378,26 +425,17 @@ def run(args: argparse.Namespace, context: Context) -> int:
         collect(calibrator, target, args.collect_timeout)
 
         response = observer.call(observer.calibrate)
-        if response is None:
-            print('~/calibrate did not answer', file=sys.stderr)
-            return 2
-        print(f'~/calibrate -> success={response.success}: {response.message}')
-        if not response.success:
-            return 1
+        status = answered('~/calibrate', response)
+        if status:
+            return status
 
         calibration = calibrator.session.calibration
         print_alignment(calibration)
         print(f'Scoring {args.evaluate_seconds:.0f} s of the corrected stream...')
         count, before, after = score(observer, driver, args.evaluate_seconds, calibration)
-        if count == 0:
-            print('no corrected samples could be paired with the truth', file=sys.stderr)
-            return 3
-        print_summary(count, before, after)
-
-        saved = observer.call(observer.save)
-        if saved is None or not saved.success:
-            print(f'~/save failed: {saved.message if saved else "no answer"}', file=sys.stderr)
-            return 4
+        status = summarise_and_save(observer, count, before, after)
+        if status:
+            return status
         calibration = calibrator.session.calibration
         plot_calibration(observer.raw_samples() * 1e6, calibration.scaled(1e6), plot_file,
                          title='mag_calibrator_demo: simulated ICM-20948', units='uT')
@@ -469,9 +507,11 @@ def watch_rotation(calibrator: MagCalibratorNode, timeout_s: float) -> float:
     return time.monotonic() - start
 
 
-def check_turn(observer: GroundObserver, driver: Icm20948DriverNode, timeout_s: float):
-    """Turn the robot one full circle (the demo as a teleop), pairing the corrected stream with
-    the simulator's truth; then stop it. Returns (count, raw errors, corrected errors)."""
+def turn_full_circle(observer: GroundObserver, driver: Icm20948DriverNode, rate: float,
+                     timeout_s: float) -> tuple[list, list, list]:
+    """Turn the robot one full circle at ``rate`` rad/s (as a teleop would; at most
+    ``timeout_s``), pairing each corrected sample with its raw one and the simulator's true
+    field; then stop it. Returns (raw, corrected, truth), each a list of (3,) arrays."""
     trajectory = driver.settings.cmd_vel
     start_yaw = trajectory.yaw_and_rate(driver.simulator.sim_time_s)[0]
     observer.take_pairs()
@@ -479,19 +519,21 @@ def check_turn(observer: GroundObserver, driver: Icm20948DriverNode, timeout_s: 
     deadline = time.monotonic() + timeout_s
     try:
         while time.monotonic() < deadline:
-            observer.turn(CHECK_TURN_RATE)
+            observer.turn(rate)
             time.sleep(0.05)
-            for raw_sample, corrected_sample in observer.take_pairs():
-                true_field = driver.simulator.truth_for_reading(raw_sample)
-                if true_field is not None:
-                    raw.append(raw_sample)
-                    corrected.append(corrected_sample)
-                    truth.append(true_field)
+            take_true_pairs(observer, driver, raw, corrected, truth)
             yaw = trajectory.yaw_and_rate(driver.simulator.sim_time_s)[0]
             if abs(yaw - start_yaw) >= 2.0 * math.pi:
                 break
     finally:
         observer.release()
+    return raw, corrected, truth
+
+
+def check_turn(observer: GroundObserver, driver: Icm20948DriverNode, timeout_s: float):
+    """Turn the robot one full circle (the demo as a teleop), pairing the corrected stream with
+    the simulator's truth; then stop it. Returns (count, raw errors, corrected errors)."""
+    raw, corrected, truth = turn_full_circle(observer, driver, CHECK_TURN_RATE, timeout_s)
     if not truth:
         return 0, None, None
     truth = np.array(truth)
@@ -525,16 +567,8 @@ def run_ground(args: argparse.Namespace, context: Context) -> int:
           'it turns only as commanded on cmd_vel.')
     driver = simulated_board(context, 'cmd_vel', GROUND_HARD_IRON_UT, args.seed,
                              tilt_wobble_deg=GROUND_WOBBLE_DEG)
-    overrides = [Parameter('calibration_file', value=str(calibration_file)),
-                 Parameter('progress_log_period', value=0.0)]
-    if args.buffer_size is not None:
-        overrides.append(Parameter('buffer_size', value=args.buffer_size))
-    calibrator = MagCalibratorNode(namespace=NAMESPACE, context=context,
-                                   parameter_overrides=overrides)
-    observer = GroundObserver(context)
-    spinning = NodeThreads(context)
-    for node in (driver, calibrator, observer):
-        spinning.add(node)
+    calibrator, observer, spinning = start_pipeline(context, args, driver, GroundObserver,
+                                                    calibration_file)
     try:
         response = None
         deadline = time.monotonic() + 10.0
@@ -543,12 +577,9 @@ def run_ground(args: argparse.Namespace, context: Context) -> int:
             if response is None or response.success or 'no input' not in response.message:
                 break
             time.sleep(0.5)
-        if response is None:
-            print('~/rotate_and_calibrate did not answer', file=sys.stderr)
-            return 2
-        print(f'~/rotate_and_calibrate -> success={response.success}: {response.message}')
-        if not response.success:
-            return 1
+        status = answered('~/rotate_and_calibrate', response)
+        if status:
+            return status
         took = watch_rotation(calibrator, args.collect_timeout + 120.0)
         reason, message = calibrator._rotation.last_stop or ('', 'still turning')
         print(f'{message}')
@@ -559,14 +590,9 @@ def run_ground(args: argparse.Namespace, context: Context) -> int:
 
         print(f'Turning once more at {CHECK_TURN_RATE} rad/s to score the heading...')
         count, before, after = check_turn(observer, driver, 60.0)
-        if count == 0:
-            print('no corrected samples could be paired with the truth', file=sys.stderr)
-            return 3
-        print_summary(count, before, after)
-        saved = observer.call(observer.save)
-        if saved is None or not saved.success:
-            print(f'~/save failed: {saved.message if saved else "no answer"}', file=sys.stderr)
-            return 4
+        status = summarise_and_save(observer, count, before, after)
+        if status:
+            return status
         plot_calibration(observer.raw_samples() * 1e6, calibration.scaled(1e6), plot_file,
                          title='mag_calibrator_demo --ground-robot', units='uT')
         print(f'\nCalibration file: {calibration_file}\nBefore/after plot: {plot_file}')

@@ -618,20 +618,31 @@ def _parse_lines(
     skipped: Counter[str] = Counter()
     needed = max(layout.indices) + 1
     for line in block:
-        if not line.strip():
+        tokens = _data_tokens(line, skipped)
+        if tokens is None:
             continue
-        if _is_comment(line):
-            skipped['comment'] += 1
-            continue
-        tokens = _split(line)
         reason, row = _parse_line(tokens, layout, needed)
         if row is not None:
             rows.append(row)
-        elif not (seen_rows or rows) and _is_text(tokens):
-            skipped['header'] += 1
         else:
-            skipped[reason] += 1
+            _count_skipped(skipped, tokens, reason, before_data=not (seen_rows or rows))
     return np.array(rows, dtype=np.float64).reshape(-1, 3), skipped
+
+
+def _data_tokens(line: str, skipped: Counter[str]) -> list[str] | None:
+    """The fields of a line that may hold data; None for a blank line or a comment (counted)."""
+    if not line.strip():
+        return None
+    if _is_comment(line):
+        skipped['comment'] += 1
+        return None
+    return _split(line)
+
+
+def _count_skipped(skipped: Counter[str], tokens: list[str], reason: str, before_data: bool
+                   ) -> None:
+    """A line that gave no row: a header when text comes before any data, else ``reason``."""
+    skipped['header' if before_data and _is_text(tokens) else reason] += 1
 
 
 def _parse_line(
@@ -809,22 +820,17 @@ def _read_paired(stream: Iterable[str], source: str, accel_columns: str, columns
         consumed += len(line)
         if progress is not None and count % BLOCK_LINES == 0:
             progress(consumed, total)
-        if not line.strip():
+        tokens = _data_tokens(line, skipped)
+        if tokens is None:
             continue
-        if _is_comment(line):
-            skipped['comment'] += 1
-            continue
-        tokens = _split(line)
         reason, field = _parse_line(tokens, mag, needed)
         specific_force = None
         if field is not None:
             reason, specific_force = _parse_line(tokens, accel_layout, needed)
         if field is not None and specific_force is not None:
             rows.append((*field, *specific_force))
-        elif not rows and _is_text(tokens):
-            skipped['header'] += 1
         else:
-            skipped[reason] += 1
+            _count_skipped(skipped, tokens, reason, before_data=not rows)
     if progress is not None:
         progress(consumed, total if total is not None else consumed)
     data = np.array(rows, dtype=np.float64).reshape(-1, 6)
