@@ -234,9 +234,8 @@ def fit_calibration(
     gravity = _gravity(rows, unit, weights, finite, ups, paired)
     with np.errstate(all='ignore'):
         layer_thickness, _ = thickness(normalised[1])
-        fitted, choice_note = _fit_model(
-            rows, options, layer_thickness, weights, normalised, gravity=gravity
-        )
+        fitted, choice_note = _level(rows, options, gravity, *_fit_model(
+            rows, options, layer_thickness, weights, normalised))
         if fitted is None:
             reasons = [
                 _too_few(n, options)
@@ -251,9 +250,8 @@ def fit_calibration(
             rows, finite, fitted, options, layer_thickness, n_bad, choice_note, evidence
         )
         if not fitted.robust and _near_a_gate(result, options):
-            refitted, note = _fit_model(
-                rows, options, layer_thickness, weights, normalised, True, gravity
-            )
+            refitted, note = _level(rows, options, gravity, *_fit_model(
+                rows, options, layer_thickness, weights, normalised, True))
             if refitted is not None:
                 result = _judge(
                     rows, finite, refitted, options, layer_thickness, n_bad, note, evidence
@@ -369,21 +367,15 @@ def _too_few(n: int, options: FitOptions) -> str:
     )
 
 
-def _fit_model(
+def _level(
     rows: np.ndarray,
     options: FitOptions,
-    layer_thickness: float,
-    weights: np.ndarray | None,
-    normalised: tuple[Normalisation, np.ndarray],
-    always_robust: bool = False,
-    gravity: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None,
+    gravity: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None,
+    fitted: EllipsoidFit | None,
+    note: str,
 ) -> tuple[EllipsoidFit | None, str]:
-    """The requested model, or for ``auto`` the one the data determine with the lowest BIC;
-    a planar fit without a prior levelled by ``gravity`` (points in the rows' units, their
-    gravity directions, weights) when that stands (levelled.py).
-    ``normalised``: ``normalise(rows)`` and the normalised rows (shared by every fit)."""
-    fitted, note = _choose_model(rows, options, layer_thickness, weights, normalised,
-                                 always_robust)
+    """A planar fit without a prior, levelled by ``gravity`` (points in the rows' units, their
+    gravity directions, weights) when that stands (levelled.py); any other fit as it is."""
     if fitted is None or fitted.model != 'planar' or gravity is None or options.prior is not None:
         return fitted, note
     levelling = level_planar(*gravity[:2], fitted, gravity[2], options.outlier_threshold)
@@ -393,14 +385,16 @@ def _fit_model(
             '; '.join(part for part in (note, levelling.note) if part))
 
 
-def _choose_model(
+def _fit_model(
     rows: np.ndarray,
     options: FitOptions,
     layer_thickness: float,
     weights: np.ndarray | None,
     normalised: tuple[Normalisation, np.ndarray],
-    always_robust: bool,
+    always_robust: bool = False,
 ) -> tuple[EllipsoidFit | None, str]:
+    """The requested model, or for ``auto`` the one the data determine with the lowest BIC.
+    ``normalised``: ``normalise(rows)`` and the normalised rows (shared by every fit)."""
     prior = None
     if options.prior is not None:
         prior = (options.prior.offset, options.prior.matrix / options.prior.field_strength)
