@@ -16,6 +16,7 @@ from mag_calibrator_ros.calibration.evidence import HOLD_OUT_EVERY
 from mag_calibrator_ros.calibration.jobs import FitJob, JobOutcome, run_job
 from mag_calibrator_ros.calibration.session import (
     AK09916_FULL_SCALE_T,
+    DRAIN_PER_MESSAGE,
     REFUSAL_REASONS,
     CalibrationSession,
     SessionSettings,
@@ -92,6 +93,15 @@ class ManualRunner:
 
     def close(self):
         pass
+
+
+def settle(session, runner):
+    """What the node's poll timer does once messages stop: every fit finishes (released) and
+    every held reading is fed."""
+    while runner.busy or session._held:
+        if runner.busy:
+            runner.release()
+        session.poll()
 
 
 # -- one call per message -------------------------------------------------------------------------
@@ -296,13 +306,26 @@ def test_while_a_fit_runs_readings_are_held_and_the_result_is_the_same():
         held.process(round(i * 1e9 / RATE_HZ), 'imu_link', reading)
         if runner.busy and i % 7 == 0:  # the worker answers a few messages later
             runner.release()
-    while runner.busy or held._held:
-        runner.release() if runner.busy else None
-        held.poll()
+    settle(held, runner)
     assert runner.submitted and held.jobs_run == inline.jobs_run
     np.testing.assert_array_equal(held.buffer.samples, inline.buffer.samples)
     np.testing.assert_array_equal(held.calibration.offset, inline.calibration.offset)
     np.testing.assert_array_equal(held.calibration.matrix, inline.calibration.matrix)
+
+
+def test_a_poll_feeds_a_few_held_readings_while_messages_flow_and_the_rest_once_they_stop():
+    """The poll timer shares the node's thread with the messages: while they flow it feeds as
+    few held readings as a message does, so none waits behind a long drain."""
+    runner = ManualRunner()
+    session = CalibrationSession(SessionSettings(auto_calibrate=False), runner=runner)
+    stream(session, distorted('tumble', 300, seed=8))
+    assert runner.busy and len(session._held) > DRAIN_PER_MESSAGE  # the reference fit at 100
+    runner.release()
+    held = len(session._held)
+    session.poll()
+    assert held - len(session._held) == DRAIN_PER_MESSAGE
+    session.poll()  # no message since the last poll: the stream stopped
+    assert not session._held or runner.busy  # all fed, unless a new fit became due meanwhile
 
 
 def test_a_request_made_while_readings_wait_fits_them_all():
@@ -318,9 +341,7 @@ def test_a_request_made_while_readings_wait_fits_them_all():
         held.process(round(i * 1e9 / RATE_HZ), 'imu_link', reading)
     assert held._held  # the buffer's reference fit (at 100 samples) is still running
     ticket = held.request_calibration()
-    while runner.busy:
-        runner.release()
-        held.poll()
+    settle(held, runner)
     (answer,) = [e for e in held.take_events() if e.ticket == ticket]
     assert answer.attempt.success and expected.success
     np.testing.assert_array_equal(held.calibration.offset, inline.calibration.offset)
@@ -330,9 +351,7 @@ def test_a_reset_while_a_fit_runs_abandons_it_and_answers_the_request():
     runner = ManualRunner()
     session = CalibrationSession(SessionSettings(auto_calibrate=False), runner=runner)
     stream(session, distorted('tumble', 600))
-    while runner.busy:
-        runner.release()
-        session.poll()
+    settle(session, runner)
     ticket = session.request_calibration()
     assert runner.busy
     session.reset()
@@ -352,9 +371,7 @@ def test_a_worker_error_is_reported_and_the_session_carries_on():
     session = CalibrationSession(SessionSettings(auto_calibrate=False), runner=runner)
     session.feed(distorted('tumble', 300), RATE_HZ, frame_id='imu_link')
     ticket = session.request_calibration()
-    while runner.busy:  # the buffer's reference fit fails first, then the request
-        runner.release()
-        session.poll()
+    settle(session, runner)  # the buffer's reference fit fails first, then the request
     events = session.take_events()
     (answer,) = [e for e in events if e.ticket == ticket]
     assert not answer.attempt.success and 'boom' in answer.message
@@ -552,6 +569,26 @@ def test_settings_validation_and_reconfigure_keep_samples():
     assert session.buffer.fill == held // 2
     with pytest.raises(ValueError, match='k must'):
         session.reconfigure(replace(session.settings, k=held))
+
+
+def test_reports_take_the_coverage_the_worker_measured_while_it_is_fresh(monkeypatch):
+    """Diagnostics read the coverage every second and measuring it costs milliseconds: reports
+    take what the worker's latest check measured, and measure it themselves once that is stale
+    (another stream second) or the buffer was emptied."""
+    session = CalibrationSession()
+    stream(session, distorted('tumble', 3000, seed=7))
+    assert session.calibration is not None and session.jobs_run['check'] > 0
+    exact = session.coverage()
+    measured_here = []
+    original = session.buffer.coverage
+    monkeypatch.setattr(session.buffer, 'coverage',
+                        lambda: measured_here.append(1) or original())
+    reported = session.reported_coverage()
+    assert not measured_here and reported.cells == exact.cells
+    assert abs(reported.fraction - exact.fraction) <= 0.05
+    session.reset()
+    session.reported_coverage()
+    assert measured_here
 
 
 def test_diagnostic_values_are_plain_numbers_and_strings():

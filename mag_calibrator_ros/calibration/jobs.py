@@ -31,7 +31,7 @@ from mag_calibrator_ros.calibration.alignment import (
 )
 from mag_calibrator_ros.calibration.buffer import DEFAULT_MAGNITUDE_TOLERANCE
 from mag_calibrator_ros.calibration.calibration import Calibration
-from mag_calibrator_ros.calibration.coverage import Coverage, direction_coverage
+from mag_calibrator_ros.calibration.coverage import HEADING_SECTORS, Coverage, direction_coverage
 from mag_calibrator_ros.calibration.earth_field import (
     EarthCheck,
     EarthReference,
@@ -55,7 +55,7 @@ JOB_KINDS = ('reference', 'calibrate', 'refine', 'check')
 """reference: the buffer's own full fit, to screen and merge by; calibrate: a fit to put in force
 (automatic or on request); refine: a fit to put in force only if better on held-out evidence;
 check: no fit, the calibration in force judged on recent evidence (does it still fit? is the
-online-tracked calibration better?)."""
+online-tracked calibration better?) and the buffer's direction coverage measured for reports."""
 
 REFERENCE_OPTIONS = FitOptions(model='full')
 """How the buffer is fitted for its reference: the default gates, model ``full``, the one that
@@ -123,7 +123,7 @@ class JobOutcome:
     reference: ReferenceFit | None = None
     comparison: Comparison | None = None
     coverage: Coverage | None = None
-    """The buffer's coverage, when a readiness check ran."""
+    """The buffer's coverage, when a readiness check ran or a check measured it."""
     fit_check: FitCheck | None = None
     """check: the calibration in force judged on the recent evidence."""
     error: str = ''
@@ -154,7 +154,10 @@ def _run(job: FitJob) -> JobOutcome:
         comparison = None
         if job.tracked is not None:
             comparison = compare_on_evidence(job.current, job.tracked, job.evidence)
-        return JobOutcome(job, comparison=comparison, fit_check=fit_check)
+        coverage = None
+        if len(job.samples):  # what the session reports (milliseconds: not on its thread)
+            coverage = buffer_coverage(job)
+        return JobOutcome(job, comparison=comparison, coverage=coverage, fit_check=fit_check)
     if job.kind == 'reference':
         result = fit_calibration(job.samples, job.options, weights=job.weights)
         return JobOutcome(job, result, reference=reference_fit(result, job, job.previous))
@@ -215,11 +218,19 @@ def readiness(job: FitJob) -> tuple[Coverage, float]:
     COMPLETE_HEADING_COVERAGE): a turning robot can complete it, and an ellipse fitted to part
     of it extrapolates the rest. Everything else: direction coverage, ``ready_coverage``.
     """
+    coverage = buffer_coverage(job)
+    if coverage.cells == HEADING_SECTORS:
+        return coverage, max(job.ready_coverage, COMPLETE_HEADING_COVERAGE)
+    return coverage, job.ready_coverage
+
+
+def buffer_coverage(job: FitJob) -> Coverage:
+    """The snapshot's coverage as the session reports it: of the heading circle for yaw-only
+    data, else of the direction sphere (judged through ``job.reference``)."""
     model = job.options.model
     if model == 'planar' or (model == 'auto' and yaw_only(job.samples)):
-        progress = heading_coverage_of(job.samples, job.readings)
-        return progress.coverage, max(job.ready_coverage, COMPLETE_HEADING_COVERAGE)
-    return direction_coverage(job.samples, job.reference, job.readings), job.ready_coverage
+        return heading_coverage_of(job.samples, job.readings).coverage
+    return direction_coverage(job.samples, job.reference, job.readings)
 
 
 def reference_fit(
@@ -418,6 +429,7 @@ __all__ = [
     'ProcessRunner',
     'ReferenceFit',
     'align_and_check',
+    'buffer_coverage',
     'moved',
     'prediction_sigma',
     'readiness',

@@ -78,7 +78,12 @@ from mag_calibrator_ros.calibration.jobs import (
     InlineRunner,
     JobOutcome,
 )
-from mag_calibrator_ros.calibration.scheduler import FitScheduler, Situation, StreamClock
+from mag_calibrator_ros.calibration.scheduler import (
+    CHECK_FIT_PERIOD_S,
+    FitScheduler,
+    Situation,
+    StreamClock,
+)
 from mag_calibrator_ros.calibration.screening import SCREEN_REASONS, ReadingScreen
 from mag_calibrator_ros.calibration.tracker import OnlineTracker
 
@@ -97,13 +102,20 @@ HOLD_LIMIT = 5000
 """Readings held while a fit runs; beyond this (a worker far too slow for the rate) the oldest
 are fed to the buffer at once and the run is no longer exactly reproducible (counted)."""
 
-DRAIN_PER_MESSAGE = 8
-"""Held readings fed per incoming message once a fit is done: bounded work per callback."""
+DRAIN_PER_MESSAGE = 2
+"""Held readings fed per incoming message once a fit is done: bounded work per callback. Each
+costs about as much as the message itself, so the callback's worst case stays a few times its
+median and the backlog of a fit still shrinks by two readings a message."""
 
 STALE_SHARE = 0.5
 """When the buffer's reference refuses more than half of a window of readings it no longer
 describes the sensor (moved, re-mounted, another sensor's file): it is set aside rather than
 starving the buffer of the data a new calibration needs."""
+
+REPORTED_COVERAGE_AGE_S = 2.0 * CHECK_FIT_PERIOD_S
+"""Stream seconds a coverage measured by the fit worker stands for the buffer's in reports: a
+check measures it every CHECK_FIT_PERIOD_S while calibrated, a readiness test every
+CHECK_PERIOD_S while calibrating automatically."""
 
 PERIODIC_S = 1.0
 """Stream seconds between updates of the field's centre (for filing evidence by direction)."""
@@ -399,6 +411,7 @@ class CalibrationSession:
         self.clock = StreamClock()
         self.refusals = dict.fromkeys(REFUSAL_REASONS[len(SCREEN_REASONS):], 0)
         self.accepted = 0
+        self._accepted_at_poll = 0  # accepted messages at the previous poll(): is the stream idle?
         self.input_rate = _RateMeter()
         self.calibration: Calibration | None = None
         self.last_attempt: CalibrationAttempt | None = None
@@ -417,6 +430,7 @@ class CalibrationSession:
         self._held: deque[tuple[np.ndarray, int]] = deque()
         self._job: FitJob | None = None
         self._job_epoch = 0
+        self._measured_coverage: tuple[float, Coverage] | None = None  # (stream s, coverage)
         self._epoch = 0  # bumped by reset(): outcomes of older jobs are stale
         self._requests: deque[tuple[int, int]] = deque()  # (ticket, readings accepted before)
         self._ingested = 0  # accepted readings fed to the buffer or the evidence so far
@@ -461,6 +475,7 @@ class CalibrationSession:
         if (settings.buffer_size, settings.k) != (old.buffer_size, old.k):
             self.buffer.resize(settings.buffer_size, settings.k)
             self.scheduler.capacity = settings.buffer_size
+            self._measured_coverage = None
         self.screen.full_scale = settings.full_scale_limit
         if settings.online_tracking != old.online_tracking:
             self._restart_tracker()
@@ -544,8 +559,12 @@ class CalibrationSession:
 
     def poll(self) -> None:
         """Take a finished fit's outcome and feed held readings; the node calls this on a timer
-        (messages call it too), so answers arrive even when no message does."""
-        self._advance(budget=HOLD_LIMIT)
+        (messages call it too), so answers arrive even when no message does. While messages
+        flow, each feeds DRAIN_PER_MESSAGE and so does a poll (a long drain here would delay the
+        messages queued behind it); once none came since the last poll, all that is held."""
+        flowing = self.accepted != self._accepted_at_poll
+        self._accepted_at_poll = self.accepted
+        self._advance(budget=DRAIN_PER_MESSAGE if flowing else HOLD_LIMIT)
 
     def _advance(self, budget: int = DRAIN_PER_MESSAGE) -> None:
         if self._job is not None:
@@ -659,9 +678,9 @@ class CalibrationSession:
             if self._calibration_plane is not None:  # a planar one knows nothing off its plane
                 recent = recent[self._calibration_plane.near(recent)]
             tracked = None if self.tracker is None else self.tracker.calibration
-            return FitJob('check', np.empty((0, 3)), None, None, self.settings.fit_options(),
+            return FitJob('check', samples, weights, readings, self.settings.fit_options(),
                           current=self.calibration, evidence=self.evidence.readings(),
-                          recent=recent, tracked=tracked)
+                          recent=recent, tracked=tracked, reference=buffer.reference)
         metadata = {**self.metadata, 'frame_id': self.screen.frame_id or ''}
         evidence = self.evidence.readings() if self.calibration is not None else None
         attitudes = self.attitudes.snapshot() if self.settings.align else None
@@ -703,6 +722,8 @@ class CalibrationSession:
                 self._answer(job.ticket, CalibrationAttempt(
                     False, 'calibration abandoned: the buffer was reset while it ran', outcome))
             return
+        if outcome.coverage is not None:
+            self._measured_coverage = (self.clock.now, outcome.coverage)
         if job.kind == 'reference':
             self._reference_done(outcome)
         elif job.kind == 'check':
@@ -993,6 +1014,7 @@ class CalibrationSession:
     def _collect_anew(self, now: float) -> None:
         """After a misfit: forget samples and evidence from before it, keep the calibration."""
         self.buffer.clear()
+        self._measured_coverage = None
         self.evidence.forget_before(now - MISFIT_WINDOW_S)
         self.scheduler.reset()
         self._provisional = None
@@ -1064,6 +1086,7 @@ class CalibrationSession:
         """Empty the buffer and evidence, forget the stream's frame and stamps (a new sensor may
         follow); the calibration in force stays. A fit running now is abandoned."""
         self.buffer.clear()
+        self._measured_coverage = None
         self.evidence.clear()
         self.screen.reset()
         self.scheduler.reset()
@@ -1118,6 +1141,19 @@ class CalibrationSession:
         if self.yaw_only():
             return self.heading_coverage().coverage
         return self.buffer.coverage()
+
+    def reported_coverage(self) -> Coverage:
+        """``coverage()`` for reports (diagnostics, the progress log), without its milliseconds
+        on the caller's thread: what the fit worker measured with its latest check or readiness
+        test (jobs.buffer_coverage), while no older than REPORTED_COVERAGE_AGE_S of stream (a
+        stream that stopped changes no buffer); measured here otherwise. Heading coverage is
+        looked at here, so its hint knows which way the robot turns."""
+        measured = self._measured_coverage
+        if measured is None or self.clock.now - measured[0] > REPORTED_COVERAGE_AGE_S:
+            return self.coverage()
+        if measured[1].cells == HEADING_SECTORS:
+            return self.heading_coverage().coverage
+        return measured[1]
 
     def yaw_only(self) -> bool:
         """Whether coverage, hints and the automatic gate are about the heading circle: model

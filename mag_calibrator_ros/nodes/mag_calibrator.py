@@ -22,6 +22,7 @@ import time
 import traceback
 
 from geometry_msgs.msg import Twist, TwistStamped
+import numpy.ma  # noqa: F401 - np.median imports it on first use: 30 ms in a callback otherwise
 from rcl_interfaces.msg import (
     FloatingPointRange,
     IntegerRange,
@@ -693,7 +694,7 @@ class MagCalibratorNode(Node):
 
     def _on_tick(self) -> None:
         now = time.monotonic()
-        coverage = self.session.coverage()
+        coverage = self.session.reported_coverage()
         self._log_progress(now, coverage)
         self._publish_diagnostics(now, coverage)
         self._publish_view(now)
