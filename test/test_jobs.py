@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from mag_calibrator_ros import motion
+from mag_calibrator_ros.calibration import fit_worker
 from mag_calibrator_ros.calibration.calibration import Calibration
 from mag_calibrator_ros.calibration.fitting import FitOptions
 from mag_calibrator_ros.calibration.jobs import (
@@ -151,3 +152,18 @@ def test_the_outcome_carries_the_submitted_job_itself():
             assert outcome.job is submitted and outcome.job.current is submitted.current
         finally:
             runner.close()
+
+
+@pytest.mark.skipif(not hasattr(os, 'sched_getscheduler'), reason='Linux scheduling policies')
+def test_the_worker_yields_the_cpu_to_the_node():
+    """The fit worker runs nicer than the node and as SCHED_BATCH, so a job written to it never
+    preempts the node's message path; it still gets its share of a busy machine (not IDLE)."""
+    runner = ProcessRunner()
+    try:
+        runner.submit(job())
+        wait(runner)  # the worker is up and has set its priority before its first job
+        assert os.sched_getscheduler(runner.pid) == os.SCHED_BATCH
+        assert os.getpriority(os.PRIO_PROCESS, runner.pid) == min(
+            os.getpriority(os.PRIO_PROCESS, 0) + fit_worker.WORKER_NICENESS, 19)
+    finally:
+        runner.close()
