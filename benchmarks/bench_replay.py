@@ -91,6 +91,16 @@ def spread_pct(corrected: np.ndarray) -> float:
     return float(100.0 * magnitudes.std() / magnitudes.mean()) if len(magnitudes) else np.nan
 
 
+def robust_spread_pct(corrected: np.ndarray) -> float:
+    """1.4826 MAD / median of |corrected|: the spread of the undisturbed readings, which a few
+    disturbed ones (a magnet, a spike) do not move: what the node's own judgements weigh."""
+    magnitudes = np.linalg.norm(corrected, axis=1)
+    if not len(magnitudes):
+        return np.nan
+    median = float(np.median(magnitudes))
+    return float(100.0 * 1.4826 * np.median(np.abs(magnitudes - median)) / median)
+
+
 class Feeder(Node):
     """Publishes rows on imu/mag and records what comes back on imu/mag_corrected."""
 
@@ -178,16 +188,18 @@ def replay(threads: NodeThreads, context: Context, directory: Path, number: int,
     last_pass = [corrected[i] for i in range(len(rows) * (args.passes - 1),
                                              len(rows) * args.passes) if i in corrected]
     result['live_spread'] = spread_pct(np.array(last_pass)) if last_pass else np.nan
+    result['live_robust'] = robust_spread_pct(np.array(last_pass)) if last_pass else np.nan
     result['last_pass_outputs'] = len(last_pass)
     threads.remove(feeder)
     threads.remove(node)
     return result
 
 
-def all_rows_spread(rows: np.ndarray) -> float:
-    """The spread a fit of every row of the recording reaches (best effort, as offline)."""
-    calibration = fit_calibration(rows, FitOptions()).calibration
-    return spread_pct(calibration.apply(rows))
+def all_rows_fit(rows: np.ndarray) -> tuple[float, float, bool]:
+    """A fit of every row: its spread, its robust spread and whether it passed its own gates."""
+    result = fit_calibration(rows, FitOptions())
+    corrected = result.calibration.apply(rows)
+    return spread_pct(corrected), robust_spread_pct(corrected), result.success
 
 
 def recordings_section(threads, context, directory, args) -> tuple[list[list[str]], bool]:
@@ -197,16 +209,18 @@ def recordings_section(threads, context, directory, args) -> tuple[list[list[str
             rows = synthetic_rows()
         else:
             rows = read_recording(args.data / spec.path, columns=spec.columns).samples
-        reference = all_rows_spread(rows)
+        reference, robust_reference, gates_passed = all_rows_fit(rows)
         result = replay(threads, context, directory, number, spec, rows, args)
         ratio = result['live_spread'] / reference
+        robust_ratio = result['live_robust'] / robust_reference
         ok = bool(ratio <= TARGET_SPREAD_RATIO)
         passed &= ok
         adoptions = ', '.join(f'{k} {v}' for k, v in sorted(result['adoptions'].items()))
         table.append([
             spec.name, str(result['rows']), f"{result['received']}/{len(rows) * args.passes}",
-            f'{reference:.3f}', f"{result['live_spread']:.3f}", f'{ratio:.3f}',
-            'PASS' if ok else 'FAIL', str(result['first']), str(result['converged']),
+            f"{reference:.3f}{'' if gates_passed else '*'}", f"{result['live_spread']:.3f}",
+            f'{ratio:.3f}', 'PASS' if ok else 'FAIL', f'{robust_ratio:.3f}',
+            str(result['first']), str(result['converged']),
             adoptions or '-', result['state'],
         ])
         print(f"  {spec.name}: live {result['live_spread']:.3f} % vs all rows {reference:.3f} %"
@@ -298,9 +312,10 @@ def main(argv: list[str] | None = None) -> int:
                 passed &= ok
                 print_table(
                     f'(a) live node, defaults, {args.passes} passes at {args.rate:.0f} Hz: '
-                    'magnitude spread std/mean of |corrected|, %',
+                    'magnitude spread std/mean of |corrected|, % (* the all-rows fit fails its '
+                    'own gates; robust ratio: 1.4826 MAD/median, live / all rows)',
                     ['recording', 'rows', 'received', 'all-rows fit', 'live, last pass',
-                     'ratio', f'<= {TARGET_SPREAD_RATIO}', 'first corrected msg',
+                     'ratio', f'<= {TARGET_SPREAD_RATIO}', 'robust ratio', 'first corrected msg',
                      'converged at msg', 'adopted', 'final state'], rows, args.markdown)
             rows, ok = wrong_file_section(threads, context, Path(directory), args)
             passed &= ok
