@@ -206,6 +206,18 @@ def test_a_failed_request_keeps_the_previous_calibration_and_says_why():
     assert session.calibration is EXACT
 
 
+@pytest.mark.parametrize('seed', [0, 1, 2])
+def test_a_still_sensor_gives_the_buffer_no_reference_to_set_aside(seed):
+    """A robot standing still at start-up: the buffer keeps the rim of its noise, whose own fit
+    is no field sphere (the readings fill its inside). Taken as the reference it refused half the
+    readings and was set aside with a log line, over and over."""
+    session = CalibrationSession()
+    stream(session, distorted('still', 3000, seed=seed))  # a minute at 50 Hz
+    assert session.jobs_run['reference'] > 0
+    assert session.buffer.reference is None
+    assert not [m for m in messages(session.take_events()) if 'stopped screening' in m]
+
+
 def test_planar_data_with_a_3d_model_fails_uncalibrated():
     session = CalibrationSession(SessionSettings(model='full', auto_calibrate=False))
     stream(session, distorted('yaw', 2000))

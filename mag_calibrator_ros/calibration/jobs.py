@@ -31,7 +31,12 @@ from mag_calibrator_ros.calibration.alignment import (
 )
 from mag_calibrator_ros.calibration.buffer import DEFAULT_MAGNITUDE_TOLERANCE
 from mag_calibrator_ros.calibration.calibration import Calibration
-from mag_calibrator_ros.calibration.coverage import HEADING_SECTORS, Coverage, direction_coverage
+from mag_calibrator_ros.calibration.coverage import (
+    HEADING_SECTORS,
+    Coverage,
+    direction_coverage,
+    shell_directions,
+)
 from mag_calibrator_ros.calibration.earth_field import (
     EarthCheck,
     EarthReference,
@@ -238,12 +243,14 @@ def reference_fit(
 ) -> ReferenceFit | None:
     """The fit as a reference if it is sane, with the tolerance to screen by; else None.
 
-    Sane means determined and plausible (the condition and axis-ratio gates) and describing most
-    of the buffer (a majority of inliers), even if the coverage, sample-count or residual gates
-    fail: a reference only judges magnitudes. The tolerance is ``outlier_threshold`` sigmas,
-    capped at DEFAULT_MAGNITUDE_TOLERANCE: the robust sigma of one reading (a point averaging n
-    readings has sqrt(n) less noise) combined with the fit's own uncertainty, so an early fit
-    from part of the sphere does not refuse the good readings of a region it extrapolates to.
+    Sane means determined and plausible (the condition and axis-ratio gates), describing most
+    of the buffer (a majority of inliers) and the field's sphere (the buffer's readings lie on its
+    shell: those of a still sensor fill the inside of the noise rim the buffer keeps), even if the
+    coverage, sample-count or residual gates fail: a reference only judges magnitudes. The
+    tolerance is ``outlier_threshold`` sigmas, capped at DEFAULT_MAGNITUDE_TOLERANCE: the robust
+    sigma of one reading (a point averaging n readings has sqrt(n) less noise) combined with the
+    fit's own uncertainty, so an early fit from part of the sphere does not refuse the good
+    readings of a region it extrapolates to.
     """
     metrics, calibration, options = result.metrics, result.calibration, job.options
     if calibration is None or not (
@@ -251,6 +258,8 @@ def reference_fit(
         and metrics.axis_ratio <= options.max_axis_ratio
         and 2 * metrics.n_inliers > metrics.n_samples
     ):
+        return None
+    if not len(shell_directions(job.samples, calibration, job.readings)[0]):
         return None
     relative = np.linalg.norm(calibration.apply(job.samples), axis=1) / calibration.field_strength
     sigma = robust_sigma((relative - 1.0) * np.sqrt(job.weights))  # of one reading
