@@ -12,7 +12,8 @@
     calibration does not fit, and until it has recalibrated by itself.
 
     python benchmarks/bench_replay.py --data ../shared/data
-    python benchmarks/bench_replay.py --data ../shared/data --speed 10   # same numbers, faster
+    python benchmarks/bench_replay.py --data ../shared/data --speed 10   # same decisions, faster
+    python benchmarks/bench_replay.py --data ../shared/data --only fxos8700 --passes 10
 
 Stream time comes from the message stamps, so --speed (publishing faster than the stamps say)
 changes no decision of the node: only how long the benchmark takes. Recordings in µT or counts
@@ -205,6 +206,8 @@ def all_rows_fit(rows: np.ndarray) -> tuple[float, float, bool]:
 def recordings_section(threads, context, directory, args) -> tuple[list[list[str]], bool]:
     table, passed = [], True
     for number, spec in enumerate(REPLAYS):
+        if args.only and not any(name in spec.name for name in args.only):
+            continue
         if spec.path is None:
             rows = synthetic_rows()
         else:
@@ -297,6 +300,8 @@ def main(argv: list[str] | None = None) -> int:
                         help='publish this many times faster than the stamps (same decisions)')
     parser.add_argument('--wrong-file-runs', type=int, default=3)
     parser.add_argument('--skip-recordings', action='store_true')
+    parser.add_argument('--only', nargs='+', metavar='NAME',
+                        help='replay only the recordings whose name contains one of these')
     parser.add_argument('--markdown', action='store_true')
     args = parser.parse_args(argv)
     context = Context()
