@@ -16,6 +16,7 @@ from mag_calibrator_ros.calibration.evidence import HOLD_OUT_EVERY
 from mag_calibrator_ros.calibration.jobs import FitJob, JobOutcome, run_job
 from mag_calibrator_ros.calibration.session import (
     AK09916_FULL_SCALE_T,
+    DRAIN_FOR_REQUEST,
     DRAIN_PER_MESSAGE,
     REFUSAL_REASONS,
     CalibrationSession,
@@ -338,6 +339,20 @@ def test_a_poll_feeds_a_few_held_readings_while_messages_flow_and_the_rest_once_
     assert held - len(session._held) == DRAIN_PER_MESSAGE
     session.poll()  # no message since the last poll: the stream stopped
     assert not session._held or runner.busy  # all fed, unless a new fit became due meanwhile
+
+
+def test_a_poll_feeds_more_held_readings_while_a_request_waits_for_them():
+    """~/calibrate fits every reading received before the call: while it waits for a slow
+    worker's backlog, a poll feeds DRAIN_FOR_REQUEST instead of a message's few."""
+    runner = ManualRunner()
+    session = CalibrationSession(SessionSettings(auto_calibrate=False), runner=runner)
+    stream(session, distorted('tumble', 300, seed=8))
+    session.request_calibration()
+    runner.release()
+    held = len(session._held)
+    assert held > DRAIN_FOR_REQUEST
+    session.poll()
+    assert held - len(session._held) == DRAIN_FOR_REQUEST
 
 
 def test_a_request_made_while_readings_wait_fits_them_all():

@@ -107,6 +107,11 @@ DRAIN_PER_MESSAGE = 2
 costs about as much as the message itself, so the callback's worst case stays a few times its
 median and the backlog of a fit still shrinks by two readings a message."""
 
+DRAIN_FOR_REQUEST = 64
+"""Held readings a poll feeds while a ~/calibrate waits for them (its fit includes every reading
+received before the call): a user waits, so the backlog of a slow worker goes first, at a few
+milliseconds per poll."""
+
 STALE_SHARE = 0.5
 """When the buffer's reference refuses more than half of a window of readings it no longer
 describes the sensor (moved, re-mounted, another sensor's file): it is set aside rather than
@@ -561,10 +566,15 @@ class CalibrationSession:
         """Take a finished fit's outcome and feed held readings; the node calls this on a timer
         (messages call it too), so answers arrive even when no message does. While messages
         flow, each feeds DRAIN_PER_MESSAGE and so does a poll (a long drain here would delay the
-        messages queued behind it); once none came since the last poll, all that is held."""
+        messages queued behind it), DRAIN_FOR_REQUEST while a request waits; once none came
+        since the last poll, all that is held."""
         flowing = self.accepted != self._accepted_at_poll
         self._accepted_at_poll = self.accepted
-        self._advance(budget=DRAIN_PER_MESSAGE if flowing else HOLD_LIMIT)
+        if not flowing:
+            budget = HOLD_LIMIT
+        else:
+            budget = DRAIN_FOR_REQUEST if self._requests else DRAIN_PER_MESSAGE
+        self._advance(budget=budget)
 
     def _advance(self, budget: int = DRAIN_PER_MESSAGE) -> None:
         if self._job is not None:

@@ -62,6 +62,10 @@ SOFT_IRON = (  # symmetric, scales 0.85-1.15, off-diagonals up to 0.12
 MISALIGNMENT_DEG = (1.8, -1.9, 1.4)
 """The magnetometer's axes against the accelerometer's (a rotation vector): 3.0 deg."""
 NAMESPACE = 'mag_calibrator_demo'
+SERVICE_TIMEOUT_S = 60.0
+"""How long the demo waits for a service's answer: ~/calibrate answers once its fit has run in the
+worker, which a busy or small computer gives little CPU (a user's `ros2 service call` waits as
+long as it takes)."""
 GROUND_HARD_IRON_UT = (55.0, -45.0, 25.0)
 """75 uT: three times the horizontal field (25 uT at 60 deg inclination)."""
 GROUND_WOBBLE_DEG = 2.0
@@ -206,7 +210,7 @@ class DemoObserver(Node):
         with self._lock:
             return np.array(self.raw).reshape(-1, 3)
 
-    def call(self, client, timeout_s: float = 10.0) -> Trigger.Response | None:
+    def call(self, client, timeout_s: float = SERVICE_TIMEOUT_S) -> Trigger.Response | None:
         if not client.wait_for_service(timeout_sec=timeout_s):
             return None
         future = client.call_async(Trigger.Request())
