@@ -108,6 +108,7 @@ class NodeThreads:
     def __init__(self, context: Context) -> None:
         self._context = context
         self._spinning: dict[Node, tuple[SingleThreadedExecutor, threading.Thread]] = {}
+        self._stopping: set[SingleThreadedExecutor] = set()
 
     def add(self, node: Node) -> Node:
         executor = SingleThreadedExecutor(context=self._context)
@@ -123,12 +124,19 @@ class NodeThreads:
             executor.spin()
         except (ExternalShutdownException, ShutdownException):
             pass
+        except AttributeError:
+            # rclpy 7.1: a shutdown from another thread while a task (a service coroutine) is
+            # being handled leaves the handler a guard condition of None to trigger
+            if executor not in self._stopping:
+                raise
 
     def remove(self, node: Node) -> None:
         """Stop spinning ``node``, then destroy it."""
         executor, thread = self._spinning.pop(node)
+        self._stopping.add(executor)
         executor.shutdown()
         thread.join(timeout=5.0)
+        self._stopping.discard(executor)
         node.destroy_node()
 
     def shutdown(self) -> None:
