@@ -99,7 +99,7 @@ class ManualRunner:
 def settle(session, runner):
     """What the node's poll timer does once messages stop: every fit finishes (released) and
     every held reading is fed."""
-    while runner.busy or session._held:
+    while runner.busy or session.held:
         if runner.busy:
             runner.release()
         session.poll()
@@ -332,13 +332,13 @@ def test_a_poll_feeds_a_few_held_readings_while_messages_flow_and_the_rest_once_
     runner = ManualRunner()
     session = CalibrationSession(SessionSettings(auto_calibrate=False), runner=runner)
     stream(session, distorted('tumble', 300, seed=8))
-    assert runner.busy and len(session._held) > DRAIN_PER_MESSAGE  # the reference fit at 100
+    assert runner.busy and session.held > DRAIN_PER_MESSAGE  # the reference fit at 100
     runner.release()
-    held = len(session._held)
+    held = session.held
     session.poll()
-    assert held - len(session._held) == DRAIN_PER_MESSAGE
+    assert held - session.held == DRAIN_PER_MESSAGE
     session.poll()  # no message since the last poll: the stream stopped
-    assert not session._held or runner.busy  # all fed, unless a new fit became due meanwhile
+    assert not session.held or runner.busy  # all fed, unless a new fit became due meanwhile
 
 
 def test_a_poll_feeds_more_held_readings_while_a_request_waits_for_them():
@@ -349,10 +349,10 @@ def test_a_poll_feeds_more_held_readings_while_a_request_waits_for_them():
     stream(session, distorted('tumble', 300, seed=8))
     session.request_calibration()
     runner.release()
-    held = len(session._held)
+    held = session.held
     assert held > DRAIN_FOR_REQUEST
     session.poll()
-    assert held - len(session._held) == DRAIN_FOR_REQUEST
+    assert held - session.held == DRAIN_FOR_REQUEST
 
 
 def test_a_request_made_while_readings_wait_fits_them_all():
@@ -366,7 +366,7 @@ def test_a_request_made_while_readings_wait_fits_them_all():
     held = CalibrationSession(SessionSettings(auto_calibrate=False), runner=runner)
     for i, reading in enumerate(raw):
         held.process(round(i * 1e9 / RATE_HZ), 'imu_link', reading)
-    assert held._held  # the buffer's reference fit (at 100 samples) is still running
+    assert held.held  # the buffer's reference fit (at 100 samples) is still running
     ticket = held.request_calibration()
     settle(held, runner)
     (answer,) = [e for e in held.take_events() if e.ticket == ticket]
@@ -691,7 +691,7 @@ def test_with_the_worker_process_refinement_and_misfits_are_decided_too():
         session = CalibrationSession(calibration=other_robots_calibration(), runner=runner)
         for i, reading in enumerate(distorted('tumble', 3000, seed=43)):
             session.process(round(i * 1e9 / RATE_HZ), 'imu_link', reading)
-        while runner.busy or session._held:
+        while runner.busy or session.held:
             session.poll()
         events = session.take_events()
         assert any('does not fit' in m for m in messages(events, level='warning'))

@@ -1152,6 +1152,11 @@ class CalibrationSession:
             return self.heading_coverage().coverage
         return self.buffer.coverage()
 
+    @property
+    def held(self) -> int:
+        """Readings received while a fit ran, not yet fed to the buffer (in order, later)."""
+        return len(self._held)
+
     def reported_coverage(self) -> Coverage:
         """``coverage()`` for reports (diagnostics, the progress log), without its milliseconds
         on the caller's thread: what the fit worker measured with its latest check or readiness
@@ -1226,6 +1231,7 @@ class CalibrationSession:
             'buffer_capacity': int(self.buffer.capacity),
             'relative_knn_distance': round(float(self.buffer.relative_knn_distance), 5),
             'held_out_readings': len(self.evidence),
+            'waiting_readings': len(self._held),
             'input_rate_hz': round(self.input_rate.read(now), 2),
             'messages_accepted': int(self.accepted),
             'frame_id': self.screen.frame_id or '',
