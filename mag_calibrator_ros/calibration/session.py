@@ -480,7 +480,7 @@ class CalibrationSession:
         if (settings.buffer_size, settings.k) != (old.buffer_size, old.k):
             self.buffer.resize(settings.buffer_size, settings.k)
             self.scheduler.capacity = settings.buffer_size
-            self._measured_coverage = None
+        self._measured_coverage = None  # measured with the old settings (model, buffer)
         self.screen.full_scale = settings.full_scale_limit
         if settings.online_tracking != old.online_tracking:
             self._restart_tracker()
