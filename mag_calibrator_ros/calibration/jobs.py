@@ -60,7 +60,7 @@ JOB_KINDS = ('reference', 'calibrate', 'refine', 'check')
 """reference: the buffer's own full fit, to screen and merge by; calibrate: a fit to put in force
 (automatic or on request); refine: a fit to put in force only if better on held-out evidence;
 check: no fit, the calibration in force judged on recent evidence (does it still fit? is the
-online-tracked calibration better?) and the buffer's direction coverage measured for reports."""
+online-tracked calibration better?) and the buffer's coverage measured for reports."""
 
 REFERENCE_OPTIONS = FitOptions(model='full')
 """How the buffer is fitted for its reference: the default gates, model ``full``, the one that
