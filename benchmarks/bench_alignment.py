@@ -29,7 +29,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from mag_calibrator_ros.calibration.alignment import (
+from mag_calibrator_ros.calibration.fit.alignment import (
     MAX_ACCEL_ERROR,
     MAX_FIELD_ERROR,
     AlignmentOptions,
@@ -37,12 +37,11 @@ from mag_calibrator_ros.calibration.alignment import (
     estimate_alignment,
     rotation_angle_deg,
 )
-from mag_calibrator_ros.calibration.calibration import Calibration
-from mag_calibrator_ros.calibration.earth_field import EarthField
-from mag_calibrator_ros.calibration.session import CalibrationSession, SessionSettings
-from mag_calibrator_ros.icm20948.board import BoardModel
-from mag_calibrator_ros.icm20948.simulator import SimConfig
-from mag_calibrator_ros.motion import board_readings
+from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.fit.earth_field import EarthField
+from mag_calibrator_ros.calibration.live.session import CalibrationSession, SessionSettings
+from mag_calibrator_ros.sim.board import BoardModel, board_readings
+from mag_calibrator_ros.sim.config import SimConfig
 from mag_calibrator_ros.tools import fit
 from mag_calibrator_ros.tools.recordings import read_paired_recording
 

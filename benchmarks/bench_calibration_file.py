@@ -21,8 +21,8 @@ import time
 
 import numpy as np
 
-from mag_calibrator_ros.calibration.calibration import Calibration
-from mag_calibrator_ros.calibration.calibration_file import (
+from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.store.calibration_file import (
     MAX_FILE_BYTES,
     MAX_NODES,
     CalibrationFileError,

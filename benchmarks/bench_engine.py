@@ -32,11 +32,11 @@ import time
 import numpy as np
 from scipy.spatial import cKDTree
 
-from mag_calibrator_ros.calibration.buffer import SampleBuffer
-from mag_calibrator_ros.calibration.calibration import Calibration
-from mag_calibrator_ros.calibration.fitting import FitOptions, fit_calibration
-from mag_calibrator_ros.calibration.session import CalibrationSession, SessionSettings
-from mag_calibrator_ros.calibration.tracker import OnlineTracker
+from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.fit.fitting import FitOptions, fit_calibration
+from mag_calibrator_ros.calibration.live.buffer import SampleBuffer
+from mag_calibrator_ros.calibration.live.session import CalibrationSession, SessionSettings
+from mag_calibrator_ros.calibration.live.tracker import OnlineTracker
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the benchmark's own modules
 

@@ -54,11 +54,12 @@ from rclpy.context import Context  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
-from mag_calibrator_ros import motion  # noqa: E402
-from mag_calibrator_ros.calibration.jobs import InlineRunner, JobOutcome  # noqa: E402
-from mag_calibrator_ros.calibration.rotation import INPUT_TIMEOUT_S  # noqa: E402
+from mag_calibrator_ros.calibration.live.jobs import JobOutcome
+from mag_calibrator_ros.calibration.live.turning import INPUT_TIMEOUT_S  # noqa: E402
+from mag_calibrator_ros.calibration.live.worker import InlineRunner  # noqa: E402
 from mag_calibrator_ros.nodes.mag_calibrator import MagCalibratorNode  # noqa: E402
 from mag_calibrator_ros.nodes.runtime import NodeThreads, wait_until  # noqa: E402
+from mag_calibrator_ros.sim import motion  # noqa: E402
 from mag_calibrator_ros.tools.demo import (  # noqa: E402
     GROUND_HARD_IRON_UT,
     GroundObserver,

@@ -39,7 +39,7 @@ def _feeder(rate_hz: float, duration_s: float, start_delay_s: float) -> int:
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import MagneticField
 
-    from mag_calibrator_ros.motion import body_field_samples
+    from mag_calibrator_ros.sim.motion import body_field_samples
 
     count = int(rate_hz * duration_s)
     rng = np.random.default_rng(1)
@@ -157,7 +157,7 @@ class _Sink:
 def _write_calibration(directory: Path) -> Path:
     """A calibration file, so the node publishes corrected output from the first message."""
     from mag_calibrator_ros.calibration import Calibration
-    from mag_calibrator_ros.calibration.calibration_file import save_calibration
+    from mag_calibrator_ros.calibration.store.calibration_file import save_calibration
 
     path = directory / 'calibration.yaml'
     calibration = Calibration(

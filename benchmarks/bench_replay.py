@@ -44,13 +44,13 @@ from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import MagneticField  # noqa: E402
 
-from mag_calibrator_ros import motion  # noqa: E402
-from mag_calibrator_ros.calibration.calibration import Calibration  # noqa: E402
-from mag_calibrator_ros.calibration.calibration_file import save_calibration  # noqa: E402
-from mag_calibrator_ros.calibration.fitting import FitOptions, fit_calibration  # noqa: E402
+from mag_calibrator_ros.calibration.fit.calibration import Calibration  # noqa: E402
+from mag_calibrator_ros.calibration.fit.fitting import FitOptions, fit_calibration  # noqa: E402
+from mag_calibrator_ros.calibration.store.calibration_file import save_calibration  # noqa: E402
 from mag_calibrator_ros.nodes.icm20948_driver import Icm20948DriverNode  # noqa: E402
 from mag_calibrator_ros.nodes.mag_calibrator import MagCalibratorNode  # noqa: E402
 from mag_calibrator_ros.nodes.runtime import NodeThreads  # noqa: E402
+from mag_calibrator_ros.sim import motion  # noqa: E402
 from mag_calibrator_ros.tools.recordings import read_recording  # noqa: E402
 
 TARGET_SPREAD_RATIO = 1.03

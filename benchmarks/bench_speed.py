@@ -32,8 +32,8 @@ import time
 
 import numpy as np
 
-from mag_calibrator_ros.calibration import ellipsoid
-from mag_calibrator_ros.calibration.fitting import FitOptions, fit_calibration
+from mag_calibrator_ros.calibration.fit import ellipsoid
+from mag_calibrator_ros.calibration.fit.fitting import FitOptions, fit_calibration
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -308,7 +308,7 @@ def node_speed(quick: bool) -> tuple[list[list[str]], dict]:
     try:
         with tempfile.TemporaryDirectory() as directory:
             from mag_calibrator_ros.calibration import Calibration
-            from mag_calibrator_ros.calibration.calibration_file import save_calibration
+            from mag_calibrator_ros.calibration.store.calibration_file import save_calibration
 
             calibration_file = Path(directory) / 'calibration.yaml'
             save_calibration(calibration_file, Calibration(np.zeros(3), np.eye(3), 50e-6))

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mag_calibrator_ros.motion import body_field_samples
+from mag_calibrator_ros.sim.motion import body_field_samples
 
 FIELD_UT = 50.0
 NOISE_UT = 0.5

@@ -12,8 +12,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from mag_calibrator_ros import motion
-from mag_calibrator_ros.calibration.alignment import (
+from mag_calibrator_ros.calibration.fit.alignment import (
     ATTITUDE_WIDTH,
     MIN_STILL_S,
     AlignmentOptions,
@@ -23,9 +22,10 @@ from mag_calibrator_ros.calibration.alignment import (
     nearest_remap,
     rotation_angle_deg,
 )
-from mag_calibrator_ros.calibration.calibration import Calibration
-from mag_calibrator_ros.icm20948.board import BoardModel
-from mag_calibrator_ros.icm20948.simulator import SimConfig
+from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.sim import motion
+from mag_calibrator_ros.sim.board import BoardModel
+from mag_calibrator_ros.sim.config import SimConfig
 
 GRAVITY = 9.80665
 SOFT_IRON = np.array([[1.15, 0.10, -0.08], [0.10, 0.85, 0.12], [-0.08, 0.12, 1.00]])

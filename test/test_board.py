@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from mag_calibrator_ros import motion
-from mag_calibrator_ros.calibration.earth_field import earth_field
-from mag_calibrator_ros.icm20948.board import BoardModel
-from mag_calibrator_ros.icm20948.simulator import SimConfig
+from mag_calibrator_ros.calibration.fit.earth_field import earth_field
+from mag_calibrator_ros.sim import motion
+from mag_calibrator_ros.sim.board import BoardModel
+from mag_calibrator_ros.sim.config import SimConfig
 
 QUIET = dict(noise_ut=0.0, motion='poses')
 

@@ -9,9 +9,9 @@ from hypothesis import strategies as st
 import numpy as np
 import pytest
 
-from mag_calibrator_ros.calibration.buffer import OUTCOMES, SampleBuffer
-from mag_calibrator_ros.calibration.calibration import Calibration
-from mag_calibrator_ros.calibration.coverage import Coverage, direction_coverage
+from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.fit.coverage import Coverage, direction_coverage
+from mag_calibrator_ros.calibration.live.buffer import OUTCOMES, SampleBuffer
 
 FIELD = 50.0  # µT
 
@@ -427,7 +427,7 @@ def tumble_stream(n=3000, seed=21, noise=0.5, spike_share=0.0, small_spikes=Fals
 
     Returns (raw, truth reading without noise and spikes, spike mask).
     """
-    from mag_calibrator_ros.motion import body_field_samples
+    from mag_calibrator_ros.sim.motion import body_field_samples
 
     rng = np.random.default_rng(seed)
     reading = body_field_samples('tumble', n, 50.0, FIELD, 55.0, seed) @ SOFT.T + OFFSET
@@ -608,7 +608,7 @@ def test_resize_keeps_counts_and_means():
 
 def test_readings_are_a_bounded_draw_of_recent_readings():
     """The evidence coverage() checks the shell against: where the readings really lie."""
-    from mag_calibrator_ros.calibration.buffer import READING_HORIZON, READING_SAMPLE_SIZE
+    from mag_calibrator_ros.calibration.live.buffer import READING_HORIZON, READING_SAMPLE_SIZE
 
     rng = np.random.default_rng(40)
     buffer = SampleBuffer(capacity=30)

@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 import yaml
 
-from mag_calibrator_ros.calibration import calibration_file, params_yaml, safe_file
-from mag_calibrator_ros.calibration.calibration import Calibration, CalibrationError
-from mag_calibrator_ros.calibration.calibration_file import (
+from mag_calibrator_ros.calibration.fit.calibration import Calibration, CalibrationError
+from mag_calibrator_ros.calibration.store import calibration_file, params_yaml, safe_file
+from mag_calibrator_ros.calibration.store.calibration_file import (
     MAX_FILE_BYTES,
     MAX_NODES,
     CalibrationFileError,

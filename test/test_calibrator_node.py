@@ -24,7 +24,7 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import MagneticField
 import yaml
 
-from mag_calibrator_ros.calibration.calibration_file import load_calibration
+from mag_calibrator_ros.calibration.store.calibration_file import load_calibration
 from mag_calibrator_ros.nodes.mag_calibrator import MagCalibratorNode
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -362,7 +362,8 @@ def test_saved_file_is_loadable_and_in_tesla(live):
 def test_the_subscription_callback_never_runs_a_fit(ros, monkeypatch):
     """Every fit and judgement (fits, coverage, evidence checks) is recorded with whether it ran
     inside the imu/mag callback: the node calibrates by itself, and none ever did."""
-    from mag_calibrator_ros.calibration import buffer, coverage, evidence, fitting, jobs
+    from mag_calibrator_ros.calibration.fit import coverage, fitting
+    from mag_calibrator_ros.calibration.live import buffer, evidence, jobs
     from mag_calibrator_ros.nodes import mag_calibrator
 
     inside = threading.local()

@@ -15,8 +15,8 @@ from rclpy.node import Node
 from sensor_msgs.msg import NavSatFix, NavSatStatus
 from test_calibrator_node import HARD_IRON_UT, SOFT_IRON
 
-from mag_calibrator_ros.calibration.alignment import rotation_angle_deg
-from mag_calibrator_ros.calibration.earth_field import earth_field
+from mag_calibrator_ros.calibration.fit.alignment import rotation_angle_deg
+from mag_calibrator_ros.calibration.fit.earth_field import earth_field
 
 BERLIN = (52.52, 13.40, 34.0)
 MISALIGNMENT_DEG = [1.8, -1.9, 1.4]  # 3.0 deg

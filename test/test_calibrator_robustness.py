@@ -16,8 +16,8 @@ import pytest
 import rclpy
 from rclpy.context import Context
 
-from mag_calibrator_ros.calibration.calibration import Calibration
-from mag_calibrator_ros.calibration.calibration_file import save_calibration
+from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.store.calibration_file import save_calibration
 from mag_calibrator_ros.nodes.mag_calibrator import MagCalibratorNode
 from mag_calibrator_ros.nodes.parameters import ConfigurationError
 
@@ -125,7 +125,7 @@ def hostile_files(directory: Path) -> dict[str, Path]:
 
 
 def calibration_path_text() -> str:
-    from mag_calibrator_ros.calibration.calibration_file import calibration_yaml
+    from mag_calibrator_ros.calibration.store.calibration_file import calibration_yaml
 
     return calibration_yaml(CALIBRATION, '/**')
 

@@ -17,7 +17,7 @@ from mag_calibrator_ros.calibration import (
     direction_coverage,
     fit_calibration,
 )
-from mag_calibrator_ros.calibration.coverage import (
+from mag_calibrator_ros.calibration.fit.coverage import (
     CELL_COUNT,
     NOT_A_SHELL_HINT,
     STILL_HINT,
@@ -27,9 +27,9 @@ from mag_calibrator_ros.calibration.coverage import (
     missing_rotation_hint,
     whitened_directions,
 )
-from mag_calibrator_ros.calibration.heading import TURN_STILL_HINT
-from mag_calibrator_ros.calibration.session import CalibrationSession, SessionSettings
-from mag_calibrator_ros.motion import body_field_samples
+from mag_calibrator_ros.calibration.fit.heading import TURN_STILL_HINT
+from mag_calibrator_ros.calibration.live.session import CalibrationSession, SessionSettings
+from mag_calibrator_ros.sim.motion import body_field_samples
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_fit_recordings import PUBLISHED  # noqa: E402  (the authors' calibrations, one place)

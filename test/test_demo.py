@@ -1,6 +1,6 @@
 """mag_calibrator_demo end to end with a short configuration: exit 0, file and PNG written."""
 
-from mag_calibrator_ros.calibration.calibration_file import load_calibration
+from mag_calibrator_ros.calibration.store.calibration_file import load_calibration
 from mag_calibrator_ros.tools import demo
 
 

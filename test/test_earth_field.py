@@ -7,7 +7,7 @@ import math
 
 import pytest
 
-from mag_calibrator_ros.calibration.earth_field import (
+from mag_calibrator_ros.calibration.fit.earth_field import (
     MAX_DIP_ERROR_DEG,
     EarthField,
     EarthFieldError,

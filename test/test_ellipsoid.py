@@ -6,16 +6,16 @@ import pytest
 from scipy.optimize import least_squares
 from test_fitting import readings, soft_iron, unit_vectors, yaw_directions
 
-from mag_calibrator_ros.calibration import ellipsoid
-from mag_calibrator_ros.calibration.coverage import distinct_rows
-from mag_calibrator_ros.calibration.ellipsoid import (
+from mag_calibrator_ros.calibration.fit import ellipsoid
+from mag_calibrator_ros.calibration.fit.coverage import distinct_rows
+from mag_calibrator_ros.calibration.fit.ellipsoid import (
     axis_least_squares,
     fit_ellipsoid,
     fit_ellipsoids,
     quadric_least_squares,
     sphere_least_squares,
 )
-from mag_calibrator_ros.calibration.fitting import FitOptions, fit_calibration
+from mag_calibrator_ros.calibration.fit.fitting import FitOptions, fit_calibration
 
 
 def clean_tumble(seed, n=2000, noise=0.25):
@@ -99,7 +99,7 @@ def robust_flags(monkeypatch):
         calls.append(args[5] if len(args) > 5 else kwargs.get('always_robust', False))
         return original(*args, **kwargs)
 
-    monkeypatch.setattr('mag_calibrator_ros.calibration.fitting.fit_ellipsoids', spy)
+    monkeypatch.setattr('mag_calibrator_ros.calibration.fit.fitting.fit_ellipsoids', spy)
     return calls
 
 

@@ -8,9 +8,8 @@ from hypothesis import strategies as st
 import numpy as np
 import pytest
 
-from mag_calibrator_ros import motion
-from mag_calibrator_ros.calibration.calibration import Calibration
-from mag_calibrator_ros.calibration.evidence import (
+from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.live.evidence import (
     MISFIT_CONFIRM_S,
     READINGS_PER_CELL,
     FitCheck,
@@ -19,6 +18,7 @@ from mag_calibrator_ros.calibration.evidence import (
     check_fit,
     compare_on_evidence,
 )
+from mag_calibrator_ros.sim import motion
 
 FIELD = 50.0  # µT
 

@@ -17,10 +17,10 @@ from rosbags.rosbag2 import StoragePlugin
 from test_recordings import write_bag
 import yaml
 
-from mag_calibrator_ros.calibration.calibration_file import load_calibration
-from mag_calibrator_ros.calibration.fitting import FitOptions, fit_calibration
-from mag_calibrator_ros.calibration.screening import reading_problem
-from mag_calibrator_ros.calibration.session import CalibrationSession, SessionSettings
+from mag_calibrator_ros.calibration.fit.fitting import FitOptions, fit_calibration
+from mag_calibrator_ros.calibration.live.screening import reading_problem
+from mag_calibrator_ros.calibration.live.session import CalibrationSession, SessionSettings
+from mag_calibrator_ros.calibration.store.calibration_file import load_calibration
 from mag_calibrator_ros.tools import fit
 from mag_calibrator_ros.tools.fit import main
 from mag_calibrator_ros.tools.recordings import read_recording

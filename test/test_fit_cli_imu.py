@@ -9,11 +9,11 @@ import json
 import numpy as np
 import pytest
 
-from mag_calibrator_ros.calibration.alignment import rotation_angle_deg
-from mag_calibrator_ros.calibration.calibration_file import load_calibration
-from mag_calibrator_ros.calibration.earth_field import earth_field
-from mag_calibrator_ros.icm20948.board import BoardModel
-from mag_calibrator_ros.icm20948.simulator import SimConfig
+from mag_calibrator_ros.calibration.fit.alignment import rotation_angle_deg
+from mag_calibrator_ros.calibration.fit.earth_field import earth_field
+from mag_calibrator_ros.calibration.store.calibration_file import load_calibration
+from mag_calibrator_ros.sim.board import BoardModel
+from mag_calibrator_ros.sim.config import SimConfig
 from mag_calibrator_ros.tools import fit
 
 PORTLAND = ('--latitude', '45.5', '--longitude', '-122.7', '--date', '2026-11-23')

@@ -16,7 +16,7 @@ from mag_calibrator_ros.calibration import (
     FitResult,
     fit_calibration,
 )
-from mag_calibrator_ros.calibration.ellipsoid import axis_least_squares
+from mag_calibrator_ros.calibration.fit.ellipsoid import axis_least_squares
 
 FIELD = 50.0  # µT
 
@@ -710,7 +710,7 @@ def test_weights_of_non_finite_rows_are_dropped_with_them():
 def test_too_simple_model_fails_on_residual_not_on_coverage():
     # Rotated soft iron that the axis-aligned model cannot represent: the data cover the sphere,
     # so the honest reason is the residual (model error), never "rotate the sensor".
-    from mag_calibrator_ros.motion import body_field_samples
+    from mag_calibrator_ros.sim.motion import body_field_samples
 
     truth = body_field_samples('tumble', 3000, 50.0, 50.0, 60.0, seed=3)
     soft_iron = np.array([[1.1, 0.15, -0.15], [0.15, 0.9, 0.15], [-0.15, 0.15, 1.05]])
@@ -817,7 +817,7 @@ def test_a_still_sensor_fails_planar_with_the_rotate_reason():
 def test_an_unexplained_tilt_is_named_as_the_cause(monkeypatch):
     """When the offset along the normal is not fitted, tilts at 70° leave a residual that follows
     the normal reading: the reason says so instead of blaming disturbance or noise."""
-    from mag_calibrator_ros.calibration import ellipsoid
+    from mag_calibrator_ros.calibration.fit import ellipsoid
 
     monkeypatch.setattr(ellipsoid, 'TILT_EVIDENCE', np.inf)  # the 2-D fit, as before
     rng = np.random.default_rng(63)

@@ -21,7 +21,8 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_srvs.srv import Trigger
 
-from mag_calibrator_ros.calibration.jobs import InlineRunner, JobOutcome
+from mag_calibrator_ros.calibration.live.jobs import JobOutcome
+from mag_calibrator_ros.calibration.live.worker import InlineRunner
 from mag_calibrator_ros.nodes.mag_calibrator import MagCalibratorNode
 
 sys.path.insert(0, str(Path(__file__).parent))

@@ -10,10 +10,10 @@ import sys
 import numpy as np
 import pytest
 
-from mag_calibrator_ros import motion
-from mag_calibrator_ros.calibration.fitting import FitOptions
-from mag_calibrator_ros.calibration.jobs import FitJob, readiness, run_job
-from mag_calibrator_ros.calibration.session import CalibrationSession, SessionSettings
+from mag_calibrator_ros.calibration.fit.fitting import FitOptions
+from mag_calibrator_ros.calibration.live.jobs import FitJob, readiness, run_job
+from mag_calibrator_ros.calibration.live.session import CalibrationSession, SessionSettings
+from mag_calibrator_ros.sim import motion
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_heading import (  # noqa: E402  (one robot, one place)
@@ -115,7 +115,7 @@ def test_automatic_readiness_of_yaw_only_data_is_the_whole_heading_circle(model)
 
 
 def test_tumbling_keeps_direction_coverage():
-    from mag_calibrator_ros import motion
+    from mag_calibrator_ros.sim import motion
 
     tumble = motion.body_field_samples('tumble', 1500, RATE_HZ, 50.0, 60.0, seed=2)
     coverage, needed = readiness(planar_job(tumble @ SOFT_IRON.T + HARD_IRON_UT))

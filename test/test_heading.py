@@ -8,10 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from mag_calibrator_ros import motion
-from mag_calibrator_ros.calibration.buffer import SampleBuffer
-from mag_calibrator_ros.calibration.coverage import HEADING_SECTORS
-from mag_calibrator_ros.calibration.heading import (
+from mag_calibrator_ros.calibration.fit.coverage import HEADING_SECTORS
+from mag_calibrator_ros.calibration.fit.heading import (
     COMPLETE_HEADING_COVERAGE,
     TURN_HINT_START,
     TURN_STILL_HINT,
@@ -22,6 +20,8 @@ from mag_calibrator_ros.calibration.heading import (
     turning_direction,
     yaw_only,
 )
+from mag_calibrator_ros.calibration.live.buffer import SampleBuffer
+from mag_calibrator_ros.sim import motion
 
 FIELD_UT = 50.0
 HARD_IRON_UT = np.array([55.0, -45.0, 25.0])  # about 3x the horizontal field at 60 deg

@@ -15,7 +15,8 @@ from mag_calibrator_ros.icm20948.driver import (
     counts_to_tesla,
     tesla_to_counts,
 )
-from mag_calibrator_ros.icm20948.simulator import SimConfig, SimulatedIcm20948Bus
+from mag_calibrator_ros.sim.config import SimConfig
+from mag_calibrator_ros.sim.simulator import SimulatedIcm20948Bus
 
 
 def make(config: SimConfig | None = None, address: int = 0x69):

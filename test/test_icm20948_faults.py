@@ -9,7 +9,8 @@ import pytest
 
 from mag_calibrator_ros.icm20948 import registers as reg
 from mag_calibrator_ros.icm20948.driver import Icm20948, ImuSettings
-from mag_calibrator_ros.icm20948.simulator import SimConfig, SimulatedIcm20948Bus
+from mag_calibrator_ros.sim.config import SimConfig
+from mag_calibrator_ros.sim.simulator import SimulatedIcm20948Bus
 
 
 def make(**config):

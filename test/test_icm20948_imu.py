@@ -7,9 +7,7 @@ from icm20948_fakes import FakeClock, RecordingBus
 import numpy as np
 import pytest
 
-from mag_calibrator_ros import motion
 from mag_calibrator_ros.icm20948 import registers as reg
-from mag_calibrator_ros.icm20948.board import GRAVITY_WORLD
 from mag_calibrator_ros.icm20948.driver import (
     ConfigNotAcceptedError,
     Icm20948,
@@ -17,7 +15,10 @@ from mag_calibrator_ros.icm20948.driver import (
     temperature_celsius,
     temperature_counts,
 )
-from mag_calibrator_ros.icm20948.simulator import SimConfig, SimulatedIcm20948Bus
+from mag_calibrator_ros.sim import motion
+from mag_calibrator_ros.sim.board import GRAVITY_WORLD
+from mag_calibrator_ros.sim.config import SimConfig
+from mag_calibrator_ros.sim.simulator import SimulatedIcm20948Bus
 
 G = reg.STANDARD_GRAVITY
 

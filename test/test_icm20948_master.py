@@ -13,8 +13,9 @@ from mag_calibrator_ros.icm20948.driver import (
     ImuSettings,
     master_possible,
 )
-from mag_calibrator_ros.icm20948.simulator import SimConfig, SimulatedIcm20948Bus
 from mag_calibrator_ros.icm20948.supervisor import Icm20948Supervisor, MagSample
+from mag_calibrator_ros.sim.config import SimConfig
+from mag_calibrator_ros.sim.simulator import SimulatedIcm20948Bus
 
 ICM = 0x69
 IMU = ImuSettings(rate_hz=200)  # the chip runs 225 Hz: 2.25 master rounds per magnetometer sample

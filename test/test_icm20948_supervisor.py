@@ -10,7 +10,6 @@ import pytest
 
 from mag_calibrator_ros.icm20948 import registers as reg
 from mag_calibrator_ros.icm20948.driver import ImuSettings
-from mag_calibrator_ros.icm20948.simulator import SimConfig, SimulatedIcm20948Bus
 from mag_calibrator_ros.icm20948.supervisor import (
     BACKOFF_INITIAL_S,
     BACKOFF_MAX_S,
@@ -22,6 +21,8 @@ from mag_calibrator_ros.icm20948.supervisor import (
     MagSample,
     TemperatureSample,
 )
+from mag_calibrator_ros.sim.config import SimConfig
+from mag_calibrator_ros.sim.simulator import SimulatedIcm20948Bus
 
 DEFAULT_IMU = ImuSettings()
 

@@ -10,17 +10,12 @@ import time
 import numpy as np
 import pytest
 
-from mag_calibrator_ros import motion
-from mag_calibrator_ros.calibration import fit_worker
-from mag_calibrator_ros.calibration.calibration import Calibration
-from mag_calibrator_ros.calibration.fitting import FitOptions
-from mag_calibrator_ros.calibration.jobs import (
-    REFERENCE_OPTIONS,
-    FitJob,
-    InlineRunner,
-    ProcessRunner,
-    run_job,
-)
+from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.fit.fitting import FitOptions
+from mag_calibrator_ros.calibration.live import worker as fit_worker
+from mag_calibrator_ros.calibration.live.jobs import REFERENCE_OPTIONS, FitJob, run_job
+from mag_calibrator_ros.calibration.live.worker import InlineRunner, ProcessRunner
+from mag_calibrator_ros.sim import motion
 
 FIELD = 50.0
 SOFT = np.array([[1.1, 0.05, 0.0], [0.05, 0.93, 0.02], [0.0, 0.02, 1.0]])

@@ -10,11 +10,11 @@ import sys
 import numpy as np
 import pytest
 
-from mag_calibrator_ros.calibration.buffer import SampleBuffer
-from mag_calibrator_ros.calibration.ellipsoid import fit_ellipsoid
-from mag_calibrator_ros.calibration.fitting import FitOptions, fit_calibration
-from mag_calibrator_ros.calibration.levelled import level_planar
-from mag_calibrator_ros.calibration.session import CalibrationSession, calibration_summary
+from mag_calibrator_ros.calibration.fit.ellipsoid import fit_ellipsoid
+from mag_calibrator_ros.calibration.fit.fitting import FitOptions, fit_calibration
+from mag_calibrator_ros.calibration.fit.levelled import level_planar
+from mag_calibrator_ros.calibration.live.buffer import SampleBuffer
+from mag_calibrator_ros.calibration.live.session import CalibrationSession, calibration_summary
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_ground_session import heading_error_deg  # noqa: E402

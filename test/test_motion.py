@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from mag_calibrator_ros import motion
+from mag_calibrator_ros.sim import motion
 
 
 def fibonacci_cells(count: int) -> np.ndarray:

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import yaml
 
-from mag_calibrator_ros.calibration import params_yaml
-from mag_calibrator_ros.calibration.params_yaml import (
+from mag_calibrator_ros.calibration.store import params_yaml
+from mag_calibrator_ros.calibration.store.params_yaml import (
     MAX_DEPTH,
     MAX_FILE_BYTES,
     MAX_NODES,

@@ -11,7 +11,7 @@ import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from mag_calibrator_ros.calibration.screening import MAX_READING
+from mag_calibrator_ros.calibration.live.screening import MAX_READING
 from mag_calibrator_ros.tools import recordings
 from mag_calibrator_ros.tools.recordings import (
     MAGNETIC_FIELD,

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import pytest
 
-from mag_calibrator_ros.calibration.coverage import Coverage
-from mag_calibrator_ros.calibration.rotation import (
+from mag_calibrator_ros.calibration.fit.coverage import Coverage
+from mag_calibrator_ros.calibration.live.turning import (
     COMMAND_PERIOD_S,
     INPUT_TIMEOUT_S,
     RETRY_S,

@@ -12,8 +12,8 @@ import time
 
 import pytest
 
-from mag_calibrator_ros.calibration import safe_file
-from mag_calibrator_ros.calibration.safe_file import (
+from mag_calibrator_ros.calibration.store import safe_file
+from mag_calibrator_ros.calibration.store.safe_file import (
     DEAD_WRITER_GRACE_SECONDS,
     STALE_TEMPORARY_SECONDS,
     FileAccessError,
@@ -206,7 +206,7 @@ def test_write_keeps_permissions_and_creates_directories(tmp_path):
 INTERRUPTED_WRITER = """
 import os, sys, time
 from pathlib import Path
-from mag_calibrator_ros.calibration import safe_file
+from mag_calibrator_ros.calibration.store import safe_file
 def hang(*args):
     Path(sys.argv[2]).touch()
     time.sleep(600)

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import replace
 import math
 
-from mag_calibrator_ros.calibration.scheduler import (
+from mag_calibrator_ros.calibration.live.scheduler import (
     CHECK_FIT_PERIOD_S,
     CHECK_PERIOD_S,
     MAX_STEP_S,

@@ -7,7 +7,7 @@ import math
 
 import pytest
 
-from mag_calibrator_ros.calibration.screening import (
+from mag_calibrator_ros.calibration.live.screening import (
     CONFIRM_MESSAGES,
     SCREEN_REASONS,
     ReadingScreen,

@@ -10,11 +10,10 @@ import math
 import numpy as np
 import pytest
 
-from mag_calibrator_ros import motion
-from mag_calibrator_ros.calibration.calibration import Calibration
-from mag_calibrator_ros.calibration.evidence import HOLD_OUT_EVERY
-from mag_calibrator_ros.calibration.jobs import FitJob, JobOutcome, run_job
-from mag_calibrator_ros.calibration.session import (
+from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.live.evidence import HOLD_OUT_EVERY
+from mag_calibrator_ros.calibration.live.jobs import FitJob, JobOutcome, run_job
+from mag_calibrator_ros.calibration.live.session import (
     AK09916_FULL_SCALE_T,
     DRAIN_FOR_REQUEST,
     DRAIN_PER_MESSAGE,
@@ -26,6 +25,7 @@ from mag_calibrator_ros.calibration.session import (
     magnitude_residual_pct,
     transform_covariance,
 )
+from mag_calibrator_ros.sim import motion
 
 FIELD_T = 50e-6
 HARD_IRON_T = np.array([120e-6, -80e-6, 60e-6])
@@ -684,7 +684,7 @@ def test_a_job_made_by_the_session_is_a_complete_snapshot():
 def test_with_the_worker_process_refinement_and_misfits_are_decided_too():
     """The node's own runner: outcomes judged against the calibration in force (regression: a
     job copied back through the pipe discarded every refinement and check)."""
-    from mag_calibrator_ros.calibration.jobs import ProcessRunner
+    from mag_calibrator_ros.calibration.live.worker import ProcessRunner
 
     runner = ProcessRunner()
     try:

@@ -9,20 +9,18 @@ import re
 import numpy as np
 import pytest
 
-from mag_calibrator_ros.calibration.alignment import rotation_angle_deg
-from mag_calibrator_ros.calibration.calibration import Calibration
-from mag_calibrator_ros.calibration.earth_field import EarthField
-from mag_calibrator_ros.calibration.session import (
+from mag_calibrator_ros.calibration.fit.alignment import rotation_angle_deg
+from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.fit.earth_field import EarthField
+from mag_calibrator_ros.calibration.live.session import (
     PAIR_TOLERANCE_NS,
     CalibrationSession,
     SessionSettings,
     calibration_summary,
-    field_radius,
     transform_covariance,
 )
-from mag_calibrator_ros.icm20948.board import BoardModel
-from mag_calibrator_ros.icm20948.simulator import SimConfig
-from mag_calibrator_ros.motion import board_readings
+from mag_calibrator_ros.sim.board import BoardModel, board_readings
+from mag_calibrator_ros.sim.config import SimConfig
 
 RATE_HZ = 100.0
 SOFT_IRON = (1.15, 0.10, -0.08, 0.10, 0.85, 0.12, -0.08, 0.12, 1.00)
@@ -164,7 +162,7 @@ def test_imu_samples_pair_by_nearest_stamp_and_bad_ones_are_refused():
 
 def test_field_radius_is_the_raw_ellipsoid_mean_radius():
     calibration = Calibration(np.zeros(3), np.diag([2.0, 2.0, 2.0]), 50.0)
-    assert field_radius(calibration) == pytest.approx(25.0)
+    assert calibration.field_radius() == pytest.approx(25.0)
 
 
 def test_a_fit_that_fails_its_own_gates_says_nothing_about_the_place(misaligned):

@@ -5,9 +5,9 @@ from hypothesis import strategies as st
 import numpy as np
 import pytest
 
-from mag_calibrator_ros.calibration.calibration import Calibration
-from mag_calibrator_ros.calibration.tracker import OnlineTracker, TrackerHealth
-from mag_calibrator_ros.motion import body_field_samples
+from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.live.tracker import OnlineTracker, TrackerHealth
+from mag_calibrator_ros.sim.motion import body_field_samples
 
 FIELD = 50.0  # µT
 SOFT_IRON = np.array([[1.08, 0.12, -0.05], [0.12, 0.93, 0.04], [-0.05, 0.04, 1.02]])

@@ -12,9 +12,9 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 from visualization_msgs.msg import Marker, MarkerArray
 
-from mag_calibrator_ros.calibration.calibration import Calibration
-from mag_calibrator_ros.calibration.coverage import CELL_COUNT
-from mag_calibrator_ros.calibration.view import calibration_surface, calibration_view
+from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.fit.coverage import CELL_COUNT
+from mag_calibrator_ros.calibration.live.view import calibration_surface, calibration_view
 from mag_calibrator_ros.nodes.view import point_cloud
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

@@ -36,16 +36,8 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Imu, MagneticField, Temperature
 
-from mag_calibrator_ros import motion
 from mag_calibrator_ros.icm20948 import registers as reg
 from mag_calibrator_ros.icm20948.driver import ImuSettings
-from mag_calibrator_ros.icm20948.simulator import (
-    ACCEL_NOISE_DENSITY,
-    GYRO_NOISE_DENSITY,
-    IDENTITY,
-    SimConfig,
-    SimulatedIcm20948Bus,
-)
 from mag_calibrator_ros.icm20948.supervisor import (
     ERROR,
     OK,
@@ -58,6 +50,14 @@ from mag_calibrator_ros.icm20948.supervisor import (
 )
 from mag_calibrator_ros.nodes import diagnostics
 from mag_calibrator_ros.nodes.runtime import spin_node
+from mag_calibrator_ros.sim import motion
+from mag_calibrator_ros.sim.config import (
+    ACCEL_NOISE_DENSITY,
+    GYRO_NOISE_DENSITY,
+    IDENTITY,
+    SimConfig,
+)
+from mag_calibrator_ros.sim.simulator import SimulatedIcm20948Bus
 
 NODE_NAME = 'icm20948_driver'
 TOPIC = 'imu/mag'

@@ -4,7 +4,7 @@ Wiring only: parameters, the subscriptions (``imu/mag``; ``imu/data_raw`` and ``
 present), the publisher, four std_srvs/Trigger services, a poll timer and the diagnostics timer.
 Every decision (screening, buffer, when to fit and whether to adopt, misfit detection, online
 tracking, alignment to the IMU, progress text) lives in
-:class:`~mag_calibrator_ros.calibration.session.CalibrationSession`; its fits run in a worker
+:class:`~mag_calibrator_ros.calibration.live.session.CalibrationSession`; its fits run in a worker
 process (``ProcessRunner``) and file I/O on a thread, so the message callback never waits for
 either.
 """
@@ -38,8 +38,30 @@ from rclpy.task import Future
 from sensor_msgs.msg import Imu, MagneticField, NavSatFix, NavSatStatus
 from std_srvs.srv import Trigger
 
-from mag_calibrator_ros.calibration.calibration import Calibration, CalibrationError
-from mag_calibrator_ros.calibration.calibration_file import (
+from mag_calibrator_ros.calibration.fit.calibration import Calibration, CalibrationError
+from mag_calibrator_ros.calibration.fit.coverage import Coverage
+from mag_calibrator_ros.calibration.fit.earth_field import (
+    EarthField,
+    EarthFieldError,
+    earth_field,
+    location_problems,
+)
+from mag_calibrator_ros.calibration.live.session import (
+    FITTABLE_MODELS,
+    CalibrationSession,
+    SessionSettings,
+    calibration_summary,
+    transform_covariance,
+)
+from mag_calibrator_ros.calibration.live.turning import (
+    COMMAND_PERIOD_S,
+    MAX_SPEED,
+    RotationController,
+    RotationSettings,
+)
+from mag_calibrator_ros.calibration.live.view import calibration_view
+from mag_calibrator_ros.calibration.live.worker import ProcessRunner
+from mag_calibrator_ros.calibration.store.calibration_file import (
     CalibrationFileError,
     CalibrationFileMissingError,
     LoadedCalibration,
@@ -51,28 +73,6 @@ from mag_calibrator_ros.calibration.calibration_file import (
     resolve_calibration_path,
     save_calibration,
 )
-from mag_calibrator_ros.calibration.coverage import Coverage
-from mag_calibrator_ros.calibration.earth_field import (
-    EarthField,
-    EarthFieldError,
-    earth_field,
-    location_problems,
-)
-from mag_calibrator_ros.calibration.jobs import ProcessRunner
-from mag_calibrator_ros.calibration.rotation import (
-    COMMAND_PERIOD_S,
-    MAX_SPEED,
-    RotationController,
-    RotationSettings,
-)
-from mag_calibrator_ros.calibration.session import (
-    FITTABLE_MODELS,
-    CalibrationSession,
-    SessionSettings,
-    calibration_summary,
-    transform_covariance,
-)
-from mag_calibrator_ros.calibration.view import calibration_view
 from mag_calibrator_ros.nodes.diagnostics import (
     ERROR,
     OK,

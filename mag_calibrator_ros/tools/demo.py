@@ -42,13 +42,13 @@ from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import MagneticField
 from std_srvs.srv import Trigger
 
-from mag_calibrator_ros import motion
-from mag_calibrator_ros.calibration.alignment import rotation_angle_deg
-from mag_calibrator_ros.calibration.coverage import direction_coverage
-from mag_calibrator_ros.calibration.earth_field import location_problems
+from mag_calibrator_ros.calibration.fit.alignment import rotation_angle_deg
+from mag_calibrator_ros.calibration.fit.coverage import direction_coverage
+from mag_calibrator_ros.calibration.fit.earth_field import location_problems
 from mag_calibrator_ros.nodes.icm20948_driver import Icm20948DriverNode
 from mag_calibrator_ros.nodes.mag_calibrator import MagCalibratorNode
 from mag_calibrator_ros.nodes.runtime import NodeThreads
+from mag_calibrator_ros.sim import motion
 from mag_calibrator_ros.tools.plotting import plot_calibration
 
 FIELD_UT = 50.0

@@ -30,11 +30,9 @@ from typing import Any, NoReturn, TextIO
 
 import numpy as np
 
-from mag_calibrator_ros.calibration.alignment import StaticAttitudes
-from mag_calibrator_ros.calibration.buffer import DEFAULT_CAPACITY, DEFAULT_K
-from mag_calibrator_ros.calibration.calibration import MODELS, Calibration
-from mag_calibrator_ros.calibration.calibration_file import CalibrationFileError, save_calibration
-from mag_calibrator_ros.calibration.earth_field import (
+from mag_calibrator_ros.calibration.fit.alignment import StaticAttitudes
+from mag_calibrator_ros.calibration.fit.calibration import MODELS, Calibration
+from mag_calibrator_ros.calibration.fit.earth_field import (
     MAX_DIP_ERROR_DEG,
     MAX_FIELD_ERROR_PCT,
     EarthField,
@@ -42,12 +40,17 @@ from mag_calibrator_ros.calibration.earth_field import (
     EarthReference,
     earth_field,
 )
-from mag_calibrator_ros.calibration.fitting import FitOptions, FitResult
-from mag_calibrator_ros.calibration.jobs import FitJob, JobOutcome, run_job
-from mag_calibrator_ros.calibration.screening import VALUE_REASONS, reading_problem
-from mag_calibrator_ros.calibration.session import (
+from mag_calibrator_ros.calibration.fit.fitting import FitOptions, FitResult
+from mag_calibrator_ros.calibration.live.buffer import DEFAULT_CAPACITY, DEFAULT_K
+from mag_calibrator_ros.calibration.live.jobs import FitJob, JobOutcome, run_job
+from mag_calibrator_ros.calibration.live.screening import VALUE_REASONS, reading_problem
+from mag_calibrator_ros.calibration.live.session import (
     CalibrationSession,
     SessionSettings,
+)
+from mag_calibrator_ros.calibration.store.calibration_file import (
+    CalibrationFileError,
+    save_calibration,
 )
 from mag_calibrator_ros.tools.recordings import (
     Recording,

@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike
 
-from mag_calibrator_ros.calibration.calibration import Calibration
+from mag_calibrator_ros.calibration.fit.calibration import Calibration
 
 if TYPE_CHECKING:  # matplotlib (0.3 s) is imported when a figure is drawn, not with this module
     from matplotlib.figure import Figure

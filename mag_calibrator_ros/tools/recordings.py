@@ -38,7 +38,7 @@ import warnings
 
 import numpy as np
 
-from mag_calibrator_ros.calibration.screening import MAX_READING
+from mag_calibrator_ros.calibration.live.screening import MAX_READING
 
 MAGNETIC_FIELD = 'sensor_msgs/msg/MagneticField'
 BAG_SUFFIXES = ('.db3', '.mcap')

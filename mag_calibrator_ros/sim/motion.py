@@ -31,8 +31,6 @@ import numpy as np
 
 if TYPE_CHECKING:
     from scipy.spatial.transform import Rotation
-
-    from mag_calibrator_ros.icm20948.board import BoardModel
 else:
 
     class _LazyRotation:
@@ -630,20 +628,3 @@ def body_field_samples(
         rotations = trajectory.rotations(times[start:start + chunk])
         out[start:start + chunk] = rotations.inv().apply(field)
     return out
-
-
-def board_readings(board: BoardModel, seconds: float, rate_hz: float,
-                   remap: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(magnetometer T, accelerometer m/s^2, gyroscope rad/s) rows at ``rate_hz`` from t=0 over
-    ``seconds`` of a simulated board, each row read at one instant (what pairing by stamp
-    gives), the inertial noise at 57 Hz bandwidth; ``remap`` turns the magnetometer's axes (a
-    driver publishing them wrongly)."""
-    mag, accel, gyro = [], [], []
-    for k in range(int(seconds * rate_hz)):
-        t = k / rate_hz
-        field, _ = board.magnetometer(t)
-        force, rate, _ = board.inertial(t, 57.0, 57.0)
-        mag.append((field if remap is None else remap @ field) * 1e-6)
-        accel.append(force)
-        gyro.append(rate)
-    return np.array(mag), np.array(accel), np.array(gyro)

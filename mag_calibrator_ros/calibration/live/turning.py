@@ -30,8 +30,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 import math
 
-from mag_calibrator_ros.calibration.coverage import Coverage
-from mag_calibrator_ros.calibration.heading import COMPLETE_HEADING_COVERAGE
+from mag_calibrator_ros.calibration.fit.coverage import Coverage
+from mag_calibrator_ros.calibration.fit.heading import COMPLETE_HEADING_COVERAGE
 
 COMMAND_PERIOD_S = 0.05
 """The command is re-sent at 20 Hz: well inside the usual base command timeouts (ros2_control's

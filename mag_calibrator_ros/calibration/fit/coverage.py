@@ -22,8 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from mag_calibrator_ros.calibration.calibration import Calibration
-from mag_calibrator_ros.calibration.ellipsoid import (
+from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.fit.ellipsoid import (
     CHUNK_ROWS,
     GROSS_OUTLIER_SIGMAS,
     PARAMETER_COUNTS,

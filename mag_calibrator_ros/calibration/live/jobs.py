@@ -1,59 +1,52 @@
 """Fit jobs: a snapshot of the buffer in, a judged fit out, run inline or in a worker process.
 
 The session decides *when* to fit and what to do with the outcome; this module only runs the one
-recipe for each kind of job on a snapshot, so it can run anywhere. ``InlineRunner`` runs a job at
-once (``mag_calibrator_fit``, tests, benchmarks); ``ProcessRunner`` runs it in a worker process
-(``fit_worker``), so the fit never holds the interpreter lock the message callback needs: a fit
-of a few to tens of milliseconds in a thread delays messages by up to the interpreter's switch
-interval (5 ms) each time it runs. The two give identical results on the same job.
+recipe for each kind of job on a snapshot, so it can run anywhere (``worker``'s runners).
+``InlineRunner`` runs a job at once (``mag_calibrator_fit``, tests, benchmarks);
+``ProcessRunner`` runs it in a worker process, so the fit never holds the interpreter lock the
+message callback needs: a fit in a thread delays messages by up to the interpreter's switch
+interval each time it runs. The two give identical results on the same job.
 """
 
 from __future__ import annotations
 
-import contextlib
 from dataclasses import dataclass, field, replace
 import math
-import os
-from queue import SimpleQueue
-import subprocess
-import sys
-import threading
 import time
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
-from mag_calibrator_ros.calibration import fit_worker
-from mag_calibrator_ros.calibration.alignment import (
+from mag_calibrator_ros.calibration.fit.alignment import (
     Alignment,
     AlignmentOptions,
     estimate_alignment,
 )
-from mag_calibrator_ros.calibration.buffer import DEFAULT_MAGNITUDE_TOLERANCE
-from mag_calibrator_ros.calibration.calibration import Calibration
-from mag_calibrator_ros.calibration.coverage import (
+from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.fit.coverage import (
     HEADING_SECTORS,
     Coverage,
     direction_coverage,
     shell_directions,
 )
-from mag_calibrator_ros.calibration.earth_field import (
+from mag_calibrator_ros.calibration.fit.earth_field import (
     EarthCheck,
     EarthReference,
     disturbance_text,
 )
-from mag_calibrator_ros.calibration.ellipsoid import robust_sigma
-from mag_calibrator_ros.calibration.evidence import (
+from mag_calibrator_ros.calibration.fit.ellipsoid import robust_sigma
+from mag_calibrator_ros.calibration.fit.fitting import FitOptions, FitResult, fit_calibration
+from mag_calibrator_ros.calibration.fit.heading import (
+    COMPLETE_HEADING_COVERAGE,
+    heading_coverage_of,
+    yaw_only,
+)
+from mag_calibrator_ros.calibration.live.buffer import DEFAULT_MAGNITUDE_TOLERANCE
+from mag_calibrator_ros.calibration.live.evidence import (
     Comparison,
     FitCheck,
     check_fit,
     compare_on_evidence,
-)
-from mag_calibrator_ros.calibration.fitting import FitOptions, FitResult, fit_calibration
-from mag_calibrator_ros.calibration.heading import (
-    COMPLETE_HEADING_COVERAGE,
-    heading_coverage_of,
-    yaw_only,
 )
 
 JOB_KINDS = ('reference', 'calibrate', 'refine', 'check')
@@ -206,7 +199,7 @@ def align_and_check(job: FitJob, result: FitResult
         if alignment is not None and alignment.handedness != 'left' and (
                 alignment.dip_std_deg <= job.alignment.max_dip_std_deg):
             dip = alignment.dip_deg
-        radius = calibration.field_strength / float(np.linalg.det(calibration.matrix)) ** (1 / 3)
+        radius = calibration.field_radius()
         earth_check = job.earth.check(radius, dip)
         calibration = calibration.with_metadata(
             declination_deg=round(job.earth.field.declination_deg, 4))
@@ -293,7 +286,7 @@ def prediction_sigma(result: FitResult) -> float:
 
 def moved(old: Calibration, new: Calibration, tolerance: float) -> bool:
     """Whether ``new`` judges magnitudes visibly differently from ``old`` (relative units)."""
-    radius = old.field_strength / float(np.linalg.det(old.matrix)) ** (1.0 / 3.0)
+    radius = old.field_radius()
     offset_shift = float(np.linalg.norm(new.offset - old.offset)) / radius
     matrix_shift = float(np.linalg.norm(
         new.matrix / new.field_strength - old.matrix / old.field_strength, ord=2
@@ -304,138 +297,11 @@ def moved(old: Calibration, new: Calibration, tolerance: float) -> bool:
 # --- runners ---------------------------------------------------------------------------------
 
 
-class FitRunner(Protocol):
-    """Runs one job at a time; the session submits, then polls until the outcome is there.
-    The outcome's ``job`` is the very object submitted (the session compares its calibrations
-    with the one in force by identity)."""
-
-    @property
-    def busy(self) -> bool: ...
-
-    def submit(self, job: FitJob) -> None: ...
-
-    def poll(self) -> JobOutcome | None: ...
-
-    def close(self) -> None: ...
-
-
-class InlineRunner:
-    """Runs each job at once, in the caller's thread: deterministic and simple (CLI, tests)."""
-
-    def __init__(self) -> None:
-        self._outcome: JobOutcome | None = None
-
-    @property
-    def busy(self) -> bool:
-        return self._outcome is not None
-
-    def submit(self, job: FitJob) -> None:
-        if self._outcome is not None:
-            raise RuntimeError('a job is already waiting to be polled')
-        self._outcome = run_job(job)
-
-    def poll(self) -> JobOutcome | None:
-        outcome, self._outcome = self._outcome, None
-        return outcome
-
-    def close(self) -> None:
-        self._outcome = None
-
-
-_DIED = object()  # what the reader thread reports when the worker's pipe closes
-
-
-class ProcessRunner:
-    """Runs jobs in one worker process (``fit_worker``), started on the first ``start`` or
-    ``submit`` and restarted if it dies; a job it was running comes back as an error. A reader
-    thread waits on the worker's output, so ``poll`` never blocks."""
-
-    def __init__(self) -> None:
-        self._process: subprocess.Popen | None = None
-        self._outcomes: SimpleQueue = SimpleQueue()
-        self._job: FitJob | None = None
-        self.restarts = 0
-
-    @property
-    def busy(self) -> bool:
-        return self._job is not None
-
-    @property
-    def pid(self) -> int | None:
-        return None if self._process is None else self._process.pid
-
-    def start(self) -> None:
-        """Start the worker now, so the first fit does not wait for its imports."""
-        if self._process is not None and self._process.poll() is None:
-            return
-        environment = dict(os.environ)  # the worker imports what this process imports
-        environment['PYTHONPATH'] = os.pathsep.join(path for path in sys.path if path)
-        process = subprocess.Popen(
-            [sys.executable, '-m', 'mag_calibrator_ros.calibration.fit_worker'],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=environment, close_fds=True,
-        )
-        self._process, self._outcomes = process, SimpleQueue()
-        threading.Thread(target=self._read, args=(process, self._outcomes), daemon=True,
-                         name='fit worker reader').start()
-
-    @staticmethod
-    def _read(process: subprocess.Popen, outcomes: SimpleQueue) -> None:
-        while True:
-            try:
-                outcomes.put(fit_worker.receive(process.stdout))
-            except Exception:  # noqa: BLE001 - closed, killed or garbled: the worker is gone
-                outcomes.put(_DIED)
-                return
-
-    def submit(self, job: FitJob) -> None:
-        if self._job is not None:
-            raise RuntimeError('a job is already running')
-        self.start()
-        self._job = job
-        try:
-            fit_worker.send(self._process.stdin, job)
-        except OSError:
-            self._outcomes.put(_DIED)
-
-    def poll(self) -> JobOutcome | None:
-        if self._job is None or self._outcomes.empty():
-            return None
-        outcome, job = self._outcomes.get(), self._job
-        self._job = None
-        if outcome is _DIED:
-            code = self._stop()
-            self.restarts += 1
-            return JobOutcome(job, error=f'fit worker process ended (exit status {code}); a '
-                                         'new one starts with the next fit')
-        return replace(outcome, job=job)  # the submitted job itself: callers compare by identity
-
-    def _stop(self, timeout_s: float = 2.0) -> int | None:
-        process, self._process = self._process, None
-        if process is None:
-            return None
-        for stream in (process.stdin, process.stdout):
-            with contextlib.suppress(OSError):
-                stream.close()
-        try:
-            return process.wait(timeout=timeout_s)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            return process.wait()
-
-    def close(self) -> None:
-        """Stop the worker: it finishes a running fit's pipe read and exits on end of input."""
-        self._job = None
-        self._stop()
-
-
 __all__ = [
     'JOB_KINDS',
     'REFERENCE_OPTIONS',
     'FitJob',
-    'FitRunner',
-    'InlineRunner',
     'JobOutcome',
-    'ProcessRunner',
     'ReferenceFit',
     'align_and_check',
     'buffer_coverage',

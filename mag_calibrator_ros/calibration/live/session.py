@@ -37,17 +37,16 @@ from typing import NamedTuple
 
 import numpy as np
 
-from mag_calibrator_ros.calibration.alignment import (
+from mag_calibrator_ros.calibration.fit.alignment import (
     MAX_ANGLE_DEG,
     Alignment,
     AlignmentOptions,
     StaticAttitudes,
     rotation_angle_deg,
 )
-from mag_calibrator_ros.calibration.buffer import SampleBuffer
-from mag_calibrator_ros.calibration.calibration import MODELS, Calibration, CalibrationError
-from mag_calibrator_ros.calibration.coverage import HEADING_SECTORS, Coverage
-from mag_calibrator_ros.calibration.earth_field import (
+from mag_calibrator_ros.calibration.fit.calibration import MODELS, Calibration, CalibrationError
+from mag_calibrator_ros.calibration.fit.coverage import HEADING_SECTORS, Coverage
+from mag_calibrator_ros.calibration.fit.earth_field import (
     MAX_DIP_ERROR_DEG,
     MAX_FIELD_ERROR_PCT,
     EarthCheck,
@@ -55,7 +54,16 @@ from mag_calibrator_ros.calibration.earth_field import (
     EarthReference,
     disturbance_text,
 )
-from mag_calibrator_ros.calibration.evidence import (
+from mag_calibrator_ros.calibration.fit.fitting import FitOptions
+from mag_calibrator_ros.calibration.fit.heading import (
+    COMPLETE_HEADING_COVERAGE,
+    HeadingCoverage,
+    PlaneWatch,
+    heading_coverage_of,
+    yaw_only,
+)
+from mag_calibrator_ros.calibration.live.buffer import SampleBuffer
+from mag_calibrator_ros.calibration.live.evidence import (
     HOLD_OUT_EVERY,
     MIN_EVIDENCE,
     MISFIT_WINDOW_S,
@@ -63,33 +71,21 @@ from mag_calibrator_ros.calibration.evidence import (
     HeldOutEvidence,
     MisfitMonitor,
 )
-from mag_calibrator_ros.calibration.fitting import FitOptions
-from mag_calibrator_ros.calibration.heading import (
-    COMPLETE_HEADING_COVERAGE,
-    HeadingCoverage,
-    PlaneWatch,
-    heading_coverage_of,
-    yaw_only,
-)
-from mag_calibrator_ros.calibration.jobs import (
-    REFERENCE_OPTIONS,
-    FitJob,
-    FitRunner,
-    InlineRunner,
-    JobOutcome,
-)
-from mag_calibrator_ros.calibration.scheduler import (
+from mag_calibrator_ros.calibration.live.jobs import REFERENCE_OPTIONS, FitJob, JobOutcome
+from mag_calibrator_ros.calibration.live.scheduler import (
     CHECK_FIT_PERIOD_S,
     FitScheduler,
     Situation,
     StreamClock,
 )
-from mag_calibrator_ros.calibration.screening import SCREEN_REASONS, ReadingScreen
-from mag_calibrator_ros.calibration.tracker import OnlineTracker
+from mag_calibrator_ros.calibration.live.screening import SCREEN_REASONS, ReadingScreen
+from mag_calibrator_ros.calibration.live.tracker import OnlineTracker
+from mag_calibrator_ros.calibration.live.worker import FitRunner, InlineRunner
+from mag_calibrator_ros.icm20948 import registers as reg
 
 TESLA_TO_MICROTESLA = 1e6
-AK09916_FULL_SCALE_T = 32752 * 0.15e-6
-"""The ICM-20948's magnetometer saturates at +-32752 LSB x 0.15 uT."""
+AK09916_FULL_SCALE_T = reg.MEASUREMENT_LIMIT * reg.TESLA_PER_LSB
+"""The AK09916 saturates at its measurement limit (ST2 HOFL beyond it), in tesla."""
 
 REFUSAL_REASONS = (*SCREEN_REASONS, 'duplicate', 'magnitude_outlier')
 """Every reason a reading is not used: screening, then the buffer's own two."""
@@ -637,7 +633,7 @@ class CalibrationSession:
     def _update_centre(self) -> None:
         radius = 0.0
         if self.calibration is not None:
-            radius = field_radius(self.calibration)
+            radius = self.calibration.field_radius()
         elif self.buffer.fill >= 10:
             radius = self.buffer.field_radius()
         self.attitudes.field_scale = radius if radius > 0.0 else None
@@ -899,7 +895,7 @@ class CalibrationSession:
         calibration = self.calibration
         if reference is None or calibration is None:
             return ''
-        check = reference.check(field_radius(calibration), calibration.metadata_number('dip_deg'))
+        check = reference.check(calibration.field_radius(), calibration.metadata_number('dip_deg'))
         return disturbance_text(check)
 
     def request_calibration(self) -> int:
@@ -1284,7 +1280,7 @@ class CalibrationSession:
             values['declination_deg'] = round(self.earth.declination_deg, 3)
             reference = self._earth_reference()
             if calibration is not None and reference is not None:
-                check = reference.check(field_radius(calibration),
+                check = reference.check(calibration.field_radius(),
                                         calibration.metadata_number('dip_deg'))
                 if check.radius_ratio is not None:
                     values['field_ratio_to_model'] = round(check.radius_ratio, 4)
@@ -1299,12 +1295,6 @@ def _passed_own_gates(outcome: JobOutcome) -> bool:
     if result is None or outcome.error:
         return False
     return result.success or (check is not None and result.reason == disturbance_text(check))
-
-
-def field_radius(calibration: Calibration) -> float:
-    """The raw field's mean radius the calibration describes: F / det(M)^(1/3)."""
-    determinant = float(np.linalg.det(calibration.matrix))
-    return calibration.field_strength / determinant ** (1.0 / 3.0) if determinant > 0 else 0.0
 
 
 def _coverage_pct(calibration: Calibration) -> str:
@@ -1325,7 +1315,6 @@ __all__ = [
     'bounded_step',
     'calibration_summary',
     'coverage_kept',
-    'field_radius',
     'magnitude_residual_pct',
     'transform_covariance',
 ]

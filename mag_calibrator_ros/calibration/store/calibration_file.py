@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from mag_calibrator_ros.calibration.calibration import (
+from mag_calibrator_ros.calibration.fit.calibration import (
     MODELS,
     ROTATION_TOLERANCE,
     Calibration,
@@ -45,7 +45,7 @@ from mag_calibrator_ros.calibration.calibration import (
     calibration_problems,
     rotation_problems,
 )
-from mag_calibrator_ros.calibration.params_yaml import (
+from mag_calibrator_ros.calibration.store.params_yaml import (
     MAX_DEPTH,
     MAX_FILE_BYTES,
     MAX_NODES,
@@ -55,7 +55,7 @@ from mag_calibrator_ros.calibration.params_yaml import (
     parse_params_yaml,
     short_repr,
 )
-from mag_calibrator_ros.calibration.safe_file import (
+from mag_calibrator_ros.calibration.store.safe_file import (
     FileAccessError,
     FileMissingError,
     read_regular_file,

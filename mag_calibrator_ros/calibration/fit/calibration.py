@@ -126,6 +126,12 @@ class Calibration:
         """Whether a rotation other than identity is in the calibration."""
         return not np.array_equal(self.rotation, np.eye(3))
 
+    def field_radius(self) -> float:
+        """The raw field's mean radius this calibration describes, in input units: the points
+        with ``|M (x - b)| = F`` form an ellipsoid of mean radius ``F / det(M)^(1/3)``."""
+        determinant = float(np.linalg.det(self.matrix))
+        return self.field_strength / determinant ** (1.0 / 3.0) if determinant > 0 else 0.0
+
     @classmethod
     def identity(cls, field_strength: float = 1.0) -> Calibration:
         """No correction: useful as a tracker start or a prior."""

@@ -17,7 +17,7 @@ this module does instead:
   "unique" samples of all, so without this they would be the last to leave.
 
 The buffer stores, ranks and merges; it never fits and never decides when to. Its owner
-(:class:`~mag_calibrator_ros.calibration.session.CalibrationSession`) gives it a reference -- a
+(``session.CalibrationSession``) gives it a reference -- a
 full fit of the buffer itself, or the calibration in force -- with the tolerance to screen by,
 and takes it away when it no longer describes the sensor. With a reference that may merge (a full
 fit of the buffer):
@@ -34,8 +34,8 @@ fit of the buffer):
   point keeps its original position (its *anchor*) for the uniqueness rule, which is unchanged.
 
 Input must already be screened (finite, not all-zero, not saturated): see
-:mod:`~mag_calibrator_ros.calibration.screening`. Memory is fixed: every array is allocated once
-for the configured capacity.
+:mod:`~mag_calibrator_ros.calibration.live.screening`. Memory is fixed: every array is
+allocated once for the configured capacity.
 """
 
 from __future__ import annotations
@@ -47,8 +47,8 @@ import random
 import numpy as np
 from numpy.typing import ArrayLike
 
-from mag_calibrator_ros.calibration.calibration import Calibration
-from mag_calibrator_ros.calibration.coverage import Coverage, direction_coverage
+from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.fit.coverage import Coverage, direction_coverage
 
 OUTCOMES = ('added', 'replaced', 'not_unique', 'duplicate', 'magnitude_outlier')
 """Everything :meth:`SampleBuffer.add` can return; the last two are refusals."""
@@ -267,9 +267,7 @@ class SampleBuffer:
         """
         reference = self.reference
         if reference is not None:
-            # |M (x - b)| = F on the ellipsoid; its mean radius in raw units is F / det(M)^(1/3).
-            det = float(np.linalg.det(reference.matrix))
-            return reference.field_strength / det ** (1.0 / 3.0)
+            return reference.field_radius()
         return _sphere_radius(self._points[: self._fill])
 
     def coverage(self) -> Coverage:
@@ -287,7 +285,7 @@ class SampleBuffer:
         point carries the mean direction of its readings (``ups``).
 
         Raises ValueError for a malformed, non-finite or all-zero sample: screening is the
-        caller's job (:mod:`~mag_calibrator_ros.calibration.screening`), done once per message.
+        caller's job (``screening``), done once per message.
         """
         x = np.asarray(sample, dtype=float)
         if x.size != 3:

@@ -7,8 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mag_calibrator_ros.calibration.calibration import Calibration
-from mag_calibrator_ros.calibration.coverage import (
+from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.fit.coverage import (
     cell_centres,
     occupied_cells,
     whitened_directions,

@@ -30,12 +30,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from mag_calibrator_ros import motion
-from mag_calibrator_ros.calibration.earth_field import EarthField, earth_field
+from mag_calibrator_ros.calibration.fit.earth_field import EarthField, earth_field
 from mag_calibrator_ros.icm20948 import registers as reg
+from mag_calibrator_ros.sim import motion
 
 if TYPE_CHECKING:
-    from mag_calibrator_ros.icm20948.simulator import SimConfig
+    from mag_calibrator_ros.sim.config import SimConfig
 
 TEMPERATURE_TIME_CONSTANT_S = 600.0
 GRAVITY_WORLD = np.array([0.0, 0.0, -reg.STANDARD_GRAVITY])  # ENU: down
@@ -121,3 +121,20 @@ class BoardModel:
         """First-order warm-up from ``temperature_c`` by ``temperature_rise_c``."""
         warm = 1.0 - math.exp(-max(t, 0.0) / TEMPERATURE_TIME_CONSTANT_S)
         return self.config.temperature_c + self.config.temperature_rise_c * warm
+
+
+def board_readings(board: BoardModel, seconds: float, rate_hz: float,
+                   remap: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(magnetometer T, accelerometer m/s^2, gyroscope rad/s) rows at ``rate_hz`` from t=0 over
+    ``seconds`` of a simulated board, each row read at one instant (what pairing by stamp
+    gives), the inertial noise at 57 Hz bandwidth; ``remap`` turns the magnetometer's axes (a
+    driver publishing them wrongly)."""
+    mag, accel, gyro = [], [], []
+    for k in range(int(seconds * rate_hz)):
+        t = k / rate_hz
+        field, _ = board.magnetometer(t)
+        force, rate, _ = board.inertial(t, 57.0, 57.0)
+        mag.append((field if remap is None else remap @ field) * 1e-6)
+        accel.append(force)
+        gyro.append(rate)
+    return np.array(mag), np.array(accel), np.array(gyro)

@@ -37,7 +37,7 @@ import math
 
 import numpy as np
 
-from mag_calibrator_ros.calibration.calibration import Calibration
+from mag_calibrator_ros.calibration.fit.calibration import Calibration
 
 # -- collecting quasi-static attitudes ------------------------------------------------------------
 

@@ -40,26 +40,22 @@ import time
 
 import numpy as np
 
-from mag_calibrator_ros import motion
-from mag_calibrator_ros.calibration.earth_field import location_problems
 from mag_calibrator_ros.icm20948 import registers as reg
-from mag_calibrator_ros.icm20948.board import BoardModel, ImuTruth
 from mag_calibrator_ros.icm20948.driver import (
     accel_scale,
     gyro_scale,
     temperature_counts,
     tesla_to_counts,
 )
+from mag_calibrator_ros.sim import motion
+from mag_calibrator_ros.sim.board import BoardModel, ImuTruth
+from mag_calibrator_ros.sim.config import SimConfig
 
 MEASUREMENT_TIME_S = 0.0072  # AK09916 measurement duration before the first DRDY in a mode
 TRUTH_LOG_SIZE = 8192  # magnetometer readings remembered for truth_for_reading
 IMU_TRUTH_LOG_SIZE = 16384  # inertial samples remembered (15 s at 1125 Hz)
 REGISTER_STARTUP_S = 0.001  # after DEVICE_RESET the ICM-20948 NACKs for this long
 TIME_EPSILON_S = 1e-9  # float tolerance on timing checks
-IDENTITY = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
-# Datasheet typicals (DS-000189), rounded: 230 ug/sqrt(Hz) and 0.015 dps/sqrt(Hz).
-ACCEL_NOISE_DENSITY = 2.26e-3  # (m/s^2)/sqrt(Hz)
-GYRO_NOISE_DENSITY = 2.62e-4  # (rad/s)/sqrt(Hz)
 IMU_DATA = range(reg.ACCEL_XOUT_H, reg.TEMP_OUT_L + 1)
 EXT_DATA = range(reg.EXT_SLV_SENS_DATA_00, reg.EXT_SLV_SENS_DATA_00 + reg.EXT_SLV_SENS_DATA_COUNT)
 _IMU_WORDS = struct.Struct('>7h')
@@ -119,152 +115,6 @@ class _ReadCounter:
 def _nack(what: str) -> OSError:
     """What i2c-dev raises when no device acknowledges: OSError(121, 'Remote I/O error')."""
     return OSError(errno.EREMOTEIO, f'{os.strerror(errno.EREMOTEIO)} ({what})')
-
-
-@dataclass(frozen=True)
-class SimConfig:
-    """What the simulated board sees and how it misbehaves.
-
-    Magnetometer: ``soft_iron`` is a symmetric positive-definite 3x3 matrix, row-major;
-    ``hard_iron_ut`` an offset in the chip frame; ``noise_ut`` white noise per axis (1 sigma).
-    Accel/gyro: constant biases (chip frame) and white-noise densities (per sample: density x
-    sqrt(DLPF noise bandwidth)); die temperature starts at ``temperature_c`` and warms by
-    ``temperature_rise_c``. ``who_am_i`` and ``ak09916_id`` let tests model a wrong chip.
-    Earth and mounting (``board.BoardModel``): ``mag_misalignment_deg``, a location, and a
-    disturbance (``field_scale``, ``inclination_offset_deg``).
-    """
-
-    @property
-    def has_location(self) -> bool:
-        return not (math.isnan(self.latitude) and math.isnan(self.longitude))
-
-    field_ut: float = 50.0
-    inclination_deg: float = 60.0
-    hard_iron_ut: Sequence[float] = (0.0, 0.0, 0.0)
-    soft_iron: Sequence[float] = IDENTITY
-    noise_ut: float = 0.3
-    motion: str = 'tumble'
-    i2c_error_rate: float = 0.0
-    seed: int = 0
-    address: int = reg.ICM20948_DEFAULT_ADDRESS
-    who_am_i: int = reg.WHO_AM_I_VALUE
-    ak09916_id: tuple[int, int] = (reg.WIA1_VALUE, reg.WIA2_VALUE)
-    accel_bias_mps2: Sequence[float] = (0.0, 0.0, 0.0)
-    gyro_bias_dps: Sequence[float] = (0.0, 0.0, 0.0)
-    accel_noise_density: float = ACCEL_NOISE_DENSITY
-    gyro_noise_density: float = GYRO_NOISE_DENSITY
-    temperature_c: float = 25.0
-    temperature_rise_c: float = 2.0
-    mag_misalignment_deg: Sequence[float] = (0.0, 0.0, 0.0)
-    """Rotation vector (deg) of the magnetometer's axes against the accel/gyro frame."""
-    latitude: float = math.nan
-    longitude: float = math.nan
-    altitude_m: float = 0.0
-    """A location (deg, m above WGS84): the field is then the World Magnetic Model's there
-    (``field_ut`` and ``inclination_deg`` unused). NaN: no location."""
-    field_scale: float = 1.0
-    inclination_offset_deg: float = 0.0
-    """A disturbed place: the field scaled and dipped against the model (or field_ut/incl.)."""
-    # Derived, validated copies (filled in __post_init__).
-    hard_iron: np.ndarray = field(init=False, repr=False, compare=False)
-    soft_iron_matrix: np.ndarray = field(init=False, repr=False, compare=False)
-
-    def __post_init__(self) -> None:
-        problems = config_problems(self)
-        if problems:
-            raise ValueError('invalid simulator configuration: ' + '; '.join(problems))
-        object.__setattr__(self, 'hard_iron', np.asarray(self.hard_iron_ut, dtype=float))
-        matrix = np.asarray(self.soft_iron, dtype=float).reshape(3, 3)
-        object.__setattr__(self, 'soft_iron_matrix', matrix)
-
-
-def config_problems(config: SimConfig) -> list[str]:
-    """Every problem with a simulator configuration, spelled out (empty when valid)."""
-    problems = []
-
-    def finite(name: str, value: object) -> bool:
-        try:
-            ok = math.isfinite(float(value))
-        except (TypeError, ValueError):
-            ok = False
-        if not ok:
-            problems.append(f'{name} must be a finite number, got {value!r}')
-        return ok
-
-    def vector(name: str, values: object, unit: str) -> None:
-        array = np.asarray(values, dtype=float) if _numeric(values) else None
-        if array is None or array.shape != (3,) or not np.all(np.isfinite(array)):
-            problems.append(f'{name} must be 3 finite numbers ({unit}), got {values!r}')
-
-    if finite('field_ut', config.field_ut) and not 0.0 < config.field_ut <= 4900.0:
-        problems.append(f'field_ut must be in (0, 4900] uT (AK09916 range), got {config.field_ut}')
-    if finite('inclination_deg', config.inclination_deg) and abs(config.inclination_deg) > 90.0:
-        problems.append(f'inclination_deg must be within [-90, 90], got {config.inclination_deg}')
-    if finite('noise_ut', config.noise_ut) and config.noise_ut < 0.0:
-        problems.append(f'noise_ut must be >= 0, got {config.noise_ut}')
-    if finite('i2c_error_rate', config.i2c_error_rate) and not (
-        0.0 <= config.i2c_error_rate < 1.0
-    ):
-        problems.append(f'i2c_error_rate must be in [0, 1), got {config.i2c_error_rate}')
-    if config.motion not in motion.TRAJECTORY_KINDS:
-        problems.append(
-            f"motion must be one of {', '.join(motion.TRAJECTORY_KINDS)}, got {config.motion!r}"
-        )
-    if config.address not in reg.ICM20948_ADDRESSES:
-        problems.append(f'address must be 0x68 or 0x69, got {config.address!r}')
-    vector('hard_iron_ut', config.hard_iron_ut, 'uT')
-    soft = np.asarray(config.soft_iron, dtype=float) if _numeric(config.soft_iron) else None
-    if soft is None or soft.shape != (9,) or not np.all(np.isfinite(soft)):
-        problems.append(
-            f'soft_iron must be 9 finite numbers (row-major 3x3), got {config.soft_iron!r}'
-        )
-    else:
-        matrix = soft.reshape(3, 3)
-        if not np.allclose(matrix, matrix.T, atol=1e-9):
-            problems.append('soft_iron must be symmetric')
-        elif np.linalg.eigvalsh(matrix).min() <= 0.0:
-            problems.append('soft_iron must be positive definite')
-    vector('accel_bias_mps2', config.accel_bias_mps2, 'm/s^2')
-    vector('gyro_bias_dps', config.gyro_bias_dps, 'deg/s')
-    vector('mag_misalignment_deg', config.mag_misalignment_deg, 'deg, a rotation vector')
-    if _numeric(config.mag_misalignment_deg) and np.asarray(
-            config.mag_misalignment_deg, dtype=float).shape == (3,) and np.linalg.norm(
-            np.asarray(config.mag_misalignment_deg, dtype=float)) > 180.0:
-        problems.append('mag_misalignment_deg must be a rotation of at most 180 deg')
-    if not (_nan(config.latitude) and _nan(config.longitude)):
-        problems += [f'location: {problem}' for problem in location_problems(
-            config.latitude, config.longitude, config.altitude_m)]
-    if finite('field_scale', config.field_scale) and not 0.0 < config.field_scale <= 10.0:
-        problems.append(f'field_scale must be in (0, 10], got {config.field_scale}')
-    if finite('inclination_offset_deg', config.inclination_offset_deg) and abs(
-            config.inclination_offset_deg) > 90.0:
-        problems.append(f'inclination_offset_deg must be within [-90, 90], got '
-                        f'{config.inclination_offset_deg}')
-    for name in ('accel_noise_density', 'gyro_noise_density'):
-        value = getattr(config, name)
-        if finite(name, value) and value < 0.0:
-            problems.append(f'{name} must be >= 0, got {value}')
-    if finite('temperature_c', config.temperature_c) and not -40.0 <= config.temperature_c <= 85.0:
-        problems.append(f'temperature_c must be within the operating range [-40, 85] degC, '
-                        f'got {config.temperature_c}')
-    if finite('temperature_rise_c', config.temperature_rise_c) and (
-        abs(config.temperature_rise_c) > 50.0
-    ):
-        problems.append(f'temperature_rise_c must be within [-50, 50] degC, '
-                        f'got {config.temperature_rise_c}')
-    return problems
-
-
-def _nan(value: object) -> bool:
-    return isinstance(value, float) and math.isnan(value)
-
-
-def _numeric(values: object) -> bool:
-    try:
-        np.asarray(values, dtype=float)
-    except (TypeError, ValueError):
-        return False
-    return True
 
 
 def _locked(method):

@@ -24,7 +24,7 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike
 
-from mag_calibrator_ros.calibration.coverage import (
+from mag_calibrator_ros.calibration.fit.coverage import (
     HEADING_SECTORS,
     MIN_LEVELS,
     RING_THICKNESS,
@@ -35,7 +35,7 @@ from mag_calibrator_ros.calibration.coverage import (
     readings_barely_change,
     sector_of,
 )
-from mag_calibrator_ros.calibration.ellipsoid import (
+from mag_calibrator_ros.calibration.fit.ellipsoid import (
     Normalisation,
     normalise,
     quadric_least_squares,

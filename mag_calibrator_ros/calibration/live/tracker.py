@@ -34,7 +34,7 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike
 
-from mag_calibrator_ros.calibration.calibration import Calibration
+from mag_calibrator_ros.calibration.fit.calibration import Calibration
 
 DEFAULT_LEARNING_RATE = 0.01
 """Per-sample rate in field units. On 3,000-sample hand tumbles (1 % noise) it converges from an

@@ -20,9 +20,9 @@ import math
 
 import numpy as np
 
-from mag_calibrator_ros.calibration.calibration import Calibration
-from mag_calibrator_ros.calibration.coverage import CELL_COUNT, cell_index, direction_coverage
-from mag_calibrator_ros.calibration.heading import heading_coverage_of, yaw_only
+from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.fit.coverage import CELL_COUNT, cell_index, direction_coverage
+from mag_calibrator_ros.calibration.fit.heading import heading_coverage_of, yaw_only
 
 HOLD_OUT_EVERY = 4
 """While a calibration is in force, one accepted reading in four (a deterministic pseudo-random

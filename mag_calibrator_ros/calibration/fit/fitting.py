@@ -16,8 +16,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from mag_calibrator_ros.calibration.calibration import MODELS, Calibration, CalibrationError
-from mag_calibrator_ros.calibration.coverage import (
+from mag_calibrator_ros.calibration.fit.calibration import MODELS, Calibration, CalibrationError
+from mag_calibrator_ros.calibration.fit.coverage import (
     HEADING_SECTORS,
     Coverage,
     direction_coverage,
@@ -27,7 +27,7 @@ from mag_calibrator_ros.calibration.coverage import (
     occupied_cells,
     whitened_directions,
 )
-from mag_calibrator_ros.calibration.ellipsoid import (
+from mag_calibrator_ros.calibration.fit.ellipsoid import (
     PARAMETER_COUNTS,
     EllipsoidFit,
     Normalisation,
@@ -36,8 +36,8 @@ from mag_calibrator_ros.calibration.ellipsoid import (
     normalise,
     thickness,
 )
-from mag_calibrator_ros.calibration.heading import fit_ring
-from mag_calibrator_ros.calibration.levelled import level_planar
+from mag_calibrator_ros.calibration.fit.heading import fit_ring
+from mag_calibrator_ros.calibration.fit.levelled import level_planar
 
 _HUGE = sys.float_info.max
 """Stands in for an infinite condition number or axis ratio: results never carry inf or NaN."""
