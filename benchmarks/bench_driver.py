@@ -317,7 +317,7 @@ def _vectors(messages, field: str) -> np.ndarray:
 
 
 def accel_at_rest(imu_rate: int) -> dict:
-    node, messages, handles = _collect(imu_rate, 'still', 1.0)
+    _, messages, handles = _collect(imu_rate, 'still', 1.0)
     try:
         accel = _vectors(messages, 'linear_acceleration')
         return {'imu_rate': imu_rate, 'samples': len(accel),

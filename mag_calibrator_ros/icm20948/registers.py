@@ -20,7 +20,7 @@ WHO_AM_I_VALUE = 0xEA
 USER_CTRL = 0x03
 USER_CTRL_I2C_MST_EN = 1 << 5
 USER_CTRL_I2C_MST_RST = 1 << 1
-LP_CONFIG = 0x05  # bit 6 I2C_MST_CYCLE: duty-cycled master at I2C_MST_ODR_CONFIG (left 0)
+# LP_CONFIG (0x05) stays at reset: its bit 6 I2C_MST_CYCLE would duty-cycle the I2C master.
 PWR_MGMT_1 = 0x06
 PWR_MGMT_1_DEVICE_RESET = 1 << 7
 PWR_MGMT_1_SLEEP = 1 << 6
@@ -38,9 +38,8 @@ I2C_MST_STATUS_SLV4_NACK = 1 << 4  # SLV4's slave did not acknowledge
 I2C_MST_STATUS_SLV0_NACK = 1 << 0
 INT_STATUS_1 = 0x1A
 INT_STATUS_1_RAW_DATA_0_RDY = 1 << 0  # new accel/gyro/temp data; cleared by reading INT_STATUS_1
-ACCEL_XOUT_H = 0x2D  # ACCEL_X/Y/Z, GYRO_X/Y/Z, TEMP: int16 big-endian, contiguous
-GYRO_XOUT_H = 0x33
-TEMP_OUT_H = 0x39
+# ACCEL_X/Y/Z (0x2D), GYRO_X/Y/Z (0x33), TEMP (0x39): int16 big-endian, contiguous.
+ACCEL_XOUT_H = 0x2D
 TEMP_OUT_L = 0x3A
 IMU_BURST_START = ACCEL_XOUT_H
 IMU_BURST_LENGTH = TEMP_OUT_L - ACCEL_XOUT_H + 1  # 14 bytes: one coherent sample
@@ -87,15 +86,13 @@ I2C_SLV4_DO = 0x16  # byte SLV4 writes
 I2C_SLV4_DI = 0x17  # byte SLV4 read
 I2C_SLV_RNW = 1 << 7
 I2C_SLV_EN = 1 << 7
-I2C_SLV_REG_DIS = 1 << 5
 I2C_SLV_LENG_MASK = 0x0F
 
 # Output data rate with the DLPF on: 1125 / (1 + divider) Hz for both sensors (DS-000189 gives
 # 1.125 kHz for the accelerometer and rounds the gyroscope's to 1.1 kHz). The dividers only act
 # with FCHOICE = 1 and 0 < DLPFCFG < 7, so those are the settings offered.
 INTERNAL_RATE_HZ = 1125.0
-GYRO_DIVIDER_MAX = 0xFF
-ACCEL_DIVIDER_MAX = 0xFFF
+GYRO_DIVIDER_MAX = 0xFF  # the accelerometer's is 12 bits; one divider serves both
 DLPF_SETTINGS = (1, 2, 3, 4, 5, 6)
 # DLPFCFG -> (3 dB bandwidth, noise bandwidth) in Hz, DS-000189 gyro and accel DLPF tables.
 GYRO_DLPF_HZ = {1: (151.8, 187.6), 2: (119.5, 154.3), 3: (51.2, 73.3), 4: (23.9, 35.9),

@@ -180,14 +180,6 @@ class Icm20948Supervisor:
         """Failed I2C transactions of any kind (bring-up retries included)."""
         return self.monitor.counters.errors
 
-    @property
-    def mag_samples(self) -> int:
-        return self._mag.emitted
-
-    @property
-    def imu_samples(self) -> int:
-        return self._imu.emitted if self._imu is not None else 0
-
     def _driver_count(self, name: str) -> int:
         return self._base[name] + (getattr(self._driver, name) if self._driver else 0)
 

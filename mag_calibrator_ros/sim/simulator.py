@@ -29,7 +29,7 @@ Thread-safe: a test may inject faults while a driver thread polls.
 from __future__ import annotations
 
 from collections import OrderedDict, deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 import errno
 import math
@@ -291,14 +291,6 @@ class SimulatedIcm20948Bus:
         ) and register + length <= reg.REG_BANK_SEL:
             return list(self._banks[self._bank][register:register + length])  # plain registers
         return [self._read_register(i2c_addr, register + i) for i in range(length)]
-
-    @_locked
-    def write_i2c_block_data(
-        self, i2c_addr: int, register: int, data: Sequence[int], force: bool | None = None
-    ) -> None:
-        self._transaction(i2c_addr, f'block write to register {register:#04x}')
-        for i, value in enumerate(data):
-            self._write_register(i2c_addr, register + i, value & 0xFF)
 
     def close(self) -> None:
         """Nothing to release; present because the node closes whatever bus it opened."""
@@ -639,12 +631,3 @@ class SimulatedIcm20948Bus:
         key = (*(round(float(v) / config.accel_scale) for v in linear_acceleration),
                *(round(float(v) / config.gyro_scale) for v in angular_velocity))
         return self._imu_truth.get(key)
-
-    @_locked
-    def true_field_now(self) -> np.ndarray:
-        """True chip-frame earth field (T) at the current time (for the demo's live view)."""
-        return self.board.true_field_tesla(self._now())
-
-    @_locked
-    def true_temperature_now(self) -> float:
-        return self.board.temperature_c(self._now())

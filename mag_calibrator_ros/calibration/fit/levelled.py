@@ -162,14 +162,6 @@ def level_planar(
     return Levelling(offset, matrix, note, dip if observed else None)
 
 
-def _plane_normal(rows: np.ndarray, plain: EllipsoidFit) -> np.ndarray:
-    if plain.plane_normal is not None and np.all(np.isfinite(plain.plane_normal)):
-        normal = np.asarray(plain.plane_normal, dtype=float)
-    else:
-        normal = np.linalg.svd(rows - rows.mean(axis=0), full_matrices=False)[2][-1]
-    return normal / np.linalg.norm(normal)
-
-
 def _basis(normal: np.ndarray) -> np.ndarray:
     """Orthonormal columns (u, v, n), right-handed, n the plane normal."""
     helper = np.eye(3)[int(np.argmin(np.abs(normal)))]

@@ -603,7 +603,6 @@ class _MagnitudeScreen:
         self.inverse = np.linalg.inv(self.matrix)
         self.offset = calibration.offset.copy()
         self._matrix = self.matrix.tolist()
-        self._inverse = self.inverse.tolist()
         self._offset = self.offset.tolist()
         self.tolerance = tolerance
         self.checked = 0
