@@ -38,6 +38,7 @@ import math
 import numpy as np
 
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.fit.ellipsoid import robust_sigma
 
 # -- collecting quasi-static attitudes ------------------------------------------------------------
 
@@ -336,10 +337,6 @@ def _dips(accel: np.ndarray, field: np.ndarray, rotation: np.ndarray) -> np.ndar
     return np.arcsin(np.clip(np.sum(accel * (field @ rotation.T), axis=1), -1.0, 1.0))
 
 
-def _robust_sigma(values: np.ndarray) -> float:
-    return 1.4826 * float(np.median(np.abs(values - np.median(values))))
-
-
 def _linear_rotation(accel: np.ndarray, field: np.ndarray) -> tuple[np.ndarray, float]:
     """The rotation from the null vector of [vec(a u^T), -1] (X ~ R, s ~ a . R u), projected
     onto proper rotations; and the ratio of the two smallest singular values (how well the null
@@ -421,19 +418,20 @@ def estimate_alignment(attitudes: np.ndarray, calibration: Calibration,
                          dip_std_before_deg=before)
     start, _ = _linear_rotation(accel_units, field_units)
     floor = math.radians(MIN_SCALE_DEG)
-    scale = max(_robust_sigma(_dips(accel_units, field_units, start)), floor)
+    start_dips = _dips(accel_units, field_units, start)
+    scale = max(robust_sigma(start_dips, about_median=True, floor=None), floor)
     candidates = [_refine(accel_units, field_units, guess, scale)
                   for guess in (start, np.eye(3))]
     rotation, offset, _, _ = min(candidates, key=lambda candidate: candidate[2])
     for _ in range(ROBUST_PASSES):  # the linear start's scale counts the outliers: tighten it
         residuals = _dips(accel_units, field_units, rotation) - offset
-        tighter = max(_robust_sigma(residuals), floor)
+        tighter = max(robust_sigma(residuals, about_median=True, floor=None), floor)
         if tighter > 0.8 * scale:
             break
         scale = tighter
         rotation, offset, _, _ = _refine(accel_units, field_units, rotation, scale)
     residuals = _dips(accel_units, field_units, rotation) - offset
-    sigma = max(_robust_sigma(residuals), floor)
+    sigma = max(robust_sigma(residuals, about_median=True, floor=None), floor)
     inliers = np.abs(residuals) <= OUTLIER_SIGMAS * sigma
     if inliers.sum() < options.min_attitudes:
         inliers = np.ones(count, dtype=bool)

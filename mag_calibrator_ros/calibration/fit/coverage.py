@@ -50,7 +50,6 @@ _BAND_EDGES = 1.0 - 2.0 * np.cumsum((0,) + BAND_CELLS) / CELL_COUNT  # z from +1
 _BAND_FIRST_CELL = np.cumsum((0,) + BAND_CELLS)[:-1]
 _REACH_DEG = 12.0
 _WHITENING_OUTLIER_SIGMAS = 4.0
-_MAD_TO_SIGMA = 1.4826
 _MAX_WHITENING_RATIO = 3.0
 """A whitening that stretches one axis more than 3x the others is not soft iron (real ratios are <
 1.5) but a plane of data: stretching its noise would fake coverage."""
@@ -220,7 +219,7 @@ def _scatter_about(
     length = _unit_and_radius(readings, whiten)[1]
     if len(length) < len(readings):  # zero or non-finite: a reading at the centre is inside
         length = np.concatenate([length, np.zeros(len(readings) - len(length))])
-    return float(_MAD_TO_SIGMA * np.median(np.abs(length / radius - 1.0)))
+    return robust_sigma(length / radius - 1.0, floor=None)
 
 
 def _is_ring(points: np.ndarray) -> bool:

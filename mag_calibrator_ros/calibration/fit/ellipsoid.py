@@ -625,11 +625,26 @@ class _Geometric:
         return padded
 
 
-def robust_sigma(residuals: np.ndarray) -> float:
-    """1.4826 x median absolute residual, floored at MIN_ROBUST_SIGMA."""
-    if residuals.size == 0:
-        return MIN_ROBUST_SIGMA
-    return max(_MAD_TO_SIGMA * float(np.median(np.abs(residuals))), MIN_ROBUST_SIGMA)
+def robust_sigma(
+    residuals: np.ndarray, *, about_median: bool = False, floor: float | None = MIN_ROBUST_SIGMA
+) -> float:
+    """The normal sigma a median absolute deviation stands for: 1.4826 x median |residual|.
+
+    The one robust scale of the package; its callers differ in two ways, chosen here explicitly:
+
+    - ``about_median=False`` (default) measures the deviations about zero: residuals of a fitted
+      surface, where zero *is* the expected value and a shifted median is itself an error.
+      ``about_median=True`` subtracts the values' own median first (the classical MAD), for
+      values whose centre is unknown (dips of a candidate rotation, say).
+    - ``floor`` (default MIN_ROBUST_SIGMA) bounds the sigma below, so that noiseless data do not
+      flag rounding as outliers; it also answers for no residuals at all. ``floor=None`` returns
+      the bare value (NaN for none), for comparing a scatter against a tolerance.
+    """
+    if floor is not None and residuals.size == 0:
+        return floor
+    deviations = residuals - np.median(residuals) if about_median else residuals
+    sigma = _MAD_TO_SIGMA * float(np.median(np.abs(deviations)))
+    return sigma if floor is None else max(sigma, floor)
 
 
 def _minimise(

@@ -177,8 +177,8 @@ def fit_ring(samples: ArrayLike, readings: ArrayLike | None = None) -> tuple[Rin
             return None, _not_a_ring(points, readings)
         evidence = None if readings is None else finite_rows(readings)
         if evidence is not None and len(evidence):
-            scatter = 1.4826 * float(np.median(np.abs(
-                np.linalg.norm(ring.in_plane(evidence), axis=1) - 1.0)))
+            scatter = robust_sigma(
+                np.linalg.norm(ring.in_plane(evidence), axis=1) - 1.0, floor=None)
             if not scatter <= RING_TOLERANCE:
                 return None, TURN_STILL_HINT
     return ring, ''
