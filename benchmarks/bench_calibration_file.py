@@ -3,8 +3,8 @@
 
 Every case is timed ``--repeats`` times (fresh files in a temporary directory); the table gives
 the median and the worst time in ms, and the outcome (ok or the start of the refusal). Before the
-limits, the billion-laughs file took 77 s and 4.2 GB, a 100 MB list file 10 min, and a FIFO blocked
-until a writer appeared.
+limits, the billion-laughs file and a 100 MB list file ran for minutes and took gigabytes, and a
+FIFO blocked until a writer appeared.
 
     python benchmarks/bench_calibration_file.py
     python benchmarks/bench_calibration_file.py --repeats 50

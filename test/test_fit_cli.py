@@ -508,7 +508,7 @@ print(codes, heavy)
 
 def test_help_argument_errors_and_node_modules_import_no_scipy_optimize_or_matplotlib():
     """--help, usage errors and the nodes' start-up never pay for the fit's or the plot's
-    imports (scipy.optimize alone took 0.4 s); they come when a fit or a figure needs them."""
+    imports (scipy.optimize alone is a heavy one); they come when a fit or a figure needs them."""
     result = subprocess.run([sys.executable, '-c', STARTUP_CHECK], capture_output=True,
                             text=True, timeout=120, check=False)
     assert result.returncode == 0, result.stderr

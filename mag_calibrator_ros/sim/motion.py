@@ -34,8 +34,8 @@ if TYPE_CHECKING:
 else:
 
     class _LazyRotation:
-        """scipy's Rotation, imported on first use: scipy.spatial costs 0.5 s, and a node that
-        never simulates (a driver on real hardware) never needs it."""
+        """scipy's Rotation, imported on first use: scipy.spatial is heavy to import, and a node
+        that never simulates (a driver on real hardware) never needs it."""
 
         def __getattr__(self, name: str) -> object:
             from scipy.spatial.transform import Rotation

@@ -68,7 +68,7 @@ EXIT_INTERRUPTED = 130
 
 DEFAULT_OPTIONS = FitOptions()
 PROGRESS_MIN_ROWS = 20_000
-"""Streaming fewer rows than this through the buffer takes well under a second: no bar."""
+"""Fewer rows than this stream through the buffer too quickly for a progress bar to help."""
 PROGRESS_MIN_BYTES = 1 << 20
 PROGRESS_CHUNK = 2048
 DEFAULT_RATE_HZ = 100.0

@@ -28,7 +28,7 @@ from numpy.typing import ArrayLike
 
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
 
-if TYPE_CHECKING:  # matplotlib (0.3 s) is imported when a figure is drawn, not with this module
+if TYPE_CHECKING:  # matplotlib (heavy) is imported when a figure is drawn, not with this module
     from matplotlib.figure import Figure
 
 MAX_POINTS = 5000

@@ -12,7 +12,7 @@ no names, several magnetometer sets, only accelerometer or gyroscope names) rais
 ``RecordingError`` naming the candidates: choose with ``columns``, three **zero-based** field
 indices (``'1,3,5'`` picks 144, -270, 415 from that line) or three header names
 (``'mx,my,mz'``). Lines are converted a block at a time (numpy for plain numbers), so millions of
-rows cost seconds and only the samples stay in memory.
+rows read at numpy's pace and only the samples stay in memory.
 
 rosbag2 (a bag directory, or a single ``.db3`` / ``.mcap`` file): the
 ``sensor_msgs/msg/MagneticField`` topic named by ``topic``, or the only such topic in the bag.

@@ -245,7 +245,7 @@ def distinct_rows(points: np.ndarray) -> np.ndarray:
     a shell (and many repeats would make the robust radial scatter zero).
 
     Rows are grouped by a hash of their bits (one sort of n integers, block-wise keys: no copy
-    of the rows; np.unique(axis=0) sorts the rows themselves, 30 times slower) and compared
+    of the rows; np.unique(axis=0) would sort the rows themselves, a far slower sort) and compared
     exactly within a group. Returns ``points`` itself when nothing repeats.
     """
     if len(points) < 2:

@@ -111,8 +111,8 @@ def as_date(when: datetime.date | datetime.datetime | str | None) -> datetime.da
 def earth_field(latitude: float, longitude: float, altitude_m: float = 0.0,
                 when: datetime.date | datetime.datetime | str | None = None) -> EarthField:
     """The World Magnetic Model's field at a location (degrees, metres above the WGS84
-    ellipsoid) on a day (default today). Raises :class:`EarthFieldError`. About 30 ms (the
-    first call also imports the model, ~0.3 s): call it off the message path."""
+    ellipsoid) on a day (default today). Raises :class:`EarthFieldError`. It evaluates a
+    spherical-harmonic model (the first call also imports it): call it off the message path."""
     problems = location_problems(latitude, longitude, altitude_m)
     day = as_date(when)
     if not FIRST_DAY <= day <= LAST_DAY:

@@ -43,7 +43,7 @@ Solvers: Levenberg–Marquardt on the normal equations (at most 9 parameters), a
 blocks of CHUNK_ROWS rows, iteratively reweighted for soft-L1. They find the minima
 ``scipy.optimize.least_squares`` finds (method 'lm', and 'trf' with ``loss='soft_l1'``) without
 ever forming an n x p Jacobian, so millions of rows fit in bounded memory, and without importing
-scipy.optimize (about 0.4 s) where a node or a command line starts. Algebraic fits solve their
+scipy.optimize (a heavy import) where a node or a command line starts. Algebraic fits solve their
 normal equations from the moment matrix of the monomials (x², xy, ..., x, 1): one pass over the
 rows serves the sphere, the quadric and the axis fits alike. Where the normal equations would
 square an ill-conditioned Jacobian (condition above EXACT_CONDITION), its condition number and
@@ -96,14 +96,13 @@ two cross it as the fit moves from its start to the least-squares fit, on either
 
 CHUNK_ROWS = 1 << 11
 """Rows per block in every pass over the points: temporaries stay in the cache however many rows
-(a 2-million-row Jacobian alone would take 144 MB). Measured on 12k rows, blocks of 2048 rows
-fitted 15-25 % faster than blocks of 8192 or 16384; on 1M rows 10 % slower."""
+(a 2-million-row Jacobian alone would take 144 MB). Sized for the fits the node and the command
+line run most, thousands to tens of thousands of rows: larger blocks only pay off on millions."""
 
 GRAM_ROWS = 1 << 11
 """Rows per matrix product of a block's columns with themselves (10 x 2048 x 10): below
 OpenBLAS's threading threshold. Its threads, spinning between calls, only compete with the main
-one for products this small (measured: the whole fit 2-3 times slower on a busy 2-core
-machine)."""
+one for products this small, the more so on a busy machine with few cores."""
 
 EXACT_CONDITION = 1e6
 """Above this condition number the normal equations (which square it) lose the smallest singular

@@ -55,7 +55,7 @@ OUTCOMES = ('added', 'replaced', 'not_unique', 'duplicate', 'magnitude_outlier')
 
 DEFAULT_CAPACITY = 100
 """About ten samples per parameter of the full model (offset 3 + symmetric matrix 6), small enough
-that a sample costs microseconds and a fit milliseconds."""
+that adding a sample stays light enough for the message path and a fit stays short."""
 
 DEFAULT_K = 6
 """The six nearest neighbours are the first ring around a point on an evenly covered sphere, so
@@ -609,7 +609,7 @@ class _MagnitudeScreen:
         self.outliers = 0
 
     def whiten(self, x: Sequence[float]) -> list[float]:
-        """``M (x - b) / F`` in plain floats (numpy costs microseconds per call on 3-vectors)."""
+        """``M (x - b) / F`` in plain floats (on 3-vectors numpy's per-call overhead dominates)."""
         d = [a - b for a, b in zip(x, self._offset, strict=True)]
         return [r[0] * d[0] + r[1] * d[1] + r[2] * d[2] for r in self._matrix]
 

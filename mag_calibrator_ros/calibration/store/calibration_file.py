@@ -16,7 +16,7 @@
 The same file is a ``--params-file`` for the node (the YAML is typed strictly:
 ``params_yaml``). A file may come from a user, another robot or an attacker: reading takes
 regular files of at most ``MAX_FILE_BYTES`` only and parses within fixed limits (``safe_file``,
-``params_yaml``), so a load of anything finishes in milliseconds or fails with a
+``params_yaml``), so a load of anything finishes in bounded time or fails with a
 :class:`CalibrationFileError` naming the file and the problem. Saving is atomic, writes only a
 regular file or a new path, and never writes what loading would refuse. Save and load share
 :func:`resolve_calibration_path`.

@@ -38,7 +38,7 @@ MAX_DEPTH = 16
 """Nesting levels of YAML collections (a calibration file uses 5)."""
 MAX_NODES = 1000
 """YAML values in one text, keys included (a calibration uses about 100; a fleet file with the
-calibrations of ten robots fits). Parsing time grows with it: about 4 µs per value."""
+calibrations of ten robots fits). Parsing time grows with it: it bounds a hostile text's."""
 
 NAME_TOKEN = re.compile(r'^[A-Za-z_][A-Za-z0-9_]*$')
 """One token of a ROS name or parameter name."""
@@ -308,7 +308,7 @@ if getattr(yaml, '__with_libyaml__', False):
     from yaml.cyaml import CParser
 
     class _LibyamlLoader(_BoundedComposer, CParser, _ParametersConstructor, _ParametersResolver):
-        """libyaml's parser (about 5x faster) under the bounded composer written in Python."""
+        """libyaml's parser (C, faster than PyYAML's own) under the bounded composer in Python."""
 
         def __init__(self, stream: str) -> None:
             CParser.__init__(self, stream)

@@ -26,7 +26,8 @@ DEAD_WRITER_GRACE_SECONDS = 5.0
 """... or older than this once the process that wrote it (its PID is in the name) has gone."""
 
 _TEMPORARY_NAME_CHARS = 200  # of the target's name in a temporary's name (NAME_MAX is 255)
-_MAX_SCANNED_ENTRIES = 2_000  # directory entries looked at for stale temporaries (~1 ms)
+# Directory entries looked at for stale temporaries: a crowded directory must not slow every save.
+_MAX_SCANNED_ENTRIES = 2_000
 
 
 class FileAccessError(ValueError):
