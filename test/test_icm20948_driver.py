@@ -8,13 +8,8 @@ import numpy as np
 import pytest
 
 from mag_calibrator_ros.icm20948 import registers as reg
-from mag_calibrator_ros.icm20948.driver import (
-    DeviceNotFoundError,
-    Icm20948,
-    WrongDeviceError,
-    counts_to_tesla,
-    tesla_to_counts,
-)
+from mag_calibrator_ros.icm20948.driver import DeviceNotFoundError, Icm20948, WrongDeviceError
+from mag_calibrator_ros.icm20948.units import counts_to_tesla, tesla_to_counts
 from mag_calibrator_ros.sim.config import SimConfig
 from mag_calibrator_ros.sim.simulator import SimulatedIcm20948Bus
 

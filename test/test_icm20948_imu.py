@@ -8,13 +8,8 @@ import numpy as np
 import pytest
 
 from mag_calibrator_ros.icm20948 import registers as reg
-from mag_calibrator_ros.icm20948.driver import (
-    ConfigNotAcceptedError,
-    Icm20948,
-    ImuSettings,
-    temperature_celsius,
-    temperature_counts,
-)
+from mag_calibrator_ros.icm20948.driver import ConfigNotAcceptedError, Icm20948, ImuSettings
+from mag_calibrator_ros.icm20948.units import temperature_celsius, temperature_counts
 from mag_calibrator_ros.sim import motion
 from mag_calibrator_ros.sim.board import GRAVITY_WORLD
 from mag_calibrator_ros.sim.config import SimConfig

@@ -41,7 +41,7 @@ import time
 import numpy as np
 
 from mag_calibrator_ros.icm20948 import registers as reg
-from mag_calibrator_ros.icm20948.driver import (
+from mag_calibrator_ros.icm20948.units import (
     accel_scale,
     gyro_scale,
     temperature_counts,
