@@ -86,7 +86,7 @@ from mag_calibrator_ros.nodes.parameters import (
     refuse_to_start,
 )
 from mag_calibrator_ros.nodes.runtime import guarded, spin_node
-from mag_calibrator_ros.nodes.view import ViewPublisher
+from mag_calibrator_ros.nodes.view_publisher import ViewPublisher
 
 NODE_NAME = 'mag_calibrator'
 DIAGNOSTICS_PERIOD_S = 1.0
