@@ -56,8 +56,8 @@ from mag_calibrator_ros.calibration.live.session import (
 from mag_calibrator_ros.calibration.live.turning import (
     COMMAND_PERIOD_S,
     MAX_SPEED,
-    RotationController,
-    RotationSettings,
+    TurnController,
+    TurnSettings,
 )
 from mag_calibrator_ros.calibration.live.view import calibration_view
 from mag_calibrator_ros.calibration.live.worker import ProcessRunner
@@ -102,7 +102,7 @@ INPUT_QOS = QoSProfile(
     durability=qos_profile_sensor_data.durability,
 )
 DEFAULTS = SessionSettings()
-ROTATION_DEFAULTS = RotationSettings()
+ROTATION_DEFAULTS = TurnSettings()
 COMMAND_TOPIC = 'cmd_vel'
 COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 """Reliable: a stop must arrive (a best-effort subscriber still matches and gets the re-sends)."""
@@ -761,18 +761,18 @@ class MagCalibratorNode(Node):
         ])
 
     # -- turning in place: ~/rotate_and_calibrate, ~/stop_rotation -------------------------------
-    # Every decision is the RotationController's; this wires it: a 20 Hz timer publishes what it
+    # Every decision is the TurnController's; this wires it: a 20 Hz timer publishes what it
     # commands, every stop path publishes zero at once, and the publisher on cmd_vel exists only
     # while a rotation runs (and for its zero hold).
 
     @staticmethod
-    def _rotation_settings_from(values: dict[str, object]) -> RotationSettings:
-        return RotationSettings(speed=float(values['rotation_speed']),
+    def _rotation_settings_from(values: dict[str, object]) -> TurnSettings:
+        return TurnSettings(speed=float(values['rotation_speed']),
                                 acceleration=float(values['rotation_acceleration']),
                                 timeout_s=float(values['rotation_timeout']))
 
     def _start_rotation_wiring(self) -> None:
-        self._rotation = RotationController(
+        self._rotation = TurnController(
             self._rotation_settings_from(self._current_values()),
             input_topic=self.resolve_topic_name('imu/mag'),
             command_topic=self.resolve_topic_name(COMMAND_TOPIC))
