@@ -553,10 +553,22 @@ def test_two_robots_on_one_host_keep_their_own_calibration_files(ros):
     ros.remove(probe)
 
 
+def test_the_index_atop_the_node_names_every_parameter():
+    """The node's module docstring lists its topics, services and parameters (as a user reads
+    them): a parameter added without its line there fails here."""
+    from mag_calibrator_ros.nodes import mag_calibrator
+    from mag_calibrator_ros.nodes.calibration_parameters import CALIBRATION_PARAMETERS
+    from mag_calibrator_ros.nodes.mag_calibrator_parameters import PARAMETERS
+
+    missing = [name for name in [*PARAMETERS, *CALIBRATION_PARAMETERS]
+               if f'``{name}``' not in mag_calibrator.__doc__]
+    assert missing == []
+
+
 def test_the_shipped_config_applies_in_a_namespace_and_matches_the_defaults(tmp_path):
     """config/mag_calibrator.yaml documents every parameter with its default, and its /** key
     applies in any namespace (a bare node-name key was silently ignored under a namespace)."""
-    from mag_calibrator_ros.nodes.mag_calibrator import PARAMETERS
+    from mag_calibrator_ros.nodes.mag_calibrator_parameters import PARAMETERS
 
     config = REPO_ROOT / 'config' / 'mag_calibrator.yaml'
     (section,) = yaml.safe_load(config.read_text()).values()

@@ -35,6 +35,15 @@ def ros():
         rclpy.try_shutdown()
 
 
+def test_the_index_atop_the_node_names_every_parameter():
+    """The module docstring lists the driver's topics and parameters: none goes unlisted."""
+    from mag_calibrator_ros.nodes import icm20948_driver
+
+    missing = [name for name in icm20948_driver.PARAMETERS
+               if f'``{name}``' not in icm20948_driver.__doc__]
+    assert missing == []
+
+
 class Harness:
     """A driver node plus a listener node on one executor, spun from the test thread (the
     driver's I2C loop runs on its own thread)."""

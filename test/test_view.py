@@ -15,7 +15,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
 from mag_calibrator_ros.calibration.fit.coverage import CELL_COUNT
 from mag_calibrator_ros.calibration.live.view import calibration_surface, calibration_view
-from mag_calibrator_ros.nodes.view import point_cloud
+from mag_calibrator_ros.nodes.view_publisher import point_cloud
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from node_helpers import Ros, wait_for  # noqa: E402

@@ -4,15 +4,60 @@ Wiring only: parameters -> ``Icm20948Supervisor`` (bring-up, polling, fault reco
 ``icm20948/supervisor.py``) on its own thread -> publishers and diagnostics. With
 ``backend: sim`` the bus is the register-level ``SimulatedIcm20948Bus`` (tests, demo, no hardware).
 
-Topics (relative, REP-145; reliable QoS as REP-2003 asks of drivers; one frame for all three, the
-ICM-20948 accel/gyro frame, with the magnetometer axes already remapped into it):
-``imu/mag`` (sensor_msgs/MagneticField, tesla), ``imu/data_raw`` (sensor_msgs/Imu, m/s^2 and
-rad/s, no orientation: orientation_covariance[0] = -1), ``imu/temperature``
-(sensor_msgs/Temperature, degC). All stamps come from the node's clock, taken at the read.
-
 Why a thread and not a timer: at kHz poll rates the executor's per-tick overhead alone would take
 a large share of a core (docs/ARCHITECTURE.md, Node contracts); the supervisor's loop sleeps until
 its next poll. Publishers are thread-safe.
+
+Published topics (relative, REP-145; reliable, volatile, depth 10, as REP-2003 asks of drivers;
+one frame for all three, the ICM-20948 accel/gyro frame, with the magnetometer axes already
+remapped into it; every stamp from the node's clock, taken at the read):
+
+- ``imu/mag`` (sensor_msgs/MagneticField): the field, tesla, at ``rate_hz``.
+- ``imu/data_raw`` (sensor_msgs/Imu), with ``publish_imu``: m/s^2 and rad/s, no orientation
+  (orientation_covariance[0] = -1).
+- ``imu/temperature`` (sensor_msgs/Temperature), with ``publish_temperature``: degC, at most
+  10 Hz.
+- ``/diagnostics`` (diagnostic_msgs/DiagnosticArray): one status per stream, once a second.
+
+Subscribed topics (only with ``sim.motion: cmd_vel``): ``cmd_vel`` (geometry_msgs/Twist, or
+TwistStamped when only that is published): the simulated robot turns at its angular z.
+
+Services: none. Timers: diagnostics every second; with ``sim.motion: cmd_vel``, the check of
+cmd_vel's message type every CMD_VEL_CHECK_S.
+
+Parameters, ``name`` (default): meaning; read-only but for frame_id and the noise figures.
+The chip:
+
+- ``backend`` (smbus2): smbus2 (Linux /dev/i2c-N) or sim (the register-level simulator).
+- ``i2c_bus`` (1): N of /dev/i2c-N; ``address`` (0x69): 0x68 (AD0 low) or 0x69 (AD0 high).
+- ``rate_hz`` (100): magnetometer rate, one of 10, 20, 50, 100.
+- ``imu_rate_hz`` (200): accelerometer/gyroscope rate at least (the chip's 1125/(1+n) Hz).
+- ``accel_range_g`` (4), ``gyro_range_dps`` (1000): full scales.
+- ``dlpf`` (3): the digital low-pass filter DLPFCFG of both, 1 to 6.
+- ``publish_imu`` (true), ``publish_temperature`` (true): the optional topics.
+
+The messages (settable while running):
+
+- ``frame_id`` (imu_link): header.frame_id of all three topics.
+- ``magnetic_field_stddev`` (0.0): tesla per axis for the covariance; 0: unknown.
+- ``accel_noise_density``, ``gyro_noise_density`` (0.0): per sqrt(Hz) for the covariances.
+
+The simulator (``backend: sim`` only):
+
+- ``sim.field_ut`` (50.0), ``sim.inclination_deg`` (60.0): the earth field.
+- ``sim.latitude``, ``sim.longitude`` (NaN), ``sim.altitude`` (0.0): or the World Magnetic
+  Model's field there; ``sim.field_scale`` (1.0), ``sim.inclination_offset_deg`` (0.0): a
+  disturbed place.
+- ``sim.hard_iron_ut`` ([0, 0, 0]), ``sim.soft_iron`` (identity): the distortion to calibrate.
+- ``sim.mag_misalignment_deg`` ([0, 0, 0]): magnetometer axes against the accel/gyro frame.
+- ``sim.noise_ut`` (0.3): magnetometer white noise, 1 sigma.
+- ``sim.accel_bias_mps2``, ``sim.gyro_bias_dps`` ([0, 0, 0]): inertial biases.
+- ``sim.accel_noise_density`` (2.26e-3), ``sim.gyro_noise_density`` (2.62e-4): inertial noise.
+- ``sim.temperature_c`` (25.0), ``sim.temperature_rise_c`` (2.0): the die and its warm-up.
+- ``sim.motion`` (tumble): tumble, yaw, still, poses, or cmd_vel (a robot following cmd_vel).
+- ``sim.i2c_error_rate`` (0.0): share of failing I2C transactions; ``sim.seed`` (0).
+- ``sim.max_yaw_rate`` (1.0), ``sim.max_yaw_acceleration`` (1.0), ``sim.tilt_wobble_deg``
+  (2.0), ``sim.cmd_vel_timeout`` (0.5): the cmd_vel robot's limits, tilt and command timeout.
 """
 
 from __future__ import annotations
@@ -323,7 +368,6 @@ class Icm20948DriverNode(Node):
 
         self.published = 0  # imu/mag messages
         self.published_imu = 0
-        self.published_temperature = 0
         self._publisher = self.create_publisher(MagneticField, TOPIC, DRIVER_QOS)
         self._imu_publisher = (self.create_publisher(Imu, IMU_TOPIC, DRIVER_QOS)
                                if s.publish_imu else None)
@@ -549,7 +593,6 @@ class Icm20948DriverNode(Node):
         message.temperature = float(sample.celsius)
         message.variance = 0.0  # unknown
         self._temperature_publisher.publish(message)
-        self.published_temperature += 1
 
     def _publish_diagnostics(self) -> None:
         backend = {'backend': self.settings.backend}

@@ -1,19 +1,105 @@
 """``mag_calibrator`` node: raw ``imu/mag`` in, ``imu/mag_corrected`` out, services to calibrate.
 
-Wiring only: parameters, the subscriptions (``imu/mag``; ``imu/data_raw`` and ``gps/fix`` when
-present), the publisher, four std_srvs/Trigger services, a poll timer and the diagnostics timer.
-Every decision (screening, buffer, when to fit and whether to adopt, misfit detection, online
-tracking, alignment to the IMU, progress text) lives in
-:class:`~mag_calibrator_ros.calibration.live.session.CalibrationSession`; its fits run in a worker
-process (``ProcessRunner``) and file I/O on a thread, so the message callback never waits for
-either.
+Wiring only: declare the parameters, build the
+:class:`~mag_calibrator_ros.calibration.live.session.CalibrationSession`, connect the callbacks,
+publish what it decided. Every decision (screening, buffer, when to fit and whether to adopt,
+misfit detection, online tracking, alignment to the IMU, progress text) is the session's; its
+fits run in a worker process (``ProcessRunner``) and file I/O on a thread, so the message
+callback never waits for either. Beside it: the turn in place (``nodes/turning.py``), the
+``calibration.*`` mirror (``nodes/calibration_parameters.py``), the parameter table
+(``nodes/mag_calibrator_parameters.py``), auto-save (``nodes/auto_save.py``) and the location
+for the World Magnetic Model (``nodes/location.py``).
+
+Subscribed topics (sensor-data QoS: best effort, depth 100):
+
+- ``imu/mag`` (sensor_msgs/MagneticField): the raw field, tesla.
+- ``imu/data_raw`` (sensor_msgs/Imu), while ``use_imu``: the accelerometer (and gyroscope) the
+  calibration is aligned to, from readings held still.
+- ``gps/fix`` (sensor_msgs/NavSatFix): the first usable fix locates the robot for the World
+  Magnetic Model when ``latitude``/``longitude`` are NaN and ``use_gps`` holds.
+
+Published topics:
+
+- ``imu/mag_corrected`` (sensor_msgs/MagneticField, reliable, depth 10): the corrected field,
+  its covariance carried through the correction; while uncalibrated nothing, or the raw
+  message with ``publish_uncalibrated``.
+- ``/diagnostics`` (diagnostic_msgs/DiagnosticArray): the calibration's state, once a second.
+- ``~/view/raw``, ``~/view/corrected`` (sensor_msgs/PointCloud2) and ``~/view/markers``
+  (visualization_msgs/MarkerArray): latched, every ``view_period`` while someone subscribes.
+- ``cmd_vel`` (geometry_msgs/Twist, or TwistStamped with ``cmd_vel_stamped``; reliable): only
+  while ``~/rotate_and_calibrate`` turns the robot, and its zero after a stop.
+
+Services (six, all std_srvs/Trigger):
+
+- ``~/calibrate``: fit the buffer now; answers once the fit is in force, or why it is not.
+- ``~/save``: write the calibration in force to ``calibration_file``.
+- ``~/load``: put the calibration in ``calibration_file`` in force.
+- ``~/reset``: empty the buffer; the calibration in force stays.
+- ``~/rotate_and_calibrate``: turn in place on ``cmd_vel`` until calibrated (ground robots).
+- ``~/stop_rotation``: stop that turn (zero at once).
+
+Timers: POLL_PERIOD_S (finished fits and file operations, waiting service answers, auto-save,
+``calibration.*``), DIAGNOSTICS_PERIOD_S (progress log line, /diagnostics, RViz view),
+COMMAND_PERIOD_S (the turn in place's command).
+
+Parameters, ``name`` (default): meaning. The fit and its gates:
+
+- ``buffer_size`` (100): readings kept by the uniqueness buffer (the fit input).
+- ``k`` (6): neighbours in the uniqueness score (< buffer_size).
+- ``model`` (auto): sphere, axis, full, planar, or auto (the data decide).
+- ``field_strength`` (0.0): tesla the corrected magnitude should be; 0: the fitted radius.
+- ``min_coverage`` (0.5): share of direction cells covered before a fit is accepted.
+- ``max_residual_pct`` (5.0): largest accepted RMS magnitude residual, % of the field.
+- ``full_scale`` (0.0049128): tesla; a component at or beyond it is refused (0: no check).
+
+When to calibrate:
+
+- ``auto_calibrate`` (true): calibrate while uncalibrated, and anew on a misfit.
+- ``auto_calibrate_period`` (2.0): seconds between automatic fits that failed their gates.
+- ``refine`` (true): keep fitting; adopt only a fit better on held-out readings.
+- ``refine_period`` (10.0): seconds between refinement fits (up to 8x once converged).
+- ``online_tracking`` (false): follow slow drift, by bounded steps.
+- ``tracking_improvement`` (0.8): a tracked fit's residual must be below this share.
+- ``tracking_max_change_rate`` (0.01): largest tracked change per second.
+
+Output, file and views:
+
+- ``publish_uncalibrated`` (false): publish the raw field while uncalibrated.
+- ``auto_save`` (false): save each calibration put in force (throttled; atomic).
+- ``calibration_file`` ($ROS_HOME/mag_calibrator/<namespace>__<name>.yaml): loaded at
+  start-up and by ~/load, written by ~/save.
+- ``progress_log_period`` (5.0): seconds between progress lines while uncalibrated (0: none).
+- ``view_period`` (1.0): seconds between RViz views (0: never); ``view_scale`` (1e4): m/T.
+
+Alignment to the IMU and the Earth's field here:
+
+- ``use_imu`` (true): subscribe imu/data_raw and align each calibration to it.
+- ``max_alignment_deg`` (15.0): a larger rotation is reported as a mounting error, not applied.
+- ``latitude``, ``longitude`` (NaN: unknown), ``altitude`` (0.0): the World Magnetic Model's
+  location, degrees and metres (WGS84).
+- ``use_gps`` (true): without latitude/longitude, locate from the first fix on gps/fix.
+- ``max_field_error_pct`` (15.0), ``max_dip_error_deg`` (5.0): the fit against the model.
+- ``earth_field_gate`` (true): a fit off the model fails (true) or is warned about (false).
+
+Turning in place (``~/rotate_and_calibrate``):
+
+- ``rotation_speed`` (0.3): rad/s, positive counter-clockwise (a left turn).
+- ``rotation_acceleration`` (0.5): rad/s^2 of the ramp from standstill.
+- ``rotation_timeout`` (120.0): seconds of turning before it gives up.
+- ``cmd_vel_stamped`` (false): TwistStamped instead of Twist; ``cmd_vel_frame_id``
+  (base_link): its header.frame_id.
+
+The calibration in force (set by the node only; given with --params-file at start-up):
+
+- ``calibration.offset``, ``calibration.matrix``, ``calibration.field_strength``,
+  ``calibration.model``, ``calibration.rotation``; with the metadata a file carries
+  (``calibration.residual_rms_pct``, ``calibration.coverage``, ...).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import fields
 import inspect
 import math
 from pathlib import Path
@@ -21,43 +107,27 @@ from queue import SimpleQueue
 import time
 import traceback
 
-from geometry_msgs.msg import Twist, TwistStamped
-import numpy.ma  # noqa: F401 - np.median imports it on first use: 30 ms in a callback otherwise
-from rcl_interfaces.msg import (
-    FloatingPointRange,
-    IntegerRange,
-    ParameterDescriptor,
-    SetParametersResult,
-)
+import numpy.ma  # noqa: F401 - np.median imports it on first use: at start-up, not in a callback
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.callback_groups import ReentrantCallbackGroup
-from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from rclpy.task import Future
-from sensor_msgs.msg import Imu, MagneticField, NavSatFix, NavSatStatus
+from sensor_msgs.msg import Imu, MagneticField, NavSatFix
 from std_srvs.srv import Trigger
 
-from mag_calibrator_ros.calibration.fit.calibration import Calibration, CalibrationError
+from mag_calibrator_ros.calibration.fit.calibration import CalibrationError
 from mag_calibrator_ros.calibration.fit.coverage import Coverage
 from mag_calibrator_ros.calibration.fit.earth_field import (
     EarthField,
     EarthFieldError,
     earth_field,
-    location_problems,
 )
 from mag_calibrator_ros.calibration.live.session import (
-    FITTABLE_MODELS,
     CalibrationSession,
-    SessionSettings,
     calibration_summary,
     transform_covariance,
-)
-from mag_calibrator_ros.calibration.live.turning import (
-    COMMAND_PERIOD_S,
-    MAX_SPEED,
-    RotationController,
-    RotationSettings,
 )
 from mag_calibrator_ros.calibration.live.view import calibration_view
 from mag_calibrator_ros.calibration.live.worker import ProcessRunner
@@ -65,13 +135,16 @@ from mag_calibrator_ros.calibration.store.calibration_file import (
     CalibrationFileError,
     CalibrationFileMissingError,
     LoadedCalibration,
-    calibration_from_parameters,
-    calibration_parameters,
     default_calibration_path,
-    default_load_path,
     read_calibration_file,
     resolve_calibration_path,
     save_calibration,
+)
+from mag_calibrator_ros.nodes.auto_save import AutoSaveThrottle
+from mag_calibrator_ros.nodes.calibration_parameters import (
+    CalibrationParameters,
+    calibration_from,
+    startup_load_path,
 )
 from mag_calibrator_ros.nodes.diagnostics import (
     ERROR,
@@ -80,173 +153,37 @@ from mag_calibrator_ros.nodes.diagnostics import (
     DiagnosticsPublisher,
     diagnostic_status,
 )
+from mag_calibrator_ros.nodes.location import (
+    LOCATION_PARAMETERS,
+    Location,
+    fix_location,
+    parameter_location,
+)
+from mag_calibrator_ros.nodes.mag_calibrator_parameters import (
+    PARAMETERS,
+    parameter_problems,
+    session_settings,
+)
 from mag_calibrator_ros.nodes.parameters import (
     ConfigurationError,
     declare_checked,
     refuse_to_start,
 )
 from mag_calibrator_ros.nodes.runtime import guarded, spin_node
-from mag_calibrator_ros.nodes.view import ViewPublisher
+from mag_calibrator_ros.nodes.turning import TurnInPlace
+from mag_calibrator_ros.nodes.view_publisher import ViewPublisher
 
 NODE_NAME = 'mag_calibrator'
 DIAGNOSTICS_PERIOD_S = 1.0
 POLL_PERIOD_S = 0.05
 """How often finished fits and file operations are collected (service answers wait at most
 about this long once the work is done)."""
-AUTO_SAVE_MIN_INTERVAL_S = 10.0
-"""auto_save writes at most this often; a calibration adopted meanwhile is saved afterwards."""
 INPUT_QOS = QoSProfile(
     history=qos_profile_sensor_data.history,
     depth=100,  # sensor-data QoS (best effort, REP-2003) with room for bursts at 1 kHz
     reliability=qos_profile_sensor_data.reliability,
     durability=qos_profile_sensor_data.durability,
 )
-DEFAULTS = SessionSettings()
-ROTATION_DEFAULTS = RotationSettings()
-COMMAND_TOPIC = 'cmd_vel'
-COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-"""Reliable: a stop must arrive (a best-effort subscriber still matches and gets the re-sends)."""
-SHUTDOWN_ACK_S = 0.5
-"""On shutdown, wait at most this long for subscribers to acknowledge the final zero."""
-
-
-def _float_range(low: float, high: float) -> list[FloatingPointRange]:
-    return [FloatingPointRange(from_value=float(low), to_value=float(high), step=0.0)]
-
-
-def _int_range(low: int, high: int) -> list[IntegerRange]:
-    return [IntegerRange(from_value=int(low), to_value=int(high), step=1)]
-
-
-# name: (default, description, descriptor extras). Session settings share their field names.
-PARAMETERS: dict[str, tuple[object, str, dict]] = {
-    'buffer_size': (DEFAULTS.buffer_size,
-                    'Samples kept by the kNN uniqueness buffer (the fit input).',
-                    {'integer_range': _int_range(10, 5000)}),
-    'k': (DEFAULTS.k, 'Neighbours in the uniqueness score (must be < buffer_size).',
-          {'integer_range': _int_range(1, 64)}),
-    'model': (DEFAULTS.model, f"Fit model: {', '.join(FITTABLE_MODELS)}.",
-              {'additional_constraints': f"one of {', '.join(FITTABLE_MODELS)}"}),
-    'field_strength': (DEFAULTS.field_strength,
-                       'Local earth field in tesla that |corrected| should have; '
-                       '0 keeps the fitted mean radius.',
-                       {'floating_point_range': _float_range(0.0, 1e-3)}),
-    'min_coverage': (DEFAULTS.min_coverage,
-                     'Share of direction cells the buffer must cover before a fit is accepted.',
-                     {'floating_point_range': _float_range(0.0, 1.0)}),
-    'max_residual_pct': (DEFAULTS.max_residual_pct,
-                         'Largest accepted RMS magnitude residual, % of the field.',
-                         {'floating_point_range': _float_range(0.01, 100.0)}),
-    'full_scale': (DEFAULTS.full_scale,
-                   'Tesla; a component at or beyond it is saturated and refused (0 = no check).',
-                   {'floating_point_range': _float_range(0.0, 1.0)}),
-    'auto_calibrate': (DEFAULTS.auto_calibrate,
-                       'Calibrate by itself while uncalibrated, and anew when the calibration in '
-                       'force no longer fits the live data.', {}),
-    'auto_calibrate_period': (DEFAULTS.auto_calibrate_period,
-                              'Seconds (of message stamps) between automatic fits that failed '
-                              'their gates.',
-                              {'floating_point_range': _float_range(0.5, 3600.0)}),
-    'refine': (DEFAULTS.refine,
-               'After calibrating, keep fitting and adopt a fit only when it is better on '
-               'held-out readings and covers no fewer directions.', {}),
-    'refine_period': (DEFAULTS.refine_period,
-                      'Seconds (of message stamps) between refinement fits; doubles up to 8x '
-                      'once the calibration has converged.',
-                      {'floating_point_range': _float_range(1.0, 3600.0)}),
-    'online_tracking': (DEFAULTS.online_tracking,
-                        'After a calibration, follow slow drift; a tracked calibration is adopted '
-                        'only when clearly better, by bounded steps.', {}),
-    'tracking_improvement': (DEFAULTS.tracking_improvement,
-                             'Adopt a tracked calibration only when its residual is below this '
-                             'share of the current one.',
-                             {'floating_point_range': _float_range(0.05, 0.99)}),
-    'tracking_max_change_rate': (DEFAULTS.tracking_max_change_rate,
-                                 'Largest tracked change per second: offset as a share of the '
-                                 'field, matrix as a relative norm.',
-                                 {'floating_point_range': _float_range(1e-5, 0.5)}),
-    'publish_uncalibrated': (False,
-                             'Publish imu/mag_corrected as the raw field while no calibration '
-                             'exists.', {}),
-    'auto_save': (False, 'Save to calibration_file whenever a new calibration goes in force '
-                         '(at most every 10 s; atomic).', {}),
-    'calibration_file': ('',
-                         'Calibration YAML (ROS params format): loaded at start-up and by ~/load, '
-                         'written by ~/save. Default: one file per node, '
-                         '$ROS_HOME/mag_calibrator/<namespace>__<name>.yaml.', {}),
-    'progress_log_period': (5.0, 'Seconds between progress log lines while uncalibrated '
-                                 '(0 = silent).',
-                            {'floating_point_range': _float_range(0.0, 3600.0)}),
-    'view_period': (1.0, 'Seconds between RViz views (~/view/raw, ~/view/corrected, '
-                         '~/view/markers), drawn only while subscribed; 0 = never.',
-                    {'floating_point_range': _float_range(0.0, 3600.0)}),
-    'view_scale': (1e4, 'RViz view: metres per tesla (1e4: a 50 uT field is a 0.5 m sphere).',
-                   {'floating_point_range': _float_range(1e-3, 1e9)}),
-    # ~/rotate_and_calibrate (ground robots): turning in place on cmd_vel
-    'rotation_speed': (ROTATION_DEFAULTS.speed,
-                       'rad/s of the turn in place ~/rotate_and_calibrate commands on cmd_vel '
-                       '(positive: counter-clockwise seen from above, a left turn).',
-                       {'floating_point_range': _float_range(0.05, MAX_SPEED)}),
-    'rotation_acceleration': (ROTATION_DEFAULTS.acceleration,
-                              'rad/s^2 of the ramp from standstill to rotation_speed.',
-                              {'floating_point_range': _float_range(0.05, 10.0)}),
-    'rotation_timeout': (ROTATION_DEFAULTS.timeout_s,
-                         'Seconds of turning after which ~/rotate_and_calibrate stops without a '
-                         'calibration.', {'floating_point_range': _float_range(5.0, 3600.0)}),
-    'cmd_vel_stamped': (False, "Publish geometry_msgs/TwistStamped on cmd_vel (as Jazzy's nav2 "
-                               'and ros2_control use) instead of geometry_msgs/Twist.', {}),
-    'cmd_vel_frame_id': ('base_link', 'header.frame_id of TwistStamped commands.', {}),
-    'use_imu': (True, 'Subscribe imu/data_raw (sensor_msgs/Imu, same frame as imu/mag) and align '
-                      'each calibration to the accelerometer from readings held still; without '
-                      'a publisher nothing changes.', {}),
-    'max_alignment_deg': (DEFAULTS.max_alignment_deg,
-                          'A larger rotation to the IMU is reported as a mounting or axis-remap '
-                          'error (with the remap that fixes it) and not applied.',
-                          {'floating_point_range': _float_range(0.0, 180.0)}),
-    'latitude': (math.nan, 'Degrees north (WGS84) for the World Magnetic Model; NaN: unknown '
-                           '(the first fix on gps/fix is used).', {}),
-    'longitude': (math.nan, 'Degrees east (WGS84) for the World Magnetic Model; NaN: unknown.',
-                  {}),
-    'altitude': (0.0, 'Metres above the WGS84 ellipsoid for the World Magnetic Model.',
-                 {'floating_point_range': _float_range(-1000.0, 850000.0)}),
-    'use_gps': (True, 'Without latitude/longitude, take the location from the first fix on '
-                      'gps/fix (sensor_msgs/NavSatFix).', {}),
-    'max_field_error_pct': (DEFAULTS.max_field_error_pct,
-                            'Largest difference, in %, between the fitted field and the World '
-                            "Magnetic Model's intensity before the field counts as disturbed.",
-                            {'floating_point_range': _float_range(1.0, 100.0)}),
-    'max_dip_error_deg': (DEFAULTS.max_dip_error_deg,
-                          "Largest difference between the measured dip and the model's "
-                          'inclination before the field counts as disturbed.',
-                          {'floating_point_range': _float_range(0.1, 90.0)}),
-    'earth_field_gate': (DEFAULTS.earth_field_gate,
-                         'A fit off the World Magnetic Model beyond the tolerances fails (true) '
-                         'or is only warned about (false).', {}),
-}
-SESSION_FIELDS = {f.name for f in fields(SessionSettings)}
-CALIBRATION_METADATA_KEYS = (
-    'residual_rms_pct', 'coverage', 'samples', 'time', 'frame_id', 'units', 'source',
-    'plane_normal', 'unobserved', 'alignment_angle_deg', 'dip_deg', 'dip_std_deg',
-    'static_samples', 'declination_deg',
-)
-"""Metadata a saved file may carry (declared so --params-file keeps it)."""
-CALIBRATION_PARAMETERS: dict[str, str] = {
-    'calibration.offset': 'Hard-iron offset b [3], tesla.',
-    'calibration.matrix': 'Soft-iron matrix M [9], row-major.',
-    'calibration.field_strength': '|corrected| target F, tesla (0.0 with model none).',
-    'calibration.model': "Model of the calibration in force; 'none' while uncalibrated.",
-    'calibration.rotation': 'Rotation R [9] into the IMU frame, row-major (identity: none).',
-}
-NO_CALIBRATION = {
-    'calibration.offset': [0.0, 0.0, 0.0],
-    'calibration.matrix': [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-    'calibration.field_strength': 0.0,
-    'calibration.model': 'none',
-    'calibration.rotation': [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-}
-"""What calibration.* hold while uncalibrated (a dump of it loads back as 'no calibration')."""
-CALIBRATION_READ_ONLY = ('calibration.* show the calibration in force: change it with '
-                         '~/calibrate, ~/load, or --params-file at start-up')
 
 
 class MagCalibratorNode(Node):
@@ -262,31 +199,28 @@ class MagCalibratorNode(Node):
                 default = str(self._default_file)
             declare_checked(self, name, default,
                             ParameterDescriptor(description=description, **extras), problems)
-        problems += self._problems(self._current_values())
+        problems += parameter_problems(self._current_values())
         if problems:
             Node.destroy_node(self)  # nothing else was created yet
             refuse_to_start(self, problems)
-        startup_calibration = self._declare_calibration_parameters()
+        self._calibration_parameters = CalibrationParameters(self)
         runner = ProcessRunner()
         runner.start()  # the worker imports the fitting stack while the node starts up
-        self.session = CalibrationSession(self._settings_from(self._current_values()),
+        self.session = CalibrationSession(session_settings(self._current_values()),
                                           runner=runner)
         self._io = ThreadPoolExecutor(max_workers=1, thread_name_prefix='mag_calibrator_io')
         self._io_results: SimpleQueue = SimpleQueue()  # (rclpy Future, result) from the I/O thread
         self._requests: dict[int, Future] = {}  # ~/calibrate tickets waiting for their answer
         self._problem: str | None = None  # a calibration file/parameter error, shown as ERROR
         self._last_progress_log = -math.inf
-        self._save_wanted = False
-        self._saving = False
-        self._last_auto_save = -math.inf
+        self._auto_save = AutoSaveThrottle()
         self._imu_subscription = None
         self._location_source = ''  # 'parameters' or 'gps/fix' once the model's field is known
-        self._location_wanted: tuple[float, float, float] | None = None
+        self._location_wanted: Location | None = None
         self._fix_used = False
-        self._startup(startup_calibration)
-        self._showing = False
+        self._startup(self._calibration_parameters.given)
         self.add_on_set_parameters_callback(self._validate_parameters)
-        self._show_calibration()
+        self._calibration_parameters.show(self.session.calibration)
         self.add_post_set_parameters_callback(self._apply_parameters)
         self._publisher = self.create_publisher(
             MagneticField, 'imu/mag_corrected', QoSProfile(depth=10)
@@ -310,10 +244,12 @@ class MagCalibratorNode(Node):
         self._last_view = -math.inf
         self.create_timer(POLL_PERIOD_S, guarded(self, 'poll', self._on_poll))
         self.create_timer(DIAGNOSTICS_PERIOD_S, guarded(self, 'diagnostics', self._on_tick))
-        self._start_rotation_wiring()
+        self._turning = TurnInPlace(self, self.session, self._request_calibration,
+                                    self._answering)
+        self._rotation = self._turning.controller  # its state: diagnostics, the progress log
 
     def destroy_node(self) -> None:
-        self._stop_rotation_for_shutdown()
+        self._turning.stop_for_shutdown()
         self.session.close()
         self._io.shutdown(wait=True)
         super().destroy_node()
@@ -323,109 +259,40 @@ class MagCalibratorNode(Node):
     def _current_values(self) -> dict[str, object]:
         return {name: self.get_parameter(name).value for name in PARAMETERS}
 
-    @staticmethod
-    def _settings_from(values: dict[str, object]) -> SessionSettings:
-        return SessionSettings(**{k: v for k, v in values.items() if k in SESSION_FIELDS})
-
     def _validate_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
-        if any(p.name.startswith('calibration.') for p in parameters) and not self._showing:
-            return SetParametersResult(successful=False, reason=CALIBRATION_READ_ONLY)
+        refused = self._calibration_parameters.refusal(parameters)
+        if refused is not None:
+            return refused
         values = self._current_values()
         for parameter in parameters:
             if parameter.name in PARAMETERS:
                 values[parameter.name] = parameter.value
-        problems = self._problems(values)
+        problems = parameter_problems(values)
         if problems:
             return SetParametersResult(successful=False, reason='; '.join(problems))
         return SetParametersResult(successful=True)
 
-    def _problems(self, values: dict[str, object]) -> list[str]:
-        """Everything wrong with these parameter values (the same at start-up and at run time)."""
-        problems = self._settings_from(values).problems()
-        problems += self._rotation_settings_from(values).problems()
-        try:
-            resolve_calibration_path(str(values['calibration_file']))
-        except CalibrationFileError as error:
-            problems.append(f'calibration_file: {error}')
-        latitude, longitude = values['latitude'], values['longitude']
-        if not (_is_nan(latitude) and _is_nan(longitude)):  # NaN and NaN: no location
-            problems += location_problems(latitude, longitude, values['altitude'])
-        return problems
-
     def _apply_parameters(self, parameters: list[Parameter]) -> None:
         if any(parameter.name in PARAMETERS for parameter in parameters):
-            self.session.reconfigure(self._settings_from(self._current_values()))
+            self.session.reconfigure(session_settings(self._current_values()))
         names = {parameter.name for parameter in parameters}
         if 'use_imu' in names:
             self._sync_imu_subscription()
-        if names & {'latitude', 'longitude', 'altitude'}:
+        if names & set(LOCATION_PARAMETERS):
             self._locate_from_parameters()
-
-    def _declare_calibration_parameters(self) -> dict[str, object]:
-        """Declare ``calibration.*``: what --params-file gave (a saved file or a dump works as
-        one) comes back; afterwards they always show the calibration in force.
-
-        Dynamically typed, so a hand-written file with integers (``matrix: [1, 0, 0, ...]``) or
-        a wrong type reaches calibration_from_parameters, which converts or says what is wrong,
-        instead of rclpy refusing the whole node.
-        """
-        given = {}
-        names = {**CALIBRATION_PARAMETERS,
-                 **{f'calibration.{key}': f'Calibration metadata ({key}); informational.'
-                    for key in CALIBRATION_METADATA_KEYS}}
-        for name, description in names.items():
-            descriptor = ParameterDescriptor(description=description, dynamic_typing=True)
-            value = self.declare_parameter(name, None, descriptor).value
-            if value is not None:
-                given[name] = value
-        if given.get('calibration.model') == NO_CALIBRATION['calibration.model']:
-            return {}  # a dump of an uncalibrated node: no calibration given
-        return given
-
-    def _show_calibration(self) -> None:
-        """Set ``calibration.*`` to the calibration in force (``ros2 param get/dump`` read it),
-        metadata it does not carry left unset, never NOT_SET: a dump loads back as given."""
-        calibration = self.session.calibration
-        self._shown_calibration = calibration
-        values = dict(NO_CALIBRATION)
-        if calibration is not None:
-            try:
-                values = calibration_parameters(calibration)
-            except CalibrationFileError as error:
-                self.get_logger().warning(f'calibration.* not updated: {error}')
-                return
-        parameters = []
-        for name, value in values.items():
-            try:
-                parameters.append(Parameter(name, value=value))
-            except TypeError:  # metadata no parameter can hold (a mixed list ...)
-                continue
-        kept = {parameter.name for parameter in parameters}
-        self._showing = True  # our own change: _validate_parameters lets it through
-        try:
-            for key in CALIBRATION_METADATA_KEYS:
-                name = f'calibration.{key}'
-                if name not in kept and self.has_parameter(name):
-                    self.undeclare_parameter(name)
-            for parameter in parameters:
-                if not self.has_parameter(parameter.name):
-                    self.declare_parameter(parameter.name, None, ParameterDescriptor(
-                        description='Calibration metadata; informational.',
-                        dynamic_typing=True))
-            self.set_parameters(parameters)
-        finally:
-            self._showing = False
 
     # -- start-up --------------------------------------------------------------------------------
 
     def _calibration_file(self) -> Path:
         return resolve_calibration_path(str(self.get_parameter('calibration_file').value))
 
-    def _startup(self, parameters: dict[str, object]) -> None:
+    def _startup(self, given: dict[str, object]) -> None:
         """Parameters given with --params-file win; else the file; else run uncalibrated."""
-        if any(name in parameters for name in CALIBRATION_PARAMETERS):
+        name = self.get_fully_qualified_name()
+        path = startup_load_path(given, self._calibration_file(), self._default_file, name)
+        if path is None:
             try:
-                calibration = self._calibration_from(parameters)
+                calibration = calibration_from(given)
             except (CalibrationError, ValueError, TypeError) as error:
                 self._report_problem(f'calibration.* parameters unusable: {error}')
             else:
@@ -433,10 +300,7 @@ class MagCalibratorNode(Node):
                 self.get_logger().info(
                     f'calibration from parameters: {calibration_summary(calibration)}')
             return
-        path = self._calibration_file()
-        if path == resolve_calibration_path(self._default_file):  # the per-node default,
-            path = default_load_path(self.get_fully_qualified_name())  # or the old shared file
-        loaded = _read_calibration(path, self.get_fully_qualified_name())
+        loaded = _read_calibration(path, name)
         if loaded is None:
             self.get_logger().info(
                 f'no calibration file at {path} yet: uncalibrated until ~/calibrate '
@@ -444,22 +308,6 @@ class MagCalibratorNode(Node):
             )
             return
         self._loaded(path, loaded)
-
-    @staticmethod
-    def _calibration_from(parameters: dict[str, object]) -> Calibration:
-        metadata = {
-            name.removeprefix('calibration.'): value
-            for name, value in parameters.items()
-            if name not in CALIBRATION_PARAMETERS
-        }
-        return calibration_from_parameters(
-            offset=parameters.get('calibration.offset'),
-            matrix=parameters.get('calibration.matrix'),
-            field_strength=parameters.get('calibration.field_strength'),
-            model=parameters.get('calibration.model', 'full'),
-            metadata=metadata,
-            rotation=parameters.get('calibration.rotation'),
-        )
 
     def _loaded(self, path: Path, loaded: LoadedCalibration | Exception) -> tuple[bool, str]:
         """Put a calibration read from ``path`` in force, or report why it could not be."""
@@ -519,39 +367,34 @@ class MagCalibratorNode(Node):
     # -- the Earth's field here -------------------------------------------------------------------
 
     def _locate_from_parameters(self) -> None:
-        latitude = float(self.get_parameter('latitude').value)
-        longitude = float(self.get_parameter('longitude').value)
-        if math.isnan(latitude) and math.isnan(longitude):
-            if self._location_source == 'parameters':
-                self._location_source = ''
-                self.session.set_earth_field(None)
-            return
-        self._locate(latitude, longitude, float(self.get_parameter('altitude').value),
-                     'parameters')
+        where = parameter_location(*(float(self.get_parameter(name).value)
+                                     for name in LOCATION_PARAMETERS))
+        if where is not None:
+            self._locate(where, 'parameters')
+        elif self._location_source == 'parameters':  # the location was taken back
+            self._location_source = ''
+            self.session.set_earth_field(None)
 
     def _on_fix(self, msg: NavSatFix) -> None:
         """The first usable fix locates the robot when the parameters do not (one evaluation
         only, whatever its outcome: a fix stream never repeats it)."""
-        if (self._fix_used or not self.get_parameter('use_gps').value
-                or msg.status.status < NavSatStatus.STATUS_FIX
-                or not (_is_nan(self.get_parameter('latitude').value)
-                        and _is_nan(self.get_parameter('longitude').value))):
+        if self._fix_used:
             return
-        altitude = msg.altitude if math.isfinite(msg.altitude) else 0.0
-        if location_problems(msg.latitude, msg.longitude, altitude):
-            return
-        self._fix_used = True
-        self._locate(msg.latitude, msg.longitude, altitude, 'gps/fix')
+        where = fix_location(msg, bool(self.get_parameter('use_gps').value),
+                             self.get_parameter('latitude').value,
+                             self.get_parameter('longitude').value)
+        if where is not None:
+            self._fix_used = True
+            self._locate(where, 'gps/fix')
 
-    def _locate(self, latitude: float, longitude: float, altitude: float, source: str) -> None:
-        """Evaluate the World Magnetic Model on the I/O thread (an import and ~30 ms)."""
-        where = (latitude, longitude, altitude)
+    def _locate(self, where: Location, source: str) -> None:
+        """Evaluate the World Magnetic Model on the I/O thread (an import and a model
+        evaluation: never in the executor)."""
         self._location_wanted = where
         self._run_io(lambda: earth_field(*where)).add_done_callback(
             lambda future: self._located(where, source, future.result()))
 
-    def _located(self, where: tuple[float, float, float], source: str,
-                 result: EarthField | Exception) -> None:
+    def _located(self, where: Location, source: str, result: EarthField | Exception) -> None:
         if where != self._location_wanted:
             return  # a newer location was asked for meanwhile
         self._location_wanted = None
@@ -577,13 +420,9 @@ class MagCalibratorNode(Node):
             future.set_result(result)
         if self.session.has_events:
             self._handle_events()
-        if self.session.calibration is not self._shown_calibration:
-            self._show_calibration()
-        if self._save_wanted and not self._saving and (
-                time.monotonic() - self._last_auto_save >= AUTO_SAVE_MIN_INTERVAL_S):
-            self._save_wanted = False
-            self._last_auto_save = time.monotonic()
-            self._saving = True
+        if self.session.calibration is not self._calibration_parameters.shown:
+            self._calibration_parameters.show(self.session.calibration)
+        if self._auto_save.start(time.monotonic()):
             self._run_io(self._save_file).add_done_callback(
                 lambda future: self._auto_saved(future.result()))
 
@@ -599,10 +438,20 @@ class MagCalibratorNode(Node):
                 logger.debug(event.message)
             if event.adopted:
                 self._problem = None
-                self._save_wanted = bool(self.get_parameter('auto_save').value)
+                self._auto_save.adopted(bool(self.get_parameter('auto_save').value))
             request = self._requests.pop(event.ticket, None)
             if request is not None:
                 request.set_result(event.attempt)
+
+    def _request_calibration(self, answered: Callable[[Future], None] | None = None) -> Future:
+        """Ask the session for a fit; the Future completes with its attempt (``answered``, if
+        given, runs as soon as it does)."""
+        waiting = Future()
+        if answered is not None:
+            waiting.add_done_callback(answered)
+        self._requests[self.session.request_calibration()] = waiting
+        self._handle_events()  # an immediate answer (nothing to wait for)
+        return waiting
 
     def _run_io(self, work: Callable[[], object]) -> Future:
         """Run ``work`` on the I/O thread; the Future completes on the executor thread (from the
@@ -638,10 +487,7 @@ class MagCalibratorNode(Node):
         return answer
 
     async def _on_calibrate(self, request: Trigger.Request, response: Trigger.Response):
-        waiting = Future()
-        self._requests[self.session.request_calibration()] = waiting
-        self._handle_events()  # an immediate answer (nothing to wait for)
-        attempt = await waiting
+        attempt = await self._request_calibration()
         response.success, response.message = attempt.success, attempt.message
         return response
 
@@ -655,7 +501,7 @@ class MagCalibratorNode(Node):
         return f'saved to {written}'
 
     def _auto_saved(self, result: object) -> None:
-        self._saving = False
+        self._auto_save.finished()
         if isinstance(result, Exception):
             self.get_logger().warning(f'auto_save failed: {result}')
         else:
@@ -760,155 +606,6 @@ class MagCalibratorNode(Node):
                               level, message, values)
         ])
 
-    # -- turning in place: ~/rotate_and_calibrate, ~/stop_rotation -------------------------------
-    # Every decision is the RotationController's; this wires it: a 20 Hz timer publishes what it
-    # commands, every stop path publishes zero at once, and the publisher on cmd_vel exists only
-    # while a rotation runs (and for its zero hold).
-
-    @staticmethod
-    def _rotation_settings_from(values: dict[str, object]) -> RotationSettings:
-        return RotationSettings(speed=float(values['rotation_speed']),
-                                acceleration=float(values['rotation_acceleration']),
-                                timeout_s=float(values['rotation_timeout']))
-
-    def _start_rotation_wiring(self) -> None:
-        self._rotation = RotationController(
-            self._rotation_settings_from(self._current_values()),
-            input_topic=self.resolve_topic_name('imu/mag'),
-            command_topic=self.resolve_topic_name(COMMAND_TOPIC))
-        self._command_publisher = None
-        self._command_stamped = False
-        self._accepted_seen = self.session.accepted
-        self._last_input: float | None = None  # monotonic time the accepted count last grew
-        for name, callback in (('~/rotate_and_calibrate', self._on_rotate),
-                               ('~/stop_rotation', self._on_stop_rotation)):
-            self.create_service(Trigger, name, self._answering(name, callback))
-        self.add_post_set_parameters_callback(self._rotation_parameters_changed)
-        self.create_timer(COMMAND_PERIOD_S, guarded(self, 'rotation', self._on_rotation_timer))
-
-    def _input_age(self, now: float) -> float | None:
-        """Seconds since a reading was last accepted (sampled every COMMAND_PERIOD_S)."""
-        if self.session.accepted != self._accepted_seen:
-            self._accepted_seen = self.session.accepted
-            self._last_input = now
-        return None if self._last_input is None else now - self._last_input
-
-    def _other_commanders(self) -> int:
-        publishers = self.count_publishers(self.resolve_topic_name(COMMAND_TOPIC))
-        return publishers - (self._command_publisher is not None)
-
-    def _on_rotation_timer(self) -> None:
-        try:
-            self._rotation_tick()
-        except Exception:
-            self._stop_rotation('error')  # never keep turning on an error; guarded logs it
-            raise
-
-    def _rotation_tick(self) -> None:
-        now = time.monotonic()
-        input_age = self._input_age(now)
-        if self._rotation.state == 'idle' and self._command_publisher is None:
-            return
-        step = self._rotation.update(now, input_age, self._other_commanders(),
-                                     lambda: self.session.heading_coverage().coverage)
-        self._rotation_log(step.messages)
-        if step.calibrate:
-            self._request_rotation_fit()  # its answer may already have stopped the rotation
-        self._publish_command(self._rotation.command(now))
-
-    def _publish_command(self, yaw_rate: float | None) -> None:
-        """Publish a turn command (None: nothing; the publisher goes once a stop's zeros are
-        sent)."""
-        if yaw_rate is None:
-            if self._command_publisher is not None:
-                self.destroy_publisher(self._command_publisher)
-                self._command_publisher = None
-            return
-        if self._command_publisher is None:
-            self._command_stamped = bool(self.get_parameter('cmd_vel_stamped').value)
-            self._command_publisher = self.create_publisher(
-                TwistStamped if self._command_stamped else Twist, COMMAND_TOPIC, COMMAND_QOS)
-        twist = Twist()
-        twist.angular.z = float(yaw_rate)
-        if self._command_stamped:
-            message = TwistStamped(twist=twist)
-            message.header.stamp = self.get_clock().now().to_msg()
-            message.header.frame_id = str(self.get_parameter('cmd_vel_frame_id').value)
-        else:
-            message = twist
-        self._command_publisher.publish(message)
-
-    def _rotation_log(self, messages) -> None:
-        for message in messages:
-            if message:
-                self.get_logger().info(message)
-
-    def _stop_rotation(self, reason: str, detail: str = '') -> str | None:
-        """Stop for ``reason`` and publish the zero at once (not at the next tick)."""
-        now = time.monotonic()
-        line = self._rotation.stop(now, reason, detail)
-        if line is not None:
-            self._rotation_log([line])
-            self._publish_command(self._rotation.command(now))
-        return line
-
-    def _on_rotate(self, request: Trigger.Request, response: Trigger.Response):
-        now = time.monotonic()
-        started, message = self._rotation.start(now, self._input_age(now),
-                                                self._other_commanders())
-        if started:
-            self.session.reset()  # a rotation calibrates from what it sees, not older samples
-            self._publish_command(self._rotation.command(now))
-            self.get_logger().info(message)
-        else:
-            self.get_logger().warning(f'~/rotate_and_calibrate refused: {message}')
-        response.success, response.message = started, message
-        return response
-
-    def _on_stop_rotation(self, request: Trigger.Request, response: Trigger.Response):
-        line = self._stop_rotation('requested')
-        response.success = True
-        response.message = line or f'not rotating ({self._rotation.progress_text(0.0)})'
-        return response
-
-    def _request_rotation_fit(self) -> None:
-        waiting = Future()
-        waiting.add_done_callback(self._rotation_fit_done)
-        self._requests[self.session.request_calibration()] = waiting
-        self._handle_events()  # an immediate answer
-
-    def _rotation_fit_done(self, future: Future) -> None:
-        attempt = future.result()
-        error = attempt.outcome is not None and bool(attempt.outcome.error)
-        now = time.monotonic()
-        line = self._rotation.calibration_answered(now, attempt.success, error, attempt.message)
-        if line is not None:
-            self._rotation_log([line])
-            self._publish_command(self._rotation.command(now))
-
-    def _rotation_parameters_changed(self, parameters: list[Parameter]) -> None:
-        self._rotation.settings = self._rotation_settings_from(self._current_values())
-        changed = [p.name for p in parameters if not p.name.startswith('calibration.')]
-        if changed:
-            self._stop_rotation('parameters', ', '.join(changed))
-
-    def _stop_rotation_for_shutdown(self) -> None:
-        """Zero on the way out, acknowledged by the subscribers if they can (bounded)."""
-        try:
-            self._stop_rotation('shutdown')
-            publisher = self._command_publisher
-            if publisher is not None:
-                self._publish_command(0.0)
-                publisher.wait_for_all_acked(Duration(nanoseconds=int(SHUTDOWN_ACK_S * 1e9)))
-                self.destroy_publisher(publisher)
-                self._command_publisher = None
-        except Exception as error:  # noqa: BLE001 - shutting down: report, never raise
-            self.get_logger().error(f'could not command zero on shutdown: {error!r}')
-
-
-def _is_nan(value: object) -> bool:
-    return isinstance(value, float) and math.isnan(value)
-
 
 def _read_calibration(path: Path, node_name: str) -> LoadedCalibration | Exception | None:
     """Read a calibration file for ``node_name``: None when there is none, any failure as the
@@ -932,4 +629,3 @@ def main(args: Sequence[str] | None = None) -> int:
 
 if __name__ == '__main__':
     raise SystemExit(main())
-

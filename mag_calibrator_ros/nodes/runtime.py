@@ -100,9 +100,10 @@ class NodeThreads:
 
     Why not one MultiThreadedExecutor: Jazzy's rclpy (7.1.x) re-queues callbacks that no worker
     has started yet (ros2/rclpy#1452, fixed upstream by ros2/rclpy#1547). With the driver at
-    100 Hz and the calibrator in one such executor the driver fell to 4-7 Hz at 100 % CPU; one
-    executor per node keeps 100 Hz at about 13 % CPU. Callbacks of different nodes still run
-    concurrently, and a node is stopped before it is destroyed (no handle races).
+    100 Hz and the calibrator in one such executor the driver fell far below its rate with a
+    core busy; one executor per node keeps its rate with CPU to spare. Callbacks of different
+    nodes still run concurrently, and a node is stopped before it is destroyed (no handle
+    races).
     """
 
     def __init__(self, context: Context) -> None:

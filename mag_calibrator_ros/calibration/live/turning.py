@@ -1,7 +1,7 @@
 """Turn in place until the heading circle is covered and a fit passes: ``~/rotate_and_calibrate``.
 
 The decisions of a self-calibrating ground robot, apart from ROS, in one state machine with an
-injected clock: whether a rotation may start, the commanded yaw rate (an acceleration ramp up to
+injected clock: whether a turn may start, the commanded yaw rate (an acceleration ramp up to
 ``speed``), when the heading circle is complete enough to ask for a fit, and every reason to
 stop. The node only publishes what ``command`` says, at the rate it says, and reports events.
 
@@ -17,11 +17,15 @@ is covered and the planar fit passes its gates, and every way out ends in a zero
 - ``conflict``: another node started publishing on the command topic;
 - ``parameters``: a parameter changed (the settings it started with no longer hold);
 - ``shutdown``: the node is going down (Ctrl-C, SIGTERM, destroy);
-- ``error``: an unexpected error in the node's own rotation code (logged with its traceback).
+- ``error``: an unexpected error in the node's own turning code (logged with its traceback).
 
 After a stop the zero is repeated for ZERO_HOLD_S, so a base that missed one message (a best
 effort subscriber, a late match) still stops; while turning the command is re-sent every
 COMMAND_PERIOD_S, so a base with a command timeout stops by itself if this node dies.
+
+Words: here a *turn* is the robot turning in place; *rotation* is kept for the alignment matrix R.
+The public ROS names keep their word (``~/rotate_and_calibrate``, ``rotation_speed``, the
+``rotation*`` diagnostics keys and log lines): users and their launch files rely on them.
 """
 
 from __future__ import annotations
@@ -41,10 +45,11 @@ ZERO_HOLD_S = 0.5
 """After a stop, zero is re-sent this long, then nothing (the topic is left to others)."""
 
 INPUT_TIMEOUT_S = 0.5
-"""No magnetometer reading for this long stops the rotation (and refuses a start)."""
+"""No magnetometer reading for this long stops the turn (and refuses a start)."""
 
 COVERAGE_PERIOD_S = 0.5
-"""Heading coverage is looked at twice a second while turning (it costs milliseconds)."""
+"""Heading coverage is looked at twice a second while turning (not every tick: it scans the
+buffer)."""
 
 RETRY_S = 2.0
 """A fit that failed its gates is asked for again after this much more turning."""
@@ -71,7 +76,7 @@ STATES = ('idle', 'turning', 'stopping')
 
 
 @dataclass(frozen=True)
-class RotationSettings:
+class TurnSettings:
     """What a user tunes (the node's ``rotation_*`` parameters)."""
 
     speed: float = 0.3
@@ -94,7 +99,7 @@ class RotationSettings:
 
 
 @dataclass(frozen=True)
-class RotationStep:
+class TurnStep:
     """What the node does now: publish ``command`` (None: nothing), ask for a fit, log."""
 
     command: float | None
@@ -102,15 +107,15 @@ class RotationStep:
     messages: tuple[str, ...] = ()
 
 
-class RotationController:
+class TurnController:
     """The one decision-maker of a turn in place; ``now`` is seconds of any monotonic clock.
 
     ``input_topic`` and ``command_topic`` only name things in messages.
     """
 
-    def __init__(self, settings: RotationSettings | None = None, input_topic: str = 'imu/mag',
+    def __init__(self, settings: TurnSettings | None = None, input_topic: str = 'imu/mag',
                  command_topic: str = 'cmd_vel') -> None:
-        self.settings = settings or RotationSettings()
+        self.settings = settings or TurnSettings()
         problems = self.settings.problems()
         if problems:
             raise ValueError('; '.join(problems))
@@ -202,9 +207,9 @@ class RotationController:
         return None
 
     def update(self, now: float, input_age: float | None, other_publishers: int,
-               heading_coverage: Callable[[], Coverage]) -> RotationStep:
-        """Every transition of a running rotation; ``heading_coverage`` is called at most every
-        COVERAGE_PERIOD_S (it costs milliseconds)."""
+               heading_coverage: Callable[[], Coverage]) -> TurnStep:
+        """Every transition of a running turn; ``heading_coverage`` is called at most every
+        COVERAGE_PERIOD_S (it scans the buffer)."""
         messages: list[str] = []
         calibrate = False
         if self.state == 'turning':
@@ -219,7 +224,7 @@ class RotationController:
                 messages.append(self.stop(now, *stop))
             else:
                 calibrate = self._look(now, heading_coverage, messages)
-        return RotationStep(self.command(now), calibrate, tuple(messages))
+        return TurnStep(self.command(now), calibrate, tuple(messages))
 
     def _look(self, now: float, heading_coverage: Callable[[], Coverage],
               messages: list[str]) -> bool:
@@ -271,7 +276,7 @@ __all__ = [
     'INPUT_TIMEOUT_S',
     'STOP_REASONS',
     'ZERO_HOLD_S',
-    'RotationController',
-    'RotationSettings',
-    'RotationStep',
+    'TurnController',
+    'TurnSettings',
+    'TurnStep',
 ]

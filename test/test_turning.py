@@ -1,4 +1,4 @@
-"""RotationController without ROS: every decision of ~/rotate_and_calibrate on an injected clock --
+"""TurnController without ROS: every decision of ~/rotate_and_calibrate on an injected clock --
 refusals, the ramp, when a fit is asked for, and that every way out commands zero."""
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ from mag_calibrator_ros.calibration.live.turning import (
     RETRY_S,
     STOP_REASONS,
     ZERO_HOLD_S,
-    RotationController,
-    RotationSettings,
+    TurnController,
+    TurnSettings,
 )
 
 
@@ -21,7 +21,7 @@ class Robot:
     """Drives a controller as the node does: a tick every COMMAND_PERIOD_S with fresh input."""
 
     def __init__(self, **settings) -> None:
-        self.rotation = RotationController(RotationSettings(**settings), '/imu/mag', '/cmd_vel')
+        self.controller = TurnController(TurnSettings(**settings), '/imu/mag', '/cmd_vel')
         self.now = 100.0
         self.fraction = 0.0
         self.looks = 0
@@ -35,14 +35,14 @@ class Robot:
         return Coverage(self.fraction, round(36 * self.fraction), 36, '')
 
     def start(self) -> tuple[bool, str]:
-        return self.rotation.start(self.now, self.input_age, self.others)
+        return self.controller.start(self.now, self.input_age, self.others)
 
     def tick(self, seconds: float = COMMAND_PERIOD_S):
         """Advance ``seconds`` in ticks; returns the steps."""
         steps = []
         for _ in range(max(1, round(seconds / COMMAND_PERIOD_S))):
             self.now += COMMAND_PERIOD_S
-            step = self.rotation.update(self.now, self.input_age, self.others, self.coverage)
+            step = self.controller.update(self.now, self.input_age, self.others, self.coverage)
             self.commands.append(step.command)
             self.fits += step.calibrate
             steps.append(step)
@@ -64,14 +64,14 @@ def test_refuses_without_fresh_input_beside_another_commander_or_twice():
     assert robot.start()[0]
     started, message = robot.start()
     assert not started and 'already rotating' in message
-    assert robot.rotation.state == 'turning'
+    assert robot.controller.state == 'turning'
 
 
 def test_ramps_up_to_the_speed_and_resends_it_every_tick():
     robot = Robot(speed=0.3, acceleration=0.5)
-    assert robot.rotation.command(robot.now) is None  # idle: nothing published
+    assert robot.controller.command(robot.now) is None  # idle: nothing published
     robot.start()
-    assert robot.rotation.command(robot.now) == 0.0
+    assert robot.controller.command(robot.now) == 0.0
     robot.tick(0.3)
     assert robot.commands[-1] == pytest.approx(0.15)
     robot.tick(2.0)
@@ -89,13 +89,13 @@ def test_looks_at_coverage_twice_a_second_not_every_tick():
 
 def stopped(robot: Robot, reason: str) -> None:
     """The stop happened for ``reason`` and the very next command is zero, held, then none."""
-    assert robot.rotation.state == 'stopping'
-    assert robot.rotation.last_stop[0] == reason
-    assert robot.rotation.command(robot.now) == 0.0
+    assert robot.controller.state == 'stopping'
+    assert robot.controller.last_stop[0] == reason
+    assert robot.controller.command(robot.now) == 0.0
     robot.tick(ZERO_HOLD_S / 2)
     assert robot.commands[-1] == 0.0
     robot.tick(ZERO_HOLD_S)
-    assert robot.commands[-1] is None and robot.rotation.state == 'idle'
+    assert robot.commands[-1] is None and robot.controller.state == 'idle'
 
 
 def test_asks_for_a_fit_once_the_circle_is_complete_and_stops_when_it_passes():
@@ -107,7 +107,7 @@ def test_asks_for_a_fit_once_the_circle_is_complete_and_stops_when_it_passes():
     robot.fraction = 1.0
     robot.tick(3.0)
     assert robot.fits == 1  # one at a time, while it is being fitted
-    line = robot.rotation.calibration_answered(robot.now, True, False, 'model planar, ...')
+    line = robot.controller.calibration_answered(robot.now, True, False, 'model planar, ...')
     assert 'calibrated' in line and 'model planar' in line
     stopped(robot, 'done')
 
@@ -118,14 +118,14 @@ def test_a_failed_gate_is_retried_after_more_turning_and_an_error_stops():
     robot.fraction = 1.0
     robot.tick(0.5)
     assert robot.fits == 1
-    line = robot.rotation.calibration_answered(robot.now, False, False, 'residual 7 %')
-    assert 'turning on' in line and robot.rotation.state == 'turning'
+    line = robot.controller.calibration_answered(robot.now, False, False, 'residual 7 %')
+    assert 'turning on' in line and robot.controller.state == 'turning'
     robot.tick(RETRY_S - 0.2)
     assert robot.fits == 1
     robot.tick(0.5)
     assert robot.fits == 2
     assert robot.commands[-1] > 0.0
-    robot.rotation.calibration_answered(robot.now, False, True, 'fit worker process ended')
+    robot.controller.calibration_answered(robot.now, False, True, 'fit worker process ended')
     stopped(robot, 'fit_error')
 
 
@@ -142,7 +142,7 @@ def test_stops_at_the_timeout():
     robot = Robot(timeout_s=10.0)
     robot.start()
     robot.tick(9.9)
-    assert robot.rotation.state == 'turning'
+    assert robot.controller.state == 'turning'
     robot.tick(0.2)
     stopped(robot, 'timeout')
 
@@ -161,10 +161,10 @@ def test_stops_on_request_parameter_change_and_shutdown(reason):
     robot = Robot()
     robot.start()
     robot.tick(2.0)
-    line = robot.rotation.stop(robot.now, reason, 'detail')
+    line = robot.controller.stop(robot.now, reason, 'detail')
     assert STOP_REASONS[reason] in line and 'detail' in line
     stopped(robot, reason)
-    assert robot.rotation.stop(robot.now, reason) is None  # nothing to stop
+    assert robot.controller.stop(robot.now, reason) is None  # nothing to stop
 
 
 def test_a_late_answer_after_a_stop_changes_nothing():
@@ -172,19 +172,19 @@ def test_a_late_answer_after_a_stop_changes_nothing():
     robot.start()
     robot.fraction = 1.0
     robot.tick(0.5)
-    robot.rotation.stop(robot.now, 'requested')
-    assert robot.rotation.calibration_answered(robot.now, True, False, 'ok') is None
-    assert robot.rotation.last_stop[0] == 'requested'
+    robot.controller.stop(robot.now, 'requested')
+    assert robot.controller.calibration_answered(robot.now, True, False, 'ok') is None
+    assert robot.controller.last_stop[0] == 'requested'
 
 
 def test_may_start_again_while_its_zero_is_still_held():
     robot = Robot()
     robot.start()
     robot.tick(1.0)
-    robot.rotation.stop(robot.now, 'requested')
+    robot.controller.stop(robot.now, 'requested')
     robot.tick(0.1)
     assert robot.start()[0]
-    assert robot.rotation.command(robot.now) == 0.0  # a new ramp from standstill
+    assert robot.controller.command(robot.now) == 0.0  # a new ramp from standstill
     robot.tick(1.0)
     assert robot.commands[-1] > 0.0
 
@@ -193,19 +193,19 @@ def test_settings_and_reasons_are_checked():
     for settings in ({'speed': 0.0}, {'speed': 5.0}, {'acceleration': -1.0},
                      {'timeout_s': float('nan')}):
         with pytest.raises(ValueError):
-            RotationController(RotationSettings(**settings))
+            TurnController(TurnSettings(**settings))
     with pytest.raises(ValueError):
-        RotationController().stop(0.0, 'bored')
+        TurnController().stop(0.0, 'bored')
 
 
 def test_reports_progress_and_diagnostics():
     robot = Robot()
-    assert robot.rotation.diagnostic_values(robot.now) == {'rotation': 'idle'}
+    assert robot.controller.diagnostic_values(robot.now) == {'rotation': 'idle'}
     robot.start()
     robot.fraction = 0.5
     robot.tick(6.0)
-    values = robot.rotation.diagnostic_values(robot.now)
+    values = robot.controller.diagnostic_values(robot.now)
     assert values['rotation'] == 'turning' and values['rotation_heading_coverage_pct'] == 50.0
-    assert 'heading coverage 50 %' in robot.rotation.progress_text(robot.now)
-    robot.rotation.stop(robot.now, 'requested')
-    assert robot.rotation.diagnostic_values(robot.now)['rotation_last_stop'] == 'requested'
+    assert 'heading coverage 50 %' in robot.controller.progress_text(robot.now)
+    robot.controller.stop(robot.now, 'requested')
+    assert robot.controller.diagnostic_values(robot.now)['rotation_last_stop'] == 'requested'

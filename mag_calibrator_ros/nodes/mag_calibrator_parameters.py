@@ -1,0 +1,161 @@
+"""The ``mag_calibrator`` node's parameters: the descriptor table and the checks of its values.
+
+One table, so ``ros2 param describe``, the shipped config and the checks cannot disagree: every
+entry is (default, description, descriptor extras such as ranges). Session settings share their
+field names with :class:`~mag_calibrator_ros.calibration.live.session.SessionSettings`.
+``parameter_problems`` is the one check, the same at start-up and on every later set.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import fields
+import math
+
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange
+
+from mag_calibrator_ros.calibration.live.session import FITTABLE_MODELS, SessionSettings
+from mag_calibrator_ros.calibration.live.turning import MAX_SPEED, TurnSettings
+from mag_calibrator_ros.calibration.store.calibration_file import (
+    CalibrationFileError,
+    resolve_calibration_path,
+)
+from mag_calibrator_ros.nodes.location import parameter_location_problems
+from mag_calibrator_ros.nodes.turning import turn_settings_from
+
+DEFAULTS = SessionSettings()
+TURN_DEFAULTS = TurnSettings()
+
+
+def _float_range(low: float, high: float) -> list[FloatingPointRange]:
+    return [FloatingPointRange(from_value=float(low), to_value=float(high), step=0.0)]
+
+
+def _int_range(low: int, high: int) -> list[IntegerRange]:
+    return [IntegerRange(from_value=int(low), to_value=int(high), step=1)]
+
+
+# name: (default, description, descriptor extras). Session settings share their field names.
+PARAMETERS: dict[str, tuple[object, str, dict]] = {
+    'buffer_size': (DEFAULTS.buffer_size,
+                    'Samples kept by the kNN uniqueness buffer (the fit input).',
+                    {'integer_range': _int_range(10, 5000)}),
+    'k': (DEFAULTS.k, 'Neighbours in the uniqueness score (must be < buffer_size).',
+          {'integer_range': _int_range(1, 64)}),
+    'model': (DEFAULTS.model, f"Fit model: {', '.join(FITTABLE_MODELS)}.",
+              {'additional_constraints': f"one of {', '.join(FITTABLE_MODELS)}"}),
+    'field_strength': (DEFAULTS.field_strength,
+                       'Local earth field in tesla that |corrected| should have; '
+                       '0 keeps the fitted mean radius.',
+                       {'floating_point_range': _float_range(0.0, 1e-3)}),
+    'min_coverage': (DEFAULTS.min_coverage,
+                     'Share of direction cells the buffer must cover before a fit is accepted.',
+                     {'floating_point_range': _float_range(0.0, 1.0)}),
+    'max_residual_pct': (DEFAULTS.max_residual_pct,
+                         'Largest accepted RMS magnitude residual, % of the field.',
+                         {'floating_point_range': _float_range(0.01, 100.0)}),
+    'full_scale': (DEFAULTS.full_scale,
+                   'Tesla; a component at or beyond it is saturated and refused (0 = no check).',
+                   {'floating_point_range': _float_range(0.0, 1.0)}),
+    'auto_calibrate': (DEFAULTS.auto_calibrate,
+                       'Calibrate by itself while uncalibrated, and anew when the calibration in '
+                       'force no longer fits the live data.', {}),
+    'auto_calibrate_period': (DEFAULTS.auto_calibrate_period,
+                              'Seconds (of message stamps) between automatic fits that failed '
+                              'their gates.',
+                              {'floating_point_range': _float_range(0.5, 3600.0)}),
+    'refine': (DEFAULTS.refine,
+               'After calibrating, keep fitting and adopt a fit only when it is better on '
+               'held-out readings and covers no fewer directions.', {}),
+    'refine_period': (DEFAULTS.refine_period,
+                      'Seconds (of message stamps) between refinement fits; doubles up to 8x '
+                      'once the calibration has converged.',
+                      {'floating_point_range': _float_range(1.0, 3600.0)}),
+    'online_tracking': (DEFAULTS.online_tracking,
+                        'After a calibration, follow slow drift; a tracked calibration is adopted '
+                        'only when clearly better, by bounded steps.', {}),
+    'tracking_improvement': (DEFAULTS.tracking_improvement,
+                             'Adopt a tracked calibration only when its residual is below this '
+                             'share of the current one.',
+                             {'floating_point_range': _float_range(0.05, 0.99)}),
+    'tracking_max_change_rate': (DEFAULTS.tracking_max_change_rate,
+                                 'Largest tracked change per second: offset as a share of the '
+                                 'field, matrix as a relative norm.',
+                                 {'floating_point_range': _float_range(1e-5, 0.5)}),
+    'publish_uncalibrated': (False,
+                             'Publish imu/mag_corrected as the raw field while no calibration '
+                             'exists.', {}),
+    'auto_save': (False, 'Save to calibration_file whenever a new calibration goes in force '
+                         '(at most every 10 s; atomic).', {}),
+    'calibration_file': ('',
+                         'Calibration YAML (ROS params format): loaded at start-up and by ~/load, '
+                         'written by ~/save. Default: one file per node, '
+                         '$ROS_HOME/mag_calibrator/<namespace>__<name>.yaml.', {}),
+    'progress_log_period': (5.0, 'Seconds between progress log lines while uncalibrated '
+                                 '(0 = silent).',
+                            {'floating_point_range': _float_range(0.0, 3600.0)}),
+    'view_period': (1.0, 'Seconds between RViz views (~/view/raw, ~/view/corrected, '
+                         '~/view/markers), drawn only while subscribed; 0 = never.',
+                    {'floating_point_range': _float_range(0.0, 3600.0)}),
+    'view_scale': (1e4, 'RViz view: metres per tesla (1e4: a 50 uT field is a 0.5 m sphere).',
+                   {'floating_point_range': _float_range(1e-3, 1e9)}),
+    # ~/rotate_and_calibrate (ground robots): turning in place on cmd_vel
+    'rotation_speed': (TURN_DEFAULTS.speed,
+                       'rad/s of the turn in place ~/rotate_and_calibrate commands on cmd_vel '
+                       '(positive: counter-clockwise seen from above, a left turn).',
+                       {'floating_point_range': _float_range(0.05, MAX_SPEED)}),
+    'rotation_acceleration': (TURN_DEFAULTS.acceleration,
+                              'rad/s^2 of the ramp from standstill to rotation_speed.',
+                              {'floating_point_range': _float_range(0.05, 10.0)}),
+    'rotation_timeout': (TURN_DEFAULTS.timeout_s,
+                         'Seconds of turning after which ~/rotate_and_calibrate stops without a '
+                         'calibration.', {'floating_point_range': _float_range(5.0, 3600.0)}),
+    'cmd_vel_stamped': (False, "Publish geometry_msgs/TwistStamped on cmd_vel (as Jazzy's nav2 "
+                               'and ros2_control use) instead of geometry_msgs/Twist.', {}),
+    'cmd_vel_frame_id': ('base_link', 'header.frame_id of TwistStamped commands.', {}),
+    'use_imu': (True, 'Subscribe imu/data_raw (sensor_msgs/Imu, same frame as imu/mag) and align '
+                      'each calibration to the accelerometer from readings held still; without '
+                      'a publisher nothing changes.', {}),
+    'max_alignment_deg': (DEFAULTS.max_alignment_deg,
+                          'A larger rotation to the IMU is reported as a mounting or axis-remap '
+                          'error (with the remap that fixes it) and not applied.',
+                          {'floating_point_range': _float_range(0.0, 180.0)}),
+    'latitude': (math.nan, 'Degrees north (WGS84) for the World Magnetic Model; NaN: unknown '
+                           '(the first fix on gps/fix is used).', {}),
+    'longitude': (math.nan, 'Degrees east (WGS84) for the World Magnetic Model; NaN: unknown.',
+                  {}),
+    'altitude': (0.0, 'Metres above the WGS84 ellipsoid for the World Magnetic Model.',
+                 {'floating_point_range': _float_range(-1000.0, 850000.0)}),
+    'use_gps': (True, 'Without latitude/longitude, take the location from the first fix on '
+                      'gps/fix (sensor_msgs/NavSatFix).', {}),
+    'max_field_error_pct': (DEFAULTS.max_field_error_pct,
+                            'Largest difference, in %, between the fitted field and the World '
+                            "Magnetic Model's intensity before the field counts as disturbed.",
+                            {'floating_point_range': _float_range(1.0, 100.0)}),
+    'max_dip_error_deg': (DEFAULTS.max_dip_error_deg,
+                          "Largest difference between the measured dip and the model's "
+                          'inclination before the field counts as disturbed.',
+                          {'floating_point_range': _float_range(0.1, 90.0)}),
+    'earth_field_gate': (DEFAULTS.earth_field_gate,
+                         'A fit off the World Magnetic Model beyond the tolerances fails (true) '
+                         'or is only warned about (false).', {}),
+}
+SESSION_FIELDS = {f.name for f in fields(SessionSettings)}
+
+
+def session_settings(values: Mapping[str, object]) -> SessionSettings:
+    """The SessionSettings of these parameter values (the entries sharing their field names)."""
+    return SessionSettings(**{k: v for k, v in values.items() if k in SESSION_FIELDS})
+
+
+def parameter_problems(values: Mapping[str, object]) -> list[str]:
+    """Everything wrong with these parameter values (the same at start-up and at run time)."""
+    problems = session_settings(values).problems()
+    problems += turn_settings_from(values).problems()
+    try:
+        resolve_calibration_path(str(values['calibration_file']))
+    except CalibrationFileError as error:
+        problems.append(f'calibration_file: {error}')
+    problems += parameter_location_problems(values['latitude'], values['longitude'],
+                                            values['altitude'])
+    return problems
