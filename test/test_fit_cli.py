@@ -68,7 +68,8 @@ def test_every_shared_recording_calibrates_and_the_file_matches_the_summary(
         shared_data, tmp_path, capsys, name, extra, gates, mode):
     output = tmp_path / 'cal' / 'mag.yaml'
     gate = gates[mode]
-    argv = [str(shared_data / name), *extra, *mode_args(mode), '--output', str(output)]
+    argv = [str(shared_data / name), *extra, *mode_args(mode), '--units', 'uT', '--output',
+            str(output)]
     if gate is not None:
         argv += ['--max-residual', str(gate)]
     code, summary, err = run_json(capsys, argv)
@@ -83,12 +84,12 @@ def test_every_shared_recording_calibrates_and_the_file_matches_the_summary(
     assert summary['input']['rows'] == len(read_recording(shared_data / name,
                                                           columns=extra[1] if extra else None
                                                           ).samples)
-    loaded = load_calibration(output)
-    np.testing.assert_array_equal(loaded.offset, summary['offset'])
+    loaded = load_calibration(output)  # in tesla, the node's unit: b and F scale, M does not
+    np.testing.assert_array_equal(loaded.offset, np.array(summary['offset']) * 1e-6)
     np.testing.assert_array_equal(loaded.matrix, summary['matrix'])
-    assert loaded.field_strength == summary['field_strength']
+    assert loaded.field_strength == summary['field_strength'] * 1e-6
     assert loaded.model == summary['model']
-    assert loaded.metadata['units'] == 'input'
+    assert summary['units'] == 'uT' and loaded.metadata['units'] == 'T'
     assert loaded.metadata['source'] == str((shared_data / name).resolve())
     assert loaded.metadata['samples'] == summary['metrics']['n_inliers']
     assert loaded.metadata['residual_rms_pct'] == summary['metrics']['residual_rms_pct']
@@ -100,7 +101,8 @@ def test_every_shared_recording_calibrates_and_the_file_matches_the_summary(
 def test_disturbed_recordings_fail_the_default_residual_gate_and_write_nothing(
         shared_data, tmp_path, capsys, name, extra, mode):
     output = tmp_path / 'mag.yaml'
-    code = main([str(shared_data / name), *extra, *mode_args(mode), '--output', str(output)])
+    code = main([str(shared_data / name), *extra, *mode_args(mode), '--units', 'uT', '--output',
+                 str(output)])
     out = capsys.readouterr().out
     assert code == 1
     assert out.startswith('NOT CALIBRATED')
@@ -194,11 +196,11 @@ def test_normalise_gives_unit_field_strength(shared_data, capsys):
 def test_field_strength_is_respected(shared_data, tmp_path, capsys):
     path = shared_data / 'fxos8700-mwrona' / 'mag-readings.txt'
     output = tmp_path / 'mag.yaml'
-    code, summary, _ = run_json(capsys, [str(path), '--field-strength', '53.3', '-o',
-                                         str(output)])
+    code, summary, _ = run_json(capsys, [str(path), '--field-strength', '53.3', '--units', 'uT',
+                                         '-o', str(output)])
     assert code == 0
     assert summary['field_strength'] == 53.3
-    assert load_calibration(output).field_strength == 53.3
+    assert load_calibration(output).field_strength == 53.3 * 1e-6
     fitted_radius = run_json(capsys, [str(path)])[1]['field_strength']
     assert fitted_radius != pytest.approx(53.3, abs=1e-6)
 
@@ -343,14 +345,15 @@ def test_still_sensor_fails_with_rotate_and_keeps_the_previous_file(tmp_path, ca
     still = write_still(tmp_path)
     output = tmp_path / 'mag.yaml'
     output.write_text('previous calibration\n')
-    code = main([str(still), *mode_args(mode), '-o', str(output)])
+    code = main([str(still), *mode_args(mode), '--units', 'uT', '-o', str(output)])
     out = capsys.readouterr().out
     assert code == 1
     assert 'NOT CALIBRATED' in out
     failed = next(line for line in out.splitlines() if line.startswith('FAILED'))
     assert 'rotate' in failed
     assert output.read_text() == 'previous calibration\n'
-    code, summary, err = run_json(capsys, [str(still), *mode_args(mode), '-o', str(output)])
+    code, summary, err = run_json(capsys, [str(still), *mode_args(mode), '--units', 'uT', '-o',
+                                           str(output)])
     assert code == 1
     assert summary['success'] is False
     assert 'rotate' in summary['reason']
@@ -455,7 +458,8 @@ def test_unwritable_output_is_a_one_line_error(shared_data, tmp_path, capsys):
     blocker = tmp_path / 'file'
     blocker.write_text('')
     assert_usage_error(capsys, [str(shared_data / 'lsm303dlhc-altimu10v3' / 'mag_2.txt'),
-                                '-o', str(blocker / 'mag.yaml')], 'cannot write')
+                                '--scale', '1e-7', '-o', str(blocker / 'mag.yaml')],
+                       'cannot write')
 
 
 # --- progress bar ----------------------------------------------------------------------------
@@ -523,15 +527,18 @@ def test_console_script_runs_and_keeps_stdout_clean(shared_data, tmp_path):
     assert script.exists(), f'{script} not installed (pip install -e .)'
     output = tmp_path / 'mag.yaml'
     result = subprocess.run(
-        [str(script), str(shared_data / 'lsm303dlhc-altimu10v3' / 'mag_2.txt'), '--json', '-o',
-         str(output)],
+        [str(script), str(shared_data / 'lsm303dlhc-altimu10v3' / 'mag_2.txt'), '--json',
+         '--scale', '1e-7', '-o', str(output)],
         capture_output=True, text=True, timeout=120, env={**os.environ, 'CI': ''}, check=False)
     assert result.returncode == 0, result.stderr
     assert result.stderr == ''
     summary = json.loads(result.stdout)
     assert summary['success'] is True
     document = yaml.safe_load(output.read_text())
-    assert document['/**']['ros__parameters']['calibration']['offset'] == summary['offset']
+    written = document['/**']['ros__parameters']['calibration']
+    assert written['offset'] == summary['offset']  # both in tesla (--scale)
+    assert written['units'] == 'T'
+
     missing = subprocess.run([str(script), str(tmp_path / 'missing.txt')], capture_output=True,
                              text=True, timeout=120, check=False)
     assert missing.returncode == 2

@@ -53,7 +53,7 @@ def test_the_real_log_is_aligned_to_its_accelerometer(shared_data, capsys, tmp_p
     log = shared_data / 'lsm303dlhc-altimu10v3' / 'cal_output_2.log'
     output = tmp_path / 'cal.yaml'
     status, out, _ = run([log, '--accel-columns', '0,1,2', '--rate', '3', '--json',
-                          '-o', output], capsys)
+                          '--scale', '1e-7', '-o', output], capsys)
     summary = json.loads(out)
     assert status == 0, summary['reason']
     alignment = summary['alignment']

@@ -4,7 +4,11 @@ The recording (text or rosbag2, see :mod:`mag_calibrator_ros.tools.recordings`) 
 the calibrator node's own :class:`CalibrationSession` (sample buffer, its reference fits,
 automatic calibration and refinement, at the same readings as the node) and the buffer is then
 fitted as the node does on ``~/calibrate``, so an offline result predicts what the robot gets;
-or, with ``--all``, every sample is fitted. The calibration is in the recording's own units.
+or, with ``--all``, every sample is fitted. The calibration is reported in the recording's own
+units; ``--output`` writes it in tesla, the node's unit, so it needs the recording's unit
+(``--units``, a header such as ``Magnetometer X (uT)``, a bag or ``ros2 topic echo``: tesla) or
+the tesla per count of raw counts (``--scale``, which converts the samples to tesla as they are
+read).
 
 With ``--accel-columns`` (a text log with the accelerometer on each line) the calibration is
 aligned to the accelerometer from the readings held still, as the node does with imu/data_raw;
@@ -35,6 +39,7 @@ from mag_calibrator_ros.calibration.fit.calibration import MODELS, Calibration
 from mag_calibrator_ros.calibration.fit.earth_field import (
     MAX_DIP_ERROR_DEG,
     MAX_FIELD_ERROR_PCT,
+    TESLA_PER_UNIT,
     EarthField,
     EarthFieldError,
     EarthReference,
@@ -49,6 +54,8 @@ from mag_calibrator_ros.calibration.live.session import (
     SessionSettings,
 )
 from mag_calibrator_ros.calibration.store.calibration_file import (
+    TESLA,
+    UNITS_KEY,
     CalibrationFileError,
     save_calibration,
 )
@@ -90,8 +97,11 @@ examples:
   {PROG} mag.txt --all --model full        fit every sample with hard + soft iron
   {PROG} log.tsv --columns 3,4,5 --output mag_calibration.yaml --plot mag.png
   {PROG} log.txt --columns 1,3,5           lines such as "Mx 144 My -270 Mz 415"
+  {PROG} log.csv --units uT -o cal.yaml  a log in microtesla; the file is written in tesla
+  {PROG} counts.csv --scale 0.15e-6 -o cal.yaml    raw counts of 0.15 uT (AK09916)
   {PROG} ~/bags/run1 --topic /imu/mag --output cal.yaml    rosbag2 (sqlite3 or mcap), tesla
-  ros2 topic echo ... | {PROG} - --json    read text from stdin, machine-readable summary
+  ros2 topic echo /imu/mag | {PROG} - --json    messages on stdin (tesla), JSON summary
+  ros2 topic echo --csv /imu/mag | {PROG} -    the same as CSV (the field is found by itself)
   {PROG} cal_output_2.log --accel-columns 0,1,2 --rate 3 --latitude 45.5 --longitude -122.7
                                            align to the accelerometer logged beside the
                                            magnetometer (3 rows/s) and check against the WMM
@@ -100,12 +110,19 @@ field strength F (|corrected| = F): by default the fitted mean radius (magnitude
 units); --normalise makes F = 1; --field-strength F sets it (e.g. the local field from WMM in the
 input's units).
 
+units: the summary is in the input's units; --output is in tesla (the node's unit), converted
+from the input's unit: --units (uT, nT, G, mG, T), a header naming it ("Magnetometer X (uT)"), or
+tesla for a bag and ros2 topic echo. Raw counts need --scale TESLA_PER_COUNT (the samples are
+converted to tesla as they are read; --full-scale and --field-strength are given in counts).
+--output with the unit unknown is refused: the node would read the numbers as tesla.
+
 exit status:
   0  calibrated (passed every quality gate; --output written)
   1  the fit failed a quality gate: the best-effort result is printed, marked NOT passing, with
      the reason (e.g. which rotation is missing); --output is NOT written (an existing file is
      left untouched) because a robot must never load a failed calibration; --plot is written
-  2  usage or input error (missing/unreadable file, too few rows, bad --columns ...)
+  2  usage or input error (missing/unreadable file, too few rows, bad --columns, --output
+     without the input's unit, an unwritable --output or --plot ...)
 """
 
 
@@ -177,13 +194,21 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument('--topic', default=None,
                         help='rosbag2 input: the MagneticField topic (default: the only one)')
     parser.add_argument('--units', default=None,
-                        help="label for the input units in the output (default 'input'; "
-                        "rosbag2 MagneticField is 'T')")
+                        help="the input's unit: uT, nT, G, mG or T (also µT, mT, gauss); "
+                        '--output is converted from it to tesla. Any other word only labels '
+                        "the summary (default 'input'; rosbag2 and ros2 topic echo are 'T', "
+                        'a header such as "Magnetometer X (uT)" says its own)')
+    parser.add_argument('--scale', type=float, metavar='TESLA_PER_COUNT', default=None,
+                        help='raw counts: tesla per count (e.g. 0.15e-6 for 0.15 uT/LSB); the '
+                        'samples are converted to tesla as they are read, so --output loads '
+                        'right')
     parser.add_argument('--output', '-o', metavar='FILE', default=None,
                         help='write the calibration YAML (ROS 2 parameters file for the node, in '
-                        'input units) only if the fit passes every gate')
+                        'tesla: needs --units or --scale unless the input says its unit) only '
+                        'if the fit passes every gate')
     parser.add_argument('--plot', metavar='FILE.png', default=None,
-                        help='write before/after projections and a 3-D view (also on failure)')
+                        help='write before/after projections and a 3-D view (also on failure); '
+                        'the format follows the suffix, .png added when there is none')
     imu = parser.add_argument_group(
         "gravity and the Earth's field",
         'Align the calibration to an accelerometer logged on the same lines (readings held '
@@ -230,6 +255,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (UsageError, RecordingError, CalibrationFileError) as error:
         _error(str(error))
         return EXIT_USAGE
+    except MemoryError:
+        _error(f'{args.input}: out of memory (the recording is too large for this computer; '
+               'fit a part of it)')
+        return EXIT_USAGE
     except KeyboardInterrupt:
         _error('interrupted')
         return EXIT_INTERRUPTED
@@ -238,6 +267,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     """Read, fit, report, write; returns the exit status."""
     out = stdout if stdout is not None else sys.stdout
+    check_outputs(args)
+    args = counts_in_tesla(args)
     options = fit_options(args)
     if args.all and args.k is not None:
         raise UsageError('--k sets the sample buffer; it has no effect with --all')
@@ -256,6 +287,14 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
                                    min_rows=options.min_samples, progress=progress.reading)
     progress.finish()
     units = input_units(args, recording)
+    if args.scale is not None:
+        recording = scaled_recording(recording, args.scale)
+        units = TESLA
+    if args.output is not None and units not in TESLA_PER_UNIT:
+        raise UsageError(
+            f"--output writes the calibration in tesla, the node's unit, but {recording.source} "
+            f"does not say its unit ('{units}'): give it with --units uT|nT|G|mG|T, or the "
+            'tesla per count of raw counts with --scale (e.g. --scale 0.15e-6)')
     reference = None if earth is None else EarthReference(
         earth, units, args.max_field_error, args.max_dip_error, not args.no_earth_gate)
     metadata = {
@@ -296,25 +335,92 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
 
     calibration = result.calibration
     written = None
-    if result.success and calibration is not None and args.output:
-        save_calibration(args.output, calibration, node_name=OUTPUT_SECTION)
+    if result.success and calibration is not None and args.output is not None:
+        save_calibration(args.output, in_tesla(calibration, units), node_name=OUTPUT_SECTION)
         written = args.output
     plotted = None
-    if args.plot:
+    if args.plot is not None:
         plotted = write_plot(args.plot, recording, fitted, calibration, result, units)
 
     summary = build_summary(args, recording, units, result, calibration, session, screening,
                             written, plotted)
     add_reference(summary, outcome, earth, args.rate)
-    if args.json:
-        json.dump(summary, out, indent=2, allow_nan=False)
-        out.write('\n')
-    elif not (args.quiet and result.success):
-        out.write(human_summary(summary))
-    return EXIT_CALIBRATED if result.success else EXIT_FAILED_GATES
+    status = EXIT_CALIBRATED if result.success else EXIT_FAILED_GATES
+    try:
+        if args.json:
+            json.dump(summary, out, indent=2, allow_nan=False)
+            out.write('\n')
+        elif not (args.quiet and result.success):
+            out.write(human_summary(summary))
+        out.flush()
+    except BrokenPipeError:
+        _stop_writing(out)  # the reader (head, grep -q) has what it wanted: no traceback
+    return status
+
+
+def _stop_writing(out: TextIO) -> None:
+    """The reader closed the pipe: send what is left in the buffer nowhere, so neither this
+    write nor Python's flush at exit ends in a BrokenPipeError traceback."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, out.fileno())
+        os.close(devnull)
+    except (OSError, ValueError, AttributeError):  # not a file descriptor (a StringIO)
+        pass
 
 
 # --- steps ---------------------------------------------------------------------------------
+
+
+def check_outputs(args: argparse.Namespace) -> None:
+    """Refuse output names that can name no file, before any work."""
+    for option, value in (('--output', args.output), ('--plot', args.plot)):
+        if value is not None and not value.strip():
+            raise UsageError(f'{option} needs a file name, got an empty one')
+
+
+def counts_in_tesla(args: argparse.Namespace) -> argparse.Namespace:
+    """--scale: the options given in counts (--field-strength, --full-scale) in tesla, as the
+    samples will be; refuses a --scale that contradicts the input's stated unit."""
+    if args.scale is None:
+        return args
+    if not (math.isfinite(args.scale) and args.scale > 0.0):
+        raise UsageError(f'--scale must be a positive number of tesla per count, got '
+                         f'{args.scale}')
+    if args.units in TESLA_PER_UNIT:
+        raise UsageError(f'--scale converts raw counts to tesla; --units {args.units} already '
+                         'says the unit (give one of them)')
+    if args.topic is not None:
+        raise UsageError('--scale applies to raw counts in text; a rosbag2 MagneticField is in '
+                         'tesla already')
+    scaled = argparse.Namespace(**vars(args))
+    if args.field_strength is not None:
+        scaled.field_strength = args.field_strength * args.scale
+    if args.full_scale is not None:
+        scaled.full_scale = args.full_scale * args.scale
+    return scaled
+
+
+def scaled_recording(recording: Recording, tesla_per_count: float) -> Recording:
+    """The recording's raw counts in tesla (--scale), refused when the input says its unit."""
+    if recording.units is not None:
+        raise UsageError(f"{recording.source}: the input is in '{recording.units}' "
+                         f'({recording.layout}); --scale is for raw counts (drop it)')
+    samples = recording.samples
+    if samples.flags.writeable:
+        samples *= tesla_per_count
+    else:
+        samples = samples * tesla_per_count
+    note = f'converted to tesla: {tesla_per_count:g} T per count (--scale)'
+    return replace(recording, samples=samples, units=TESLA, notes=(*recording.notes, note))
+
+
+def in_tesla(calibration: Calibration, units: str) -> Calibration:
+    """The calibration as the node reads it (tesla, REP-103) from the input's ``units``."""
+    if units == TESLA:
+        return calibration
+    scaled = calibration.scaled(TESLA_PER_UNIT[units])  # b and F scale; M does not
+    return scaled.with_metadata(**{UNITS_KEY: TESLA})
 
 
 def fit_options(args: argparse.Namespace) -> FitOptions:
@@ -401,10 +507,12 @@ def session_settings(args: argparse.Namespace, options: FitOptions) -> SessionSe
 
 
 def input_units(args: argparse.Namespace, recording: Recording) -> str:
+    """The input's unit: what the recording says (a bag, ros2 topic echo, a header's "(uT)"),
+    else --units, else 'input' (unknown)."""
     if recording.units is not None:
         if args.units is not None and args.units != recording.units:
-            raise UsageError(f'{recording.source}: a rosbag2 MagneticField is in '
-                             f"'{recording.units}', not '{args.units}' (drop --units)")
+            raise UsageError(f"{recording.source}: the input is in '{recording.units}' "
+                             f"({recording.layout}), not '{args.units}' (drop --units)")
         return recording.units
     return args.units if args.units is not None else 'input'
 
@@ -465,11 +573,11 @@ def write_plot(path: str, recording: Recording, fitted: np.ndarray,
         title = title[:157] + '...'
     outliers = result.outliers if len(result.outliers) == len(fitted) else None  # --all only
     try:
-        plot_calibration(fitted, calibration, path, title=title, outliers=outliers,
-                         units='' if units == 'input' else units)
+        written = plot_calibration(fitted, calibration, path, title=title, outliers=outliers,
+                                   units='' if units == 'input' else units)
     except (OSError, ValueError) as error:
         raise UsageError(f'{path}: cannot write the plot ({error})') from error
-    return path
+    return str(written)
 
 
 # --- reporting -----------------------------------------------------------------------------
@@ -570,7 +678,8 @@ def human_summary(summary: dict[str, Any]) -> str:
     lines = ['CALIBRATED' if summary['success']
              else 'NOT CALIBRATED: the fit failed a quality gate (best-effort result below, '
                   'do not use it)']
-    label = 'not stated (label them with --units)' if units == 'input' else units
+    label = ('not stated (give --units, or --scale for raw counts)' if units == 'input'
+             else units)
     lines.append(f"input     {source['source']}: {source['rows']} rows from {source['layout']}; "
                  f'units {label}')
     skipped = describe_skips(source['skipped']) if source['skipped'] else 'none'

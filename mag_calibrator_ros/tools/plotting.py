@@ -20,6 +20,8 @@ state, safe from any thread.
 
 from __future__ import annotations
 
+import io
+import os
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -27,6 +29,11 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.store.safe_file import (
+    resolve_path,
+    shown_name,
+    write_atomically,
+)
 
 if TYPE_CHECKING:  # matplotlib (heavy) is imported when a figure is drawn, not with this module
     from matplotlib.figure import Figure
@@ -53,15 +60,26 @@ def plot_calibration(
     units: str = '',
     dpi: int = 110,
 ) -> Path:
-    """Write the before/after figure to ``path`` (PNG; parent directories are created).
+    """Write the before/after figure to ``path`` (parent directories are created).
 
-    ``raw`` (n, 3) in input units; ``calibration`` None draws the raw row only (nothing was
-    fitted); ``outliers`` an (n,) bool mask from the fit. Returns the path written.
+    The format is the name's suffix (``.png``, ``.svg``, ``.pdf`` ...); a new name without one
+    gets ``.png``, as matplotlib names it (an existing one is written as it is, in PNG). The
+    image is drawn in memory and then replaces the file atomically (:func:`write_atomically`),
+    so a failed write leaves no partial image, and only a regular file or a new path is written
+    (a device such as /dev/full is refused). ``raw`` (n, 3) in input units; ``calibration``
+    None draws the raw row only (nothing was fitted); ``outliers`` an (n,) bool mask from the
+    fit. Returns the path written. Raises
+    ``FileAccessError`` (a ``ValueError``) when the file cannot be written, ``ValueError`` for a
+    format matplotlib cannot write.
     """
-    figure = calibration_figure(raw, calibration, title=title, outliers=outliers, units=units)
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(path, dpi=dpi)
+    if not path.suffix and not os.path.lexists(path):
+        path = path.with_name(path.name + '.png')
+    figure = calibration_figure(raw, calibration, title=title, outliers=outliers, units=units)
+    image = io.BytesIO()
+    figure.savefig(image, dpi=dpi, format=path.suffix[1:].lower() or 'png')
+    target = resolve_path(path)
+    write_atomically(target, image.getvalue(), shown_name(path, target))
     return path
 
 

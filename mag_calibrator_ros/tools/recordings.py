@@ -11,8 +11,14 @@ A file that does not say which fields are the magnetometer's (more numeric field
 no names, several magnetometer sets, only accelerometer or gyroscope names) raises
 ``RecordingError`` naming the candidates: choose with ``columns``, three **zero-based** field
 indices (``'1,3,5'`` picks 144, -270, 415 from that line) or three header names
-(``'mx,my,mz'``). Lines are converted a block at a time (numpy for plain numbers), so millions of
-rows read at numpy's pace and only the samples stay in memory.
+(``'mx,my,mz'``). Without names, numeric fields that stay constant (a message's covariance) or
+count time (stamps, sequence numbers) are not candidates, so ``ros2 topic echo --csv /imu/mag``
+gives the field (fields 3, 4, 5). A header's units (``Magnetometer X (uT)``) are the recording's
+units. ``;``-separated numbers with decimal commas (``12,5;-3,2;40,1``) are read as such.
+``ros2 topic echo /imu/mag`` (YAML documents separated by ``---``) is read message by message,
+in tesla. Lines are converted a block at a time (numpy for plain numbers) into one growing
+float array, so memory holds the samples (8 bytes a value), not the text; a line longer than
+``MAX_LINE_CHARS`` (binary data, a NUL tail) is refused.
 
 rosbag2 (a bag directory, or a single ``.db3`` / ``.mcap`` file): the
 ``sensor_msgs/msg/MagneticField`` topic named by ``topic``, or the only such topic in the bag.
@@ -25,6 +31,7 @@ must fix raise ``RecordingError`` with a one-line message naming the source and 
 
 from __future__ import annotations
 
+from array import array
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -38,6 +45,7 @@ import warnings
 
 import numpy as np
 
+from mag_calibrator_ros.calibration.fit.earth_field import TESLA_PER_UNIT
 from mag_calibrator_ros.calibration.live.screening import MAX_READING
 
 MAGNETIC_FIELD = 'sensor_msgs/msg/MagneticField'
@@ -53,6 +61,13 @@ LAYOUT_SAMPLE_LINES = 1000
 BLOCK_LINES = 8192
 """Text lines read and converted at a time: a block of plain numbers is one numpy call, and
 memory holds the samples, never the text or a Python object per value."""
+MAX_LINE_CHARS = 1 << 16
+"""Longest line a text recording may have. Real lines are a few hundred characters (a
+``ros2 topic echo --csv`` of an Imu message about a thousand); a longer one is binary data or a
+NUL-filled tail without line breaks, refused before it fills memory."""
+BLOCK_CHARS = 1 << 22
+"""Most characters held at a time: the layout sample and each block stop here even when their
+lines are long, so the text in memory stays bounded whatever the file."""
 
 SKIP_REASONS = {
     'header': 'header',
@@ -63,6 +78,7 @@ SKIP_REASONS = {
     'non_finite': 'NaN/Inf',
     'out_of_range': f'beyond ±{MAX_READING:.0e} (no magnetometer reads that in any unit)',
     'undecodable': 'undecodable message',
+    'incomplete': 'message without magnetic_field x, y, z',
 }
 """Why a line or message was skipped: key -> words for the summary."""
 
@@ -195,7 +211,8 @@ def read_text_file(
         total = path.stat().st_size
         _refuse_binary(path, head)
         with path.open(encoding='utf-8-sig', errors='replace', newline=None) as stream:
-            return _read_lines(stream, str(path), columns, progress, total)
+            return _read_lines(_bounded_lines(stream, str(path)), str(path), columns, progress,
+                               total)
     except OSError as error:
         raise RecordingError(f'{path}: cannot read ({error.strerror or error})') from error
 
@@ -206,9 +223,69 @@ def read_text(
 ) -> Recording:
     """Read a text recording from an open text stream (stdin, a StringIO ...)."""
     try:
-        return _read_lines(stream, source, columns, progress, None)
+        return _read_lines(_bounded_lines(stream, source), source, columns, progress, None)
     except UnicodeDecodeError as error:
         raise RecordingError(f'{source}: not text ({error.reason})') from error
+
+
+def _bounded_lines(stream: Iterable[str], source: str) -> Iterator[str]:
+    """The stream's lines, each read with a bound: a line longer than MAX_LINE_CHARS raises
+    RecordingError instead of being read whole (a NUL tail is one line of gigabytes)."""
+    readline = getattr(stream, 'readline', None)
+    lines = iter(stream) if readline is None else iter(lambda: readline(MAX_LINE_CHARS + 1), '')
+    for number, line in enumerate(lines, start=1):
+        if len(line) > MAX_LINE_CHARS and not (len(line) == MAX_LINE_CHARS + 1
+                                               and line.endswith('\n')):
+            binary = ' (it holds NUL bytes: binary data)' if '\0' in line else ''
+            raise RecordingError(f'{source}: line {number} is longer than {MAX_LINE_CHARS} '
+                                 f'characters{binary}: not a text recording')
+        yield line
+
+
+def _head(lines: Iterator[str]) -> list[str]:
+    """The first LAYOUT_SAMPLE_LINES lines (fewer when they pass BLOCK_CHARS), to find the
+    layout in; the caller streams the rest from ``lines``."""
+    head: list[str] = []
+    held = 0
+    for line in lines:
+        head.append(line)
+        held += len(line)
+        if len(head) >= LAYOUT_SAMPLE_LINES or held >= BLOCK_CHARS:
+            break
+    return head
+
+
+def _blocks(lines: Iterator[str]) -> Iterator[list[str]]:
+    """Lines in blocks of at most BLOCK_LINES lines and about BLOCK_CHARS characters."""
+    block: list[str] = []
+    held = 0
+    for line in lines:
+        block.append(line)
+        held += len(line)
+        if len(block) >= BLOCK_LINES or held >= BLOCK_CHARS:
+            yield block
+            block, held = [], 0
+    if block:
+        yield block
+
+
+class _GrowingRows:
+    """Rows of ``width`` floats appended block by block into one ``array('d')`` (which grows in
+    place): the samples cost 8 bytes a value while reading, and the result is a view, no copy."""
+
+    def __init__(self, width: int) -> None:
+        self.width = width
+        self.values = array('d')
+
+    def extend(self, rows: np.ndarray | Sequence[Sequence[float]]) -> None:
+        block = np.asarray(rows, dtype=np.float64).reshape(-1, self.width)
+        self.values.frombytes(np.ascontiguousarray(block).tobytes())
+
+    def __len__(self) -> int:
+        return len(self.values) // self.width
+
+    def result(self) -> np.ndarray:
+        return np.frombuffer(self.values, dtype=np.float64).reshape(-1, self.width)
 
 
 def _refuse_binary(path: Path, head: bytes) -> None:
@@ -232,6 +309,8 @@ class TextLayout:
     notes: tuple[str, ...] = ()
     delimiter: str | None = None
     numpy_fields: int | None = None
+    units: str | None = None
+    """The unit the header gives the chosen columns (``Magnetometer X (uT)``), else None."""
 
 
 def _split(line: str) -> list[str]:
@@ -432,11 +511,13 @@ def _inline_labels(tokens: list[str]) -> list[str]:
             else tokens[i - 1].rstrip(':') for i, token in enumerate(tokens)]
 
 
-def detect_layout(lines: list[str], source: str, role: str = 'magnetometer') -> TextLayout:
+def detect_layout(lines: list[str], source: str, role: str = 'magnetometer',
+                  guess: bool = True) -> TextLayout:
     """Which fields hold ``role``'s x, y, z: named by a header or labels when there are any,
-    else the only three numeric fields of the most common data line. Raises RecordingError,
-    naming the candidates, when neither decides (more numeric fields than three and no names,
-    several candidate sets, or names for other sensors only)."""
+    else the only three numeric fields of the most common data line, or (``guess``) the only
+    three that are neither constant nor time stamps (:func:`_axis_candidates`). Raises
+    RecordingError, naming the candidates, when nothing decides (more numeric fields than three
+    and no names, several candidate sets, or names for other sensors only)."""
     found = _data_pattern(lines)
     if found is None:
         raise RecordingError(f'{source}: no line with three numeric fields in the first '
@@ -452,14 +533,25 @@ def detect_layout(lines: list[str], source: str, role: str = 'magnetometer') -> 
                                  '(three header names or zero-based field indices)')
         others = [f'{name} {roles.describe(found)}' for name, found in roles.sensors.items()
                   if name != role and found]
+        units = header_units(roles.labels[chosen])
         notes = (f'{role} columns {roles.labels[chosen]} (fields '
                  f'{",".join(map(str, chosen))}) chosen by their names'
-                 + (f'; ignored {"; ".join(others)}' if others else ''),)
+                 + (f'; ignored {"; ".join(others)}' if others else '')
+                 + (f'; units {units} from the header' if units else ''),)
         return TextLayout(chosen, field_count,
                        f'columns {roles.labels[chosen]} (fields {",".join(map(str, chosen))})',
-                       notes, delimiter, numpy_fields)
+                       notes, delimiter, numpy_fields, units)
     if len(numeric) > 3:
-        example = ','.join(map(str, numeric[-3:]))
+        candidates, ignored = (_axis_candidates(lines, field_count, numeric) if guess
+                               else (numeric, ''))
+        if len(candidates) == 3:
+            fields = ','.join(map(str, candidates))
+            return TextLayout(candidates, field_count, f'fields {fields}',  # type: ignore[arg-type]
+                              (f'fields {fields}: the numeric fields besides {ignored} '
+                               '(choose others with --columns)',),
+                              delimiter, numpy_fields)
+        guesses = candidates if len(candidates) > 3 else numeric
+        example = ','.join(map(str, guesses[-3:]))
         raise RecordingError(
             f'{source}: lines have {len(numeric)} numeric fields '
             f'({",".join(map(str, numeric))}) and no header names the {role} columns: choose '
@@ -468,6 +560,64 @@ def detect_layout(lines: list[str], source: str, role: str = 'magnetometer') -> 
     indices = (numeric[0], numeric[1], numeric[2])
     return TextLayout(indices, field_count, f'fields {",".join(map(str, indices))}', (), delimiter,
                    numpy_fields)
+
+
+_UNIT_WORDS = {
+    **{unit.lower(): unit for unit in TESLA_PER_UNIT},
+    'ut': 'uT', '\u00b5t': 'uT', '\u03bct': 'uT', 'mt': 'mT', 'ga': 'G', 'gauss': 'G',
+    'mgauss': 'mG', 'mga': 'mG',
+}
+"""A header's unit words (any case) -> the unit's name in TESLA_PER_UNIT."""
+
+
+def header_units(labels: str) -> str | None:
+    """The unit that every one of the three comma-joined column names gives in brackets
+    (``Magnetometer X (uT)``, ``mag_x [nT]``), when it is a unit of magnetic field; else None."""
+    found = set()
+    for name in labels.split(','):
+        bracketed = _UNITS.findall(name)
+        if len(bracketed) != 1:
+            return None
+        found.add(_UNIT_WORDS.get(bracketed[0][1:-1].strip().lower()))
+    if len(found) != 1:
+        return None
+    return found.pop()
+
+
+def _axis_candidates(
+    lines: list[str], field_count: int, numeric: tuple[int, ...]
+) -> tuple[tuple[int, ...], str]:
+    """The numeric fields that may be a magnetometer axis, and words for those that may not:
+    fields constant over the lines (a message's covariance, a flag) and clocks (integers that
+    never decrease: time stamps, sequence numbers; nanoseconds beside a seconds stamp)."""
+    rows = []
+    for line in lines:
+        if not line.strip() or _is_comment(line):
+            continue
+        tokens = _split(line)
+        if len(tokens) == field_count:
+            values = [_number(tokens[i]) for i in numeric]
+            if all(value is not None for value in values):
+                rows.append(values)
+    if len(rows) < 3:
+        return numeric, ''
+    table = np.array(rows, dtype=np.float64)
+    with np.errstate(invalid='ignore'):
+        constant = np.all(table == table[0], axis=0)
+        whole = np.all(np.isfinite(table) & (table == np.round(table)), axis=0)
+        clock = whole & ~constant & np.all(np.diff(table, axis=0) >= 0, axis=0)
+        after_stamp = np.zeros(len(numeric), dtype=bool)
+        after_stamp[1:] = whole[:-1] & (clock[:-1] | constant[:-1] & (table[0, :-1] >= 1e8))
+        nanoseconds = (whole & ~constant & after_stamp
+                       & np.all((table >= 0) & (table < 1e9), axis=0))
+    dropped = constant | clock | nanoseconds
+    candidates = tuple(index for index, drop in zip(numeric, dropped, strict=True) if not drop)
+    words = []
+    for mask, what in ((constant, 'constant'), (clock | nanoseconds, 'time stamps')):
+        if mask.any():
+            fields = ','.join(str(i) for i, m in zip(numeric, mask, strict=True) if m)
+            words.append(f'{what} {fields}')
+    return candidates, ' and '.join(words)
 
 
 def _data_pattern(lines: list[str]) -> tuple[int, tuple[int, ...], int] | None:
@@ -547,7 +697,17 @@ def _read_lines(
     progress: ProgressCallback | None, total: int | None,
 ) -> Recording:
     lines = iter(stream)
-    first = list(itertools.islice(lines, LAYOUT_SAMPLE_LINES))
+    first = _head(lines)
+    if _is_topic_echo(first):
+        if columns is not None:
+            raise RecordingError(f'{source}: --columns applies to column text, not to the '
+                                 'messages of ros2 topic echo (read as magnetic_field x, y, z)')
+        return _read_topic_echo(itertools.chain(first, lines), source, progress, total)
+    notes: tuple[str, ...] = ()
+    if _decimal_comma(first):
+        first = [_decimal_point(line) for line in first]
+        lines = map(_decimal_point, lines)
+        notes = ('";"-separated numbers with decimal commas',)
     if columns is not None:
         layout = _explicit_layout(columns, first, source)
     elif not any(line.strip() for line in first):
@@ -555,30 +715,127 @@ def _read_lines(
     else:
         layout = detect_layout(first, source)
     samples, skipped = _parse(itertools.chain(first, lines), layout, progress, total)
-    return Recording(samples, source, 'text', layout.description, skipped, None, layout.notes)
+    return Recording(samples, source, 'text', layout.description, skipped, layout.units,
+                     (*notes, *layout.notes))
 
 
 def _parse(
     lines: Iterator[str], layout: TextLayout, progress: ProgressCallback | None, total: int | None,
 ) -> tuple[np.ndarray, dict[str, int]]:
-    """Every line, BLOCK_LINES at a time: numpy reads a block of plain numeric lines at once,
-    any other block goes line by line (with the same result, see _parse_block)."""
-    parts: list[np.ndarray] = []
+    """Every line, a block at a time (_blocks): numpy reads a block of plain numeric lines at
+    once, any other block goes line by line (with the same result, see _parse_block)."""
+    rows = _GrowingRows(3)
     skipped: Counter[str] = Counter()
     consumed = 0
-    seen_rows = False
-    while block := list(itertools.islice(lines, BLOCK_LINES)):
-        rows, block_skipped = _parse_block(block, layout, seen_rows)
-        seen_rows = seen_rows or len(rows) > 0
-        parts.append(rows)
+    any_block = False
+    for block in _blocks(lines):
+        any_block = True
+        block_rows, block_skipped = _parse_block(block, layout, len(rows) > 0)
+        rows.extend(block_rows)
         skipped.update(block_skipped)
         consumed += sum(map(len, block))
         if progress is not None:
             progress(consumed, total)
-    if progress is not None and not parts:
+    if progress is not None and not any_block:
         progress(consumed, total if total is not None else consumed)
-    samples = np.concatenate(parts) if parts else np.empty((0, 3))
-    return samples, {reason: count for reason, count in skipped.items() if count}
+    return rows.result(), {reason: count for reason, count in skipped.items() if count}
+
+
+_DECIMAL_COMMA = re.compile(r'[+-]?\d*,\d+(?:[eE][+-]?\d+)?')
+
+
+def _decimal_comma(lines: list[str]) -> bool:
+    """Whether the data lines are ``;``-separated numbers with a decimal comma (``12,5;-3,2``:
+    a spreadsheet's CSV where the comma is the decimal mark): most lines with a ``;`` and a
+    comma have commas only inside such numbers."""
+    with_commas = decimal = 0
+    for line in lines:
+        if ';' not in line or ',' not in line or _is_comment(line):
+            continue
+        with_commas += 1
+        cells = [cell.strip().strip('"\'') for cell in line.split(';')]
+        decimal += all(_DECIMAL_COMMA.fullmatch(cell) for cell in cells if ',' in cell)
+    return with_commas > 0 and 2 * decimal > with_commas
+
+
+def _decimal_point(line: str) -> str:
+    return line.replace(',', '.')
+
+
+# --- ros2 topic echo (YAML messages) ---------------------------------------------------------
+
+_ECHO_FIELD = 'magnetic_field:'
+_ECHO_SEPARATOR = '---'
+_YAML_SPECIAL = {'.nan': 'nan', '.inf': 'inf', '+.inf': 'inf', '-.inf': '-inf'}
+
+
+def _is_topic_echo(lines: list[str]) -> bool:
+    """``ros2 topic echo`` of a MagneticField: a top-level ``magnetic_field:`` key and ``---``
+    between messages."""
+    stripped = [line.rstrip() for line in lines]
+    return _ECHO_FIELD in stripped and _ECHO_SEPARATOR in stripped
+
+
+def _read_topic_echo(
+    lines: Iterator[str], source: str, progress: ProgressCallback | None, total: int | None,
+) -> Recording:
+    """``magnetic_field`` x, y, z of every message ``ros2 topic echo`` printed (tesla, REP-103):
+    a message missing one is counted as incomplete, never guessed."""
+    rows = _GrowingRows(3)
+    pending: list[tuple[float, float, float]] = []
+    skipped: Counter[str] = Counter()
+    values: dict[str, float | None] = {}
+    in_field = False
+    started = False
+    consumed = 0
+
+    def finish() -> None:
+        if started or values:
+            row = tuple(values.get(axis) for axis in 'xyz')
+            if any(axis not in values for axis in 'xyz'):
+                skipped['incomplete'] += 1
+            elif any(value is None for value in row):
+                skipped['not_numeric'] += 1
+            else:
+                pending.append(row)  # type: ignore[arg-type]
+        values.clear()
+
+    for line in lines:
+        consumed += len(line)
+        text = line.rstrip()
+        if not text:
+            continue
+        if not text[0].isspace():  # a top-level key (or the separator) ends the field's block
+            in_field = text == _ECHO_FIELD
+            if text == _ECHO_SEPARATOR:
+                finish()
+                started = False
+            else:
+                started = True
+        elif in_field:
+            key, _, value = text.strip().partition(':')
+            if key in ('x', 'y', 'z'):
+                value = value.strip().strip('"\'')
+                values[key] = _number(_YAML_SPECIAL.get(value.lower(), value))
+        if len(pending) >= BLOCK_LINES:
+            _add_screened(rows, pending, skipped)
+            if progress is not None:
+                progress(consumed, total)
+    finish()
+    _add_screened(rows, pending, skipped)
+    if progress is not None:
+        progress(consumed, total if total is not None else consumed)
+    return Recording(rows.result(), source, 'text', 'ros2 topic echo messages (magnetic_field)',
+                     {reason: count for reason, count in skipped.items() if count}, 'T')
+
+
+def _add_screened(rows: _GrowingRows, pending: list[tuple[float, float, float]],
+                  skipped: Counter[str]) -> None:
+    """Move a block of values into ``rows``, NaN/Inf and out-of-range rows dropped, counted."""
+    kept, block_skipped = _screen_rows(np.array(pending, dtype=np.float64).reshape(-1, 3))
+    rows.extend(kept)
+    skipped.update(block_skipped)
+    pending.clear()
 
 
 def _parse_block(
@@ -684,7 +941,7 @@ def read_rosbag(
     if path.is_dir() and not (path / 'metadata.yaml').exists():
         raise RecordingError(f'{path}: a directory but not a rosbag2 bag (no metadata.yaml)')
     typestore = get_typestore(Stores.ROS2_JAZZY)
-    parts: list[np.ndarray] = []
+    samples = _GrowingRows(3)
     rows: list[tuple[float, float, float]] = []
     skipped: Counter[str] = Counter()
     try:
@@ -697,8 +954,7 @@ def read_rosbag(
             for count, (connection, _, rawdata) in enumerate(
                     reader.messages(connections=info.connections), start=1):
                 if count % BLOCK_LINES == 0:
-                    parts.append(_screened(rows, skipped))
-                    rows = []
+                    _add_screened(samples, rows, skipped)
                     if progress is not None:
                         progress(count, total)
                 try:
@@ -713,17 +969,10 @@ def read_rosbag(
         raise
     except (ReaderError, OSError, ValueError, KeyError) as error:
         raise RecordingError(f'{path}: cannot read rosbag2 bag ({_one_line(error)})') from error
-    samples = np.concatenate([*parts, _screened(rows, skipped)])
+    _add_screened(samples, rows, skipped)
     skipped = Counter({reason: count for reason, count in skipped.items() if count})
-    return Recording(samples, str(path), 'rosbag2', f'topic {chosen}', dict(skipped), 'T')
-
-
-def _screened(rows: list[tuple[float, float, float]], skipped: Counter[str]) -> np.ndarray:
-    """A block of message values as an array, NaN/Inf and out-of-range rows dropped and
-    counted."""
-    kept, block_skipped = _screen_rows(np.array(rows, dtype=np.float64).reshape(-1, 3))
-    skipped.update(block_skipped)
-    return kept
+    return Recording(samples.result(), str(path), 'rosbag2', f'topic {chosen}', dict(skipped),
+                     'T')
 
 
 def _choose_topic(path: Path, topics: dict[str, str | None], wanted: str | None) -> str:
@@ -770,7 +1019,8 @@ def read_paired_recording(
     """
     if str(source) == STDIN:
         stream = stdin if stdin is not None else sys.stdin
-        return _read_paired(stream, 'stdin', accel_columns, columns, min_rows, progress, None)
+        return _read_paired(_bounded_lines(stream, 'stdin'), 'stdin', accel_columns, columns,
+                            min_rows, progress, None)
     path = Path(source)
     if is_rosbag(path):
         raise RecordingError(f'{path}: --accel-columns applies to text input, not to a rosbag2 '
@@ -782,8 +1032,8 @@ def read_paired_recording(
             head = probe.read(4096)
         _refuse_binary(path, head)
         with path.open(encoding='utf-8-sig', errors='replace', newline=None) as stream:
-            return _read_paired(stream, str(path), accel_columns, columns, min_rows, progress,
-                                path.stat().st_size)
+            return _read_paired(_bounded_lines(stream, str(path)), str(path), accel_columns,
+                                columns, min_rows, progress, path.stat().st_size)
     except OSError as error:
         raise RecordingError(f'{path}: cannot read ({error.strerror or error})') from error
 
@@ -792,54 +1042,63 @@ def _read_paired(stream: Iterable[str], source: str, accel_columns: str, columns
                  min_rows: int, progress: ProgressCallback | None, total: int | None
                  ) -> Recording:
     lines = iter(stream)
-    first = list(itertools.islice(lines, LAYOUT_SAMPLE_LINES))
-    accel = _explicit_layout(accel_columns, first, source)
+    first = _head(lines)
     notes: tuple[str, ...] = ()
+    if _decimal_comma(first):
+        first = [_decimal_point(line) for line in first]
+        lines = map(_decimal_point, lines)
+        notes = ('";"-separated numbers with decimal commas',)
+    accel = _explicit_layout(accel_columns, first, source)
     if columns is not None:
         mag = _explicit_layout(columns, first, source)
     else:
         try:  # a header naming the magnetometer's columns
-            mag = detect_layout(first, source, 'magnetometer')
-            notes = mag.notes
+            mag = detect_layout(first, source, 'magnetometer', guess=False)
+            notes += mag.notes
         except RecordingError:
             mag = _other_numeric_fields(first, accel.indices, source)
-            notes = (f'magnetometer from {mag.description}, the first numeric fields besides '
-                     'the accelerometer (choose others with --columns)',)
+            notes += (f'magnetometer from {mag.description}, the first numeric fields besides '
+                      'the accelerometer (choose others with --columns)',)
     if set(mag.indices) & set(accel.indices):
         raise RecordingError(f'{source}: the magnetometer fields {mag.description} overlap the '
                              f'accelerometer fields {accel.description}')
     needed = max(*mag.indices, *accel.indices) + 1
     found = _data_pattern(first)
     field_count = None if found is None else found[0]
+    units = mag.units
     mag = TextLayout(mag.indices, field_count, mag.description)
     accel_layout = TextLayout(accel.indices, field_count, accel.description)
-    rows: list[tuple[float, ...]] = []
+    rows = _GrowingRows(6)
     skipped: Counter[str] = Counter()
     consumed = 0
-    for count, line in enumerate(itertools.chain(first, lines), start=1):
-        consumed += len(line)
-        if progress is not None and count % BLOCK_LINES == 0:
+    for block in _blocks(itertools.chain(first, lines)):
+        block_rows: list[tuple[float, ...]] = []
+        for line in block:
+            consumed += len(line)
+            tokens = _data_tokens(line, skipped)
+            if tokens is None:
+                continue
+            reason, field = _parse_line(tokens, mag, needed)
+            specific_force = None
+            if field is not None:
+                reason, specific_force = _parse_line(tokens, accel_layout, needed)
+            if field is not None and specific_force is not None:
+                block_rows.append((*field, *specific_force))
+            else:
+                _count_skipped(skipped, tokens, reason,
+                               before_data=not (block_rows or len(rows)))
+        rows.extend(block_rows)
+        if progress is not None:
             progress(consumed, total)
-        tokens = _data_tokens(line, skipped)
-        if tokens is None:
-            continue
-        reason, field = _parse_line(tokens, mag, needed)
-        specific_force = None
-        if field is not None:
-            reason, specific_force = _parse_line(tokens, accel_layout, needed)
-        if field is not None and specific_force is not None:
-            rows.append((*field, *specific_force))
-        else:
-            _count_skipped(skipped, tokens, reason, before_data=not rows)
     if progress is not None:
         progress(consumed, total if total is not None else consumed)
-    data = np.array(rows, dtype=np.float64).reshape(-1, 6)
+    data = rows.result()
     layout = f'{mag.description}; accelerometer {accel.description}'
     if len(data) < max(min_rows, 1):
         found_rows = 'no usable rows' if len(data) == 0 else f'only {len(data)} usable rows'
         need = f' (need at least {min_rows})' if min_rows > 1 else ''
         raise RecordingError(f'{source}: {found_rows} from {layout}{need}')
-    return Recording(data[:, :3].copy(), source, 'text', layout, dict(skipped), None, notes,
+    return Recording(data[:, :3].copy(), source, 'text', layout, dict(skipped), units, notes,
                      accel=data[:, 3:].copy())
 
 

@@ -115,7 +115,10 @@ def earth_field(latitude: float, longitude: float, altitude_m: float = 0.0,
     spherical-harmonic model (the first call also imports it): call it off the message path."""
     problems = location_problems(latitude, longitude, altitude_m)
     day = as_date(when)
-    if not FIRST_DAY <= day <= LAST_DAY:
+    if day < FIRST_DAY:
+        problems.append(f'{day} is before the validity of {MODEL_NAME} ({FIRST_DAY} to '
+                        f'{LAST_DAY}): the model does not describe the field then')
+    elif day > LAST_DAY:
         problems.append(f'{MODEL_NAME} covers {FIRST_DAY} to {LAST_DAY}, not {day} (a newer '
                         'model package is needed)')
     if problems:

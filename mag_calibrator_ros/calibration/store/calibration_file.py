@@ -21,6 +21,12 @@ regular files of at most ``MAX_FILE_BYTES`` only and parses within fixed limits 
 regular file or a new path, and never writes what loading would refuse. Save and load share
 :func:`resolve_calibration_path`.
 
+The node works in tesla (REP-103). ``calibration.units`` says what the numbers are in: absent or
+``T`` they are used as they are; another unit of magnetic flux density (``uT``, ``nT``, ``G``,
+``mG`` ...: :data:`TESLA_PER_UNIT`) is converted to tesla when the calibration is built, so a
+file ``mag_calibrator_fit`` wrote from a microtesla log loads right; anything else (``input``:
+a recording's raw counts) is refused, because no scale to tesla is known.
+
 The functions keep no state between calls and are thread-safe, so a node can run loads and saves
 on a worker thread, off its message path.
 """
@@ -45,6 +51,7 @@ from mag_calibrator_ros.calibration.fit.calibration import (
     calibration_problems,
     rotation_problems,
 )
+from mag_calibrator_ros.calibration.fit.earth_field import TESLA_PER_UNIT
 from mag_calibrator_ros.calibration.store.params_yaml import (
     MAX_DEPTH,
     MAX_FILE_BYTES,
@@ -69,6 +76,8 @@ DEFAULT_NODE_NAME = 'mag_calibrator'
 SECTION = 'calibration'
 REQUIRED_KEYS = ('offset', 'matrix', 'field_strength')
 ROTATION_KEY = 'rotation'
+UNITS_KEY = 'units'
+TESLA = 'T'
 RESERVED_KEYS = (*REQUIRED_KEYS, 'model', ROTATION_KEY)
 FILE_MODELS = (*MODELS, 'identity')
 """Models a file may name: the fit models and 'identity' (:meth:`Calibration.identity`)."""
@@ -87,7 +96,7 @@ __all__ = [
     'LoadedCalibration',
     'calibration_from_parameters', 'calibration_yaml', 'default_calibration_path',
     'default_load_path', 'load_calibration', 'read_calibration_file', 'remove_stale_temporaries',
-    'resolve_calibration_path', 'save_calibration', 'section_matches',
+    'resolve_calibration_path', 'save_calibration', 'section_matches', 'tesla_per_unit',
 ]
 
 
@@ -217,8 +226,10 @@ def calibration_from_parameters(
     values row-major (or 3x3 nested). ``rotation`` (``calibration.rotation``; also taken from
     ``metadata['rotation']``, where the other ``calibration.*`` parameters arrive) must be a
     proper rotation (9 values row-major, orthonormal, det +1); absent means identity. Metadata
-    keys that are not ROS parameter names are dropped (they could never be saved). Raises
-    :class:`CalibrationError` naming every problem (type, shape, finiteness, definiteness).
+    keys that are not ROS parameter names are dropped (they could never be saved).
+    ``metadata['units']`` other than tesla converts the calibration to tesla (and says ``T``)
+    or is refused: :func:`tesla_per_unit`. Raises :class:`CalibrationError` naming every problem
+    (type, shape, finiteness, definiteness, units).
     """
     problems: list[str] = []
     offset_values = _numbers(offset, 'offset', 3, problems)
@@ -234,13 +245,41 @@ def calibration_from_parameters(
         given = extra.pop(ROTATION_KEY)
         rotation = given if rotation is None else rotation
     rotation_values = None if rotation is None else _rotation(rotation, problems)
+    scale = 1.0
+    if UNITS_KEY in extra:
+        try:
+            scale = tesla_per_unit(extra[UNITS_KEY])
+        except ValueError as error:
+            problems.append(str(error))
     if not problems:
         problems = calibration_problems(offset_values, np.reshape(matrix_values, (3, 3)), strength)
     if problems:
         raise CalibrationError('; '.join(problems))
-    return Calibration(
+    calibration = Calibration(
         np.array(offset_values), np.reshape(matrix_values, (3, 3)), strength, model, extra,
         None if rotation_values is None else np.reshape(rotation_values, (3, 3)),
+    )
+    if scale == 1.0:
+        return calibration
+    return calibration.scaled(scale).with_metadata(**{UNITS_KEY: TESLA})
+
+
+def tesla_per_unit(units: Any) -> float:
+    """Tesla per unit of a calibration's ``units`` ('uT' -> 1e-6, 'T' -> 1).
+
+    Raises ``ValueError`` for anything that is not a unit of magnetic flux density: numbers in
+    a recording's own units ('input', 'counts') would be read as tesla, off by the sensor's
+    scale (a raw-count offset of 222925 read as 222925 T), so such a file must be fitted again
+    with the scale stated.
+    """
+    if isinstance(units, str) and units in TESLA_PER_UNIT:
+        return TESLA_PER_UNIT[units]
+    known = ', '.join(sorted({'T', 'mT', 'uT', 'nT', 'G', 'mG'}))
+    raise ValueError(
+        f'{SECTION}.{UNITS_KEY} is {short_repr(units)}, not a unit of magnetic field ({known}): '
+        f"the numbers are in a recording's own units and the node works in tesla; fit again "
+        f"with mag_calibrator_fit --units (the recording's unit) or --scale TESLA_PER_COUNT, "
+        f'or set {SECTION}.{UNITS_KEY} to the unit the numbers are in'
     )
 
 
@@ -507,6 +546,10 @@ def _section_calibration(
         )
     except CalibrationError as error:
         raise CalibrationFileError(f'{shown}: {error}') from None
+    units = metadata.get(UNITS_KEY, TESLA)
+    if units != TESLA:
+        notes.append(f'converted from {units} to tesla ({SECTION}.{UNITS_KEY}: {units!r}; '
+                     f'x {tesla_per_unit(units):g})')
     return calibration, tuple(used), tuple(notes)
 
 
