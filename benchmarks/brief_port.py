@@ -2,8 +2,8 @@
 
 This is the yardstick issue #2 measures the engine against, so it reproduces the original's
 behaviour, quirks included, rather than fixing them (the fixes live in
-``mag_calibrator_ros.calibration``). Source: the report's listings of ``evaluate_sample_vec`` and
-``perform_calibration`` (../shared/brief/) and ``src/lib.rs`` of mag-calibrator-rs.
+``mag_calibrator_ros.calibration``). Source: ``evaluate_sample_vec`` and ``perform_calibration``
+in ``src/lib.rs`` of peterkrull/mag-calibrator-rs.
 
 What is ported, one function per Rust method:
 

@@ -136,7 +136,7 @@ def test_rotate_and_calibrate_turns_the_robot_until_calibrated_and_stops(ros, tm
     error = heading_error_deg(calibrator.session.calibration, seed=SIM_SEED)
     print(f'rotate_and_calibrate: {message}; turned {turned:.0f} deg; heading error '
           f'{error:.2f} deg RMS (noise-free, over a turn)')
-    assert error < 3.0  # 2 deg of heading-locked wobble at 60 deg: see README "Ground robots"
+    assert error < 3.0  # 2 deg of heading-locked wobble at 60 deg: fit/levelled.py
     remove_all(ros, commander, calibrator, driver)
 
 

@@ -1,4 +1,4 @@
-"""Calibration engine: pure numpy/scipy, no rclpy (DESIGN.md §2)."""
+"""Calibration engine: pure numpy/scipy, no rclpy (docs/ARCHITECTURE.md)."""
 
 from mag_calibrator_ros.calibration.fit.calibration import (
     MODELS,

@@ -1,4 +1,4 @@
-"""ICM-20948 and AK09916 register map (TDK DS-000189, AKM AK09916 datasheet; DESIGN.md §5).
+"""ICM-20948 and AK09916 register map (TDK DS-000189, AKM AK09916 datasheet).
 
 One place for every address, bit, scale and timing the driver and the simulator share, so the
 model of the chip and the code that talks to it cannot drift apart.

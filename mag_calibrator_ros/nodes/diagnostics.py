@@ -1,4 +1,4 @@
-"""diagnostic_msgs helpers (no diagnostic_updater wheel exists for the venv path, DESIGN.md §4)."""
+"""diagnostic_msgs helpers (diagnostic_updater has no PyPI wheel for Jazzy)."""
 
 from __future__ import annotations
 

@@ -5,8 +5,8 @@ Wiring only: parameters -> ``Icm20948Supervisor`` (bring-up, polling, fault reco
 ``backend: sim`` the bus is the register-level ``SimulatedIcm20948Bus`` (tests, demo, no hardware).
 
 Why a thread and not a timer: at kHz poll rates the executor's per-tick overhead alone would take
-a large share of a core (docs/ARCHITECTURE.md, Node contracts); the supervisor's loop sleeps until
-its next poll. Publishers are thread-safe.
+a large share of a core (docs/ARCHITECTURE.md, "Threads and processes"); the
+supervisor's loop sleeps until its next poll. Publishers are thread-safe.
 
 Published topics (relative, REP-145; reliable, volatile, depth 10, as REP-2003 asks of drivers;
 one frame for all three, the ICM-20948 accel/gyro frame, with the magnetometer axes already

@@ -1,4 +1,4 @@
-"""The calibration file: a ROS 2 parameters YAML (DESIGN.md §3), saved atomically, read bounded.
+"""The calibration file: a ROS 2 parameters YAML, saved atomically, read bounded.
 
 ::
 
