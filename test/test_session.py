@@ -11,14 +11,13 @@ import numpy as np
 import pytest
 
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
-from mag_calibrator_ros.calibration.live.evidence import HOLD_OUT_EVERY
+from mag_calibrator_ros.calibration.live.evidence import HOLD_OUT_EVERY, magnitude_residual_pct
 from mag_calibrator_ros.calibration.live.jobs import FitJob, JobOutcome, run_job
 from mag_calibrator_ros.calibration.live.session import (
     DRAIN_FOR_REQUEST,
     DRAIN_PER_MESSAGE,
     REFUSAL_REASONS,
     CalibrationSession,
-    magnitude_residual_pct,
     transform_covariance,
 )
 from mag_calibrator_ros.calibration.live.settings import AK09916_FULL_SCALE_T, SessionSettings

@@ -53,6 +53,7 @@ from mag_calibrator_ros.calibration.live.pairing import (
     RateMeter,
     up_direction,
 )
+from mag_calibrator_ros.calibration.live.reference import BufferReference
 from mag_calibrator_ros.calibration.live.report import CalibrationAttempt
 from mag_calibrator_ros.calibration.live.scheduler import (
     CHECK_FIT_PERIOD_S,
@@ -62,7 +63,7 @@ from mag_calibrator_ros.calibration.live.scheduler import (
 )
 from mag_calibrator_ros.calibration.live.screening import SCREEN_REASONS, ReadingScreen
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
-from mag_calibrator_ros.calibration.live.tracker import OnlineTracker
+from mag_calibrator_ros.calibration.live.tracker import OnlineTracker, new_direction
 from mag_calibrator_ros.calibration.live.verdicts import (
     Verdict,
     automatic_verdict,
@@ -95,11 +96,6 @@ DRAIN_FOR_REQUEST = 64
 """Held readings a poll feeds while a ~/calibrate waits for them (its fit includes every reading
 received before the call): a user waits, so the backlog of a slow worker goes first."""
 
-STALE_SHARE = 0.5
-"""When the buffer's reference refuses more than half of a window of readings it no longer
-describes the sensor (moved, re-mounted, another sensor's file): it is set aside rather than
-starving the buffer of the data a new calibration needs."""
-
 REPORTED_COVERAGE_AGE_S = 2.0 * CHECK_FIT_PERIOD_S
 """Stream seconds a coverage measured by the fit worker stands for the buffer's in reports: a
 check measures it every CHECK_FIT_PERIOD_S while calibrated, a readiness test every
@@ -107,11 +103,6 @@ CHECK_PERIOD_S while calibrating automatically."""
 
 PERIODIC_S = 1.0
 """Stream seconds between updates of the field's centre (for filing evidence by direction)."""
-
-TRACKING_MIN_SEPARATION_DEG = 6.0
-"""A reading teaches the tracker only when its corrected direction is at least this far from the
-last one that did (ArduPilot accepts samples about 6 deg apart). A robot standing still next to a
-disturbance would otherwise pull the calibration toward fitting that one direction."""
 
 MAX_EVENTS = 1000
 
@@ -142,14 +133,6 @@ class SessionEvent:
     adopted: bool = False
     ticket: int | None = None
     attempt: CalibrationAttempt | None = None
-
-
-def magnitude_residual_pct(calibration: Calibration, samples: np.ndarray) -> float:
-    """RMS of ``|corrected| - F`` as a percentage of F: the engine's residual measure."""
-    if len(samples) == 0:
-        return math.inf
-    magnitudes = np.linalg.norm(calibration.apply(samples), axis=1)
-    return float(100.0 * np.sqrt(np.mean((magnitudes / calibration.field_strength - 1.0) ** 2)))
 
 
 def transform_covariance(matrix: np.ndarray, covariance: Sequence[float]) -> np.ndarray:
@@ -205,10 +188,7 @@ class CalibrationSession:
         self.tracked_updates = 0
         self._last_taught: np.ndarray | None = None  # corrected direction last fed to the tracker
         self._last_tracking_check: float | None = None
-        self._reference_source: str | None = None  # 'fit' or 'calibration': the buffer's
-        self._provisional: Calibration | None = None  # the latest sane reference fit
-        self._reference_window = (0, 0)
-        self._centre: np.ndarray | None = None  # the field's centre in raw units, for evidence
+        self.buffer_reference = BufferReference(self.buffer)
         self._held: deque[tuple[np.ndarray, int, Pair | None]] = deque()
         self._job: FitJob | None = None
         self._job_epoch = 0
@@ -222,8 +202,6 @@ class CalibrationSession:
         self._events: deque[SessionEvent] = deque(maxlen=MAX_EVENTS)
         self._reported_rejects = dict(self.screen.counts)
         self._latest: np.ndarray | None = None  # the latest accepted reading (heading hints)
-        self._plane: PlaneWatch | None = None  # a planar calibration's plane, while screened by it
-        self._calibration_plane: PlaneWatch | None = None  # the plane of a planar one in force
         self._looked_at: np.ndarray | None = None  # the latest reading at the previous look
         self._turning = 0  # the way the heading last moved between two looks (+1 / -1)
         self.attitudes = StaticAttitudes()
@@ -267,8 +245,9 @@ class CalibrationSession:
     # 2. pair:     pairing.ImuPairing gives it the accelerometer sample taken with it, when an
     #              IMU feeds ``process_imu``.
     # 3. learn:    ``_ingest``: a held-out share goes to evidence.HeldOutEvidence (to judge
-    #              calibrations on), the rest to buffer.SampleBuffer and the tracker, a paired
-    #              still one to alignment.StaticAttitudes. While a fit runs, readings wait in
+    #              calibrations on), the rest to buffer.SampleBuffer (screened by
+    #              reference.BufferReference) and the tracker, a paired still one to
+    #              alignment.StaticAttitudes. While a fit runs, readings wait in
     #              ``_hold`` and are fed afterwards in order (``_advance``), so the result does not
     #              depend on how long the fit took.
     # 4. correct:  the calibration in force (``Calibration.apply``) corrects it.
@@ -309,8 +288,8 @@ class CalibrationSession:
     def process_imu(self, stamp_ns: int, frame_id: str, accel: Sequence[float],
                     gyro: Sequence[float] | None = None) -> bool:
         """Keep one accelerometer (and gyroscope, rad/s) sample to pair magnetometer readings
-        with (``ImuPairing.add``); False when refused. The frame is the IMU's, for the caller's
-        symmetry with ``process``: the alignment finds the rotation between the two."""
+        with (``ImuPairing.add``); False when refused. ``frame_id`` is not needed: the
+        alignment finds the rotation between the IMU's frame and the magnetometer's."""
         return self.pairing.add(stamp_ns, accel, gyro)
 
     def set_earth_field(self, field: EarthField | None) -> None:
@@ -359,19 +338,22 @@ class CalibrationSession:
         # Evidence judges a calibration: none yet, none needed. The draw is pseudo-random (and
         # deterministic), so a recording replayed again holds out other readings.
         if self.calibration is not None and self._hold_out.random() * HOLD_OUT_EVERY < 1.0:
-            self.evidence.add(reading, self._direction(reading), now)
+            self.evidence.add(reading, self.buffer_reference.direction(reading), now)
         else:
-            if self._plane is not None and self._plane.add(reading):
+            if self.buffer_reference.left_plane(reading):
                 self._leave_plane()
             outcome = self.buffer.add(reading, None if pair is None else up_direction(pair[0]))
             if outcome in self.refusals:
                 self.refusals[outcome] += 1
             else:
                 self.scheduler.sample_added(self.buffer.fill == self.buffer.capacity)
-            if self._reference_source is not None:
+            if self.buffer_reference.source is not None:
                 self._check_reference()
-            if self.tracker is not None and self._teaches_tracker(reading):
-                self.tracker.update(reading)
+            if self.tracker is not None:
+                direction = new_direction(self.calibration.apply(reading), self._last_taught)
+                if direction is not None:
+                    self._last_taught = direction
+                    self.tracker.update(reading)
         if now >= self._next_periodic:
             self._next_periodic = now + PERIODIC_S
             self._update_centre()
@@ -380,15 +362,6 @@ class CalibrationSession:
             if kind is not None:
                 self._submit(kind)
 
-    def _direction(self, reading: np.ndarray) -> np.ndarray:
-        """Where a reading points from the field's centre, for filing it as evidence. The centre
-        comes from the buffer (its own fit, else the mean of its spread-out samples), never from
-        the calibration in force: a wrong calibration must not make all evidence look alike."""
-        if self._centre is None:
-            return reading
-        direction = reading - self._centre
-        return direction if np.any(direction) else reading
-
     def _update_centre(self) -> None:
         radius = 0.0
         if self.calibration is not None:
@@ -396,12 +369,7 @@ class CalibrationSession:
         elif self.buffer.fill >= 10:
             radius = self.buffer.field_radius()
         self.attitudes.field_scale = radius if radius > 0.0 else None
-        if self._reference_source == 'fit':
-            self._centre = self.buffer.reference.offset
-        elif self.buffer.fill >= 10:
-            self._centre = self.buffer.anchors.mean(axis=0)
-        else:
-            self._centre = None
+        self.buffer_reference.update_centre()
 
     def _situation(self, now: float) -> Situation:
         settings = self.settings
@@ -437,11 +405,12 @@ class CalibrationSession:
         samples, weights, readings = buffer.samples, buffer.counts, buffer.readings
         if kind == 'reference':
             return FitJob('reference', samples, weights, readings, REFERENCE_OPTIONS,
-                          previous=self._provisional)
+                          previous=self.buffer_reference.provisional)
         if kind == 'check':
             recent = self.evidence.readings(since_s=self.clock.now - MISFIT_WINDOW_S)
-            if self._calibration_plane is not None:  # a planar one knows nothing off its plane
-                recent = recent[self._calibration_plane.near(recent)]
+            plane = self.buffer_reference.calibration_plane
+            if plane is not None:  # a planar one knows nothing off its plane
+                recent = recent[plane.near(recent)]
             tracked = None if self.tracker is None else self.tracker.calibration
             return FitJob('check', samples, weights, readings, self.settings.fit_options(),
                           current=self.calibration, evidence=self.evidence.readings(),
@@ -539,8 +508,8 @@ class CalibrationSession:
         self.scheduler.reference_done(fit is not None and fit.settled)
         if fit is None:
             return
-        self._provisional = fit.calibration
-        self._set_reference(fit.calibration, fit.tolerance, 'fit')
+        self.buffer_reference.provisional = fit.calibration
+        self.buffer_reference.set(fit.calibration, fit.tolerance, 'fit')
 
     def _check_done(self, outcome: JobOutcome) -> None:
         """The calibration in force judged on recent evidence: misfit, and online tracking."""
@@ -633,40 +602,29 @@ class CalibrationSession:
         steps it towards the tracker's (counted in ``tracked_updates``; the buffer's reference
         follows when it is the calibration in force)."""
         self.calibration = calibration
+        reference = self.buffer_reference
         if source == 'tracking':
             self.tracked_updates += 1
-            if self._reference_source == 'calibration':
-                self._set_reference(calibration, None, 'calibration')
+            if reference.source == 'calibration':
+                reference.set(calibration, None, 'calibration')
             return
         if source != 'realign':
-            self._calibration_plane = None
+            reference.calibration_plane = None
             if calibration.model == 'planar':
-                self._calibration_plane = PlaneWatch.of(calibration.metadata.get('plane_normal'),
-                                                        self.buffer.samples)
+                reference.calibration_plane = PlaneWatch.of(
+                    calibration.metadata.get('plane_normal'), self.buffer.samples)
             self.adoptions[source] = self.adoptions.get(source, 0) + 1
             self.misfit.reset()
             self.scheduler.calibration_changed()
-            if self._reference_source != 'fit':
-                self._set_reference(calibration, None, 'calibration')
+            if reference.source != 'fit':
+                reference.set(calibration, None, 'calibration')
         self._restart_tracker()
-
-    def _set_reference(self, calibration: Calibration | None, tolerance: float | None,
-                       source: str | None) -> None:
-        self._plane = self._calibration_plane if source == 'calibration' else None
-        if calibration is None:
-            self.buffer.set_reference(None)
-        elif tolerance is None:
-            self.buffer.set_reference(calibration)
-        else:
-            self.buffer.set_reference(calibration, tolerance, merge=source == 'fit')
-        self._reference_source = source if calibration is not None else None
-        self._reference_window = (0, 0)
 
     def _leave_plane(self) -> None:
         """The sensor left the plane its planar calibration was turned in: stop screening the
         buffer by it (it knows nothing off the plane) and refine from the first interval, so a
         full calibration is collected and judged at once. The planar one stays in force."""
-        self._set_reference(None, None, None)
+        self.buffer_reference.set(None, None, None)
         self.scheduler.calibration_changed()
         self._event('info', 'the sensor moved out of the plane it was calibrated turning in: '
                             'collecting in 3-D for a full calibration (keep turning it through '
@@ -675,19 +633,11 @@ class CalibrationSession:
 
     def _check_reference(self) -> None:
         """Set the buffer's reference aside once it refuses most of a window of readings."""
-        checked, outliers = self.buffer.reference_checks
-        start_checked, start_outliers = self._reference_window
-        window = checked - start_checked
-        if window < max(100, self.buffer.capacity):
+        stale = self.buffer_reference.stale()
+        if stale is None:
             return
-        refused = outliers - start_outliers
-        self._reference_window = (checked, outliers)
-        if refused <= STALE_SHARE * window:
-            return
-        source = self._reference_source
-        self._set_reference(None, None, None)
+        source, refused, window = stale
         if source == 'fit':
-            self._provisional = None
             self.scheduler.reference_done(False)
         what = 'its own fit' if source == 'fit' else 'the calibration in force'
         self._event('info', f'the buffer stopped screening by {what}: it refused {refused} of '
@@ -700,8 +650,8 @@ class CalibrationSession:
         self._measured_coverage = None
         self.evidence.forget_before(now - MISFIT_WINDOW_S)
         self.scheduler.reset()
-        self._provisional = None
-        self._set_reference(None, None, None)
+        self.buffer_reference.provisional = None
+        self.buffer_reference.set(None, None, None)
         self.attitudes.clear()
 
     # -- online tracking -----------------------------------------------------------------------
@@ -713,20 +663,6 @@ class CalibrationSession:
             self.tracker = OnlineTracker(self.calibration)
         else:
             self.tracker = None
-
-    def _teaches_tracker(self, reading: np.ndarray) -> bool:
-        """Whether this reading points somewhere new (see TRACKING_MIN_SEPARATION_DEG)."""
-        direction = self.calibration.apply(reading)
-        norm = float(np.linalg.norm(direction))
-        if not norm > 0.0:
-            return False
-        direction /= norm
-        if self._last_taught is not None and float(direction @ self._last_taught) > math.cos(
-            math.radians(TRACKING_MIN_SEPARATION_DEG)
-        ):
-            return False
-        self._last_taught = direction
-        return True
 
     # -- state, reset --------------------------------------------------------------------------
 
@@ -758,8 +694,9 @@ class CalibrationSession:
         self._held.clear()
         self._ingested = self.accepted  # what was held is dropped: requests need not wait for it
         self._epoch += 1
-        self._provisional = None
-        self._set_reference(self.calibration, None, 'calibration' if self.calibration else None)
+        self.buffer_reference.provisional = None
+        self.buffer_reference.set(self.calibration, None,
+                                  'calibration' if self.calibration else None)
         self._restart_tracker()
         self.attitudes.clear()
         self.pairing.clear()
@@ -900,6 +837,5 @@ __all__ = [
     'CalibrationSession',
     'Processed',
     'SessionEvent',
-    'magnitude_residual_pct',
     'transform_covariance',
 ]
