@@ -35,7 +35,8 @@ from scipy.spatial import cKDTree
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
 from mag_calibrator_ros.calibration.fit.fitting import FitOptions, fit_calibration
 from mag_calibrator_ros.calibration.live.buffer import SampleBuffer
-from mag_calibrator_ros.calibration.live.session import CalibrationSession, SessionSettings
+from mag_calibrator_ros.calibration.live.session import CalibrationSession
+from mag_calibrator_ros.calibration.live.settings import SessionSettings
 from mag_calibrator_ros.calibration.live.tracker import OnlineTracker
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the benchmark's own modules

@@ -42,7 +42,7 @@ def test_live_alignment_to_the_imu_with_the_world_magnetic_model(ros, tmp_path):
         ready = wait_for(lambda: session.attitudes.fill >= 10 and session.earth is not None
                          and session.buffer.coverage().fraction >= 0.5, timeout_s=90.0)
         assert ready, (f'not ready: {session.progress_text()}, {session.attitudes.fill} '
-                       f'attitudes, paired {session.paired} of {session.accepted}')
+                       f'attitudes, paired {session.pairing.paired} of {session.accepted}')
         response = probe.call('mag_calibrator/calibrate')
         assert response.success, response.message
         assert 'aligned to the IMU' in response.message
@@ -53,7 +53,7 @@ def test_live_alignment_to_the_imu_with_the_world_magnetic_model(ros, tmp_path):
         model = earth_field(*BERLIN)
         assert calibration.field_strength == pytest.approx(model.intensity_nt * 1e-9)
         assert calibration.metadata['dip_deg'] == pytest.approx(model.inclination_deg, abs=0.3)
-        assert session.paired > 0.9 * session.accepted  # 225 Hz IMU: every reading pairs
+        assert session.pairing.paired > 0.9 * session.accepted  # 225 Hz IMU: every reading pairs
         # The corrected stream is the true field in the IMU frame.
         probe.take_corrected()
         assert wait_for(lambda: len(probe.corrected) >= 50)
@@ -89,7 +89,7 @@ def test_the_first_gps_fix_locates_the_calibrator_and_use_imu_false_ignores_the_
     try:
         session = calibrator.session
         assert wait_for(lambda: session.accepted > 50)
-        assert session.imu_accepted == 0 and session.paired == 0
+        assert session.pairing.accepted == 0 and session.pairing.paired == 0
         assert wait_for(lambda: publisher.get_subscription_count() >= 1)
         fix = NavSatFix()
         fix.status.status = NavSatStatus.STATUS_NO_FIX

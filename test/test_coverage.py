@@ -28,7 +28,8 @@ from mag_calibrator_ros.calibration.fit.coverage import (
     whitened_directions,
 )
 from mag_calibrator_ros.calibration.fit.heading import TURN_STILL_HINT
-from mag_calibrator_ros.calibration.live.session import CalibrationSession, SessionSettings
+from mag_calibrator_ros.calibration.live.session import CalibrationSession
+from mag_calibrator_ros.calibration.live.settings import SessionSettings
 from mag_calibrator_ros.sim.motion import body_field_samples
 
 sys.path.insert(0, str(Path(__file__).parent))

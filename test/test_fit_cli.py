@@ -19,7 +19,8 @@ import yaml
 
 from mag_calibrator_ros.calibration.fit.fitting import FitOptions, fit_calibration
 from mag_calibrator_ros.calibration.live.screening import reading_problem
-from mag_calibrator_ros.calibration.live.session import CalibrationSession, SessionSettings
+from mag_calibrator_ros.calibration.live.session import CalibrationSession
+from mag_calibrator_ros.calibration.live.settings import SessionSettings
 from mag_calibrator_ros.calibration.store.calibration_file import load_calibration
 from mag_calibrator_ros.tools import fit
 from mag_calibrator_ros.tools.fit import main

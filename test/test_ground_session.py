@@ -12,7 +12,8 @@ import pytest
 
 from mag_calibrator_ros.calibration.fit.fitting import FitOptions
 from mag_calibrator_ros.calibration.live.jobs import FitJob, readiness, run_job
-from mag_calibrator_ros.calibration.live.session import CalibrationSession, SessionSettings
+from mag_calibrator_ros.calibration.live.session import CalibrationSession
+from mag_calibrator_ros.calibration.live.settings import SessionSettings
 from mag_calibrator_ros.sim import motion
 
 sys.path.insert(0, str(Path(__file__).parent))

@@ -14,7 +14,8 @@ from mag_calibrator_ros.calibration.fit.ellipsoid import fit_ellipsoid
 from mag_calibrator_ros.calibration.fit.fitting import FitOptions, fit_calibration
 from mag_calibrator_ros.calibration.fit.levelled import level_planar
 from mag_calibrator_ros.calibration.live.buffer import SampleBuffer
-from mag_calibrator_ros.calibration.live.session import CalibrationSession, calibration_summary
+from mag_calibrator_ros.calibration.live.report import calibration_summary
+from mag_calibrator_ros.calibration.live.session import CalibrationSession
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_ground_session import heading_error_deg  # noqa: E402

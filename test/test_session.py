@@ -11,20 +11,17 @@ import numpy as np
 import pytest
 
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
-from mag_calibrator_ros.calibration.live.evidence import HOLD_OUT_EVERY
+from mag_calibrator_ros.calibration.live.evidence import HOLD_OUT_EVERY, magnitude_residual_pct
 from mag_calibrator_ros.calibration.live.jobs import FitJob, JobOutcome, run_job
 from mag_calibrator_ros.calibration.live.session import (
-    AK09916_FULL_SCALE_T,
     DRAIN_FOR_REQUEST,
     DRAIN_PER_MESSAGE,
     REFUSAL_REASONS,
     CalibrationSession,
-    SessionSettings,
-    bounded_step,
-    coverage_kept,
-    magnitude_residual_pct,
     transform_covariance,
 )
+from mag_calibrator_ros.calibration.live.settings import AK09916_FULL_SCALE_T, SessionSettings
+from mag_calibrator_ros.calibration.live.verdicts import bounded_step, coverage_kept
 from mag_calibrator_ros.sim import motion
 
 FIELD_T = 50e-6

@@ -12,13 +12,10 @@ import pytest
 from mag_calibrator_ros.calibration.fit.alignment import rotation_angle_deg
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
 from mag_calibrator_ros.calibration.fit.earth_field import EarthField
-from mag_calibrator_ros.calibration.live.session import (
-    PAIR_TOLERANCE_NS,
-    CalibrationSession,
-    SessionSettings,
-    calibration_summary,
-    transform_covariance,
-)
+from mag_calibrator_ros.calibration.live.pairing import PAIR_TOLERANCE_NS
+from mag_calibrator_ros.calibration.live.report import calibration_summary
+from mag_calibrator_ros.calibration.live.session import CalibrationSession, transform_covariance
+from mag_calibrator_ros.calibration.live.settings import SessionSettings
 from mag_calibrator_ros.sim.board import BoardModel, board_readings
 from mag_calibrator_ros.sim.config import SimConfig
 
@@ -59,7 +56,7 @@ def test_a_misaligned_magnetometer_is_aligned_to_the_imu(misaligned):
     assert rotation_angle_deg(calibration.rotation @ board.mag_misalignment.T) < 0.2
     assert calibration.metadata['dip_deg'] == pytest.approx(60.0, abs=0.2)
     assert calibration.metadata['dip_std_deg'] < 0.3
-    assert session.paired == session.accepted == len(misaligned[0])
+    assert session.pairing.paired == session.accepted == len(misaligned[0])
     assert calibration_summary(calibration).endswith('rotated 3.00 deg into the IMU frame') or (
         'rotated 2.9' in calibration_summary(calibration))
     values = session.diagnostic_values(1.0)
@@ -83,7 +80,7 @@ def test_without_an_imu_nothing_changes(misaligned):
     without.feed(mag, RATE_HZ, frame_id='imu_link')
     attempt = without.calibrate_now()
     assert attempt.success and 'aligned' not in attempt.message
-    assert not without.calibration.aligned and without.paired == 0
+    assert not without.calibration.aligned and without.pairing.paired == 0
     np.testing.assert_array_equal(without.calibration.offset, with_imu.calibration.offset)
     assert 'static_attitudes' not in without.diagnostic_values(1.0)
 
@@ -150,14 +147,14 @@ def test_imu_samples_pair_by_nearest_stamp_and_bad_ones_are_refused():
     assert not session.process_imu(0, 'imu_link', (math.nan, 0.0, 9.8))
     assert not session.process_imu(0, 'imu_link', (0.0, 0.0, 0.0))
     assert not session.process_imu(0, 'imu_link', 'garbage')
-    assert session.imu_refused == 3
+    assert session.pairing.refused == 3
     assert session.process_imu(1_000_000, 'imu_link', (0.0, 0.0, 9.8), (math.inf, 0, 0))
     assert session.process_imu(11_000_000, 'imu_link', (0.0, 1.0, 9.8), (0.0, 0.0, 0.0))
-    assert session._pair(9_000_000) == ((0.0, 1.0, 9.8), (0.0, 0.0, 0.0))
-    assert session._pair(2_000_000) == ((0.0, 0.0, 9.8), None)  # a NaN/Inf gyro is no gyro
-    assert session._pair(11_000_000 + PAIR_TOLERANCE_NS + 1) is None
+    assert session.pairing.pair(9_000_000) == ((0.0, 1.0, 9.8), (0.0, 0.0, 0.0))
+    assert session.pairing.pair(2_000_000) == ((0.0, 0.0, 9.8), None)  # a NaN/Inf gyro is no gyro
+    assert session.pairing.pair(11_000_000 + PAIR_TOLERANCE_NS + 1) is None
     session.reset()
-    assert session._pair(11_000_000) is None
+    assert session.pairing.pair(11_000_000) is None
 
 
 def test_field_radius_is_the_raw_ellipsoid_mean_radius():

@@ -124,12 +124,8 @@ from mag_calibrator_ros.calibration.fit.earth_field import (
     EarthFieldError,
     earth_field,
 )
-from mag_calibrator_ros.calibration.live.session import (
-    CalibrationSession,
-    calibration_summary,
-    transform_covariance,
-)
-from mag_calibrator_ros.calibration.live.view import calibration_view
+from mag_calibrator_ros.calibration.live.report import calibration_summary
+from mag_calibrator_ros.calibration.live.session import CalibrationSession, transform_covariance
 from mag_calibrator_ros.calibration.live.worker import ProcessRunner
 from mag_calibrator_ros.calibration.store.calibration_file import (
     CalibrationFileError,
@@ -550,9 +546,7 @@ class MagCalibratorNode(Node):
         if period <= 0.0 or now - self._last_view < period or not self._view.watched:
             return
         self._last_view = now
-        buffer = self.session.buffer
-        view = calibration_view(buffer.samples, buffer.counts, self.session.calibration)
-        self._view.publish(view, self.session.screen.frame_id or 'imu_link',
+        self._view.publish(self.session.view(), self.session.frame_id or 'imu_link',
                            float(self.get_parameter('view_scale').value))
 
     def _log_progress(self, now: float, coverage: Coverage) -> None:
@@ -563,7 +557,7 @@ class MagCalibratorNode(Node):
             return  # the rotation logs its own progress
         if now - self._last_progress_log >= period:
             self._last_progress_log = now
-            if self.session.input_rate.rate == 0.0:
+            if self.session.input_rate_hz == 0.0:
                 self.get_logger().info(self._no_input_text())
             else:
                 self.get_logger().info(self.session.progress_text(coverage))
@@ -579,31 +573,15 @@ class MagCalibratorNode(Node):
         values.update(self._rotation.diagnostic_values(now))
         if self._location_source:
             values['location_source'] = self._location_source
-        state = self.session.state
-        if self._problem is not None:
-            level, message = ERROR, self._problem
-        elif refused := self.session.new_screen_rejects():
-            counts = ', '.join(f'{reason} {count}' for reason, count in refused.items())
-            level, message = WARN, f'{state}: input messages refused since last report: {counts}'
-        elif state == 'calibrated-misfit':
-            level, message = WARN, self.session.misfit_text()
-        elif state.startswith('calibrated') and (warning := self.session.earth_warning()):
-            level, message = WARN, f'{state}: {warning}'
-        elif state.startswith('calibrated') and (warning := self.session.alignment_warning()):
-            level, message = WARN, f'{state}: {warning}'
-        elif state.startswith('calibrated'):
-            level, message = OK, self.session.progress_text(coverage)
-        elif values['input_rate_hz'] == 0.0:
-            level, message = WARN, f'{state}: {self._no_input_text()}'
-        else:
-            level, message = WARN, f'{state}: {self.session.progress_text(coverage)}'
+        level, message = self.session.diagnostics_level(
+            coverage, values['input_rate_hz'], self._problem, self._no_input_text())
         # Names and hardware ids carry the namespace: robots on one host stay apart.
         topic = self.resolve_topic_name('imu/mag')
-        frame = self.session.screen.frame_id
+        frame = self.session.frame_id
         hardware_id = f'{topic} ({frame})' if frame else topic
         self._diagnostics.publish([
             diagnostic_status(f'{self.get_fully_qualified_name()}: calibration', hardware_id,
-                              level, message, values)
+                              {'OK': OK, 'WARN': WARN, 'ERROR': ERROR}[level], message, values)
         ])
 
 

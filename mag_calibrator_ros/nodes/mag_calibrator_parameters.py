@@ -14,7 +14,7 @@ import math
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange
 
-from mag_calibrator_ros.calibration.live.session import FITTABLE_MODELS, SessionSettings
+from mag_calibrator_ros.calibration.live.settings import FITTABLE_MODELS, SessionSettings
 from mag_calibrator_ros.calibration.live.turning import MAX_SPEED, TurnSettings
 from mag_calibrator_ros.calibration.store.calibration_file import (
     CalibrationFileError,

@@ -49,10 +49,8 @@ from mag_calibrator_ros.calibration.fit.fitting import FitOptions, FitResult
 from mag_calibrator_ros.calibration.live.buffer import DEFAULT_CAPACITY, DEFAULT_K
 from mag_calibrator_ros.calibration.live.jobs import FitJob, JobOutcome, run_job
 from mag_calibrator_ros.calibration.live.screening import VALUE_REASONS, reading_problem
-from mag_calibrator_ros.calibration.live.session import (
-    CalibrationSession,
-    SessionSettings,
-)
+from mag_calibrator_ros.calibration.live.session import CalibrationSession
+from mag_calibrator_ros.calibration.live.settings import SessionSettings
 from mag_calibrator_ros.calibration.store.calibration_file import (
     TESLA,
     UNITS_KEY,

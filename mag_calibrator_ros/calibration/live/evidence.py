@@ -102,6 +102,14 @@ def relative_errors(calibration: Calibration, readings: np.ndarray) -> np.ndarra
     return np.linalg.norm(calibration.apply(readings), axis=1) / calibration.field_strength - 1.0
 
 
+def magnitude_residual_pct(calibration: Calibration, samples: np.ndarray) -> float:
+    """RMS of ``|corrected| - F`` as a percentage of F: the engine's residual measure."""
+    if len(samples) == 0:
+        return math.inf
+    magnitudes = np.linalg.norm(calibration.apply(samples), axis=1)
+    return float(100.0 * np.sqrt(np.mean((magnitudes / calibration.field_strength - 1.0) ** 2)))
+
+
 def evidence_span(readings: np.ndarray, minimum: int = MIN_EVIDENCE) -> float:
     """Share of direction cells the readings span, judged by their own shape (centred and
     whitened by themselves), so a calibration that is badly off cannot hide their spread. Readings
@@ -288,5 +296,6 @@ __all__ = [
     'check_fit',
     'compare_on_evidence',
     'evidence_span',
+    'magnitude_residual_pct',
     'relative_errors',
 ]

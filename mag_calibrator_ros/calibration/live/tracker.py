@@ -91,6 +91,27 @@ class TrackerHealth:
         return math.sqrt(self.loss) if math.isfinite(self.loss) else math.inf
 
 
+TRACKING_MIN_SEPARATION_DEG = 6.0
+"""A reading teaches the tracker only when its corrected direction is at least this far from the
+last one that did (ArduPilot accepts samples about 6 deg apart). A robot standing still next to a
+disturbance would otherwise pull the calibration toward fitting that one direction."""
+
+
+def new_direction(corrected: np.ndarray, last: np.ndarray | None) -> np.ndarray | None:
+    """The unit direction of a corrected reading when it points somewhere new: at least
+    TRACKING_MIN_SEPARATION_DEG from ``last``, the direction that last taught the tracker
+    (None when it is not new, or zero)."""
+    norm = float(np.linalg.norm(corrected))
+    if not norm > 0.0:
+        return None
+    corrected /= norm
+    if last is not None and float(corrected @ last) > math.cos(
+        math.radians(TRACKING_MIN_SEPARATION_DEG)
+    ):
+        return None
+    return corrected
+
+
 class OnlineTracker:
     """Gradient descent on ``(|M (x - b)| / F - 1)^2``, one sample at a time."""
 

@@ -1,0 +1,247 @@
+"""Whether a finished fit changes the calibration in force, and what the log says about it.
+
+One pure function per kind of fit: it takes the job's outcome, the calibration in force and the
+few facts it needs, and returns a :class:`Verdict`; ``CalibrationSession._complete`` applies it
+(through ``_put_in_force``) and does the bookkeeping. To change when a fit goes in force, change
+the function here: :func:`automatic_verdict` for automatic calibration, :func:`refinement_verdict`
+for refinement, :func:`request_verdict` for ``~/calibrate``, :func:`realign_verdict` for a new
+rotation into the IMU frame and :func:`check_verdict` for misfit and online tracking.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+
+import numpy as np
+
+from mag_calibrator_ros.calibration.fit.alignment import rotation_angle_deg
+from mag_calibrator_ros.calibration.fit.calibration import Calibration, CalibrationError
+from mag_calibrator_ros.calibration.fit.earth_field import EarthField, disturbance_text
+from mag_calibrator_ros.calibration.live.evidence import MIN_EVIDENCE, Comparison
+from mag_calibrator_ros.calibration.live.jobs import JobOutcome
+from mag_calibrator_ros.calibration.live.report import (
+    CalibrationAttempt,
+    calibration_summary,
+    coverage_pct,
+    misfit_text,
+    reference_text,
+)
+from mag_calibrator_ros.calibration.live.settings import SessionSettings
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """What to do with a finished fit: put a calibration in force or not, and what to log."""
+
+    adopt: Calibration | None = None
+    """The calibration to put in force; None keeps the one in force."""
+    source: str = ''
+    """Why it goes in force: 'request', 'auto', 'refine', 'realign' or 'tracking'."""
+    level: str = 'info'
+    message: str = ''
+    """The event to log ('info', 'warning' or 'debug'); no event when empty."""
+    attempt: CalibrationAttempt | None = None
+    """The fit phrased for a service answer and /diagnostics' last_calibrate; None leaves the
+    previous one."""
+    collect_anew: bool = False
+    """A check confirmed a misfit and auto_calibrate is on: forget the samples from before it."""
+
+
+def request_verdict(outcome: JobOutcome, current: Calibration | None, units: str,
+                    earth: EarthField | None) -> Verdict:
+    """``~/calibrate``: a fit that passes its gates goes in force, whatever is in force now."""
+    result = outcome.result
+    kept = ('; the previous calibration stays in force' if current is not None
+            else '; still uncalibrated')
+    if outcome.error or result is None:
+        attempt = CalibrationAttempt(False, f'calibration failed: {outcome.error}{kept}', outcome)
+    elif result.success:
+        message = calibration_summary(result.calibration, units)
+        comparison = outcome.comparison
+        if comparison is not None and comparison.readings >= MIN_EVIDENCE:
+            message += (f'; on held-out readings {comparison.current_pct:.2f} % before, '
+                        f'{comparison.candidate_pct:.2f} % now')
+        message += reference_text(outcome, earth)
+        attempt = CalibrationAttempt(True, message, outcome)
+        return Verdict(result.calibration, 'request', 'info', f'calibrated: {message}', attempt)
+    else:
+        attempt = CalibrationAttempt(
+            False, f'calibration failed: {result.reason}{kept}{reference_text(outcome, earth)}',
+            outcome)
+    return Verdict(level='warning', message=attempt.message, attempt=attempt)
+
+
+def automatic_verdict(outcome: JobOutcome, current: Calibration | None, misfit: bool,
+                      units: str, earth: EarthField | None) -> Verdict:
+    """An automatic fit goes in force only when all of these hold:
+
+    - it ran without error on a ready buffer: direction coverage at least ``min_coverage``, or
+      the whole heading circle for yaw-only data (``jobs.readiness``; else there is no result);
+    - it passed every gate of the fit (``fitting``): at least ``min_samples``, coverage at least
+      ``min_coverage``, residual at most ``max_residual_pct``, condition number at most
+      ``max_condition``, soft-iron axis ratio at most ``max_axis_ratio``; with
+      ``earth_field_gate``, also the World Magnetic Model's (field within
+      ``max_field_error_pct``, dip within ``max_dip_error_deg``);
+    - nothing is in force, or what is in force is a confirmed misfit (``evidence.MisfitMonitor``):
+      any other calibration in force is replaced only by refinement (``refinement_verdict``).
+    """
+    if outcome.error:
+        return Verdict(level='warning', message=f'automatic calibration failed: {outcome.error}')
+    result = outcome.result
+    if result is None:
+        return Verdict()  # not ready: coverage below min_coverage
+    if not result.success:
+        return Verdict(level='info', message=f'automatic calibration not yet: {result.reason}',
+                       attempt=CalibrationAttempt(False, f'calibration failed: {result.reason}',
+                                                  outcome))
+    if current is not None and not misfit:
+        return Verdict()  # calibrated meanwhile (a request or a file): refinement takes over
+    attempt = CalibrationAttempt(True, calibration_summary(result.calibration, units)
+                                 + reference_text(outcome, earth), outcome)
+    what = 'recalibrated automatically' if current is not None else 'calibrated automatically'
+    return Verdict(result.calibration, 'auto', 'info', f'{what}: {attempt.message}', attempt)
+
+
+def refinement_verdict(outcome: JobOutcome, current: Calibration | None) -> Verdict:
+    """A refinement goes in force when it passed its gates, is better than the calibration it
+    was fitted against on held-out readings (``evidence.compare_on_evidence``), that one is
+    still in force, and it covers no less (``coverage_kept``)."""
+    result, comparison = outcome.result, outcome.comparison
+    if outcome.error:
+        return Verdict(level='warning', message=f'refinement failed: {outcome.error}')
+    if (result is not None and result.success and comparison is not None
+            and comparison.better and current is outcome.job.current
+            and coverage_kept(current, result.calibration)):
+        candidate = result.calibration
+        return Verdict(candidate, 'refine', 'info',
+                       f'refined: residual {comparison.current_pct:.2f} % -> '
+                       f'{comparison.candidate_pct:.2f} % on {comparison.readings} '
+                       f'held-out readings, coverage {coverage_pct(current)} -> '
+                       f'{coverage_pct(candidate)} ({candidate.model})')
+    if comparison is not None:
+        return Verdict(level='debug',
+                       message=f'refinement kept the calibration: {comparison.reason}')
+    return Verdict()
+
+
+def judged_on_evidence(comparison: Comparison | None) -> bool:
+    """A refinement's comparison rested on enough held-out readings to say something (the
+    scheduler slows refinement down once such comparisons stop finding anything better)."""
+    return comparison is not None and math.isfinite(comparison.current_pct) and (
+        comparison.readings >= MIN_EVIDENCE)
+
+
+def realign_verdict(outcome: JobOutcome, current: Calibration | None) -> Verdict:
+    """A refinement not adopted may still align better: its rotation goes in force when the fit
+    passed its own gates against the calibration still in force, and that one has no rotation
+    yet or the new one differs by more than its uncertainty."""
+    alignment = outcome.alignment
+    if (current is None or current is not outcome.job.current or not passed_own_gates(outcome)
+            or alignment is None or not alignment.success):
+        return Verdict()
+    change = rotation_angle_deg(alignment.rotation @ current.rotation.T)
+    if current.aligned and change <= max(3.0 * alignment.rotation_std_deg, 0.05):
+        return Verdict()
+    return Verdict(current.with_rotation(alignment.rotation, **alignment.metadata()), 'realign',
+                   'info', f'{alignment.summary()} (changed by {change:.2f} deg)')
+
+
+def check_verdict(outcome: JobOutcome, current: Calibration | None, misfit_change: str | None,
+                  since_last_check_s: float | None, settings: SessionSettings,
+                  units: str) -> Verdict:
+    """A check of the calibration in force on recent held-out readings.
+
+    ``misfit_change``: what ``MisfitMonitor.update`` made of it ('confirmed', 'cleared' or
+    None). With online tracking, a step towards the tracker's calibration goes in force when the
+    tracker beats the calibration in force by ``tracking_improvement`` on held-out readings; the
+    step is bounded by ``tracking_max_change_rate`` times the stream seconds since the previous
+    check (``since_last_check_s``, None for the first), so it can never jump.
+    """
+    if outcome.error:
+        return Verdict(level='warning',
+                       message=f'checking the calibration failed: {outcome.error}')
+    if current is None or outcome.job.current is not current:
+        return Verdict()  # judged a calibration no longer in force
+    level, message, collect_anew = 'info', '', False
+    if misfit_change == 'confirmed':
+        level, message = 'warning', misfit_text(outcome.fit_check, units, settings.auto_calibrate)
+        collect_anew = settings.auto_calibrate
+    elif misfit_change == 'cleared':
+        message = (f'the calibration in force fits the live data again (median '
+                   f'error {outcome.fit_check.median_error_pct:.1f} %)')
+    step = None
+    comparison = outcome.comparison
+    if (comparison is not None and since_last_check_s is not None and since_last_check_s > 0
+            and comparison.better and comparison.candidate_pct
+            < settings.tracking_improvement * comparison.current_pct):
+        try:
+            step = bounded_step(current, outcome.job.tracked,
+                                settings.tracking_max_change_rate * since_last_check_s)
+        except CalibrationError:
+            step = None
+    return Verdict(step, 'tracking' if step is not None else '', level, message,
+                   collect_anew=collect_anew)
+
+
+def coverage_kept(current: Calibration, candidate: Calibration) -> bool:
+    """A candidate may not cover less than the calibration in force: no fewer directions, and
+    never a planar fit in place of a 3-D one (a 3-D fit in place of a planar one is an upgrade).
+    """
+    if candidate.model == 'planar' and current.model != 'planar':
+        return current.model == 'identity'
+    if current.model == 'planar' and candidate.model != 'planar':
+        return True
+    before, after = (c.metadata_number('coverage') for c in (current, candidate))
+    if before is None:
+        return True
+    return after is not None and after >= before - 1e-9
+
+
+def bounded_step(current: Calibration, target: Calibration, max_change: float) -> Calibration:
+    """Move from ``current`` towards ``target`` by at most ``max_change`` (relative units).
+
+    The offset moves at most ``max_change * F`` and the matrix at most ``max_change`` times its own
+    norm, so a tracked calibration can never jump, however wrong the tracker is for a moment.
+    """
+    offset_delta = target.offset - current.offset
+    matrix_delta = target.matrix - current.matrix
+    offset_limit = max_change * current.field_strength
+    matrix_limit = max_change * np.linalg.norm(current.matrix) / math.sqrt(3.0)
+    offset_norm = float(np.linalg.norm(offset_delta))
+    matrix_norm = float(np.linalg.norm(matrix_delta))
+    fraction = 1.0
+    if offset_norm > offset_limit:
+        fraction = min(fraction, offset_limit / offset_norm)
+    if matrix_norm > matrix_limit:
+        fraction = min(fraction, matrix_limit / matrix_norm)
+    return Calibration(
+        current.offset + fraction * offset_delta,
+        current.matrix + fraction * matrix_delta,
+        current.field_strength,
+        current.model,
+        {**current.metadata, 'source': 'online_tracking'},
+        current.rotation,
+    )
+
+
+def passed_own_gates(outcome: JobOutcome) -> bool:
+    """The fit passed its gates, or failed only the World Magnetic Model's."""
+    result, check = outcome.result, outcome.earth_check
+    if result is None or outcome.error:
+        return False
+    return result.success or (check is not None and result.reason == disturbance_text(check))
+
+
+__all__ = [
+    'Verdict',
+    'automatic_verdict',
+    'bounded_step',
+    'check_verdict',
+    'coverage_kept',
+    'judged_on_evidence',
+    'passed_own_gates',
+    'realign_verdict',
+    'refinement_verdict',
+    'request_verdict',
+]
