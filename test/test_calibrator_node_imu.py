@@ -39,7 +39,8 @@ def test_live_alignment_to_the_imu_with_the_world_magnetic_model(ros, tmp_path):
     probe = Probe(ros, namespace)
     try:
         session = calibrator.session
-        ready = wait_for(lambda: session.attitudes.fill >= 10 and session.earth is not None
+        findings = session.findings
+        ready = wait_for(lambda: session.attitudes.fill >= 10 and findings.earth is not None
                          and session.buffer.coverage().fraction >= 0.5, timeout_s=90.0)
         assert ready, (f'not ready: {session.progress_text()}, {session.attitudes.fill} '
                        f'attitudes, paired {session.pairing.paired} of {session.accepted}')
@@ -99,12 +100,13 @@ def test_the_first_gps_fix_locates_the_calibrator_and_use_imu_false_ignores_the_
         fix.latitude, fix.longitude, fix.altitude = -33.0, 109.0, math.nan
         for _ in range(3):
             publisher.publish(fix)
-        assert wait_for(lambda: session.earth is not None, timeout_s=WAIT_S)
-        assert session.earth.latitude_deg == -33.0 and session.earth.altitude_m == 0.0
-        assert session.earth.inclination_deg < -60.0  # the southern hemisphere's field points up
+        findings = session.findings
+        assert wait_for(lambda: findings.earth is not None, timeout_s=WAIT_S)
+        assert findings.earth.latitude_deg == -33.0 and findings.earth.altitude_m == 0.0
+        assert findings.earth.inclination_deg < -60.0  # the southern hemisphere's field points up
         fix.latitude = 52.0
         publisher.publish(fix)  # only the first fix counts
-        assert not wait_for(lambda: session.earth.latitude_deg != -33.0, timeout_s=1.0)
+        assert not wait_for(lambda: findings.earth.latitude_deg != -33.0, timeout_s=1.0)
     finally:
         for node in (gps, calibrator, driver):
             ros.remove(node)

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from mag_calibrator_ros.calibration.fit.alignment import rotation_angle_deg
-from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.fit.calibration import Calibration, transform_covariance
 from mag_calibrator_ros.calibration.fit.earth_field import EarthField
 from mag_calibrator_ros.calibration.live.pairing import PAIR_TOLERANCE_NS
 from mag_calibrator_ros.calibration.live.report import calibration_summary
-from mag_calibrator_ros.calibration.live.session import CalibrationSession, transform_covariance
+from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
 from mag_calibrator_ros.sim.board import BoardModel, board_readings
 from mag_calibrator_ros.sim.config import SimConfig
@@ -173,5 +173,5 @@ def test_a_fit_that_fails_its_own_gates_says_nothing_about_the_place(misaligned)
     session.feed(mag[:400], RATE_HZ, frame_id='imu_link', accel=accel[:400], gyro=gyro[:400])
     assert session.jobs_run.get('refine', 0) >= 1
     assert not [e for e in session.take_events() if e.level == 'warning']
-    assert session.earth_check is None and session.alignment is None
+    assert session.findings.earth_check is None and session.findings.alignment is None
     assert session.calibration is truth

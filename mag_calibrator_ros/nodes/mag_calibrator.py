@@ -117,7 +117,7 @@ from rclpy.task import Future
 from sensor_msgs.msg import Imu, MagneticField, NavSatFix
 from std_srvs.srv import Trigger
 
-from mag_calibrator_ros.calibration.fit.calibration import CalibrationError
+from mag_calibrator_ros.calibration.fit.calibration import CalibrationError, transform_covariance
 from mag_calibrator_ros.calibration.fit.coverage import Coverage
 from mag_calibrator_ros.calibration.fit.earth_field import (
     EarthField,
@@ -125,7 +125,7 @@ from mag_calibrator_ros.calibration.fit.earth_field import (
     earth_field,
 )
 from mag_calibrator_ros.calibration.live.report import calibration_summary
-from mag_calibrator_ros.calibration.live.session import CalibrationSession, transform_covariance
+from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.calibration.live.worker import ProcessRunner
 from mag_calibrator_ros.calibration.store.calibration_file import (
     CalibrationFileError,

@@ -7,7 +7,7 @@ fit cannot see a rotation, so ``R`` comes from gravity, never from the magnetome
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 import math
 from typing import Any
@@ -184,3 +184,17 @@ class Calibration:
             {**self.metadata, **metadata},
             self.rotation,
         )
+
+
+def transform_covariance(matrix: np.ndarray, covariance: Sequence[float]) -> np.ndarray:
+    """``A C A^T`` for a known covariance (``A`` = ``calibration.correction``, R M); all-zero
+    (unknown) and -1 (not reported) pass as is, and a covariance with NaN/Inf (or one that
+    overflows) becomes all-zero: unknown (REP-145)."""
+    covariance = np.asarray(covariance, dtype=float).reshape(3, 3)
+    if not np.all(np.isfinite(covariance)):
+        return np.zeros(9)
+    if not np.any(covariance) or covariance[0, 0] == -1.0:
+        return covariance.reshape(9).copy()
+    with np.errstate(all='ignore'):
+        transformed = (matrix @ covariance @ matrix.T).reshape(9)
+    return transformed if np.all(np.isfinite(transformed)) else np.zeros(9)

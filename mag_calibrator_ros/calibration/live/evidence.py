@@ -22,6 +22,7 @@ import numpy as np
 
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
 from mag_calibrator_ros.calibration.fit.coverage import CELL_COUNT, cell_index, direction_coverage
+from mag_calibrator_ros.calibration.fit.ellipsoid import robust_sigma
 from mag_calibrator_ros.calibration.fit.heading import heading_coverage_of, yaw_only
 
 HOLD_OUT_EVERY = 4
@@ -155,7 +156,8 @@ def compare_on_evidence(
     if n < MIN_EVIDENCE:
         return Comparison(False, math.nan, math.nan, n, span,
                           f'{n} held-out readings, need {MIN_EVIDENCE}')
-    cap = (CAP_SIGMAS * max(min(_robust_sigma(now), _robust_sigma(new)), 1e-9)) ** 2
+    sigma_now, sigma_new = (robust_sigma(r, about_median=True, floor=None) for r in (now, new))
+    cap = (CAP_SIGMAS * max(min(sigma_now, sigma_new), 1e-9)) ** 2
     loss_now, loss_new = np.minimum(now**2, cap), np.minimum(new**2, cap)
     current_pct = 100.0 * math.sqrt(float(loss_now.mean()))
     candidate_pct = 100.0 * math.sqrt(float(loss_new.mean()))
@@ -172,10 +174,6 @@ def compare_on_evidence(
     return Comparison(better, current_pct, candidate_pct, n, span,
                       f'{verdict} on {n} held-out readings: residual {current_pct:.2f} % -> '
                       f'{candidate_pct:.2f} %')
-
-
-def _robust_sigma(residuals: np.ndarray) -> float:
-    return 1.4826 * float(np.median(np.abs(residuals - np.median(residuals))))
 
 
 # --- does the calibration in force still fit? ------------------------------------------------

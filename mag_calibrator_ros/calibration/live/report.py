@@ -11,7 +11,6 @@ from dataclasses import dataclass
 from typing import Literal, Protocol
 
 from mag_calibrator_ros.calibration.fit.alignment import (
-    Alignment,
     StaticAttitudes,
     rotation_angle_deg,
 )
@@ -26,6 +25,7 @@ from mag_calibrator_ros.calibration.live.evidence import (
     HeldOutEvidence,
     MisfitMonitor,
 )
+from mag_calibrator_ros.calibration.live.findings import Findings
 from mag_calibrator_ros.calibration.live.jobs import JobOutcome
 from mag_calibrator_ros.calibration.live.pairing import ImuPairing, RateMeter
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
@@ -177,8 +177,7 @@ class ReportedSession(Protocol):
     tracker: OnlineTracker | None
     tracked_updates: int
     hold_overflows: int
-    alignment: Alignment | None
-    earth: EarthField | None
+    findings: Findings
 
     @property
     def state(self) -> str: ...
@@ -252,10 +251,10 @@ def _reference_values(session: ReportedSession, now: float) -> dict[str, object]
             number = calibration.metadata_number(key)
             if number is not None:
                 values[key] = round(number, 3)
-    alignment = session.alignment
+    alignment = session.findings.alignment
     if alignment is not None:
         values['last_alignment'] = 'applied' if alignment.success else alignment.reason
-    earth = session.earth
+    earth = session.findings.earth
     if earth is not None:
         values['earth_model'] = earth.model
         values['model_intensity_uT'] = round(earth.intensity_nt / 1000.0, 3)

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 import math
 import random
 import time
@@ -22,16 +22,13 @@ from typing import NamedTuple
 
 import numpy as np
 
-from mag_calibrator_ros.calibration.fit.alignment import Alignment, StaticAttitudes
+from mag_calibrator_ros.calibration.fit.alignment import StaticAttitudes
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
 from mag_calibrator_ros.calibration.fit.coverage import HEADING_SECTORS, Coverage
 from mag_calibrator_ros.calibration.fit.earth_field import (
-    EarthCheck,
     EarthField,
     EarthReference,
-    disturbance_text,
 )
-from mag_calibrator_ros.calibration.fit.fitting import FitOptions
 from mag_calibrator_ros.calibration.fit.heading import (
     HeadingCoverage,
     PlaneWatch,
@@ -46,6 +43,7 @@ from mag_calibrator_ros.calibration.live.evidence import (
     HeldOutEvidence,
     MisfitMonitor,
 )
+from mag_calibrator_ros.calibration.live.findings import Findings
 from mag_calibrator_ros.calibration.live.jobs import REFERENCE_OPTIONS, FitJob, JobOutcome
 from mag_calibrator_ros.calibration.live.pairing import (
     ImuPairing,
@@ -135,20 +133,6 @@ class SessionEvent:
     attempt: CalibrationAttempt | None = None
 
 
-def transform_covariance(matrix: np.ndarray, covariance: Sequence[float]) -> np.ndarray:
-    """``A C A^T`` for a known covariance (``A`` = ``calibration.correction``, R M); all-zero
-    (unknown) and -1 (not reported) pass as is, and a covariance with NaN/Inf (or one that
-    overflows) becomes all-zero: unknown (REP-145)."""
-    covariance = np.asarray(covariance, dtype=float).reshape(3, 3)
-    if not np.all(np.isfinite(covariance)):
-        return np.zeros(9)
-    if not np.any(covariance) or covariance[0, 0] == -1.0:
-        return covariance.reshape(9).copy()
-    with np.errstate(all='ignore'):
-        transformed = (matrix @ covariance @ matrix.T).reshape(9)
-    return transformed if np.all(np.isfinite(transformed)) else np.zeros(9)
-
-
 class CalibrationSession:
     """The calibrator's state between messages: buffer, evidence, calibration in force, fits."""
 
@@ -207,14 +191,8 @@ class CalibrationSession:
         self.attitudes = StaticAttitudes()
         """Quasi-static (field, accel) attitudes paired from the IMU, for the alignment."""
         self.pairing = ImuPairing()
-        self.earth: EarthField | None = None
-        """The World Magnetic Model's field here (``set_earth_field``), None while unknown."""
-        self.alignment: Alignment | None = None
-        """The latest fit's alignment to the IMU (applied or not)."""
-        self.earth_check: EarthCheck | None = None
-        """The latest fit against the model."""
-        self._alignment_warning = ''
-        self._earth_warning = ''
+        self.findings = Findings()
+        """The model's field here, the latest alignment and model check (``findings.py``)."""
         if calibration is not None:
             self.apply_calibration(calibration, 'given')
 
@@ -294,7 +272,7 @@ class CalibrationSession:
 
     def set_earth_field(self, field: EarthField | None) -> None:
         """The World Magnetic Model's field here (None: unknown); used by the next fits."""
-        self.earth = field
+        self.findings.earth = field
 
     def poll(self) -> None:
         """Take a finished fit's outcome and feed held readings; the node calls this on a timer
@@ -420,14 +398,15 @@ class CalibrationSession:
         attitudes = self.attitudes.snapshot() if self.settings.align else None
         return FitJob(
             'refine' if kind == 'refine' else 'calibrate', samples, weights, readings,
-            self._fit_options(), metadata=metadata, current=self.calibration,
+            self.findings.fit_options(self.settings, self.units), metadata=metadata,
+            current=self.calibration,
             evidence=evidence, ticket=ticket,
             ready_coverage=self.settings.min_coverage if kind == 'calibrate' else None,
             reference=buffer.reference,
             attitudes=attitudes if attitudes is not None and (len(attitudes)
                                                               or self.pairing.paired)
             else None,
-            alignment=self.settings.alignment_options(self.earth),
+            alignment=self.settings.alignment_options(self.findings.earth),
             earth=self.earth_reference(),
             ups=buffer.ups if buffer.paired else None,
             paired=buffer.paired_readings if buffer.paired else None,
@@ -435,21 +414,7 @@ class CalibrationSession:
 
     def earth_reference(self) -> EarthReference | None:
         """The World Magnetic Model's field here with the tolerances a fit is checked by."""
-        if self.earth is None:
-            return None
-        settings = self.settings
-        return EarthReference(self.earth, self.units, settings.max_field_error_pct,
-                              settings.max_dip_error_deg, settings.earth_field_gate)
-
-    def _fit_options(self) -> FitOptions:
-        """The settings' fit options; with the model's field known (and field_strength 0), the
-        target field strength is the model's intensity."""
-        options = self.settings.fit_options()
-        if options.field_strength is None and self.earth is not None:
-            intensity = self.earth.intensity_in(self.units)
-            if intensity is not None:
-                options = replace(options, field_strength=intensity)
-        return options
+        return self.findings.earth_reference(self.settings, self.units)
 
     # -- a fit's outcome -----------------------------------------------------------------------
 
@@ -472,14 +437,15 @@ class CalibrationSession:
             self._check_done(outcome)
         elif job.ticket is not None:
             self._note_reference(outcome)
-            self._apply(request_verdict(outcome, current, self.units, self.earth), job.ticket)
+            verdict = request_verdict(outcome, current, self.units, self.findings.earth)
+            self._apply(verdict, job.ticket)
         elif job.kind == 'calibrate':
             self.scheduler.calibrate_done(self.clock.now, outcome.fitted or bool(outcome.error),
                                           self.settings.auto_calibrate_period)
             if outcome.result is not None and not outcome.error:
                 self._note_reference(outcome)
             self._apply(automatic_verdict(outcome, current, self.misfit.misfit, self.units,
-                                          self.earth))
+                                          self.findings.earth))
         else:
             verdict = refinement_verdict(outcome, current)
             self._apply(verdict)
@@ -530,38 +496,17 @@ class CalibrationSession:
             self._put_in_force(verdict.adopt, verdict.source)
 
     def _note_reference(self, outcome: JobOutcome) -> None:
-        """Remember a fit's alignment and model check; warn once per new finding (a mounting
-        error, a disturbed field), not at every refinement. Only a fit that passed its own gates
-        (the model's aside) says anything about the sensor or the place."""
-        if not passed_own_gates(outcome):
-            return
-        if outcome.alignment is not None:
-            self.alignment = outcome.alignment
-            alignment = outcome.alignment
-            finding = ('' if alignment.success or not math.isfinite(alignment.dip_deg)
-                       else alignment.reason)
-            if finding and finding.split(':')[0] != self._alignment_warning.split(':')[0]:
-                self._event('warning', f'alignment to the IMU not applied: {finding}')
-            self._alignment_warning = finding
-        if outcome.earth_check is not None:
-            self.earth_check = outcome.earth_check
-            text = disturbance_text(outcome.earth_check)
-            if text and not self._earth_warning:
-                self._event('warning', f'against the World Magnetic Model: {text}')
-            self._earth_warning = text
+        """Only a fit that passed its own gates (the model's aside) tells about the place."""
+        for warning in self.findings.note(outcome) if passed_own_gates(outcome) else ():
+            self._event('warning', warning)
 
     def alignment_warning(self) -> str:
         """A mounting error the latest alignment found, for a diagnostics WARN ('' if none)."""
-        return self._alignment_warning
+        return self.findings.alignment_warning
 
     def earth_warning(self) -> str:
         """The calibration in force against the model, for a diagnostics WARN ('' if fine)."""
-        reference = self.earth_reference()
-        calibration = self.calibration
-        if reference is None or calibration is None:
-            return ''
-        check = reference.check(calibration.field_radius(), calibration.metadata_number('dip_deg'))
-        return disturbance_text(check)
+        return self.findings.earth_warning(self.calibration, self.settings, self.units)
 
     def request_calibration(self) -> int:
         """Ask for a fit of the buffer (``~/calibrate``) once every reading received so far is
@@ -837,5 +782,4 @@ __all__ = [
     'CalibrationSession',
     'Processed',
     'SessionEvent',
-    'transform_covariance',
 ]
