@@ -451,7 +451,7 @@ def test_shipped_params_file_loads_and_matches_the_defaults(tmp_path):
     from mag_calibrator_ros.nodes.icm20948_driver import PARAMETERS
 
     path = Path(__file__).resolve().parents[1] / 'config' / 'icm20948_driver.yaml'
-    documented = yaml.safe_load(path.read_text())['icm20948_driver']['ros__parameters']
+    documented = yaml.safe_load(path.read_text())['/**']['ros__parameters']
     assert set(documented) == set(PARAMETERS)
     for name, (default, _) in PARAMETERS.items():
         nan = isinstance(default, float) and math.isnan(default)  # '.nan': no location
