@@ -278,6 +278,14 @@ def test_overflowed_samples_are_never_published(harness_factory):
     assert_valid_stream(h)
 
 
+def test_a_hard_iron_beyond_every_double_is_an_overflow_and_never_published(harness_factory):
+    """Issue #22: 1e308 uT wrapped around to a plausible constant, published without HOFL."""
+    h = harness_factory(sim__hard_iron_ut=[1e308, 0.0, 0.0], sim__seed=2)
+    assert h.spin_until(lambda: h.node.overflows > 20 and len(h.imu) > 20)
+    assert h.messages == []
+    assert_valid_stream(h)
+
+
 def test_equal_readings_of_different_samples_are_each_published_once(harness_factory):
     """Issue #9 item 11: the old check called two equal consecutive readings 'a sample published
     twice'. A still, noise-free board gives nothing but equal readings; each is a new sample."""
@@ -371,6 +379,13 @@ def test_missing_i2c_bus_keeps_the_node_alive_with_an_error(harness_factory):
     ({'address': 0x0C}, 'address'),
     ({'frame_id': '/imu_link'}, 'frame_id must not start with a slash'),
     ({'frame_id': ''}, 'frame_id must be a non-empty string'),
+    # every message carries it: a tf2 frame name, short, one line (issue #22)
+    ({'frame_id': 'x' * 100_000}, 'frame_id must be at most 128 characters'),
+    ({'frame_id': 'imu\nlink'}, 'frame_id must be letters, digits and underscores'),
+    ({'frame_id': 'imu link'}, 'frame_id must be letters, digits and underscores'),
+    ({'frame_id': '2imu'}, 'not starting with a digit'),
+    ({'frame_id': 'robot1//imu'}, 'single slashes'),
+    ({'frame_id': 'imu_link/'}, 'single slashes'),
     ({'magnetic_field_stddev': -1.0}, 'magnetic_field_stddev'),
     ({'imu_rate_hz': 2000}, 'imu_rate_hz'),
     ({'imu_rate_hz': 200.0}, 'imu_rate_hz'),
@@ -385,6 +400,9 @@ def test_missing_i2c_bus_keeps_the_node_alive_with_an_error(harness_factory):
     ({'sim.hard_iron_ut': [1.0, 2.0]}, 'hard_iron_ut must be 3 finite numbers'),
     ({'sim.hard_iron_ut': [1, 2, 3]}, 'expected list of 3 doubles'),
     ({'sim.gyro_bias_dps': [1.0, math.nan, 0.0]}, 'gyro_bias_dps must be 3 finite numbers'),
+    # beyond the largest full scale the node used to start and raise on every sample
+    ({'sim.accel_bias_mps2': [1e308, 0.0, 0.0]}, 'accel_bias_mps2 must be within'),
+    ({'sim.gyro_bias_dps': [0.0, 0.0, -1e308]}, 'gyro_bias_dps must be within'),
     ({'sim.i2c_error_rate': 1.0}, 'sim.i2c_error_rate'),
 ])
 def test_invalid_parameters_are_refused_with_a_reason(overrides, fragment):
@@ -411,12 +429,18 @@ def test_runtime_parameter_changes_are_validated(harness_factory):
     node = h.node
     results = node.set_parameters([Parameter('frame_id', value='')])
     assert not results[0].successful and 'frame_id' in results[0].reason
+    for bad, reason in (('x' * 100_000, 'at most 128 characters'),
+                        ('imu\nlink', 'letters, digits and underscores')):
+        result = node.set_parameters([Parameter('frame_id', value=bad)])[0]
+        assert not result.successful and reason in result.reason
+        assert len(result.reason) < 300  # names the problem, does not echo 100 kB back
     for read_only in (Parameter('rate_hz', value=50), Parameter('imu_rate_hz', value=100),
                       Parameter('publish_imu', value=False)):
         assert not node.set_parameters([read_only])[0].successful
     for bad in (Parameter('magnetic_field_stddev', value=math.nan),
                 Parameter('accel_noise_density', value=-1.0)):
         assert not node.set_parameters([bad])[0].successful
+    assert node.set_parameters([Parameter('frame_id', value='robot1/imu_2')])[0].successful
     assert node.set_parameters([Parameter('frame_id', value='imu_2')])[0].successful
     assert node.set_parameters([Parameter('magnetic_field_stddev', value=1e-6)])[0].successful
     assert node.set_parameters([Parameter('gyro_noise_density', value=1e-3)])[0].successful
