@@ -13,7 +13,7 @@ import pytest
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
-from rclpy.qos import qos_profile_sensor_data
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import Imu, MagneticField, Temperature
 
 from mag_calibrator_ros.icm20948 import registers as reg
@@ -154,8 +154,17 @@ def assert_valid_stream(harness: Harness) -> None:
 def test_publishes_mag_imu_and_temperature_in_one_frame_with_units(harness_factory):
     h = harness_factory(frame_id='mag_test_link', magnetic_field_stddev=4e-7, sim__seed=3,
                         sim__motion='still', sim__temperature_c=31.0)
+    # Same read, same stamp is judged on reliable, unbounded subscriptions drained once the
+    # acquisition stopped: the harness's sensor-data ones (best effort, depth 5) may drop an IMU
+    # message on a busy machine, and a temperature may be taken before the IMU message
+    # published just ahead of it, when the spinning stops in between.
+    every_imu, every_temperature = [], []
+    everything = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
+    h.listener.create_subscription(Imu, 'imu/data_raw', every_imu.append, everything)
+    h.listener.create_subscription(Temperature, 'imu/temperature', every_temperature.append,
+                                   everything)
     assert h.spin_until(lambda: len(h.messages) >= 100 and len(h.imu) >= 200
-                        and len(h.temperatures) >= 5)
+                        and len(h.temperatures) >= 5 and len(every_temperature) >= 5)
     np.testing.assert_allclose(np.linalg.norm(h.fields(), axis=1), 50e-6, atol=3e-6)  # tesla
     np.testing.assert_allclose(np.linalg.norm(h.accelerations().mean(axis=0)), G, atol=0.02)
     assert h.accelerations().mean(axis=0)[2] > 0.99 * G  # level: +g on z (REP-145)
@@ -168,8 +177,16 @@ def test_publishes_mag_imu_and_temperature_in_one_frame_with_units(harness_facto
                                    [1.6e-13, 0, 0, 0, 1.6e-13, 0, 0, 0, 1.6e-13])
     for message in h.imu:
         assert message.orientation_covariance[0] == -1.0  # no orientation (REP-145)
-    imu_stamps = set(h.stamps(h.imu))
-    assert all(t in imu_stamps for t in h.stamps(h.temperatures))  # same read, same stamp
+    h.stop_acquisition()
+    counts = None
+    while counts != (len(every_imu), len(every_temperature)):  # until nothing more arrives
+        counts = (len(every_imu), len(every_temperature))
+        h.spin(0.3)
+    # From the first IMU message on (discovery may match the temperature subscription first).
+    imu_stamps = set(h.stamps(every_imu))
+    temperature_stamps = [t for t in h.stamps(every_temperature) if t >= min(imu_stamps)]
+    assert len(temperature_stamps) >= 3
+    assert all(t in imu_stamps for t in temperature_stamps)  # same read, same stamp
     publishers = h.listener.get_publisher_names_and_types_by_node('icm20948_driver', '/robot')
     for topic, kind in (('/robot/imu/mag', 'MagneticField'), ('/robot/imu/data_raw', 'Imu'),
                         ('/robot/imu/temperature', 'Temperature')):
