@@ -13,7 +13,7 @@ import pytest
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
-from rclpy.qos import qos_profile_sensor_data
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import Imu, MagneticField, Temperature
 
 from mag_calibrator_ros.icm20948 import registers as reg
@@ -154,8 +154,17 @@ def assert_valid_stream(harness: Harness) -> None:
 def test_publishes_mag_imu_and_temperature_in_one_frame_with_units(harness_factory):
     h = harness_factory(frame_id='mag_test_link', magnetic_field_stddev=4e-7, sim__seed=3,
                         sim__motion='still', sim__temperature_c=31.0)
+    # Same read, same stamp is judged on reliable, unbounded subscriptions drained once the
+    # acquisition stopped: the harness's sensor-data ones (best effort, depth 5) may drop an IMU
+    # message on a busy machine, and a temperature may be taken before the IMU message
+    # published just ahead of it, when the spinning stops in between.
+    every_imu, every_temperature = [], []
+    everything = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
+    h.listener.create_subscription(Imu, 'imu/data_raw', every_imu.append, everything)
+    h.listener.create_subscription(Temperature, 'imu/temperature', every_temperature.append,
+                                   everything)
     assert h.spin_until(lambda: len(h.messages) >= 100 and len(h.imu) >= 200
-                        and len(h.temperatures) >= 5)
+                        and len(h.temperatures) >= 5 and len(every_temperature) >= 5)
     np.testing.assert_allclose(np.linalg.norm(h.fields(), axis=1), 50e-6, atol=3e-6)  # tesla
     np.testing.assert_allclose(np.linalg.norm(h.accelerations().mean(axis=0)), G, atol=0.02)
     assert h.accelerations().mean(axis=0)[2] > 0.99 * G  # level: +g on z (REP-145)
@@ -168,8 +177,16 @@ def test_publishes_mag_imu_and_temperature_in_one_frame_with_units(harness_facto
                                    [1.6e-13, 0, 0, 0, 1.6e-13, 0, 0, 0, 1.6e-13])
     for message in h.imu:
         assert message.orientation_covariance[0] == -1.0  # no orientation (REP-145)
-    imu_stamps = set(h.stamps(h.imu))
-    assert all(t in imu_stamps for t in h.stamps(h.temperatures))  # same read, same stamp
+    h.stop_acquisition()
+    counts = None
+    while counts != (len(every_imu), len(every_temperature)):  # until nothing more arrives
+        counts = (len(every_imu), len(every_temperature))
+        h.spin(0.3)
+    # From the first IMU message on (discovery may match the temperature subscription first).
+    imu_stamps = set(h.stamps(every_imu))
+    temperature_stamps = [t for t in h.stamps(every_temperature) if t >= min(imu_stamps)]
+    assert len(temperature_stamps) >= 3
+    assert all(t in imu_stamps for t in temperature_stamps)  # same read, same stamp
     publishers = h.listener.get_publisher_names_and_types_by_node('icm20948_driver', '/robot')
     for topic, kind in (('/robot/imu/mag', 'MagneticField'), ('/robot/imu/data_raw', 'Imu'),
                         ('/robot/imu/temperature', 'Temperature')):
@@ -278,6 +295,14 @@ def test_overflowed_samples_are_never_published(harness_factory):
     assert_valid_stream(h)
 
 
+def test_a_hard_iron_beyond_every_double_is_an_overflow_and_never_published(harness_factory):
+    """Issue #22: 1e308 uT wrapped around to a plausible constant, published without HOFL."""
+    h = harness_factory(sim__hard_iron_ut=[1e308, 0.0, 0.0], sim__seed=2)
+    assert h.spin_until(lambda: h.node.overflows > 20 and len(h.imu) > 20)
+    assert h.messages == []
+    assert_valid_stream(h)
+
+
 def test_equal_readings_of_different_samples_are_each_published_once(harness_factory):
     """Issue #9 item 11: the old check called two equal consecutive readings 'a sample published
     twice'. A still, noise-free board gives nothing but equal readings; each is a new sample."""
@@ -371,6 +396,13 @@ def test_missing_i2c_bus_keeps_the_node_alive_with_an_error(harness_factory):
     ({'address': 0x0C}, 'address'),
     ({'frame_id': '/imu_link'}, 'frame_id must not start with a slash'),
     ({'frame_id': ''}, 'frame_id must be a non-empty string'),
+    # every message carries it: a tf2 frame name, short, one line (issue #22)
+    ({'frame_id': 'x' * 100_000}, 'frame_id must be at most 128 characters'),
+    ({'frame_id': 'imu\nlink'}, 'frame_id must be letters, digits and underscores'),
+    ({'frame_id': 'imu link'}, 'frame_id must be letters, digits and underscores'),
+    ({'frame_id': '2imu'}, 'not starting with a digit'),
+    ({'frame_id': 'robot1//imu'}, 'single slashes'),
+    ({'frame_id': 'imu_link/'}, 'single slashes'),
     ({'magnetic_field_stddev': -1.0}, 'magnetic_field_stddev'),
     ({'imu_rate_hz': 2000}, 'imu_rate_hz'),
     ({'imu_rate_hz': 200.0}, 'imu_rate_hz'),
@@ -385,6 +417,9 @@ def test_missing_i2c_bus_keeps_the_node_alive_with_an_error(harness_factory):
     ({'sim.hard_iron_ut': [1.0, 2.0]}, 'hard_iron_ut must be 3 finite numbers'),
     ({'sim.hard_iron_ut': [1, 2, 3]}, 'expected list of 3 doubles'),
     ({'sim.gyro_bias_dps': [1.0, math.nan, 0.0]}, 'gyro_bias_dps must be 3 finite numbers'),
+    # beyond the largest full scale the node used to start and raise on every sample
+    ({'sim.accel_bias_mps2': [1e308, 0.0, 0.0]}, 'accel_bias_mps2 must be within'),
+    ({'sim.gyro_bias_dps': [0.0, 0.0, -1e308]}, 'gyro_bias_dps must be within'),
     ({'sim.i2c_error_rate': 1.0}, 'sim.i2c_error_rate'),
 ])
 def test_invalid_parameters_are_refused_with_a_reason(overrides, fragment):
@@ -411,12 +446,18 @@ def test_runtime_parameter_changes_are_validated(harness_factory):
     node = h.node
     results = node.set_parameters([Parameter('frame_id', value='')])
     assert not results[0].successful and 'frame_id' in results[0].reason
+    for bad, reason in (('x' * 100_000, 'at most 128 characters'),
+                        ('imu\nlink', 'letters, digits and underscores')):
+        result = node.set_parameters([Parameter('frame_id', value=bad)])[0]
+        assert not result.successful and reason in result.reason
+        assert len(result.reason) < 300  # names the problem, does not echo 100 kB back
     for read_only in (Parameter('rate_hz', value=50), Parameter('imu_rate_hz', value=100),
                       Parameter('publish_imu', value=False)):
         assert not node.set_parameters([read_only])[0].successful
     for bad in (Parameter('magnetic_field_stddev', value=math.nan),
                 Parameter('accel_noise_density', value=-1.0)):
         assert not node.set_parameters([bad])[0].successful
+    assert node.set_parameters([Parameter('frame_id', value='robot1/imu_2')])[0].successful
     assert node.set_parameters([Parameter('frame_id', value='imu_2')])[0].successful
     assert node.set_parameters([Parameter('magnetic_field_stddev', value=1e-6)])[0].successful
     assert node.set_parameters([Parameter('gyro_noise_density', value=1e-3)])[0].successful
@@ -451,7 +492,7 @@ def test_shipped_params_file_loads_and_matches_the_defaults(tmp_path):
     from mag_calibrator_ros.nodes.icm20948_driver import PARAMETERS
 
     path = Path(__file__).resolve().parents[1] / 'config' / 'icm20948_driver.yaml'
-    documented = yaml.safe_load(path.read_text())['icm20948_driver']['ros__parameters']
+    documented = yaml.safe_load(path.read_text())['/**']['ros__parameters']
     assert set(documented) == set(PARAMETERS)
     for name, (default, _) in PARAMETERS.items():
         nan = isinstance(default, float) and math.isnan(default)  # '.nan': no location

@@ -2,6 +2,7 @@
 against the simulated chip; the accel/gyro side is in test_icm20948_imu.py."""
 
 import errno
+import warnings
 
 from icm20948_fakes import FakeClock, RecordingBus
 import numpy as np
@@ -202,6 +203,25 @@ def test_overflow_discards_and_counts():
     assert len(readings) + driver.overflows == pytest.approx(500, abs=2)
     assert all(np.all(np.abs(r.counts) <= reg.MEASUREMENT_LIMIT) for r in readings)
     assert all(r.field_tesla[0] <= 4912.8e-6 + 1e-12 for r in readings)
+
+
+@pytest.mark.parametrize('config', [
+    SimConfig(hard_iron_ut=(1e308, 0.0, 0.0)), SimConfig(hard_iron_ut=(0.0, 0.0, -1e308)),
+    SimConfig(soft_iron=(1e308, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)),
+    SimConfig(noise_ut=1e308),
+], ids=['hard iron +1e308', 'hard iron -1e308', 'soft iron 1e308', 'noise 1e308'])
+def test_a_field_beyond_every_count_is_an_overflow_never_a_reading(config):
+    """DS-000189 rev. 1.3 p. 79: the AK09916 measures ±32752 counts (±4912 µT) and flags an
+    overflow with HOFL. A field beyond the doubles used to wrap around in the integer conversion
+    to a plausible saturated value without HOFL, published on every sample."""
+    clock, sim, driver = make(config)
+    driver.initialise(100)
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')  # and no numpy overflow warning on every sample
+        readings = poll(clock, driver, 2.0)
+    assert readings == []
+    assert driver.overflows == pytest.approx(200, abs=2)
+    assert sim.read_byte_data(reg.AK09916_ADDRESS, reg.ST2) & reg.ST2_HOFL
 
 
 def test_units_and_axis_remap_into_the_accel_gyro_frame():

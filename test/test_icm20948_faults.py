@@ -179,6 +179,13 @@ def test_same_seed_same_faults_and_samples():
     (dict(soft_iron=(1, 0, 0, 0, -1, 0, 0, 0, 1)), 'soft_iron must be positive definite'),
     (dict(accel_bias_mps2=(0.0, float('inf'), 0.0)), 'accel_bias_mps2 must be 3 finite'),
     (dict(gyro_bias_dps=(1.0,)), 'gyro_bias_dps must be 3 finite'),
+    # beyond the largest full scale (±16 g, ±2000 dps): 1e308 made every sample raise
+    (dict(accel_bias_mps2=(1e308, 0.0, 0.0)), 'accel_bias_mps2 must be within ±156.906 m/s^2'),
+    (dict(accel_bias_mps2=(0.0, 0.0, -157.0)), 'accel_bias_mps2 must be within'),
+    (dict(gyro_bias_dps=(0.0, 2001.0, 0.0)), 'gyro_bias_dps must be within ±2000 deg/s'),
+    (dict(accel_noise_density=1e308), 'accel_noise_density must be >= 0 and <= 1.0'),
+    (dict(gyro_noise_density=1.5), 'gyro_noise_density must be >= 0 and <= 1.0'),
+    (dict(seed=-1), 'seed must be an integer >= 0'),
     (dict(accel_noise_density=-1e-3), 'accel_noise_density must be >= 0'),
     (dict(gyro_noise_density=float('nan')), 'gyro_noise_density must be a finite number'),
     (dict(temperature_c=120.0), 'temperature_c must be within the operating range'),
@@ -188,6 +195,12 @@ def test_invalid_configuration_is_refused_with_a_reason(kwargs, fragment):
     with pytest.raises(ValueError) as caught:
         SimConfig(**kwargs)
     assert fragment in str(caught.value)
+
+
+def test_biases_at_the_largest_full_scale_are_accepted():
+    config = SimConfig(accel_bias_mps2=(156.9, -156.9, 0.0), gyro_bias_dps=(2000.0, 0.0, -2000.0),
+                       accel_noise_density=1.0, gyro_noise_density=1.0)
+    assert config.accel_bias_mps2[0] == 156.9
 
 
 def test_every_problem_is_listed():

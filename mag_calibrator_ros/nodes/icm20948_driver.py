@@ -38,7 +38,9 @@ The chip:
 
 The messages (settable while running):
 
-- ``frame_id`` (imu_link): header.frame_id of all three topics.
+- ``frame_id`` (imu_link): header.frame_id of all three topics: a tf2 frame name of at most
+  128 characters, letters, digits and underscores, single slashes between names
+  (robot1/imu_link), none leading; a name does not start with a digit.
 - ``magnetic_field_stddev`` (0.0): tesla per axis for the covariance; 0: unknown.
 - ``accel_noise_density``, ``gyro_noise_density`` (0.0): per sqrt(Hz) for the covariances.
 
@@ -51,8 +53,12 @@ The simulator (``backend: sim`` only):
 - ``sim.hard_iron_ut`` ([0, 0, 0]), ``sim.soft_iron`` (identity): the distortion to calibrate.
 - ``sim.mag_misalignment_deg`` ([0, 0, 0]): magnetometer axes against the accel/gyro frame.
 - ``sim.noise_ut`` (0.3): magnetometer white noise, 1 sigma.
-- ``sim.accel_bias_mps2``, ``sim.gyro_bias_dps`` ([0, 0, 0]): inertial biases.
-- ``sim.accel_noise_density`` (2.26e-3), ``sim.gyro_noise_density`` (2.62e-4): inertial noise.
+- ``sim.accel_bias_mps2``, ``sim.gyro_bias_dps`` ([0, 0, 0]): inertial biases, within the
+  largest full scale (±16 g, ±2000 deg/s).
+- ``sim.accel_noise_density`` (2.26e-3), ``sim.gyro_noise_density`` (2.62e-4): inertial noise,
+  at most 1.0 per sqrt(Hz).
+- A magnetometer distortion beyond the AK09916's ±4912 µT reads as its overflow (ST2 HOFL):
+  the sample is dropped and counted, as on the chip.
 - ``sim.temperature_c`` (25.0), ``sim.temperature_rise_c`` (2.0): the die and its warm-up.
 - ``sim.motion`` (tumble): tumble, yaw, still, poses, or cmd_vel (a robot following cmd_vel).
 - ``sim.i2c_error_rate`` (0.0): share of failing I2C transactions; ``sim.seed`` (0).
@@ -65,6 +71,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 import gc
 import math
+import re
 import sys
 import threading
 
@@ -196,7 +203,8 @@ PARAMETERS: dict[str, tuple[object, ParameterDescriptor]] = {
     'frame_id': ('imu_link', _descriptor(
         'header.frame_id of imu/mag, imu/data_raw and imu/temperature: the ICM-20948 '
         'accel/gyro frame (REP-145).', read_only=False,
-        constraints='non-empty, no leading slash')),
+        constraints='at most 128 characters: letters, digits, underscores; a name does not '
+                    'start with a digit; single slashes between names, none leading')),
     'magnetic_field_stddev': (0.0, _descriptor(
         'Per-axis noise standard deviation in tesla for the covariance diagonal; 0 = unknown '
         '(all-zero covariance).', read_only=False, float_range=(0.0, 1e-3))),
@@ -232,10 +240,10 @@ PARAMETERS: dict[str, tuple[object, ParameterDescriptor]] = {
         'Simulator: random seed (motion, noise, faults).', integer_range=(0, 2**31 - 1))),
     'sim.accel_bias_mps2': ([0.0, 0.0, 0.0], _descriptor(
         'Simulator: accelerometer bias [x, y, z] in m/s^2, chip frame.',
-        constraints='3 finite doubles')),
+        constraints='3 finite doubles within ±156.9 (16 g)')),
     'sim.gyro_bias_dps': ([0.0, 0.0, 0.0], _descriptor(
         'Simulator: gyroscope bias [x, y, z] in deg/s, chip frame.',
-        constraints='3 finite doubles')),
+        constraints='3 finite doubles within ±2000')),
     'sim.accel_noise_density': (ACCEL_NOISE_DENSITY, _descriptor(
         'Simulator: accelerometer noise density in (m/s^2)/sqrt(Hz).', float_range=(0.0, 1.0))),
     'sim.gyro_noise_density': (GYRO_NOISE_DENSITY, _descriptor(
@@ -281,6 +289,8 @@ PARAMETERS: dict[str, tuple[object, ParameterDescriptor]] = {
 CMD_VEL_TOPIC = 'cmd_vel'
 CMD_VEL_TYPES = {'geometry_msgs/msg/Twist': Twist, 'geometry_msgs/msg/TwistStamped': TwistStamped}
 RCLError = rclpy_implementation.RCLError
+FRAME_ID_MAX_LENGTH = 128
+FRAME_ID_PATTERN = re.compile(r'[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*')
 CMD_VEL_CHECK_S = 0.25
 """How often the sim's cmd_vel subscription checks which type the publishers use."""
 
@@ -319,10 +329,24 @@ def imu_settings(values: dict[str, object]) -> ImuSettings:
 
 
 def frame_id_problems(frame_id: object) -> list[str]:
-    if not isinstance(frame_id, str) or not frame_id.strip():
+    """A tf2 frame name: one or more tokens of letters, digits and underscores, none starting
+    with a digit, joined by single slashes (imu_link, robot1/imu_link), at most
+    FRAME_ID_MAX_LENGTH characters: the tokens of ROS names
+    (design.ros2.org/articles/topic_and_service_names.html) without the leading slash tf2
+    refuses. Every message carries the frame, so a 100 kB or multi-line one is a mistake."""
+    if not isinstance(frame_id, str):
         return [f'frame_id must be a non-empty string, got {frame_id!r}']
+    shown = repr(frame_id) if len(frame_id) <= 40 else f'{frame_id[:40]!r}...'
+    if not frame_id.strip():
+        return [f'frame_id must be a non-empty string, got {shown}']
     if frame_id.startswith('/'):
-        return [f'frame_id must not start with a slash (tf2 frame names), got {frame_id!r}']
+        return [f'frame_id must not start with a slash (tf2 frame names), got {shown}']
+    if len(frame_id) > FRAME_ID_MAX_LENGTH:
+        return [f'frame_id must be at most {FRAME_ID_MAX_LENGTH} characters (a tf2 frame name), '
+                f'got {len(frame_id)}: {shown}']
+    if not FRAME_ID_PATTERN.fullmatch(frame_id):
+        return [f'frame_id must be letters, digits and underscores, not starting with a digit, '
+                f'with single slashes between such names (imu_link, robot1/imu_link), got {shown}']
     return []
 
 

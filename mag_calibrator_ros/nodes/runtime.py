@@ -36,43 +36,46 @@ def guarded(node: Node, name: str, callback: Callable) -> Callable:
 
 def spin_node(node_factory: Callable[[], Node], args: Sequence[str] | None = None, *,
               publish_on_shutdown: bool = False) -> int:
-    """Init rclpy, build the node, spin until Ctrl-C or an external shutdown, clean up.
+    """Init rclpy, build the node, spin until Ctrl-C, SIGTERM or an external shutdown, clean up.
 
-    ``publish_on_shutdown``: Ctrl-C and SIGTERM stop spinning but leave the context up until
-    the node is destroyed, so ``destroy_node`` can still publish (a final zero on cmd_vel).
-    rclpy's own handlers shut the context down first, and a publish then fails.
+    A process's whole life: the first SIGINT or SIGTERM stops spinning and every later one is
+    ignored until the process has ended. ``ros2 launch`` forwards Ctrl-C to nodes the terminal has
+    already sent it to, so a node gets two SIGINTs; rclpy's own handlers turn the second into a
+    KeyboardInterrupt inside ``destroy_node``, a traceback and exit -2 (issue #21).
+    ``publish_on_shutdown``: the context stays up until the node is destroyed, so
+    ``destroy_node`` can still publish (a final zero on cmd_vel); without it the context is shut
+    down first, so publishing threads of the node stop at their next publish.
     Returns a process exit code (0 on a normal stop) so console scripts can ``sys.exit`` it.
     """
-    previous, stop = None, None
-    if publish_on_shutdown:
-        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-        stop = _StopOnSignal()  # one for both: the first of either signal counts
-        previous = {number: signal.signal(number, stop) for number in STOP_SIGNALS}
-    else:
-        rclpy.init(args=args)
+    stop = _StopOnSignal()  # one for both: the first of either signal counts
+    for number in STOP_SIGNALS:  # before init: a signal during start-up is a stop, not a crash
+        signal.signal(number, stop)
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     try:
         node = node_factory()
-        if stop is None:
-            rclpy.spin(node)
-        else:
-            _spin_until(node, stop)
-    except (KeyboardInterrupt, ExternalShutdownException, ShutdownException):
+        _spin_until(node, stop)
+    except (ExternalShutdownException, ShutdownException):
         pass
     finally:
+        if not publish_on_shutdown:
+            rclpy.try_shutdown()
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
-        for number, handler in (previous or {}).items():
-            signal.signal(number, handler)
+        # Ignored from here on: Python's finalization puts the default action (death by the
+        # signal, exit -2) back for a handler of its own, not for SIG_IGN, and the second
+        # SIGINT of a launch's Ctrl-C can arrive that late.
+        for number in STOP_SIGNALS:
+            signal.signal(number, signal.SIG_IGN)
     return 0
 
 
 class _StopOnSignal:
-    """The first SIGINT or SIGTERM ends spinning; further ones are ignored until the clean-up is
-    done, so a second Ctrl-C cannot cut the node's shutdown (its final publishes) short. It only
-    sets a flag: an exception raised from a signal handler can land inside a pybind11 call of
-    rclpy, which turns it into a RuntimeError ("Unable to convert call argument") and exit 1."""
+    """The first SIGINT or SIGTERM ends spinning; further ones are ignored, so a second Ctrl-C
+    cannot cut the node's shutdown (its final publishes) short. It only sets a flag: an
+    exception raised from a signal handler can land inside a pybind11 call of rclpy, which
+    turns it into a RuntimeError ("Unable to convert call argument") and exit 1."""
 
     def __init__(self) -> None:
         self.received: int | None = None

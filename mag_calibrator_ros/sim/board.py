@@ -96,9 +96,12 @@ class BoardModel:
     def magnetometer(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """(sensed field in µT with distortion and noise, true earth field in T), chip frame."""
         earth_chip_ut = self.trajectory.state(max(t, 0.0)).rotation.T @ self._earth_ut
-        sensed = self._sensing @ earth_chip_ut + self.config.hard_iron
-        if self.config.noise_ut > 0.0:
-            sensed = sensed + self._mag_rng.normal(0.0, self.config.noise_ut, 3)
+        # An absurd distortion may leave the doubles (inf, NaN): the chip reads that as an
+        # overflow, the simulator's business, not a warning on every sample.
+        with np.errstate(over='ignore', invalid='ignore'):
+            sensed = self._sensing @ earth_chip_ut + self.config.hard_iron
+            if self.config.noise_ut > 0.0:
+                sensed = sensed + self._mag_rng.normal(0.0, self.config.noise_ut, 3)
         return sensed, earth_chip_ut * 1e-6
 
     def inertial(

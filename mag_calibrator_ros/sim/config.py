@@ -16,6 +16,13 @@ IDENTITY = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
 # Datasheet typicals (DS-000189), rounded: 230 ug/sqrt(Hz) and 0.015 dps/sqrt(Hz).
 ACCEL_NOISE_DENSITY = 2.26e-3  # (m/s^2)/sqrt(Hz)
 GYRO_NOISE_DENSITY = 2.62e-4  # (rad/s)/sqrt(Hz)
+# What the simulated chip can express: a bias beyond the largest full scale (DS-000189: ±16 g,
+# ±2000 dps) would read the rails on every range, and a density beyond MAX_NOISE_DENSITY (over
+# 400 times the datasheet's typical) is no accelerometer or gyroscope; unbounded, 1e308 made
+# every sample infinite and the simulated chip raised on each one.
+MAX_ACCEL_BIAS_MPS2 = max(reg.ACCEL_RANGES_G) * reg.STANDARD_GRAVITY
+MAX_GYRO_BIAS_DPS = float(max(reg.GYRO_RANGES_DPS))
+MAX_NOISE_DENSITY = 1.0  # (m/s^2)/sqrt(Hz) and (rad/s)/sqrt(Hz)
 
 
 @dataclass(frozen=True)
@@ -88,10 +95,13 @@ def config_problems(config: SimConfig) -> list[str]:
             problems.append(f'{name} must be a finite number, got {value!r}')
         return ok
 
-    def vector(name: str, values: object, unit: str) -> None:
+    def vector(name: str, values: object, unit: str, bound: float = math.inf) -> None:
         array = np.asarray(values, dtype=float) if _numeric(values) else None
         if array is None or array.shape != (3,) or not np.all(np.isfinite(array)):
             problems.append(f'{name} must be 3 finite numbers ({unit}), got {values!r}')
+        elif np.any(np.abs(array) > bound):
+            problems.append(f'{name} must be within ±{bound:g} {unit} (the largest full scale), '
+                            f'got {values!r}')
 
     if finite('field_ut', config.field_ut) and not 0.0 < config.field_ut <= 4900.0:
         problems.append(f'field_ut must be in (0, 4900] uT (AK09916 range), got {config.field_ut}')
@@ -121,8 +131,8 @@ def config_problems(config: SimConfig) -> list[str]:
             problems.append('soft_iron must be symmetric')
         elif np.linalg.eigvalsh(matrix).min() <= 0.0:
             problems.append('soft_iron must be positive definite')
-    vector('accel_bias_mps2', config.accel_bias_mps2, 'm/s^2')
-    vector('gyro_bias_dps', config.gyro_bias_dps, 'deg/s')
+    vector('accel_bias_mps2', config.accel_bias_mps2, 'm/s^2', MAX_ACCEL_BIAS_MPS2)
+    vector('gyro_bias_dps', config.gyro_bias_dps, 'deg/s', MAX_GYRO_BIAS_DPS)
     vector('mag_misalignment_deg', config.mag_misalignment_deg, 'deg, a rotation vector')
     if _numeric(config.mag_misalignment_deg) and np.asarray(
             config.mag_misalignment_deg, dtype=float).shape == (3,) and np.linalg.norm(
@@ -139,8 +149,11 @@ def config_problems(config: SimConfig) -> list[str]:
                         f'{config.inclination_offset_deg}')
     for name in ('accel_noise_density', 'gyro_noise_density'):
         value = getattr(config, name)
-        if finite(name, value) and value < 0.0:
-            problems.append(f'{name} must be >= 0, got {value}')
+        if finite(name, value) and not 0.0 <= value <= MAX_NOISE_DENSITY:
+            problems.append(f'{name} must be >= 0 and <= {MAX_NOISE_DENSITY} per sqrt(Hz), '
+                            f'got {value}')
+    if not isinstance(config.seed, int) or config.seed < 0:
+        problems.append(f'seed must be an integer >= 0, got {config.seed!r}')
     if finite('temperature_c', config.temperature_c) and not -40.0 <= config.temperature_c <= 85.0:
         problems.append(f'temperature_c must be within the operating range [-40, 85] degC, '
                         f'got {config.temperature_c}')

@@ -74,8 +74,24 @@ class _ImuConfig:
     gyro_noise_bandwidth_hz: float
 
 
+def _saturated_counts(field_tesla: np.ndarray) -> np.ndarray:
+    """``tesla_to_counts`` for any field, however large: in floats, a field beyond every count
+    (even infinite, or NaN from an absurd distortion) becomes one count past the measurement
+    range, so it reads as the datasheet's overflow (DS-000189 rev. 1.3 p. 79: the range is
+    ±32752 counts, ±4912 µT, and HOFL in ST2 says the sensor overflowed) rather than wrapping
+    around in the integer conversion to a plausible value without HOFL."""
+    with np.errstate(over='ignore', invalid='ignore'):
+        chip = np.rint(np.asarray(field_tesla, dtype=float) / reg.TESLA_PER_LSB
+                       * np.asarray(reg.AXIS_SIGNS))
+    beyond = reg.MEASUREMENT_LIMIT + 1
+    chip = np.nan_to_num(chip, nan=beyond, posinf=beyond, neginf=-beyond)
+    return np.clip(chip, -beyond, beyond).astype(np.int64)
+
+
 def _int16(value: float) -> int:
-    return min(max(round(value), reg.INT16_MIN), reg.INT16_MAX)
+    """A sample saturated to the int16 rails, clamped before rounding so that even an infinite
+    one reads the rail."""
+    return round(min(max(value, reg.INT16_MIN), reg.INT16_MAX))
 
 
 @dataclass
@@ -603,7 +619,7 @@ class SimulatedIcm20948Bus:
     def _measure(self, t: float) -> tuple[bytearray, np.ndarray]:
         """Registers HXL..ST2 for a sample taken at sim time ``t``, and its true field (T)."""
         sensed_ut, truth = self.board.magnetometer(t)
-        counts = tesla_to_counts(sensed_ut * 1e-6)  # AK09916 axes, quantised
+        counts = _saturated_counts(sensed_ut * 1e-6)  # AK09916 axes, quantised
         overflow = bool(np.any(np.abs(counts) > reg.MEASUREMENT_LIMIT))
         counts = np.clip(counts, -reg.MEASUREMENT_LIMIT, reg.MEASUREMENT_LIMIT)
         data = bytearray(counts.astype('<i2').tobytes())

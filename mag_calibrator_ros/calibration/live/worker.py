@@ -129,6 +129,7 @@ class ProcessRunner:
         process = subprocess.Popen(
             [sys.executable, '-m', 'mag_calibrator_ros.calibration.live.worker'],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=environment, close_fds=True,
+            start_new_session=True,  # a terminal's Ctrl-C is the node's, even during imports
         )
         self._process, self._outcomes = process, SimpleQueue()
         threading.Thread(target=self._read, args=(process, self._outcomes), daemon=True,

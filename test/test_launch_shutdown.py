@@ -1,0 +1,92 @@
+"""Ctrl-C and SIGTERM end either node cleanly, as `ros2 launch` delivers them (issue #21).
+
+A terminal's Ctrl-C reaches every process of the launch's group and launch then forwards one
+more SIGINT, so a node gets two in quick succession; with rclpy's own handlers the second one
+was a KeyboardInterrupt inside ``destroy_node``: a traceback and exit -2 ("process has died").
+Each node runs here in a process group of its own, as under a terminal, and gets the signals at
+different moments: while it builds itself, and once it runs; "SIGINT twice" goes to the whole
+group first (the calibrator's fit worker too, which must not print a traceback while it still
+imports), then to the node. It must exit 0 without a traceback, and in bounded time.
+"""
+
+import os
+from pathlib import Path
+import random
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from mag_calibrator_ros.nodes.runtime import wait_until
+
+EXIT_TIMEOUT_S = 30.0
+START_TIMEOUT_S = 60.0
+NODES = {
+    # module, arguments, the log line that says it runs
+    'icm20948_driver': ('mag_calibrator_ros.nodes.icm20948_driver', ['-p', 'backend:=sim'],
+                        'sim backend, ICM-20948'),
+    'mag_calibrator': ('mag_calibrator_ros.nodes.mag_calibrator', [], 'no calibration file at'),
+}
+RUNNING, RANDOM = 'running', 'random'
+# When: after the node's start-up line (RUNNING), or this many seconds after its signal handlers
+# are set (rclpy.init, building the node, its first spins), or a random such moment in [0, 1).
+SIGNALS = {
+    'SIGINT twice': (signal.SIGINT, signal.SIGINT),
+    'SIGTERM': (signal.SIGTERM,),
+    'SIGINT then SIGTERM': (signal.SIGINT, signal.SIGTERM),
+}
+CASES = [('SIGINT twice', moment, gap) for moment in (0.0, 0.15, 0.5, RANDOM, RUNNING)
+         for gap in (0.005, 0.1)] + [
+    ('SIGTERM', 0.15, 0.0), ('SIGTERM', RUNNING, 0.0), ('SIGINT then SIGTERM', RUNNING, 0.05)]
+
+
+def catches(pid: int, number: int) -> bool:
+    """Whether process ``pid`` has a handler for signal ``number`` (Linux: SigCgt in /proc):
+    Python itself only catches SIGINT, so a caught SIGTERM means the node's handlers are set."""
+    try:
+        status = Path(f'/proc/{pid}/status').read_text()
+    except FileNotFoundError:
+        return False
+    (mask,) = [line.split()[1] for line in status.splitlines() if line.startswith('SigCgt:')]
+    return bool(int(mask, 16) >> (number - 1) & 1)
+
+
+@pytest.mark.skipif(not sys.platform.startswith('linux'), reason='reads /proc/<pid>/status')
+@pytest.mark.parametrize('signals, moment, gap', CASES)
+@pytest.mark.parametrize('name', sorted(NODES))
+def test_a_node_ends_cleanly_on_launch_style_signals(tmp_path, name, signals, moment, gap):
+    if moment == RANDOM:
+        moment = random.SystemRandom().uniform(0.0, 1.0)
+    module, arguments, running_line = NODES[name]
+    log_path = tmp_path / 'output.log'
+    namespace = f'/shutdown_{name}_{int(time.monotonic() * 1000) % 100000}'
+    if name == 'mag_calibrator':
+        arguments = arguments + ['-p', f'calibration_file:={tmp_path / "calibration.yaml"}']
+    command = [sys.executable, '-m', module, '--ros-args', '-r', f'__ns:={namespace}', *arguments]
+    with log_path.open('wb') as log:
+        process = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=log,
+                                   stderr=subprocess.STDOUT, start_new_session=True)
+        try:
+            assert wait_until(lambda: catches(process.pid, signal.SIGTERM), START_TIMEOUT_S)
+            if moment == RUNNING:
+                assert wait_until(lambda: running_line in log_path.read_text(errors='replace'),
+                                  START_TIMEOUT_S), log_path.read_text(errors='replace')
+            else:
+                time.sleep(moment)
+            for index, number in enumerate(SIGNALS[signals]):
+                if index == 0 and signals == 'SIGINT twice':
+                    os.killpg(process.pid, number)  # the terminal's Ctrl-C
+                else:
+                    process.send_signal(number)  # launch's
+                time.sleep(gap)
+            code = process.wait(timeout=EXIT_TIMEOUT_S)
+        finally:
+            if process.poll() is None:
+                process.kill()
+                process.wait()
+    output = log_path.read_text(errors='replace')
+    when = f'{signals} {gap} s apart at {moment}'
+    assert code == 0, f'{when}: {output}'
+    assert 'Traceback' not in output and 'KeyboardInterrupt' not in output, f'{when}: {output}'
