@@ -123,6 +123,7 @@ from mag_calibrator_ros.calibration.fit.earth_field import (
     EarthField,
     EarthFieldError,
     earth_field,
+    import_model,
 )
 from mag_calibrator_ros.calibration.live.report import calibration_summary
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
@@ -214,6 +215,7 @@ class MagCalibratorNode(Node):
         self._location_source = ''  # 'parameters' or 'gps/fix' once the model's field is known
         self._location_wanted: Location | None = None
         self._fix_used = False
+        import_model()  # now: an import on the I/O thread would hold the lock messages need
         self._startup(self._calibration_parameters.given)
         self.add_on_set_parameters_callback(self._validate_parameters)
         self._calibration_parameters.show(self.session.calibration)
@@ -236,8 +238,7 @@ class MagCalibratorNode(Node):
             self.create_service(Trigger, name, self._answering(name, callback),
                                 callback_group=waiting)
         self._diagnostics = DiagnosticsPublisher(self)
-        self._view = ViewPublisher(self)
-        self._last_view = -math.inf
+        self._view = ViewPublisher(self, DIAGNOSTICS_PERIOD_S)
         self.create_timer(POLL_PERIOD_S, guarded(self, 'poll', self._on_poll))
         self.create_timer(DIAGNOSTICS_PERIOD_S, guarded(self, 'diagnostics', self._on_tick))
         self._turning = TurnInPlace(self, self.session, self._request_calibration,
@@ -542,10 +543,8 @@ class MagCalibratorNode(Node):
         self._publish_view(now)
 
     def _publish_view(self, now: float) -> None:
-        period = float(self.get_parameter('view_period').value)
-        if period <= 0.0 or now - self._last_view < period or not self._view.watched:
+        if not self._view.due(now, float(self.get_parameter('view_period').value)):
             return
-        self._last_view = now
         self._view.publish(self.session.view(), self.session.frame_id or 'imu_link',
                            float(self.get_parameter('view_scale').value))
 
