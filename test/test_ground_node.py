@@ -283,6 +283,38 @@ def test_refusals_say_why(ros, tmp_path):
     remove_all(ros, commander, calibrator, driver)
 
 
+def test_a_turn_restarted_after_cmd_vel_stamped_changed_commands_the_new_type(ros, tmp_path):
+    """One participant cannot hold both types on one topic: each listener has its own context,
+    as a base has its own process."""
+    namespace = 'retyped'
+    twist_side, stamped_side = Ros(), Ros()
+    try:
+        ros.driver(namespace)
+        calibrator = ros.calibrator(namespace, progress_log_period=0.0,
+                                    calibration_file=str(tmp_path / 'c.yaml'))
+        caller = ros.add(Node('caller', namespace=namespace, context=ros.context))
+        twist_base = Commander(twist_side, namespace)
+        stamped_base = Commander(stamped_side, namespace, stamped=True)
+        assert wait_for(lambda: calibrator.session.accepted > 20)
+        assert call_trigger(caller, 'mag_calibrator/rotate_and_calibrate').success
+        assert wait_for(lambda: (twist_base.last_twist() or 0.0) > 0.0)
+        # The change stops the turn: its zero goes out as Twist, what the base listens to.
+        ok, reason = set_parameter_over_service(caller, calibrator, 'cmd_vel_stamped', True)
+        assert ok, reason
+        assert calibrator._rotation.last_stop[0] == 'parameters'
+        assert wait_for(lambda: twist_base.last_twist() == 0.0)
+        # Restarted at once (within the zero hold): TwistStamped, as now asked.
+        response = call_trigger(caller, 'mag_calibrator/rotate_and_calibrate')
+        assert response.success, response.message
+        assert wait_for(lambda: (stamped_base.last_twist() or 0.0) > 0.0), (
+            'the restarted turn did not command TwistStamped')
+        assert call_trigger(caller, 'mag_calibrator/stop_rotation').success
+        assert wait_for(lambda: stamped_base.last_twist() == 0.0)
+    finally:
+        twist_side.close()
+        stamped_side.close()
+
+
 def test_twist_stamped_for_nav2_style_bases(ros, tmp_path):
     """One process (DDS participant) cannot hold both types on one topic: the robot gets its
     own context here, as it has its own process on a robot."""

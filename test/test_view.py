@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 from pathlib import Path
+import subprocess
 import sys
 
 import numpy as np
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
@@ -15,12 +17,14 @@ from visualization_msgs.msg import Marker, MarkerArray
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
 from mag_calibrator_ros.calibration.fit.coverage import CELL_COUNT
 from mag_calibrator_ros.calibration.live.view import calibration_surface, calibration_view
-from mag_calibrator_ros.nodes.view_publisher import point_cloud
+from mag_calibrator_ros.nodes.mag_calibrator import MagCalibratorNode
+from mag_calibrator_ros.nodes.view_publisher import ViewCadence, point_cloud, quaternion
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from node_helpers import Ros, wait_for  # noqa: E402
 from test_calibrator_node import HARD_IRON_UT, SOFT_IRON  # noqa: E402
 
+REPOSITORY = Path(__file__).resolve().parent.parent
 CALIBRATION = Calibration(np.array([120e-6, -80e-6, 60e-6]),
                           np.array([[1.1, 0.1, 0.0], [0.1, 0.9, 0.05], [0.0, 0.05, 1.0]]), 50e-6)
 
@@ -50,6 +54,38 @@ def test_the_view_shows_points_corrected_and_the_cells_they_cover():
     uncalibrated = calibration_view(raw, np.ones(300), None)
     assert uncalibrated.corrected is None and uncalibrated.raw_surface is None
     assert uncalibrated.occupied.sum() > 0.9 * CELL_COUNT  # judged by the data's own shape
+
+
+def test_the_quaternion_of_a_rotation_matches_scipy():
+    from scipy.spatial.transform import Rotation
+
+    for seed in range(200):
+        rotation = Rotation.random(random_state=seed)
+        expected, got = rotation.as_quat(), np.array(quaternion(rotation.as_matrix()))
+        assert min(np.abs(got - expected).max(), np.abs(got + expected).max()) < 1e-12
+    for half_turn in (np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]),
+                      np.diag([-1.0, -1.0, 1.0])):  # the trace at its smallest
+        expected = Rotation.from_matrix(half_turn).as_quat()
+        assert min(np.abs(np.array(quaternion(half_turn)) - s * expected).max()
+                   for s in (1, -1)) < 1e-12
+
+
+def published_ticks(period: float, ticks: list[float]) -> list[float]:
+    cadence = ViewCadence(1.0)
+    return [now for now in ticks if cadence.due(now, period)]
+
+
+def test_the_view_cadence_keeps_its_rate_on_an_early_or_late_tick():
+    jitter = [0.0, -0.004, 0.003, -0.002, 0.005, -0.001, 0.002, -0.003, 0.0, 0.001]
+    ticks = [10.0 + i + j for i, j in enumerate(jitter)]
+    assert published_ticks(1.0, ticks) == ticks
+    assert published_ticks(0.5, ticks) == ticks  # faster than the tick: every tick
+    assert published_ticks(2.0, ticks) == ticks[::2]
+    assert len(published_ticks(1.5, ticks)) in (6, 7)  # 2 in 3 ticks on average
+    assert published_ticks(0.0, ticks) == []
+    cadence = ViewCadence(1.0)
+    assert cadence.due(0.0, 1.0) and cadence.due(1.0, 1.0)
+    assert cadence.due(60.0, 1.0) and not cadence.due(60.4, 1.0)  # after a pause: from now
 
 
 def decode(cloud: PointCloud2) -> np.ndarray:
@@ -94,3 +130,68 @@ def test_the_node_draws_its_buffer_for_rviz_while_watched(tmp_path):
         assert received['raw'][-1].header.frame_id == 'imu_link'
     finally:
         ros.close()
+
+
+IMPORT_CHECK = """
+import math, sys
+import numpy as np
+import rclpy
+from rclpy.context import Context
+from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.fit.earth_field import earth_field
+from mag_calibrator_ros.calibration.live.view import calibration_view
+from mag_calibrator_ros.nodes.mag_calibrator import MagCalibratorNode
+from mag_calibrator_ros.nodes.view_publisher import markers, point_cloud
+from std_msgs.msg import Header
+
+context = Context()
+rclpy.init(args=[], context=context)
+node = MagCalibratorNode(context=context)
+before = set(sys.modules)
+# What the diagnostics timer's view and the I/O thread's location run, once someone watches or
+# a location arrives.
+calibration = Calibration(np.array([1e-5, 0.0, 0.0]), np.diag([1.1, 0.9, 1.0]), 5e-5)
+angle = np.arange(50.0)  # spread over the sphere (no numpy.random: the node never uses it)
+samples = 5e-5 * np.column_stack([np.cos(angle) * np.sin(angle / 7), np.sin(angle) *
+                                  np.sin(angle / 7), np.cos(angle / 7)])
+view = calibration_view(samples, np.ones(50), calibration)
+header = Header(frame_id='imu_link')
+point_cloud(header, view.raw, view.weights)
+markers(header, view, 1e4)
+markers(header, calibration_view(samples, np.ones(50), None), 1e4)
+earth_field(52.52, 13.40, 34.0)
+print(sorted(set(sys.modules) - before))
+node.destroy_node()
+rclpy.shutdown(context=context)
+"""
+
+
+def test_the_view_and_the_location_import_nothing_once_the_node_is_built():
+    """An import in a callback holds the interpreter and stalls the message path: everything
+    the view and the World Magnetic Model need is imported before the node spins. A fresh
+    process: what other tests imported does not hide a late import."""
+    result = subprocess.run([sys.executable, '-c', IMPORT_CHECK], capture_output=True,
+                            text=True, timeout=120, check=False, cwd=REPOSITORY)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip().splitlines()[-1] == '[]'
+
+
+def test_the_view_is_published_every_tick_with_view_period_equal_to_the_tick(ros, tmp_path):
+    """Ticks a little early or late (a busy executor) each publish a view: before, a tick
+    slightly early was skipped and the rate fell to about half."""
+    namespace = 'cadence'
+    calibrator = MagCalibratorNode(  # not spinning: the test drives its clock
+        namespace=namespace, context=ros.context, parameter_overrides=[
+            Parameter('progress_log_period', value=0.0),
+            Parameter('calibration_file', value=str(tmp_path / 'c.yaml'))])
+    watcher = ros.add(Node('watcher', namespace=namespace, context=ros.context))
+    watcher.create_subscription(MarkerArray, 'mag_calibrator/view/markers', lambda _: None, 1)
+    try:
+        assert wait_for(lambda: calibrator._view.watched)
+        jitter = [0.0, -0.003, 0.004, -0.002, 0.001, -0.004, 0.002, 0.0, -0.001, 0.003]
+        for tick, early_or_late in enumerate(jitter):
+            calibrator._publish_view(100.0 + tick + early_or_late)
+        assert calibrator._view.published == len(jitter)
+    finally:
+        ros.remove(watcher)
+        calibrator.destroy_node()

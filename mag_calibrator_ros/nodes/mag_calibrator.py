@@ -15,8 +15,9 @@ Subscribed topics (sensor-data QoS: best effort, depth 100):
 - ``imu/mag`` (sensor_msgs/MagneticField): the raw field, tesla.
 - ``imu/data_raw`` (sensor_msgs/Imu), while ``use_imu``: the accelerometer (and gyroscope) the
   calibration is aligned to, from readings held still.
-- ``gps/fix`` (sensor_msgs/NavSatFix): the first usable fix locates the robot for the World
-  Magnetic Model when ``latitude``/``longitude`` are NaN and ``use_gps`` holds.
+- ``gps/fix`` (sensor_msgs/NavSatFix): a plausible fix locates the robot for the World
+  Magnetic Model when ``latitude``/``longitude`` are NaN and ``use_gps`` holds; one over
+  10 km away replaces it (``nodes/location.py``).
 
 Published topics:
 
@@ -34,7 +35,7 @@ Services (six, all std_srvs/Trigger):
 - ``~/calibrate``: fit the buffer now; answers once the fit is in force, or why it is not.
 - ``~/save``: write the calibration in force to ``calibration_file``.
 - ``~/load``: put the calibration in ``calibration_file`` in force.
-- ``~/reset``: empty the buffer; the calibration in force stays.
+- ``~/reset``: empty the buffer, forget a location from gps/fix; the calibration stays.
 - ``~/rotate_and_calibrate``: turn in place on ``cmd_vel`` until calibrated (ground robots).
 - ``~/stop_rotation``: stop that turn (zero at once).
 
@@ -76,8 +77,8 @@ Alignment to the IMU and the Earth's field here:
 - ``use_imu`` (true): subscribe imu/data_raw and align each calibration to it.
 - ``max_alignment_deg`` (15.0): a larger rotation is reported as a mounting error, not applied.
 - ``latitude``, ``longitude`` (NaN: unknown), ``altitude`` (0.0): the World Magnetic Model's
-  location, degrees and metres (WGS84).
-- ``use_gps`` (true): without latitude/longitude, locate from the first fix on gps/fix.
+  location, degrees and metres (WGS84); one set alone waits for the other.
+- ``use_gps`` (true): without latitude/longitude, locate from a plausible fix on gps/fix.
 - ``max_field_error_pct`` (15.0), ``max_dip_error_deg`` (5.0): the fit against the model.
 - ``earth_field_gate`` (true): a fit off the model fails (true) or is warned about (false).
 
@@ -123,6 +124,7 @@ from mag_calibrator_ros.calibration.fit.earth_field import (
     EarthField,
     EarthFieldError,
     earth_field,
+    import_model,
 )
 from mag_calibrator_ros.calibration.live.report import calibration_summary
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
@@ -149,12 +151,7 @@ from mag_calibrator_ros.nodes.diagnostics import (
     DiagnosticsPublisher,
     diagnostic_status,
 )
-from mag_calibrator_ros.nodes.location import (
-    LOCATION_PARAMETERS,
-    Location,
-    fix_location,
-    parameter_location,
-)
+from mag_calibrator_ros.nodes.location import LOCATION_PARAMETERS, Location, LocationSource
 from mag_calibrator_ros.nodes.mag_calibrator_parameters import (
     PARAMETERS,
     parameter_problems,
@@ -212,8 +209,9 @@ class MagCalibratorNode(Node):
         self._auto_save = AutoSaveThrottle()
         self._imu_subscription = None
         self._location_source = ''  # 'parameters' or 'gps/fix' once the model's field is known
-        self._location_wanted: Location | None = None
-        self._fix_used = False
+        self._location = LocationSource(bool(self.get_parameter('use_gps').value))
+        self._location_asked: tuple[Location, str] | None = None  # last sent to the model
+        import_model()  # now: an import on the I/O thread would hold the lock messages need
         self._startup(self._calibration_parameters.given)
         self.add_on_set_parameters_callback(self._validate_parameters)
         self._calibration_parameters.show(self.session.calibration)
@@ -226,7 +224,7 @@ class MagCalibratorNode(Node):
         self._sync_imu_subscription()
         self.create_subscription(NavSatFix, 'gps/fix', guarded(self, 'gps/fix', self._on_fix),
                                  INPUT_QOS)
-        self._locate_from_parameters()
+        self._relocate()
         # The services wait for the fit worker and the I/O thread without blocking the executor;
         # a waiting service must not hold the default (mutually exclusive) group, or the poll
         # timer that completes it could never run.
@@ -236,8 +234,7 @@ class MagCalibratorNode(Node):
             self.create_service(Trigger, name, self._answering(name, callback),
                                 callback_group=waiting)
         self._diagnostics = DiagnosticsPublisher(self)
-        self._view = ViewPublisher(self)
-        self._last_view = -math.inf
+        self._view = ViewPublisher(self, DIAGNOSTICS_PERIOD_S)
         self.create_timer(POLL_PERIOD_S, guarded(self, 'poll', self._on_poll))
         self.create_timer(DIAGNOSTICS_PERIOD_S, guarded(self, 'diagnostics', self._on_tick))
         self._turning = TurnInPlace(self, self.session, self._request_calibration,
@@ -263,7 +260,7 @@ class MagCalibratorNode(Node):
         for parameter in parameters:
             if parameter.name in PARAMETERS:
                 values[parameter.name] = parameter.value
-        problems = parameter_problems(values)
+        problems = parameter_problems(values, at_run_time=True)
         if problems:
             return SetParametersResult(successful=False, reason='; '.join(problems))
         return SetParametersResult(successful=True)
@@ -274,8 +271,8 @@ class MagCalibratorNode(Node):
         names = {parameter.name for parameter in parameters}
         if 'use_imu' in names:
             self._sync_imu_subscription()
-        if names & set(LOCATION_PARAMETERS):
-            self._locate_from_parameters()
+        if names & {*LOCATION_PARAMETERS, 'use_gps'}:
+            self._relocate()
 
     # -- start-up --------------------------------------------------------------------------------
 
@@ -362,42 +359,47 @@ class MagCalibratorNode(Node):
 
     # -- the Earth's field here -------------------------------------------------------------------
 
-    def _locate_from_parameters(self) -> None:
-        where = parameter_location(*(float(self.get_parameter(name).value)
-                                     for name in LOCATION_PARAMETERS))
-        if where is not None:
-            self._locate(where, 'parameters')
-        elif self._location_source == 'parameters':  # the location was taken back
+    def _relocate(self) -> None:
+        """Evaluate the model where the location source now wants it, or drop it (none)."""
+        source = self._location
+        source.use_gps = bool(self.get_parameter('use_gps').value)
+        source.set_parameters(*(float(self.get_parameter(name).value)
+                                for name in LOCATION_PARAMETERS))
+        wanted = source.wanted
+        if wanted == self._location_asked:
+            return
+        self._location_asked = wanted
+        if wanted is None:
+            if self._location_source:
+                self.get_logger().info('no location any more: fits are not checked against the '
+                                       'World Magnetic Model until one is given')
             self._location_source = ''
             self.session.set_earth_field(None)
+            return
+        where, source_name = wanted
+        self._run_io(lambda: earth_field(*where)).add_done_callback(
+            lambda future: self._located(where, source_name, future.result()))
 
     def _on_fix(self, msg: NavSatFix) -> None:
-        """The first usable fix locates the robot when the parameters do not (one evaluation
-        only, whatever its outcome: a fix stream never repeats it)."""
-        if self._fix_used:
-            return
-        where = fix_location(msg, bool(self.get_parameter('use_gps').value),
-                             self.get_parameter('latitude').value,
-                             self.get_parameter('longitude').value)
-        if where is not None:
-            self._fix_used = True
-            self._locate(where, 'gps/fix')
-
-    def _locate(self, where: Location, source: str) -> None:
-        """Evaluate the World Magnetic Model on the I/O thread (an import and a model
-        evaluation: never in the executor)."""
-        self._location_wanted = where
-        self._run_io(lambda: earth_field(*where)).add_done_callback(
-            lambda future: self._located(where, source, future.result()))
+        """Screen the fix; a plausible one locates, or replaces a far one (LocationSource)."""
+        reason = self._location.offer_fix(msg)
+        if reason is not None and self._location.refused[reason] == 1:
+            self.get_logger().warning(
+                f'gps/fix refused ({reason}: status {msg.status.status}, {msg.latitude}, '
+                f'{msg.longitude}, altitude {msg.altitude}); counted in diagnostics '
+                '(gps_fixes_refused), waiting for a plausible fix')
+        if self._location.wanted != self._location_asked:
+            self._relocate()
 
     def _located(self, where: Location, source: str, result: EarthField | Exception) -> None:
-        if where != self._location_wanted:
-            return  # a newer location was asked for meanwhile
-        self._location_wanted = None
+        if (where, source) != self._location_asked:
+            return  # another location was asked for meanwhile
         if isinstance(result, Exception):
             what = '' if isinstance(result, EarthFieldError) else f'{type(result).__name__}: '
             self.get_logger().warning(f'no World Magnetic Model field at {where} (from '
                                       f'{source}): {what}{result}; running without it')
+            self._location_source = ''
+            self.session.set_earth_field(None)  # not a field from elsewhere
             return
         self._location_source = source
         self.session.set_earth_field(result)
@@ -515,9 +517,13 @@ class MagCalibratorNode(Node):
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response):
         self.session.reset()
+        forgot = self._location.forget_fix()
+        self._relocate()
         response.success = True
         response.message = (f'buffer emptied; the calibration in force is unchanged '
                             f'(state {self.session.state})')
+        if forgot:
+            response.message += '; the location from gps/fix is forgotten (the next fix locates)'
         self.get_logger().info(response.message)
         return response
 
@@ -542,10 +548,8 @@ class MagCalibratorNode(Node):
         self._publish_view(now)
 
     def _publish_view(self, now: float) -> None:
-        period = float(self.get_parameter('view_period').value)
-        if period <= 0.0 or now - self._last_view < period or not self._view.watched:
+        if not self._view.due(now, float(self.get_parameter('view_period').value)):
             return
-        self._last_view = now
         self._view.publish(self.session.view(), self.session.frame_id or 'imu_link',
                            float(self.get_parameter('view_scale').value))
 
@@ -573,6 +577,10 @@ class MagCalibratorNode(Node):
         values.update(self._rotation.diagnostic_values(now))
         if self._location_source:
             values['location_source'] = self._location_source
+        if self._location.waiting:
+            values['location_waiting'] = self._location.waiting
+        if self._location.refused:
+            values['gps_fixes_refused'] = self._location.refused_text()
         level, message = self.session.diagnostics_level(
             coverage, values['input_rate_hz'], self._problem, self._no_input_text())
         # Names and hardware ids carry the namespace: robots on one host stay apart.

@@ -3,7 +3,10 @@
 One table, so ``ros2 param describe``, the shipped config and the checks cannot disagree: every
 entry is (default, description, descriptor extras such as ranges). Session settings share their
 field names with :class:`~mag_calibrator_ros.calibration.live.session.SessionSettings`.
-``parameter_problems`` is the one check, the same at start-up and on every later set.
+``parameter_problems`` is the one check, the same at start-up and on every later set, but for
+one case: half a location (``latitude`` or ``longitude`` alone) is refused at start-up, where
+nothing else can complete it, and waits for the other at run time (``ros2 param set`` sets one at
+a time; see ``nodes/location.py``).
 """
 
 from __future__ import annotations
@@ -121,13 +124,14 @@ PARAMETERS: dict[str, tuple[object, str, dict]] = {
                           'error (with the remap that fixes it) and not applied.',
                           {'floating_point_range': _float_range(0.0, 180.0)}),
     'latitude': (math.nan, 'Degrees north (WGS84) for the World Magnetic Model; NaN: unknown '
-                           '(the first fix on gps/fix is used).', {}),
+                           '(a plausible fix on gps/fix is used). Set one at a time, the pair '
+                           'goes in force once both are given (or both NaN).', {}),
     'longitude': (math.nan, 'Degrees east (WGS84) for the World Magnetic Model; NaN: unknown.',
                   {}),
     'altitude': (0.0, 'Metres above the WGS84 ellipsoid for the World Magnetic Model.',
                  {'floating_point_range': _float_range(-1000.0, 850000.0)}),
-    'use_gps': (True, 'Without latitude/longitude, take the location from the first fix on '
-                      'gps/fix (sensor_msgs/NavSatFix).', {}),
+    'use_gps': (True, 'Without latitude/longitude, take the location from a plausible fix on '
+                      'gps/fix (sensor_msgs/NavSatFix); a fix over 10 km away replaces it.', {}),
     'max_field_error_pct': (DEFAULTS.max_field_error_pct,
                             'Largest difference, in %, between the fitted field and the World '
                             "Magnetic Model's intensity before the field counts as disturbed.",
@@ -148,8 +152,9 @@ def session_settings(values: Mapping[str, object]) -> SessionSettings:
     return SessionSettings(**{k: v for k, v in values.items() if k in SESSION_FIELDS})
 
 
-def parameter_problems(values: Mapping[str, object]) -> list[str]:
-    """Everything wrong with these parameter values (the same at start-up and at run time)."""
+def parameter_problems(values: Mapping[str, object], at_run_time: bool = False) -> list[str]:
+    """Everything wrong with these parameter values (``at_run_time``: half a location waits for
+    the other instead of being refused)."""
     problems = session_settings(values).problems()
     problems += turn_settings_from(values).problems()
     try:
@@ -157,5 +162,5 @@ def parameter_problems(values: Mapping[str, object]) -> list[str]:
     except CalibrationFileError as error:
         problems.append(f'calibration_file: {error}')
     problems += parameter_location_problems(values['latitude'], values['longitude'],
-                                            values['altitude'])
+                                            values['altitude'], incomplete_ok=at_run_time)
     return problems

@@ -5,6 +5,8 @@ this wires it to a node: a timer every COMMAND_PERIOD_S publishes what it comman
 path publishes zero at once (not at the next tick), and the publisher on ``cmd_vel`` exists only
 while a turn runs (and for its zero hold), so the topic is left to teleop and navigation
 otherwise. On shutdown the final zero waits, bounded, for the subscribers to acknowledge it.
+The message type (``cmd_vel_stamped``) is chosen at each start: a stop's zeros go out in the
+type the turn used, the type the base listens to.
 """
 
 from __future__ import annotations
@@ -117,7 +119,6 @@ class TurnInPlace:
                 self._publisher = None
             return
         if self._publisher is None:
-            self._stamped = bool(node.get_parameter('cmd_vel_stamped').value)
             self._publisher = node.create_publisher(
                 TwistStamped if self._stamped else Twist, COMMAND_TOPIC, COMMAND_QOS)
         twist = Twist()
@@ -152,12 +153,21 @@ class TurnInPlace:
                                                  self._other_commanders())
         if started:
             self._session.reset()  # a turn calibrates from what it sees, not older samples
+            self._use_type(bool(self._node.get_parameter('cmd_vel_stamped').value))
             self._publish(self.controller.command(now))
             self._node.get_logger().info(message)
         else:
             self._node.get_logger().warning(f'~/rotate_and_calibrate refused: {message}')
         response.success, response.message = started, message
         return response
+
+    def _use_type(self, stamped: bool) -> None:
+        """Command in TwistStamped (or Twist) from now on. A publisher of the other type still
+        holding a stop's zero goes: that zero was published when the turn stopped."""
+        if stamped != self._stamped and self._publisher is not None:
+            self._node.destroy_publisher(self._publisher)
+            self._publisher = None
+        self._stamped = stamped
 
     def _on_stop_rotation(self, request: Trigger.Request, response: Trigger.Response):
         line = self.stop('requested')

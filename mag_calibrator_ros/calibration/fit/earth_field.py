@@ -108,6 +108,23 @@ def as_date(when: datetime.date | datetime.datetime | str | None) -> datetime.da
         raise EarthFieldError(f'date must be YYYY-MM-DD, got {when!r}') from None
 
 
+def import_model() -> bool:
+    """Import the model package and what its first evaluation imports, by evaluating it once;
+    False when it is not installed (``earth_field`` then says so). A node calls this at
+    start-up: an import on another thread still holds the interpreter lock its messages need."""
+    try:
+        from wmm import wmm_calc
+    except ImportError:
+        return False
+    model = wmm_calc()
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore')
+        model.setup_time(FIRST_DAY.year, FIRST_DAY.month, FIRST_DAY.day)
+        model.setup_env(0.0, 0.0, 0.0)
+        model.get_all()
+    return True
+
+
 def earth_field(latitude: float, longitude: float, altitude_m: float = 0.0,
                 when: datetime.date | datetime.datetime | str | None = None) -> EarthField:
     """The World Magnetic Model's field at a location (degrees, metres above the WGS84
@@ -124,7 +141,7 @@ def earth_field(latitude: float, longitude: float, altitude_m: float = 0.0,
     if problems:
         raise EarthFieldError('; '.join(problems))
     try:
-        from wmm import wmm_calc  # NOAA's package; imported only where a location is known
+        from wmm import wmm_calc  # NOAA's package; a node imports it first (import_model)
     except ImportError:
         raise EarthFieldError('the World Magnetic Model package is not installed: pip install '
                               'wmm-calculator==1.4.4') from None
