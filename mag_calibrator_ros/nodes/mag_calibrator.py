@@ -21,7 +21,9 @@ Subscribed topics (sensor-data QoS: best effort, depth 100):
 Published topics:
 
 - ``imu/mag_corrected`` (sensor_msgs/MagneticField, reliable, depth 10): the corrected field,
-  its covariance carried through the correction; while uncalibrated nothing, or the raw
+  its covariance carried through the correction; while the calibration in force is judged not
+  to fit (state calibrated-misfit) the square of the measured median |B| error is added to each
+  variance, so a fusion filter down-weights or gates it; while uncalibrated nothing, or the raw
   message with ``publish_uncalibrated``.
 - ``/diagnostics`` (diagnostic_msgs/DiagnosticArray): the calibration's state, once a second.
 - ``~/view/raw``, ``~/view/corrected`` (sensor_msgs/PointCloud2) and ``~/view/markers``
@@ -117,7 +119,11 @@ from rclpy.task import Future
 from sensor_msgs.msg import Imu, MagneticField, NavSatFix
 from std_srvs.srv import Trigger
 
-from mag_calibrator_ros.calibration.fit.calibration import CalibrationError, transform_covariance
+from mag_calibrator_ros.calibration.fit.calibration import (
+    CalibrationError,
+    transform_covariance,
+    with_uncertainty,
+)
 from mag_calibrator_ros.calibration.fit.coverage import Coverage
 from mag_calibrator_ros.calibration.fit.earth_field import (
     EarthField,
@@ -334,9 +340,11 @@ class MagCalibratorNode(Node):
             out = MagneticField(header=msg.header)
             out.magnetic_field.x, out.magnetic_field.y, out.magnetic_field.z = (
                 processed.corrected.tolist())
-            out.magnetic_field_covariance = transform_covariance(
-                processed.calibration.correction, msg.magnetic_field_covariance
-            )
+            covariance = transform_covariance(processed.calibration.correction,
+                                              msg.magnetic_field_covariance)
+            if processed.uncertainty > 0.0:  # calibrated-misfit: judged not to fit
+                covariance = with_uncertainty(covariance, processed.uncertainty)
+            out.magnetic_field_covariance = covariance
             self._publisher.publish(out)
         elif processed.accepted and self.get_parameter('publish_uncalibrated').value:
             self._publisher.publish(msg)
