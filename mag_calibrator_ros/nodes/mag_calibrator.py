@@ -146,6 +146,8 @@ from mag_calibrator_ros.nodes.auto_save import AutoSaveThrottle
 from mag_calibrator_ros.nodes.calibration_parameters import (
     CalibrationParameters,
     calibration_from,
+    parameters_given,
+    shadowed_file_note,
     startup_load_path,
 )
 from mag_calibrator_ros.nodes.diagnostics import (
@@ -289,20 +291,27 @@ class MagCalibratorNode(Node):
         return resolve_calibration_path(str(self.get_parameter('calibration_file').value))
 
     def _startup(self, given: dict[str, object]) -> None:
-        """Parameters given with --params-file win; else the file; else run uncalibrated."""
+        """Parameters given with --params-file win (a calibration file that holds another one
+        is named); else the file; else run uncalibrated."""
         name = self.get_fully_qualified_name()
-        path = startup_load_path(given, self._calibration_file(), self._default_file, name)
-        if path is None:
+        path = startup_load_path(self._calibration_file(), self._default_file, name)
+        loaded = _read_calibration(path, name)
+        if parameters_given(given):
             try:
                 calibration = calibration_from(given)
             except (CalibrationError, ValueError, TypeError) as error:
                 self._report_problem(f'calibration.* parameters unusable: {error}')
-            else:
-                self.session.apply_calibration(calibration, 'parameters')
-                self.get_logger().info(
-                    f'calibration from parameters: {calibration_summary(calibration)}')
+                return
+            self.session.apply_calibration(calibration, 'parameters')
+            self.get_logger().info(
+                f'calibration from parameters: {calibration_summary(calibration)}')
+            on_file = loaded.calibration if isinstance(loaded, LoadedCalibration) else None
+            note = shadowed_file_note(calibration, on_file, path)
+            if note is not None and note[0] == 'warning':  # one call site per severity
+                self.get_logger().warning(note[1])
+            elif note is not None:
+                self.get_logger().info(note[1])
             return
-        loaded = _read_calibration(path, name)
         if loaded is None:
             self.get_logger().info(
                 f'no calibration file at {path} yet: uncalibrated until ~/calibrate '
