@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from typing import Literal, Protocol
 
 from mag_calibrator_ros.calibration.fit.alignment import (
+    Alignment,
     StaticAttitudes,
     rotation_angle_deg,
 )
@@ -72,7 +73,56 @@ def calibration_summary(calibration: Calibration, units: str = 'T') -> str:
         text += ', levelled by gravity' + ('' if dip is None else f' (dip {dip:.1f} deg)')
     if calibration.aligned:
         text += f', rotated {rotation_angle_deg(calibration.rotation):.2f} deg into the IMU frame'
+    return text + unobserved_text(calibration, units)
+
+
+UNOBSERVED_WORDS = {'offset_normal': 'the offset along the turning axis',
+                    'matrix_normal': 'the scale along it'}
+"""The terms a fit reports unobserved (``FitMetrics.unobserved``), in a user's words."""
+
+
+def unobserved_text(calibration: Calibration, units: str = 'T') -> str:
+    """'; not observable turning in one plane, held (not fitted): ...' ('' when every term was
+    fitted): a planar calibration's offset along the turning axis (unless tilts determined it)
+    and its scale along it are held at the prior; without that offset (and unlevelled by
+    gravity), F is the field in the turning plane (the horizontal field), not the total."""
+    unobserved = calibration.metadata.get('unobserved')
+    if not isinstance(unobserved, list | tuple) or not unobserved:
+        return ''
+    terms = ' and '.join(UNOBSERVED_WORDS.get(str(term), str(term)) for term in unobserved)
+    text = f'; not observable turning in one plane, held (not fitted): {terms}'
+    levelled = calibration.metadata.get('levelled_by_gravity') is True
+    if 'offset_normal' in unobserved and not levelled:
+        text += (f'; F {format_field(calibration.field_strength, units)} is the field in that '
+                 'plane, not the total')
     return text
+
+
+NEEDS_TILTS = ('too few static attitudes', 'gravity directions too close',
+               'rotation not determined')
+"""Alignment failures whose remedy is more, more different tilts held still."""
+
+
+def alignment_reason(alignment: Alignment, model: str) -> str:
+    """Why an alignment was not applied, without advice to tilt a ``planar`` (yaw-only)
+    calibration: a robot turning on the floor cannot, and its heading needs no tilts."""
+    if model == 'planar' and alignment.reason.startswith(NEEDS_TILTS):
+        return 'turning in place gives too few different tilts (the heading needs none)'
+    return alignment.reason
+
+
+def alignment_text(alignment: Alignment, model: str) -> str:
+    """The alignment for a log line or an answer: '' when no still attitude was seen at all
+    (nothing to say: every calibration without still tilts would carry it), and never advice
+    to tilt a ``planar`` calibration (``alignment_reason``)."""
+    if alignment.success:
+        return alignment.summary()
+    if alignment.attitudes == 0:
+        return ''
+    reason = alignment_reason(alignment, model)
+    if reason != alignment.reason:
+        return f'alignment to the IMU not determined: {reason}'
+    return alignment.summary()
 
 
 def coverage_pct(calibration: Calibration) -> str:
@@ -84,8 +134,11 @@ def coverage_pct(calibration: Calibration) -> str:
 def reference_text(outcome: JobOutcome, earth: EarthField | None) -> str:
     """'; aligned to the IMU: ...; field 1.01x the model's ...' for an answer or a log."""
     text = ''
+    result = outcome.result
     if outcome.alignment is not None:
-        text += f'; {outcome.alignment.summary()}'
+        fitted = None if result is None else result.calibration
+        alignment = alignment_text(outcome.alignment, '' if fitted is None else fitted.model)
+        text += f'; {alignment}' if alignment else ''
     check = outcome.earth_check
     if check is not None:
         parts = []
@@ -253,7 +306,9 @@ def _reference_values(session: ReportedSession, now: float) -> dict[str, object]
                 values[key] = round(number, 3)
     alignment = session.findings.alignment
     if alignment is not None:
-        values['last_alignment'] = 'applied' if alignment.success else alignment.reason
+        model = '' if calibration is None else calibration.model
+        values['last_alignment'] = ('applied' if alignment.success
+                                    else alignment_reason(alignment, model))
     earth = session.findings.earth
     if earth is not None:
         values['earth_model'] = earth.model
@@ -272,10 +327,14 @@ def _reference_values(session: ReportedSession, now: float) -> dict[str, object]
 
 
 __all__ = [
+    'NEEDS_TILTS',
     'TESLA_TO_MICROTESLA',
+    'UNOBSERVED_WORDS',
     'CalibrationAttempt',
     'Level',
     'ReportedSession',
+    'alignment_reason',
+    'alignment_text',
     'calibration_summary',
     'coverage_pct',
     'diagnostic_values',
@@ -285,4 +344,5 @@ __all__ = [
     'misfit_text',
     'progress_text',
     'reference_text',
+    'unobserved_text',
 ]
