@@ -11,16 +11,27 @@ import numpy as np
 from rcl_interfaces.msg import Log
 import rclpy
 from rclpy.context import Context
+import rclpy.logging
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
-from mag_calibrator_ros.calibration.store.calibration_file import save_calibration
+from mag_calibrator_ros.calibration.store.calibration_file import (
+    calibration_parameters,
+    load_calibration,
+    save_calibration,
+)
 from mag_calibrator_ros.nodes.calibration_parameters import shadowed_file_note
 from mag_calibrator_ros.nodes.mag_calibrator import MagCalibratorNode
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from node_helpers import Probe, vector, wait_for  # noqa: E402  (the DDS helpers, one place)
+from node_helpers import (  # noqa: E402  (the DDS helpers, one place)
+    Probe,
+    set_parameter_over_service,
+    vector,
+    wait_for,
+)
 
 HARD_IRON_UT = [120.0, -80.0, 60.0]
 SOFT_IRON = [1.15, 0.10, -0.08, 0.10, 0.85, 0.12, -0.08, 0.12, 1.00]
@@ -150,3 +161,80 @@ def test_which_of_parameters_and_file_is_newer_is_told_by_the_fit_times(tmp_path
     untimed = Calibration(new.offset, new.matrix, new.field_strength, new.model)
     level, text = shadowed_file_note(old, untimed, path)
     assert level == 'warning' and 'different calibration' in text and 'no fit time' in text
+
+
+def test_the_first_progress_line_does_not_blame_a_running_driver(ros, tmp_path):
+    """The driver is up: the first lines are progress, never 'no input' (the input rate was not
+    measured yet at the first line, so it always said 'no input')."""
+    rosout = Rosout(ros)
+    namespace = 'first_line'
+    driver = tumbling_driver(ros, namespace)
+    calibrator = ros.calibrator(namespace, calibration_file=str(tmp_path / 'none.yaml'),
+                                progress_log_period=1.0, auto_calibrate=False)
+    logger = f'{namespace}.mag_calibrator'
+    assert wait_for(lambda: len([line for line in rosout.of(logger, INFO)
+                                 if 'coverage' in line]) >= 2), rosout.of(logger)
+    lines = rosout.of(logger, INFO)
+    assert not any('no input' in line for line in lines), lines
+    for node in (calibrator, driver, rosout):
+        ros.remove(node)
+
+
+def test_a_publisher_without_messages_is_waited_for_and_none_is_no_input(ros, tmp_path):
+    rosout = Rosout(ros)
+    namespace = 'silent_driver'
+    silent = Probe(ros, namespace)  # publishes imu/mag, never sends
+    calibrator = ros.calibrator(namespace, calibration_file=str(tmp_path / 'none.yaml'),
+                                progress_log_period=1.0)
+    logger = f'{namespace}.mag_calibrator'
+    waiting = f'waiting for the first message on /{namespace}/imu/mag (1 publisher(s) found)'
+    assert wait_for(lambda: waiting in rosout.of(logger, INFO)), rosout.of(logger)
+    assert not any('no input' in line for line in rosout.of(logger))
+    ros.remove(silent)
+    assert wait_for(lambda: any(line.startswith(f'no input on /{namespace}/imu/mag')
+                                for line in rosout.of(logger, INFO))), rosout.of(logger)
+    for node in (calibrator, rosout):
+        ros.remove(node)
+
+
+def test_debug_by_the_node_name_shows_fit_decisions_in_a_namespace(ros, tmp_path):
+    """What `--ros-args --log-level mag_calibrator:=debug` sets (the level of the logger named
+    mag_calibrator) reaches the node in a namespace, whose logger is <namespace>.mag_calibrator,
+    and the fit decisions come out at debug level."""
+    rosout = Rosout(ros)
+    namespace = 'debugged'
+    rclpy.logging.set_logger_level('mag_calibrator', rclpy.logging.LoggingSeverity.DEBUG)
+    try:
+        driver = tumbling_driver(ros, namespace)
+        calibrator = ros.calibrator(namespace, calibration_file=str(tmp_path / 'none.yaml'),
+                                    progress_log_period=0.0)
+        logger = f'{namespace}.mag_calibrator'
+        assert wait_for(lambda: any('automatic calibration not tried yet' in line
+                                    for line in rosout.of(logger, DEBUG)), timeout_s=60.0), (
+            rosout.of(logger))
+        assert wait_for(lambda: any('calibration in force' in line
+                                    for line in rosout.of(logger, DEBUG)), timeout_s=60.0), (
+            rosout.of(logger))
+    finally:
+        rclpy.logging.set_logger_level('mag_calibrator', rclpy.logging.LoggingSeverity.UNSET)
+    for node in (calibrator, driver, rosout):
+        ros.remove(node)
+
+
+def test_auto_save_turned_on_saves_the_calibration_in_force(ros, tmp_path):
+    """A calibration from the parameters is in no file: turning auto_save on saves it once."""
+    path = tmp_path / 'later.yaml'
+    calibration = other_boards_calibration()
+    given = [Parameter(name, value=value)
+             for name, value in calibration_parameters(calibration).items()]
+    node = ros.add(MagCalibratorNode(namespace='auto_later', context=ros.context,
+                                     parameter_overrides=[*given, Parameter(
+                                         'calibration_file', value=str(path))]))
+    probe = Probe(ros, 'auto_later')
+    assert node.session.adoptions == {'parameters': 1} and not path.exists()
+    assert set_parameter_over_service(probe, node, 'auto_save', True)[0]
+    assert wait_for(path.exists), 'auto_save turned on did not save the calibration in force'
+    saved = load_calibration(path, '/auto_later/mag_calibrator')
+    np.testing.assert_array_equal(saved.offset, calibration.offset)
+    for each in (probe, node):
+        ros.remove(each)

@@ -42,7 +42,8 @@ Services (six, all std_srvs/Trigger):
 
 Timers: POLL_PERIOD_S (finished fits and file operations, waiting service answers, auto-save,
 ``calibration.*``), DIAGNOSTICS_PERIOD_S (progress log line, /diagnostics, RViz view),
-COMMAND_PERIOD_S (the turn in place's command).
+COMMAND_PERIOD_S (the turn in place's command). ``--ros-args --log-level mag_calibrator:=debug``
+(in a namespace too) logs each fit decision.
 
 Parameters, ``name`` (default): meaning. The fit and its gates:
 
@@ -67,7 +68,8 @@ When to calibrate:
 Output, file and views:
 
 - ``publish_uncalibrated`` (false): publish the raw field while uncalibrated.
-- ``auto_save`` (false): save each calibration put in force (throttled; atomic).
+- ``auto_save`` (false): save each calibration put in force (throttled), and an unsaved one
+  in force when it is turned on.
 - ``calibration_file`` ($ROS_HOME/mag_calibrator/<namespace>__<name>.yaml): loaded at
   start-up and by ~/load, written by ~/save.
 - ``progress_log_period`` (5.0): seconds between progress lines while uncalibrated (0: none).
@@ -120,6 +122,7 @@ from sensor_msgs.msg import Imu, MagneticField, NavSatFix
 from std_srvs.srv import Trigger
 
 from mag_calibrator_ros.calibration.fit.calibration import (
+    Calibration,
     CalibrationError,
     transform_covariance,
     with_uncertainty,
@@ -130,7 +133,11 @@ from mag_calibrator_ros.calibration.fit.earth_field import (
     EarthFieldError,
     earth_field,
 )
-from mag_calibrator_ros.calibration.live.report import calibration_summary
+from mag_calibrator_ros.calibration.live.report import (
+    calibration_summary,
+    no_input_text,
+    no_message_text,
+)
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.calibration.live.worker import ProcessRunner
 from mag_calibrator_ros.calibration.store.calibration_file import (
@@ -171,6 +178,7 @@ from mag_calibrator_ros.nodes.mag_calibrator_parameters import (
 from mag_calibrator_ros.nodes.parameters import (
     ConfigurationError,
     declare_checked,
+    follow_bare_log_level,
     refuse_to_start,
 )
 from mag_calibrator_ros.nodes.runtime import guarded, spin_node
@@ -196,6 +204,7 @@ class MagCalibratorNode(Node):
     def __init__(self, **node_kwargs) -> None:
         node_kwargs.setdefault('node_name', NODE_NAME)
         super().__init__(**node_kwargs)
+        follow_bare_log_level(self)
         self._default_file = default_calibration_path(self.get_fully_qualified_name())
         problems: list[str] = []
         for name, (default, description, extras) in PARAMETERS.items():
@@ -217,7 +226,10 @@ class MagCalibratorNode(Node):
         self._requests: dict[int, Future] = {}  # ~/calibrate tickets waiting for their answer
         self._problem: str | None = None  # a calibration file/parameter error, shown as ERROR
         self._last_progress_log = -math.inf
+        self._received_at_log = 0  # input messages counted at the last progress line
+        self._started = time.monotonic()
         self._auto_save = AutoSaveThrottle()
+        self._saved: Calibration | None = None  # last saved to or loaded from the file
         self._imu_subscription = None
         self._location_source = ''  # 'parameters' or 'gps/fix' once the model's field is known
         self._location_wanted: Location | None = None
@@ -280,6 +292,10 @@ class MagCalibratorNode(Node):
         if any(parameter.name in PARAMETERS for parameter in parameters):
             self.session.reconfigure(session_settings(self._current_values()))
         names = {parameter.name for parameter in parameters}
+        in_force = self.session.calibration
+        if ('auto_save' in names and self.get_parameter('auto_save').value
+                and in_force is not None and in_force is not self._saved):
+            self._auto_save.adopted(True)  # turned on: save the calibration in force once
         if 'use_imu' in names:
             self._sync_imu_subscription()
         if names & set(LOCATION_PARAMETERS):
@@ -328,6 +344,7 @@ class MagCalibratorNode(Node):
         for note in loaded.notes:
             self.get_logger().warning(f'{loaded.path}: {note}')
         self.session.apply_calibration(loaded.calibration, 'file')
+        self._saved = loaded.calibration
         self._problem = None
         message = f'loaded {loaded.path}: {calibration_summary(loaded.calibration)}'
         self.get_logger().info(message)
@@ -351,9 +368,9 @@ class MagCalibratorNode(Node):
                 processed.corrected.tolist())
             covariance = transform_covariance(processed.calibration.correction,
                                               msg.magnetic_field_covariance)
-            if processed.uncertainty > 0.0:  # calibrated-misfit: judged not to fit
-                covariance = with_uncertainty(covariance, processed.uncertainty)
-            out.magnetic_field_covariance = covariance
+            out.magnetic_field_covariance = (  # calibrated-misfit: judged not to fit
+                with_uncertainty(covariance, processed.uncertainty)
+                if processed.uncertainty > 0.0 else covariance)
             self._publisher.publish(out)
         elif processed.accepted and self.get_parameter('publish_uncalibrated').value:
             self._publisher.publish(msg)
@@ -511,6 +528,7 @@ class MagCalibratorNode(Node):
             raise ValueError('nothing to save: no calibration in force (call ~/calibrate first)')
         written = save_calibration(self._calibration_file(), calibration,
                                    node_name=self.get_fully_qualified_name())
+        self._saved = calibration
         return f'saved to {written}'
 
     def _auto_saved(self, result: object) -> None:
@@ -572,17 +590,21 @@ class MagCalibratorNode(Node):
             return
         if self._rotation.state == 'turning':
             return  # the rotation logs its own progress
-        if now - self._last_progress_log >= period:
-            self._last_progress_log = now
-            if self.session.input_rate_hz == 0.0:
-                self.get_logger().info(self._no_input_text())
-            else:
-                self.get_logger().info(self.session.progress_text(coverage))
+        if now - self._last_progress_log < period:
+            return
+        received = self.session.input_rate.count
+        text = self.session.progress_text(coverage)
+        if received == self._received_at_log:  # no message since the last line (or start)
+            topic = self.resolve_topic_name('imu/mag')
+            text = no_message_text(topic, self.count_publishers(topic), received == 0,
+                                   now - self._started, period)
+            if text is None:
+                return  # discovery takes a moment: no verdict yet
+        self._last_progress_log, self._received_at_log = now, received
+        self.get_logger().info(text)
 
     def _no_input_text(self) -> str:
-        topic = self.resolve_topic_name('imu/mag')
-        return (f'no input on {topic}: is the driver running, in this namespace? '
-                f'(ros2 topic info {topic})')
+        return no_input_text(self.resolve_topic_name('imu/mag'))
 
     def _publish_diagnostics(self, now: float, coverage: Coverage) -> None:
         values = self.session.diagnostic_values(now, coverage)

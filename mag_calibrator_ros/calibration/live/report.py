@@ -165,6 +165,29 @@ def misfit_text(check: FitCheck | None, units: str, auto_calibrate: bool) -> str
             f'sensor, new payload, or a magnet nearby? {action}')
 
 
+NO_INPUT_GRACE_S = 3.0
+"""No 'no input' line before this long (nor a progress period) without message or publisher:
+discovering a driver that is already running takes a moment."""
+
+
+def no_input_text(topic: str) -> str:
+    return (f'no input on {topic}: is the driver running, in this namespace? '
+            f'(ros2 topic info {topic})')
+
+
+def no_message_text(topic: str, publishers: int, first: bool, waited_s: float,
+                    period_s: float) -> str | None:
+    """The progress line when no message came since the previous one (``first``: none ever):
+    waiting while ``topic`` has publishers; 'no input' once ``waited_s`` since start-up reached
+    a progress period and NO_INPUT_GRACE_S without either; None (nothing to say) before."""
+    if publishers:
+        return (f'waiting for {"the first" if first else "a"} message on {topic} '
+                f'({publishers} publisher(s) found)')
+    if waited_s < max(period_s, NO_INPUT_GRACE_S):
+        return None
+    return no_input_text(topic)
+
+
 def progress_text(state: str, calibration: Calibration | None, coverage: Coverage,
                   buffer: SampleBuffer, settings: SessionSettings) -> str:
     """What to do next, e.g. 'coverage 63 % - keep rotating about the pitch axis (y)'."""
@@ -331,6 +354,7 @@ __all__ = [
     'TESLA_TO_MICROTESLA',
     'UNOBSERVED_WORDS',
     'CalibrationAttempt',
+    'NO_INPUT_GRACE_S',
     'Level',
     'ReportedSession',
     'alignment_reason',
@@ -342,6 +366,8 @@ __all__ = [
     'display_units',
     'format_field',
     'misfit_text',
+    'no_input_text',
+    'no_message_text',
     'progress_text',
     'reference_text',
     'unobserved_text',
