@@ -169,6 +169,20 @@ def test_a_left_handed_remap_is_detected_with_the_model_dip(mounting, remap):
     assert unknown.handedness == 'unknown' and 'southern hemisphere' in unknown.note
 
 
+def test_a_location_in_the_wrong_hemisphere_is_named_before_any_remap():
+    """A right-handed board in the north given a southern location: the dip's sign disagrees
+    with the model's exactly as a left-handed remap would make it, so both are named, the
+    location first (it used to advise only a remap to (-x, -y, -z))."""
+    alignment = estimate_alignment(attitudes(np.eye(3)), EXACT,
+                                   AlignmentOptions(expected_inclination_deg=-60.0))
+    assert not alignment.success and alignment.handedness == 'left'
+    reason = alignment.reason
+    assert reason.startswith('a wrong location or left-handed axes:')
+    assert 'the location is wrong' in reason and 'latitude' in reason and 'gps/fix' in reason
+    assert reason.index('location is wrong') < reason.index('remap the magnetometer')
+    assert '(-x, -y, -z)' in reason
+
+
 def test_southern_hemisphere_is_right_handed_with_the_model():
     rows = attitudes(np.eye(3), dip_deg=-55.0)
     alignment = estimate_alignment(rows, EXACT, AlignmentOptions(expected_inclination_deg=-55.0))

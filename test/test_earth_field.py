@@ -109,6 +109,9 @@ def test_check_against_model_says_what_is_off():
     assert 'steel structure' in disturbance_text(strong)
     steep = check_against_model(expected, 'uT', 50.0, 60.0 + MAX_DIP_ERROR_DEG + 3.0)
     assert 'dip 68.0 deg' in steep.problems[0]
+    for disagreeing in (strong, steep):  # either may be a wrong location, not the place
+        text = disturbance_text(disagreeing)
+        assert 'location is wrong' in text and 'latitude and longitude' in text
     unknown_units = check_against_model(expected, 'input', 700.0, 59.0)
     assert unknown_units.radius_ratio is None and unknown_units.intensity is None
     assert unknown_units.problems == ()

@@ -160,3 +160,62 @@ def test_a_bump_in_the_floor_does_not_leave_the_plane():
     messages = [event.message for event in session.take_events()]
     assert not any('moved out of the plane' in message for message in messages)
     assert session.calibration.model == 'planar'
+
+
+def event_texts(session: CalibrationSession) -> list[str]:
+    return [event.message for event in session.take_events()]
+
+
+def test_a_planar_calibration_says_which_terms_it_could_not_observe():
+    """Turning in one plane cannot determine the offset along the turning axis nor the scale
+    along it: the log says they are held, not fitted, and what F then is."""
+    raw, _ = turning(45.0)
+    session = CalibrationSession()
+    stream(session, raw)
+    (adopted,) = [text for text in event_texts(session) if 'calibrated automatically' in text]
+    assert 'not observable turning in one plane, held (not fitted): the offset along the ' \
+        'turning axis and the scale along it' in adopted
+    assert 'is the field in that plane, not the total' in adopted
+    assert 'alignment' not in adopted  # no IMU: nothing to say about it
+
+
+def test_a_ground_robot_is_never_told_to_tilt():
+    """With an IMU but only the floor's wobble, the alignment cannot be determined: said in
+    the robot's terms, without advice to tilt what cannot tilt."""
+    raw, _, up, _ = turning_imu(40.0, seed=1)
+    session = CalibrationSession()
+    session.feed(raw * UT, RATE_HZ, frame_id='imu_link', accel=up * 9.81)
+    texts = event_texts(session) + [session.progress_text(),
+                                    str(session.diagnostic_values(0.0).get('last_alignment'))]
+    assert session.calibration is not None and session.calibration.model == 'planar'
+    assert any('alignment to the IMU not determined: turning in place' in text
+               for text in texts), texts
+    for text in texts:
+        assert 'tilt the sensor' not in text and 'different tilts and' not in text, text
+        assert 'hold the sensor still' not in text and 'more different tilts' not in text, text
+
+
+def test_no_still_attitude_at_all_says_nothing_about_the_alignment():
+    """An IMU that never held still offers no attitude: the summary says nothing about an
+    alignment (it used to add 'alignment not determined ... (0 of 0 ...)' to every one)."""
+    rng = np.random.default_rng(4)
+    raw = tumbling_raw(40.0)
+    moving = rng.normal(size=raw.shape)  # gravity's direction never the same twice: not still
+    session = CalibrationSession()
+    session.feed(raw * UT, RATE_HZ, frame_id='imu_link',
+                 accel=9.81 * moving / np.linalg.norm(moving, axis=1)[:, None])
+    assert session.pairing.paired > 0 and session.calibration is not None
+    (adopted,) = [text for text in event_texts(session) if 'calibrated automatically' in text]
+    assert 'alignment' not in adopted and '0 of 0' not in adopted
+
+
+def test_a_few_still_attitudes_too_few_are_still_reported():
+    from mag_calibrator_ros.calibration.fit.alignment import Alignment
+    from mag_calibrator_ros.calibration.live.report import alignment_text
+
+    few = Alignment(False, 'too few static attitudes (2 of 3 held still ...): hold the sensor '
+                    'still for a second at several different tilts', attitudes=3,
+                    static_samples=2)
+    assert alignment_text(few, 'full').startswith('alignment not determined: too few')
+    assert 'turning in place' in alignment_text(few, 'planar')
+    assert alignment_text(Alignment(False, 'too few static attitudes (0 of 0 ...)'), 'full') == ''

@@ -2,15 +2,20 @@
 
 ``ros2 param get/dump`` read the calibration in force there, and a dump (or a saved calibration
 file: the same ROS params format) given back with ``--params-file`` is the calibration at
-start-up. Only the node itself changes them afterwards: a set from outside is refused, since a
-calibration goes in force through ``~/calibrate`` or ``~/load``, where it is checked.
+start-up, even when ``calibration_file`` holds another one (said at start-up:
+``shadowed_file_note``). Only the node itself changes them afterwards: a set from outside is
+refused, since a calibration goes in force through ``~/calibrate`` or ``~/load``, where it is
+checked.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
+import datetime
+import math
 from pathlib import Path
 
+import numpy as np
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -67,19 +72,64 @@ def calibration_from(parameters: Mapping[str, object]) -> Calibration:
     )
 
 
-def startup_load_path(given: Mapping[str, object], calibration_file: Path, default_file: Path,
-                      node_name: str) -> Path | None:
-    """The file to load the start-up calibration from; None when ``calibration.*`` parameters
-    were given (--params-file): they win over any file.
+def parameters_given(given: Mapping[str, object]) -> bool:
+    """Whether --params-file gave a calibration (``calibration.*`` beyond metadata): it is the
+    start-up calibration then, whatever ``calibration_file`` holds."""
+    return any(name in given for name in CALIBRATION_PARAMETERS)
+
+
+def startup_load_path(calibration_file: Path, default_file: Path, node_name: str) -> Path:
+    """The file the start-up calibration comes from when no ``calibration.*`` were given.
 
     ``calibration_file`` left at the per-node default (``default_file``) reads
     :func:`default_load_path`: the node's own file, or the old shared one for a single robot.
     """
-    if any(name in given for name in CALIBRATION_PARAMETERS):
-        return None
     if calibration_file == resolve_calibration_path(default_file):
         return default_load_path(node_name)
     return calibration_file
+
+
+def shadowed_file_note(in_force: Calibration, on_file: Calibration | None, path: Path
+                       ) -> tuple[str, str] | None:
+    """(level, text) when ``calibration.*`` from --params-file put ``in_force`` while the
+    calibration file at ``path`` holds another calibration (``on_file``; None: no file): a
+    ``ros2 param dump`` given back would otherwise hide every later ``~/save`` for good. The
+    fit times (``time`` metadata) tell which one is newer; a warning unless the file's is older.
+    """
+    if on_file is None or _same_calibration(in_force, on_file):
+        return None
+    given_time, file_time = (_fit_time(c) for c in (in_force, on_file))
+    fix = ('the parameters win at every start: to use the file, remove calibration.* from '
+           'the --params-file (or call ~/load now); to keep the parameters, call ~/save')
+    if given_time is not None and file_time is not None and file_time <= given_time:
+        return 'info', (f'{path} holds an older calibration (fitted {file_time:%Y-%m-%d %H:%M}) '
+                        f'than the calibration.* parameters in force (fitted '
+                        f'{given_time:%Y-%m-%d %H:%M}); {fix}')
+    if given_time is not None and file_time is not None:
+        what = (f'a newer calibration (fitted {file_time:%Y-%m-%d %H:%M}) than the '
+                f'calibration.* parameters in force (fitted {given_time:%Y-%m-%d %H:%M})')
+    else:
+        what = ('a different calibration from the calibration.* parameters in force (no fit '
+                'time on both to tell which is newer)')
+    return 'warning', f'{path} holds {what}: {fix}'
+
+
+def _same_calibration(a: Calibration, b: Calibration) -> bool:
+    tolerance = 1e-9 * max(a.field_strength, b.field_strength, 1e-300)
+    return (a.model == b.model
+            and np.allclose(a.offset, b.offset, rtol=1e-9, atol=tolerance)
+            and np.allclose(a.matrix, b.matrix, rtol=1e-9, atol=1e-12)
+            and np.allclose(a.rotation, b.rotation, rtol=1e-9, atol=1e-12)
+            and math.isclose(a.field_strength, b.field_strength, rel_tol=1e-9))
+
+
+def _fit_time(calibration: Calibration) -> datetime.datetime | None:
+    """When the calibration was fitted (``time``: ISO 8601 UTC), None when it does not say."""
+    try:
+        moment = datetime.datetime.fromisoformat(str(calibration.metadata['time']))
+    except (KeyError, ValueError):
+        return None
+    return moment if moment.tzinfo else moment.replace(tzinfo=datetime.UTC)
 
 
 class CalibrationParameters:

@@ -17,7 +17,8 @@ remapped into it; every stamp from the node's clock, taken at the read):
   (orientation_covariance[0] = -1).
 - ``imu/temperature`` (sensor_msgs/Temperature), with ``publish_temperature``: degC, at most
   10 Hz.
-- ``/diagnostics`` (diagnostic_msgs/DiagnosticArray): one status per stream, once a second.
+- ``/diagnostics`` (diagnostic_msgs/DiagnosticArray): one status per stream, once a second;
+  ``resyncs``: IMU reads so slow a newer sample may have landed (data-ready re-armed; bus busy?).
 
 Subscribed topics (only with ``sim.motion: cmd_vel``): ``cmd_vel`` (geometry_msgs/Twist, or
 TwistStamped when only that is published): the simulated robot turns at its angular z.

@@ -22,7 +22,9 @@ Subscribed topics (sensor-data QoS: best effort, depth 100):
 Published topics:
 
 - ``imu/mag_corrected`` (sensor_msgs/MagneticField, reliable, depth 10): the corrected field,
-  its covariance carried through the correction; while uncalibrated nothing, or the raw
+  its covariance carried through the correction; while the calibration in force is judged not
+  to fit (state calibrated-misfit) the square of the measured median |B| error is added to each
+  variance, so a fusion filter down-weights or gates it; while uncalibrated nothing, or the raw
   message with ``publish_uncalibrated``.
 - ``/diagnostics`` (diagnostic_msgs/DiagnosticArray): the calibration's state, once a second.
 - ``~/view/raw``, ``~/view/corrected`` (sensor_msgs/PointCloud2) and ``~/view/markers``
@@ -41,7 +43,8 @@ Services (six, all std_srvs/Trigger):
 
 Timers: POLL_PERIOD_S (finished fits and file operations, waiting service answers, auto-save,
 ``calibration.*``), DIAGNOSTICS_PERIOD_S (progress log line, /diagnostics, RViz view),
-COMMAND_PERIOD_S (the turn in place's command).
+COMMAND_PERIOD_S (the turn in place's command). ``--ros-args --log-level mag_calibrator:=debug``
+(in a namespace too) logs each fit decision.
 
 Parameters, ``name`` (default): meaning. The fit and its gates:
 
@@ -66,7 +69,8 @@ When to calibrate:
 Output, file and views:
 
 - ``publish_uncalibrated`` (false): publish the raw field while uncalibrated.
-- ``auto_save`` (false): save each calibration put in force (throttled; atomic).
+- ``auto_save`` (false): save each calibration put in force (throttled), and an unsaved one
+  in force when it is turned on.
 - ``calibration_file`` ($ROS_HOME/mag_calibrator/<namespace>__<name>.yaml): loaded at
   start-up and by ~/load, written by ~/save.
 - ``progress_log_period`` (5.0): seconds between progress lines while uncalibrated (0: none).
@@ -118,7 +122,12 @@ from rclpy.task import Future
 from sensor_msgs.msg import Imu, MagneticField, NavSatFix
 from std_srvs.srv import Trigger
 
-from mag_calibrator_ros.calibration.fit.calibration import CalibrationError, transform_covariance
+from mag_calibrator_ros.calibration.fit.calibration import (
+    Calibration,
+    CalibrationError,
+    transform_covariance,
+    with_uncertainty,
+)
 from mag_calibrator_ros.calibration.fit.coverage import Coverage
 from mag_calibrator_ros.calibration.fit.earth_field import (
     EarthField,
@@ -126,7 +135,11 @@ from mag_calibrator_ros.calibration.fit.earth_field import (
     earth_field,
     import_model,
 )
-from mag_calibrator_ros.calibration.live.report import calibration_summary
+from mag_calibrator_ros.calibration.live.report import (
+    calibration_summary,
+    no_input_text,
+    no_message_text,
+)
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.calibration.live.worker import ProcessRunner
 from mag_calibrator_ros.calibration.store.calibration_file import (
@@ -142,6 +155,8 @@ from mag_calibrator_ros.nodes.auto_save import AutoSaveThrottle
 from mag_calibrator_ros.nodes.calibration_parameters import (
     CalibrationParameters,
     calibration_from,
+    parameters_given,
+    shadowed_file_note,
     startup_load_path,
 )
 from mag_calibrator_ros.nodes.diagnostics import (
@@ -160,6 +175,7 @@ from mag_calibrator_ros.nodes.mag_calibrator_parameters import (
 from mag_calibrator_ros.nodes.parameters import (
     ConfigurationError,
     declare_checked,
+    follow_bare_log_level,
     refuse_to_start,
 )
 from mag_calibrator_ros.nodes.runtime import guarded, spin_node
@@ -185,6 +201,7 @@ class MagCalibratorNode(Node):
     def __init__(self, **node_kwargs) -> None:
         node_kwargs.setdefault('node_name', NODE_NAME)
         super().__init__(**node_kwargs)
+        follow_bare_log_level(self)
         self._default_file = default_calibration_path(self.get_fully_qualified_name())
         problems: list[str] = []
         for name, (default, description, extras) in PARAMETERS.items():
@@ -206,7 +223,10 @@ class MagCalibratorNode(Node):
         self._requests: dict[int, Future] = {}  # ~/calibrate tickets waiting for their answer
         self._problem: str | None = None  # a calibration file/parameter error, shown as ERROR
         self._last_progress_log = -math.inf
+        self._received_at_log = 0  # input messages counted at the last progress line
+        self._started = time.monotonic()
         self._auto_save = AutoSaveThrottle()
+        self._saved: Calibration | None = None  # last saved to or loaded from the file
         self._imu_subscription = None
         self._location_source = ''  # 'parameters' or 'gps/fix' once the model's field is known
         self._location = LocationSource(bool(self.get_parameter('use_gps').value))
@@ -269,6 +289,10 @@ class MagCalibratorNode(Node):
         if any(parameter.name in PARAMETERS for parameter in parameters):
             self.session.reconfigure(session_settings(self._current_values()))
         names = {parameter.name for parameter in parameters}
+        in_force = self.session.calibration
+        if ('auto_save' in names and self.get_parameter('auto_save').value
+                and in_force is not None and in_force is not self._saved):
+            self._auto_save.adopted(True)  # turned on: save the calibration in force once
         if 'use_imu' in names:
             self._sync_imu_subscription()
         if names & {*LOCATION_PARAMETERS, 'use_gps'}:
@@ -280,20 +304,27 @@ class MagCalibratorNode(Node):
         return resolve_calibration_path(str(self.get_parameter('calibration_file').value))
 
     def _startup(self, given: dict[str, object]) -> None:
-        """Parameters given with --params-file win; else the file; else run uncalibrated."""
+        """Parameters given with --params-file win (a calibration file that holds another one
+        is named); else the file; else run uncalibrated."""
         name = self.get_fully_qualified_name()
-        path = startup_load_path(given, self._calibration_file(), self._default_file, name)
-        if path is None:
+        path = startup_load_path(self._calibration_file(), self._default_file, name)
+        loaded = _read_calibration(path, name)
+        if parameters_given(given):
             try:
                 calibration = calibration_from(given)
             except (CalibrationError, ValueError, TypeError) as error:
                 self._report_problem(f'calibration.* parameters unusable: {error}')
-            else:
-                self.session.apply_calibration(calibration, 'parameters')
-                self.get_logger().info(
-                    f'calibration from parameters: {calibration_summary(calibration)}')
+                return
+            self.session.apply_calibration(calibration, 'parameters')
+            self.get_logger().info(
+                f'calibration from parameters: {calibration_summary(calibration)}')
+            on_file = loaded.calibration if isinstance(loaded, LoadedCalibration) else None
+            note = shadowed_file_note(calibration, on_file, path)
+            if note is not None and note[0] == 'warning':  # one call site per severity
+                self.get_logger().warning(note[1])
+            elif note is not None:
+                self.get_logger().info(note[1])
             return
-        loaded = _read_calibration(path, name)
         if loaded is None:
             self.get_logger().info(
                 f'no calibration file at {path} yet: uncalibrated until ~/calibrate '
@@ -310,6 +341,7 @@ class MagCalibratorNode(Node):
         for note in loaded.notes:
             self.get_logger().warning(f'{loaded.path}: {note}')
         self.session.apply_calibration(loaded.calibration, 'file')
+        self._saved = loaded.calibration
         self._problem = None
         message = f'loaded {loaded.path}: {calibration_summary(loaded.calibration)}'
         self.get_logger().info(message)
@@ -331,9 +363,11 @@ class MagCalibratorNode(Node):
             out = MagneticField(header=msg.header)
             out.magnetic_field.x, out.magnetic_field.y, out.magnetic_field.z = (
                 processed.corrected.tolist())
-            out.magnetic_field_covariance = transform_covariance(
-                processed.calibration.correction, msg.magnetic_field_covariance
-            )
+            covariance = transform_covariance(processed.calibration.correction,
+                                              msg.magnetic_field_covariance)
+            out.magnetic_field_covariance = (  # calibrated-misfit: judged not to fit
+                with_uncertainty(covariance, processed.uncertainty)
+                if processed.uncertainty > 0.0 else covariance)
             self._publisher.publish(out)
         elif processed.accepted and self.get_parameter('publish_uncalibrated').value:
             self._publisher.publish(msg)
@@ -496,6 +530,7 @@ class MagCalibratorNode(Node):
             raise ValueError('nothing to save: no calibration in force (call ~/calibrate first)')
         written = save_calibration(self._calibration_file(), calibration,
                                    node_name=self.get_fully_qualified_name())
+        self._saved = calibration
         return f'saved to {written}'
 
     def _auto_saved(self, result: object) -> None:
@@ -559,17 +594,21 @@ class MagCalibratorNode(Node):
             return
         if self._rotation.state == 'turning':
             return  # the rotation logs its own progress
-        if now - self._last_progress_log >= period:
-            self._last_progress_log = now
-            if self.session.input_rate_hz == 0.0:
-                self.get_logger().info(self._no_input_text())
-            else:
-                self.get_logger().info(self.session.progress_text(coverage))
+        if now - self._last_progress_log < period:
+            return
+        received = self.session.input_rate.count
+        text = self.session.progress_text(coverage)
+        if received == self._received_at_log:  # no message since the last line (or start)
+            topic = self.resolve_topic_name('imu/mag')
+            text = no_message_text(topic, self.count_publishers(topic), received == 0,
+                                   now - self._started, period)
+            if text is None:
+                return  # discovery takes a moment: no verdict yet
+        self._last_progress_log, self._received_at_log = now, received
+        self.get_logger().info(text)
 
     def _no_input_text(self) -> str:
-        topic = self.resolve_topic_name('imu/mag')
-        return (f'no input on {topic}: is the driver running, in this namespace? '
-                f'(ros2 topic info {topic})')
+        return no_input_text(self.resolve_topic_name('imu/mag'))
 
     def _publish_diagnostics(self, now: float, coverage: Coverage) -> None:
         values = self.session.diagnostic_values(now, coverage)

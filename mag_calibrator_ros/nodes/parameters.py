@@ -1,8 +1,10 @@
-"""Declaring parameters so that a bad value is a clear message, never a traceback."""
+"""Declaring parameters so that a bad value is a clear message, never a traceback; the
+command line's ``--log-level <node name>:=...`` followed in a namespace too."""
 
 from __future__ import annotations
 
 from rcl_interfaces.msg import ParameterDescriptor
+from rclpy import logging
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.node import Node
 
@@ -31,3 +33,14 @@ def refuse_to_start(node: Node, problems: list[str]) -> None:
     message = 'refusing to start, invalid parameters:\n  ' + '\n  '.join(problems)
     node.get_logger().fatal(message)
     raise ConfigurationError(message)
+
+
+def follow_bare_log_level(node: Node) -> None:
+    """``--log-level mag_calibrator:=debug`` reaches a node in a namespace too: its logger is
+    ``<namespace>.<name>``, a child of the namespace's logger and not of the name users type,
+    so a level set for the bare name alone is taken over (one set for the full name wins)."""
+    logger, unset = node.get_logger(), logging.LoggingSeverity.UNSET
+    bare = logging.get_logger_level(node.get_name())
+    if logger.name != node.get_name() and bare != unset and (
+            logging.get_logger_level(logger.name) == unset):
+        logger.set_level(bare)

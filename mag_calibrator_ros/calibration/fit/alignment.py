@@ -449,10 +449,13 @@ def estimate_alignment(attitudes: np.ndarray, calibration: Calibration,
     handedness, note = _handedness(dip, options.expected_inclination_deg, rotation)
     if handedness == 'left':
         remap, residual = nearest_remap(-rotation)
-        return Alignment(False, f'left-handed axes: the magnetometer axes are a reflection of '
-                         f"the accelerometer's (the dip comes out {dip:.1f} deg where the model "
-                         f'says {options.expected_inclination_deg:.1f} deg), which no rotation '
-                         f'can fix; remap the magnetometer (x, y, z) -> {remap} in its driver'
+        return Alignment(False, f'a wrong location or left-handed axes: the dip comes out '
+                         f'{dip:.1f} deg where the model says '
+                         f'{options.expected_inclination_deg:.1f} deg at the location given. '
+                         'Either the location is wrong (the other hemisphere? check latitude '
+                         'and longitude, or the gps/fix), or the magnetometer axes are a '
+                         "reflection of the accelerometer's, which no rotation can fix: then "
+                         f'remap the magnetometer (x, y, z) -> {remap} in its driver'
                          + (f' (then {residual:.1f} deg remain)' if residual >= 1.0 else ''),
                          handedness=handedness, remap=remap, note=note, **common)
     if angle > options.max_angle_deg:

@@ -198,3 +198,14 @@ def transform_covariance(matrix: np.ndarray, covariance: Sequence[float]) -> np.
     with np.errstate(all='ignore'):
         transformed = (matrix @ covariance @ matrix.T).reshape(9)
     return transformed if np.all(np.isfinite(transformed)) else np.zeros(9)
+
+
+def with_uncertainty(covariance: Sequence[float], sigma: float) -> np.ndarray:
+    """A row-major 3x3 covariance with ``sigma**2`` added to each component's variance: the
+    mark of a correction known to be off by about ``sigma`` (REP-145: the covariance is the
+    field's uncertainty, so a fusion filter down-weights or gates it). An unknown (all-zero) or
+    unreported (-1) covariance becomes ``sigma**2`` on the diagonal."""
+    covariance = np.asarray(covariance, dtype=float).reshape(3, 3)
+    if covariance[0, 0] == -1.0 or not np.all(np.isfinite(covariance)):
+        covariance = np.zeros((3, 3))
+    return (covariance + float(sigma) ** 2 * np.eye(3)).reshape(9)

@@ -39,7 +39,7 @@ own uncertainty is 0.2 deg (its error model); crustal anomalies away from struct
 a degree or two, while steel nearby bends the field by several."""
 
 DISTURBED_HINT = ('the field here is disturbed (steel structure, rebar, vehicle?) or the '
-                  'location is wrong')
+                  'location is wrong (check latitude and longitude, or the gps/fix)')
 
 TESLA_PER_UNIT = {
     'T': 1.0, 'mT': 1e-3, 'uT': 1e-6, '\u00b5T': 1e-6, '\u03bcT': 1e-6, 'nT': 1e-9,

@@ -262,17 +262,26 @@ class MisfitMonitor:
         self.misfit = False
         self.last: FitCheck | None = None
         self._since: float | None = None  # start of the run of checks that disagree
+        self._error = 0.0  # the latest judged check's median |B| error, field units
 
     def reset(self) -> None:
         self.misfit = False
         self.last = None
         self._since = None
+        self._error = 0.0
+
+    @property
+    def uncertainty(self) -> float:
+        """While a misfit is confirmed, the median |B| error of the latest judged check in field
+        units (what each corrected component may be off by); 0.0 while the calibration fits."""
+        return self._error if self.misfit else 0.0
 
     def update(self, now_s: float, check: FitCheck) -> str | None:
         """'confirmed' or 'cleared' when the state changes, else None."""
         self.last = check
         if not check.judged:
             return None
+        self._error = check.median_error_pct / 100.0 * check.expected_field
         if check.off == self.misfit:
             self._since = None
             return None

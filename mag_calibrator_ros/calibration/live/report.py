@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from typing import Literal, Protocol
 
 from mag_calibrator_ros.calibration.fit.alignment import (
+    Alignment,
     StaticAttitudes,
     rotation_angle_deg,
 )
@@ -72,7 +73,56 @@ def calibration_summary(calibration: Calibration, units: str = 'T') -> str:
         text += ', levelled by gravity' + ('' if dip is None else f' (dip {dip:.1f} deg)')
     if calibration.aligned:
         text += f', rotated {rotation_angle_deg(calibration.rotation):.2f} deg into the IMU frame'
+    return text + unobserved_text(calibration, units)
+
+
+UNOBSERVED_WORDS = {'offset_normal': 'the offset along the turning axis',
+                    'matrix_normal': 'the scale along it'}
+"""The terms a fit reports unobserved (``FitMetrics.unobserved``), in a user's words."""
+
+
+def unobserved_text(calibration: Calibration, units: str = 'T') -> str:
+    """'; not observable turning in one plane, held (not fitted): ...' ('' when every term was
+    fitted): a planar calibration's offset along the turning axis (unless tilts determined it)
+    and its scale along it are held at the prior; without that offset (and unlevelled by
+    gravity), F is the field in the turning plane (the horizontal field), not the total."""
+    unobserved = calibration.metadata.get('unobserved')
+    if not isinstance(unobserved, list | tuple) or not unobserved:
+        return ''
+    terms = ' and '.join(UNOBSERVED_WORDS.get(str(term), str(term)) for term in unobserved)
+    text = f'; not observable turning in one plane, held (not fitted): {terms}'
+    levelled = calibration.metadata.get('levelled_by_gravity') is True
+    if 'offset_normal' in unobserved and not levelled:
+        text += (f'; F {format_field(calibration.field_strength, units)} is the field in that '
+                 'plane, not the total')
     return text
+
+
+NEEDS_TILTS = ('too few static attitudes', 'gravity directions too close',
+               'rotation not determined')
+"""Alignment failures whose remedy is more, more different tilts held still."""
+
+
+def alignment_reason(alignment: Alignment, model: str) -> str:
+    """Why an alignment was not applied, without advice to tilt a ``planar`` (yaw-only)
+    calibration: a robot turning on the floor cannot, and its heading needs no tilts."""
+    if model == 'planar' and alignment.reason.startswith(NEEDS_TILTS):
+        return 'turning in place gives too few different tilts (the heading needs none)'
+    return alignment.reason
+
+
+def alignment_text(alignment: Alignment, model: str) -> str:
+    """The alignment for a log line or an answer: '' when no still attitude was seen at all
+    (nothing to say: every calibration without still tilts would carry it), and never advice
+    to tilt a ``planar`` calibration (``alignment_reason``)."""
+    if alignment.success:
+        return alignment.summary()
+    if alignment.attitudes == 0:
+        return ''
+    reason = alignment_reason(alignment, model)
+    if reason != alignment.reason:
+        return f'alignment to the IMU not determined: {reason}'
+    return alignment.summary()
 
 
 def coverage_pct(calibration: Calibration) -> str:
@@ -84,8 +134,11 @@ def coverage_pct(calibration: Calibration) -> str:
 def reference_text(outcome: JobOutcome, earth: EarthField | None) -> str:
     """'; aligned to the IMU: ...; field 1.01x the model's ...' for an answer or a log."""
     text = ''
+    result = outcome.result
     if outcome.alignment is not None:
-        text += f'; {outcome.alignment.summary()}'
+        fitted = None if result is None else result.calibration
+        alignment = alignment_text(outcome.alignment, '' if fitted is None else fitted.model)
+        text += f'; {alignment}' if alignment else ''
     check = outcome.earth_check
     if check is not None:
         parts = []
@@ -110,6 +163,29 @@ def misfit_text(check: FitCheck | None, units: str, auto_calibrate: bool) -> str
             f'expected (median error {check.median_error_pct:.1f} % over the last '
             f'{MISFIT_WINDOW_S:.0f} s, {100 * check.span:.0f} % of the directions) - other '
             f'sensor, new payload, or a magnet nearby? {action}')
+
+
+NO_INPUT_GRACE_S = 3.0
+"""No 'no input' line before this long (nor a progress period) without message or publisher:
+discovering a driver that is already running takes a moment."""
+
+
+def no_input_text(topic: str) -> str:
+    return (f'no input on {topic}: is the driver running, in this namespace? '
+            f'(ros2 topic info {topic})')
+
+
+def no_message_text(topic: str, publishers: int, first: bool, waited_s: float,
+                    period_s: float) -> str | None:
+    """The progress line when no message came since the previous one (``first``: none ever):
+    waiting while ``topic`` has publishers; 'no input' once ``waited_s`` since start-up reached
+    a progress period and NO_INPUT_GRACE_S without either; None (nothing to say) before."""
+    if publishers:
+        return (f'waiting for {"the first" if first else "a"} message on {topic} '
+                f'({publishers} publisher(s) found)')
+    if waited_s < max(period_s, NO_INPUT_GRACE_S):
+        return None
+    return no_input_text(topic)
 
 
 def progress_text(state: str, calibration: Calibration | None, coverage: Coverage,
@@ -253,7 +329,9 @@ def _reference_values(session: ReportedSession, now: float) -> dict[str, object]
                 values[key] = round(number, 3)
     alignment = session.findings.alignment
     if alignment is not None:
-        values['last_alignment'] = 'applied' if alignment.success else alignment.reason
+        model = '' if calibration is None else calibration.model
+        values['last_alignment'] = ('applied' if alignment.success
+                                    else alignment_reason(alignment, model))
     earth = session.findings.earth
     if earth is not None:
         values['earth_model'] = earth.model
@@ -272,10 +350,15 @@ def _reference_values(session: ReportedSession, now: float) -> dict[str, object]
 
 
 __all__ = [
+    'NEEDS_TILTS',
     'TESLA_TO_MICROTESLA',
+    'UNOBSERVED_WORDS',
     'CalibrationAttempt',
+    'NO_INPUT_GRACE_S',
     'Level',
     'ReportedSession',
+    'alignment_reason',
+    'alignment_text',
     'calibration_summary',
     'coverage_pct',
     'diagnostic_values',
@@ -283,6 +366,9 @@ __all__ = [
     'display_units',
     'format_field',
     'misfit_text',
+    'no_input_text',
+    'no_message_text',
     'progress_text',
     'reference_text',
+    'unobserved_text',
 ]

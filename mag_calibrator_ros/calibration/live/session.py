@@ -113,6 +113,9 @@ class Processed(NamedTuple):
     """The corrected field, None while uncalibrated (or when refused)."""
     calibration: Calibration | None
     """The calibration that corrected it (for the covariance)."""
+    uncertainty: float = 0.0
+    """While the calibration in force is judged not to fit (calibrated-misfit), the median |B|
+    error measured (``MisfitMonitor.uncertainty``): the node marks the message with it."""
 
 
 _REFUSED = Processed(False, None, None)
@@ -261,7 +264,7 @@ class CalibrationSession:
         calibration = self.calibration
         if calibration is None:
             return Processed(True, None, None)
-        return Processed(True, calibration.apply(reading), calibration)
+        return Processed(True, calibration.apply(reading), calibration, self.misfit.uncertainty)
 
     def process_imu(self, stamp_ns: int, frame_id: str, accel: Sequence[float],
                     gyro: Sequence[float] | None = None) -> bool:

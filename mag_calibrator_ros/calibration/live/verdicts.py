@@ -18,7 +18,7 @@ import numpy as np
 from mag_calibrator_ros.calibration.fit.alignment import rotation_angle_deg
 from mag_calibrator_ros.calibration.fit.calibration import Calibration, CalibrationError
 from mag_calibrator_ros.calibration.fit.earth_field import EarthField, disturbance_text
-from mag_calibrator_ros.calibration.live.evidence import MIN_EVIDENCE, Comparison
+from mag_calibrator_ros.calibration.live.evidence import MIN_EVIDENCE, Comparison, FitCheck
 from mag_calibrator_ros.calibration.live.jobs import JobOutcome
 from mag_calibrator_ros.calibration.live.report import (
     CalibrationAttempt,
@@ -89,8 +89,11 @@ def automatic_verdict(outcome: JobOutcome, current: Calibration | None, misfit: 
     if outcome.error:
         return Verdict(level='warning', message=f'automatic calibration failed: {outcome.error}')
     result = outcome.result
-    if result is None:
-        return Verdict()  # not ready: coverage below min_coverage
+    if result is None:  # not ready: coverage below what the automatic gate needs
+        coverage = outcome.coverage
+        shown = '?' if coverage is None else f'{100.0 * coverage.fraction:.0f} %'
+        return Verdict(level='debug', message=f'automatic calibration not tried yet: '
+                       f'coverage {shown} is not enough')
     if not result.success:
         return Verdict(level='info', message=f'automatic calibration not yet: {result.reason}',
                        attempt=CalibrationAttempt(False, f'calibration failed: {result.reason}',
@@ -122,6 +125,9 @@ def refinement_verdict(outcome: JobOutcome, current: Calibration | None) -> Verd
     if comparison is not None:
         return Verdict(level='debug',
                        message=f'refinement kept the calibration: {comparison.reason}')
+    if result is not None and not result.success:
+        return Verdict(level='debug', message=f'refinement kept the calibration: the fit '
+                       f'failed its gates: {result.reason}')
     return Verdict()
 
 
@@ -163,12 +169,12 @@ def check_verdict(outcome: JobOutcome, current: Calibration | None, misfit_chang
                        message=f'checking the calibration failed: {outcome.error}')
     if current is None or outcome.job.current is not current:
         return Verdict()  # judged a calibration no longer in force
-    level, message, collect_anew = 'info', '', False
+    level, message, collect_anew = 'debug', check_text(outcome.fit_check), False
     if misfit_change == 'confirmed':
         level, message = 'warning', misfit_text(outcome.fit_check, units, settings.auto_calibrate)
         collect_anew = settings.auto_calibrate
     elif misfit_change == 'cleared':
-        message = (f'the calibration in force fits the live data again (median '
+        level, message = 'info', (f'the calibration in force fits the live data again (median '
                    f'error {outcome.fit_check.median_error_pct:.1f} %)')
     step = None
     comparison = outcome.comparison
@@ -182,6 +188,17 @@ def check_verdict(outcome: JobOutcome, current: Calibration | None, misfit_chang
             step = None
     return Verdict(step, 'tracking' if step is not None else '', level, message,
                    collect_anew=collect_anew)
+
+
+def check_text(check: FitCheck | None) -> str:
+    """One debug line per check of the calibration in force: judged or why not."""
+    if check is None:
+        return ''
+    if not check.judged:
+        return (f'calibration in force not judged: the recent held-out readings span '
+                f'{100.0 * check.span:.0f} % of the directions')
+    return (f'calibration in force judged on recent held-out readings: median error '
+            f'{check.median_error_pct:.2f} % ({"off" if check.off else "fits"})')
 
 
 def coverage_kept(current: Calibration, candidate: Calibration) -> bool:
@@ -237,6 +254,7 @@ __all__ = [
     'Verdict',
     'automatic_verdict',
     'bounded_step',
+    'check_text',
     'check_verdict',
     'coverage_kept',
     'judged_on_evidence',
