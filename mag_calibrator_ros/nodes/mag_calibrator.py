@@ -1,14 +1,9 @@
 """``mag_calibrator`` node: raw ``imu/mag`` in, ``imu/mag_corrected`` out, services to calibrate.
 
-Wiring only: declare the parameters, build the
-:class:`~mag_calibrator_ros.calibration.live.session.CalibrationSession`, connect the callbacks,
-publish what it decided. Every decision (screening, buffer, when to fit and whether to adopt,
-misfit detection, online tracking, alignment to the IMU, progress text) is the session's; its
-fits run in a worker process (``ProcessRunner``) and file I/O on a thread, so the message
-callback never waits for either. Beside it: the turn in place (``nodes/turning.py``), the
-``calibration.*`` mirror (``nodes/calibration_parameters.py``), the parameter table
-(``nodes/mag_calibrator_parameters.py``), auto-save (``nodes/auto_save.py``) and the location
-for the World Magnetic Model (``nodes/location.py``).
+Wiring only: declare the parameters, build the ``CalibrationSession`` (every decision is its),
+connect the callbacks, publish. Fits run in a worker process, file I/O on a thread. Beside it in
+``nodes/``: turning.py, calibration_parameters.py, mag_calibrator_parameters.py, auto_save.py,
+location.py (docs/ARCHITECTURE.md).
 
 Subscribed topics (sensor-data QoS: best effort, depth 100):
 
@@ -596,7 +591,7 @@ class MagCalibratorNode(Node):
             return  # the rotation logs its own progress
         if now - self._last_progress_log < period:
             return
-        received = self.session.input_rate.count
+        received = self.session.messages_received
         text = self.session.progress_text(coverage)
         if received == self._received_at_log:  # no message since the last line (or start)
             topic = self.resolve_topic_name('imu/mag')
@@ -606,9 +601,6 @@ class MagCalibratorNode(Node):
                 return  # discovery takes a moment: no verdict yet
         self._last_progress_log, self._received_at_log = now, received
         self.get_logger().info(text)
-
-    def _no_input_text(self) -> str:
-        return no_input_text(self.resolve_topic_name('imu/mag'))
 
     def _publish_diagnostics(self, now: float, coverage: Coverage) -> None:
         values = self.session.diagnostic_values(now, coverage)
@@ -620,10 +612,10 @@ class MagCalibratorNode(Node):
             values['location_waiting'] = self._location.waiting
         if self._location.refused:
             values['gps_fixes_refused'] = self._location.refused_text()
-        level, message = self.session.diagnostics_level(
-            coverage, values['input_rate_hz'], self._problem, self._no_input_text())
         # Names and hardware ids carry the namespace: robots on one host stay apart.
         topic = self.resolve_topic_name('imu/mag')
+        level, message = self.session.diagnostics_level(
+            coverage, values['input_rate_hz'], self._problem, no_input_text(topic))
         frame = self.session.frame_id
         hardware_id = f'{topic} ({frame})' if frame else topic
         self._diagnostics.publish([

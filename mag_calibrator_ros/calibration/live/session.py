@@ -732,6 +732,11 @@ class CalibrationSession:
         return self.screen.frame_id or ''
 
     @property
+    def messages_received(self) -> int:
+        """Messages given to ``process`` so far, refused ones included."""
+        return self.input_rate.count
+
+    @property
     def input_rate_hz(self) -> float:
         """Input messages per second, as the latest ``diagnostic_values`` measured them."""
         return self.input_rate.rate
