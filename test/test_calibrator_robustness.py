@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import rclpy
 from rclpy.context import Context
+from sensor_msgs.msg import Imu
 
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
 from mag_calibrator_ros.calibration.store.calibration_file import save_calibration
@@ -47,6 +48,10 @@ def start(ros, namespace, **parameters):
 def stop(ros, *nodes):
     for node in nodes:
         ros.remove(node)
+
+
+def values_of(status: DiagnosticStatus) -> dict[str, str]:
+    return {pair.key: pair.value for pair in status.values}
 
 
 def lockstep(probe, stamps, frame='imu_link', field=GOOD, covariance=None):
@@ -274,4 +279,59 @@ def test_a_service_that_fails_unexpectedly_still_answers(ros, calibration_path, 
     response = probe.call('mag_calibrator/reset')
     assert not response.success and 'RuntimeError: boom' in response.message
     assert probe.call('mag_calibrator/save').success is not None  # the node still serves
+    stop(ros, probe, node)
+
+
+def send_imu(publisher, force, sec: int, nanosec: int = 0, frame: str = 'imu_link') -> None:
+    msg = Imu()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
+    msg.header.frame_id = frame
+    msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z = (
+        float(v) for v in force)
+    msg.angular_velocity_covariance[0] = -1.0  # no gyroscope
+    publisher.publish(msg)
+
+
+def imu_sent(node, publisher, force, sec, frame='imu_link') -> None:
+    """Publish one IMU sample until the calibrator has it (best effort may drop the first)."""
+    seen = node.session.pairing.rate.count
+    assert wait_for(lambda: send_imu(publisher, force, sec, frame=frame)
+                    or node.session.pairing.rate.count > seen, timeout_s=10.0, step_s=0.2)
+
+
+def test_a_subnormal_accelerometer_sample_never_stalls_the_output(ros, calibration_path):
+    """(1e-200, 0, 0) on imu/data_raw passed the IMU screen; its norm underflowed to 0 and every
+    reading paired with it raised: imu/mag_corrected fell from 100 Hz to 25 Hz, diagnostics OK."""
+    node, probe = start(ros, 'subnormal_imu', calibration_file=str(calibration_path))
+    imu = probe.create_publisher(Imu, 'imu/data_raw', 10)
+    warmed_up(probe)
+    for sec in range(1001, 1006):
+        imu_sent(node, imu, (1e-200, 0.0, 0.0), sec)
+        assert lockstep(probe, [sec]) == [sec]  # paired with it before the fix: nothing out
+    assert node.session.pairing.refusals['too_weak'] >= 5 and node.session.pairing.paired == 0
+    imu_sent(node, imu, (0.0, 0.0, 9.81), 1006)
+    assert lockstep(probe, [1006]) == [1006] and node.session.pairing.paired == 1
+    probe.diagnostics.clear()
+    assert wait_for(lambda: any(values_of(s).get('imu_rejected_too_weak', '0') != '0'
+                                for s in probe.statuses_of(node)))
+    stop(ros, probe, node)
+
+
+def test_an_imu_in_another_frame_is_refused_and_named_in_diagnostics(ros, calibration_path):
+    """An IMU in base_link beside a magnetometer in imu_link: its rotation was adopted as the
+    magnetometer's mounting. Now refused, and /diagnostics names both frames."""
+    node, probe = start(ros, 'imu_frame', calibration_file=str(calibration_path))
+    imu = probe.create_publisher(Imu, 'imu/data_raw', 10)
+    warmed_up(probe)
+    for sec in range(1001, 1004):
+        imu_sent(node, imu, (0.0, 1.7, 9.66), sec, frame='base_link')
+        assert lockstep(probe, [sec]) == [sec]
+    assert node.session.pairing.paired == 0
+    assert node.session.pairing.refusals['other_frame'] >= 3
+    probe.diagnostics.clear()
+    assert wait_for(lambda: any('base_link' in s.message for s in probe.statuses_of(node)))
+    status = [s for s in probe.statuses_of(node) if 'base_link' in s.message][-1]
+    assert status.level == DiagnosticStatus.WARN
+    assert "'base_link'" in status.message and "'imu_link'" in status.message
+    assert int(values_of(status)['imu_rejected_other_frame']) >= 3
     stop(ros, probe, node)

@@ -134,11 +134,12 @@ def progress_text(state: str, calibration: Calibration | None, coverage: Coverag
 
 def diagnostics_level(state: str, progress: str, input_rate_hz: float, no_input: str, *,
                       problem: str | None = None, refused: Mapping[str, int] | None = None,
-                      misfit: str = '', earth_warning: str = '', alignment_warning: str = ''
-                      ) -> tuple[Level, str]:
+                      misfit: str = '', earth_warning: str = '', alignment_warning: str = '',
+                      imu_warning: str = '') -> tuple[Level, str]:
     """The level and message of the calibrator's /diagnostics status: the first that applies of
     a problem of the node (ERROR), messages refused since the last report, a misfit, a disturbed
-    field, a mounting error (WARN), calibrated (OK), no input, still calibrating (WARN)."""
+    field, a mounting error, an IMU that cannot be paired (WARN), calibrated (OK), no input,
+    still calibrating (WARN)."""
     if problem is not None:
         return 'ERROR', problem
     if refused:
@@ -151,6 +152,8 @@ def diagnostics_level(state: str, progress: str, input_rate_hz: float, no_input:
         return 'WARN', f'{state}: {earth_warning}'
     if calibrated and alignment_warning:
         return 'WARN', f'{state}: {alignment_warning}'
+    if imu_warning:
+        return 'WARN', f'{state}: {imu_warning}'
     if calibrated:
         return 'OK', progress
     if input_rate_hz == 0.0:
@@ -243,7 +246,9 @@ def _reference_values(session: ReportedSession, now: float) -> dict[str, object]
         values['imu_rate_hz'] = round(pairing.rate.read(now), 2)
         values['imu_messages_accepted'] = int(pairing.accepted)
         values['imu_messages_refused'] = int(pairing.refused)
+        values.update({f'imu_rejected_{k}': int(v) for k, v in pairing.refusals.items()})
         values['readings_paired'] = int(pairing.paired)
+        values['imu_warning'] = pairing.warning()
         values['static_attitudes'] = int(session.attitudes.fill)
     calibration = session.calibration
     if calibration is not None and calibration.aligned:

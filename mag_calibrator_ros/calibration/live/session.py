@@ -252,7 +252,9 @@ class CalibrationSession:
         self.accepted += 1
         reading = np.array((x0, x1, x2))
         self._latest = reading
-        pair = self.pairing.pair(stamp_ns)
+        pair = self.pairing.pair(stamp_ns, frame_id)
+        if self.pairing.has_warnings:
+            self._imu_warnings()
         self._advance()
         if self._job is None and not self._held:
             self._ingest(reading, stamp_ns, pair)
@@ -265,10 +267,17 @@ class CalibrationSession:
 
     def process_imu(self, stamp_ns: int, frame_id: str, accel: Sequence[float],
                     gyro: Sequence[float] | None = None) -> bool:
-        """Keep one accelerometer (and gyroscope, rad/s) sample to pair magnetometer readings
-        with (``ImuPairing.add``); False when refused. ``frame_id`` is not needed: the
-        alignment finds the rotation between the IMU's frame and the magnetometer's."""
-        return self.pairing.add(stamp_ns, accel, gyro)
+        """Keep one accelerometer (m/s^2) and gyroscope (rad/s) sample to pair magnetometer
+        readings with (``ImuPairing.add``); False when refused, counted by reason: no plausible
+        specific force, or ``frame_id`` not the magnetometer stream's (said once a frame)."""
+        kept = self.pairing.add(stamp_ns, accel, gyro, frame_id, self.screen.frame_id)
+        if self.pairing.has_warnings:
+            self._imu_warnings()
+        return kept
+
+    def _imu_warnings(self) -> None:
+        for warning in self.pairing.take_warnings():
+            self._event('warning', warning)
 
     def set_earth_field(self, field: EarthField | None) -> None:
         """The World Magnetic Model's field here (None: unknown); used by the next fits."""
@@ -771,7 +780,7 @@ class CalibrationSession:
             self.state, self.progress_text(coverage), input_rate_hz, no_input, problem=problem,
             refused=self.new_screen_rejects() if problem is None else None,
             misfit=self.misfit_text(), earth_warning=self.earth_warning(),
-            alignment_warning=self.alignment_warning())
+            alignment_warning=self.alignment_warning(), imu_warning=self.pairing.warning())
 
 
 __all__ = [
