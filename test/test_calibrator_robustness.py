@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 import os
 from pathlib import Path
+import signal
 import stat
 import sys
 
@@ -18,12 +19,13 @@ from rclpy.context import Context
 from sensor_msgs.msg import Imu
 
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.live import worker as fit_worker
 from mag_calibrator_ros.calibration.store.calibration_file import save_calibration
 from mag_calibrator_ros.nodes.mag_calibrator import MagCalibratorNode
 from mag_calibrator_ros.nodes.parameters import ConfigurationError
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from node_helpers import Probe, vector, wait_for  # noqa: E402
+from node_helpers import Probe, call_trigger, vector, wait_for  # noqa: E402
 
 CALIBRATION = Calibration(np.array([20e-6, -10e-6, 5e-6]), np.diag([1.1, 0.9, 1.0]), 50e-6,
                           'full', {'residual_rms_pct': 0.5, 'coverage': 0.9})
@@ -334,4 +336,36 @@ def test_an_imu_in_another_frame_is_refused_and_named_in_diagnostics(ros, calibr
     assert status.level == DiagnosticStatus.WARN
     assert "'base_link'" in status.message and "'imu_link'" in status.message
     assert int(values_of(status)['imu_rejected_other_frame']) >= 3
+    stop(ros, probe, node)
+
+
+def test_a_stuck_fit_worker_is_restarted_and_calibrate_answers_why(ros, tmp_path, monkeypatch):
+    """A fit worker that stopped (SIGSTOP): ~/calibrate waited for ever, diagnostics stayed OK.
+    (A deadline of 15 s: a small fit on a machine this busy still answers well within it.)"""
+    monkeypatch.setattr(fit_worker, 'JOB_DEADLINE_S', 15.0)  # read when the node starts it
+    driver = ros.driver('stuck_worker', **{'sim.motion': 'tumble', 'sim.seed': 5})
+    node = ros.calibrator('stuck_worker', auto_calibrate=False, progress_log_period=0.0,
+                          min_coverage=0.5, calibration_file=str(tmp_path / 'none.yaml'))
+    probe = Probe(ros, 'stuck_worker')
+    session = node.session
+    assert wait_for(lambda: session.buffer.coverage().fraction >= 0.6, timeout_s=60.0)
+    ros.remove(driver)
+    assert wait_for(lambda: 'icm20948_driver' not in node.get_node_names())
+    seen = [-1]
+
+    def idle() -> bool:
+        """No message since the last look (a second ago), no fit running, none held."""
+        accepted, seen[0] = seen[0], session.accepted
+        return accepted == session.accepted and not session.runner.busy and not session.held
+
+    assert wait_for(idle, step_s=1.0)
+    os.kill(session.runner.pid, signal.SIGSTOP)
+    response = call_trigger(probe, 'mag_calibrator/calibrate', timeout_s=60.0)
+    assert not response.success
+    assert 'the fit worker did not answer within 15 s: restarted' in response.message
+    probe.diagnostics.clear()
+    assert wait_for(lambda: any(values_of(s).get('fit_worker_restarts') == '1'
+                                for s in probe.statuses_of(node)))
+    response = call_trigger(probe, 'mag_calibrator/calibrate', timeout_s=60.0)
+    assert response.success, response.message
     stop(ros, probe, node)

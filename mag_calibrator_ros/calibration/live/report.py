@@ -30,6 +30,7 @@ from mag_calibrator_ros.calibration.live.jobs import JobOutcome
 from mag_calibrator_ros.calibration.live.pairing import ImuPairing, RateMeter
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
 from mag_calibrator_ros.calibration.live.tracker import OnlineTracker
+from mag_calibrator_ros.calibration.live.worker import FitRunner
 
 TESLA_TO_MICROTESLA = 1e6
 
@@ -137,9 +138,9 @@ def diagnostics_level(state: str, progress: str, input_rate_hz: float, no_input:
                       misfit: str = '', earth_warning: str = '', alignment_warning: str = '',
                       imu_warning: str = '') -> tuple[Level, str]:
     """The level and message of the calibrator's /diagnostics status: the first that applies of
-    a problem of the node (ERROR), messages refused since the last report, a misfit, a disturbed
-    field, a mounting error, an IMU that cannot be paired (WARN), calibrated (OK), no input,
-    still calibrating (WARN)."""
+    a problem of the node or its fit worker (ERROR), messages refused since the last report, a
+    misfit, a disturbed field, a mounting error, an IMU that cannot be paired (WARN), calibrated
+    (OK), no input, still calibrating (WARN)."""
     if problem is not None:
         return 'ERROR', problem
     if refused:
@@ -181,6 +182,7 @@ class ReportedSession(Protocol):
     tracked_updates: int
     hold_overflows: int
     findings: Findings
+    runner: FitRunner
 
     @property
     def state(self) -> str: ...
@@ -234,6 +236,9 @@ def diagnostic_values(session: ReportedSession, now: float, coverage: Coverage
         values['tracked_updates'] = session.tracked_updates
     if session.hold_overflows:
         values['hold_overflows'] = session.hold_overflows
+    if session.runner.restarts:
+        values['fit_worker_restarts'] = int(session.runner.restarts)
+        values['fit_worker_last_restart'] = session.runner.last_restart
     values.update(_reference_values(session, now))
     return values
 

@@ -774,8 +774,10 @@ class CalibrationSession:
                           problem: str | None = None, no_input: str = ''
                           ) -> tuple[report.Level, str]:
         """The level and message of /diagnostics (report.diagnostics_level) for a node with
-        ``problem`` (None if none) and ``input_rate_hz`` from ``diagnostic_values``. Refused
-        messages are taken only when no problem outranks them, so they are reported later."""
+        ``problem`` (None if none; the fit worker's is added) and ``input_rate_hz`` from
+        ``diagnostic_values``. Refused messages are taken only when no problem outranks them,
+        so they are reported later."""
+        problem = '; '.join(text for text in (problem, self.runner.problem) if text) or None
         return report.diagnostics_level(
             self.state, self.progress_text(coverage), input_rate_hz, no_input, problem=problem,
             refused=self.new_screen_rejects() if problem is None else None,
