@@ -140,13 +140,14 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 
 
 
-def call_trigger(node: Node, service: str) -> Trigger.Response:
+def call_trigger(node: Node, service: str, timeout_s: float = WAIT_S) -> Trigger.Response:
     """Call a std_srvs/Trigger ``service`` from ``node`` (spinning elsewhere) and wait for the
-    answer; fails the test when the service never appears or never answers."""
+    answer (at most ``timeout_s``); fails the test when the service never appears or never
+    answers."""
     client = node.create_client(Trigger, service)
     assert client.wait_for_service(timeout_sec=WAIT_S), f'{service} not available'
     future = client.call_async(Trigger.Request())
-    assert wait_for(future.done), f'{service} did not answer'
+    assert wait_for(future.done, timeout_s), f'{service} did not answer'
     node.destroy_client(client)
     return future.result()
 

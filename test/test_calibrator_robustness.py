@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 import os
 from pathlib import Path
+import signal
 import stat
 import sys
 
@@ -15,14 +16,16 @@ import numpy as np
 import pytest
 import rclpy
 from rclpy.context import Context
+from sensor_msgs.msg import Imu
 
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.live import worker as fit_worker
 from mag_calibrator_ros.calibration.store.calibration_file import save_calibration
 from mag_calibrator_ros.nodes.mag_calibrator import MagCalibratorNode
 from mag_calibrator_ros.nodes.parameters import ConfigurationError
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from node_helpers import Probe, vector, wait_for  # noqa: E402
+from node_helpers import Probe, call_trigger, vector, wait_for  # noqa: E402
 
 CALIBRATION = Calibration(np.array([20e-6, -10e-6, 5e-6]), np.diag([1.1, 0.9, 1.0]), 50e-6,
                           'full', {'residual_rms_pct': 0.5, 'coverage': 0.9})
@@ -47,6 +50,10 @@ def start(ros, namespace, **parameters):
 def stop(ros, *nodes):
     for node in nodes:
         ros.remove(node)
+
+
+def values_of(status: DiagnosticStatus) -> dict[str, str]:
+    return {pair.key: pair.value for pair in status.values}
 
 
 def lockstep(probe, stamps, frame='imu_link', field=GOOD, covariance=None):
@@ -274,4 +281,91 @@ def test_a_service_that_fails_unexpectedly_still_answers(ros, calibration_path, 
     response = probe.call('mag_calibrator/reset')
     assert not response.success and 'RuntimeError: boom' in response.message
     assert probe.call('mag_calibrator/save').success is not None  # the node still serves
+    stop(ros, probe, node)
+
+
+def send_imu(publisher, force, sec: int, nanosec: int = 0, frame: str = 'imu_link') -> None:
+    msg = Imu()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
+    msg.header.frame_id = frame
+    msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z = (
+        float(v) for v in force)
+    msg.angular_velocity_covariance[0] = -1.0  # no gyroscope
+    publisher.publish(msg)
+
+
+def imu_sent(node, publisher, force, sec, frame='imu_link') -> None:
+    """Publish one IMU sample until the calibrator has it (best effort may drop the first)."""
+    seen = node.session.pairing.rate.count
+    assert wait_for(lambda: send_imu(publisher, force, sec, frame=frame)
+                    or node.session.pairing.rate.count > seen, timeout_s=10.0, step_s=0.2)
+
+
+def test_a_subnormal_accelerometer_sample_never_stalls_the_output(ros, calibration_path):
+    """(1e-200, 0, 0) on imu/data_raw passed the IMU screen; its norm underflowed to 0 and every
+    reading paired with it raised: imu/mag_corrected fell from 100 Hz to 25 Hz, diagnostics OK."""
+    node, probe = start(ros, 'subnormal_imu', calibration_file=str(calibration_path))
+    imu = probe.create_publisher(Imu, 'imu/data_raw', 10)
+    warmed_up(probe)
+    for sec in range(1001, 1006):
+        imu_sent(node, imu, (1e-200, 0.0, 0.0), sec)
+        assert lockstep(probe, [sec]) == [sec]  # paired with it before the fix: nothing out
+    assert node.session.pairing.refusals['too_weak'] >= 5 and node.session.pairing.paired == 0
+    imu_sent(node, imu, (0.0, 0.0, 9.81), 1006)
+    assert lockstep(probe, [1006]) == [1006] and node.session.pairing.paired == 1
+    probe.diagnostics.clear()
+    assert wait_for(lambda: any(values_of(s).get('imu_rejected_too_weak', '0') != '0'
+                                for s in probe.statuses_of(node)))
+    stop(ros, probe, node)
+
+
+def test_an_imu_in_another_frame_is_refused_and_named_in_diagnostics(ros, calibration_path):
+    """An IMU in base_link beside a magnetometer in imu_link: its rotation was adopted as the
+    magnetometer's mounting. Now refused, and /diagnostics names both frames."""
+    node, probe = start(ros, 'imu_frame', calibration_file=str(calibration_path))
+    imu = probe.create_publisher(Imu, 'imu/data_raw', 10)
+    warmed_up(probe)
+    for sec in range(1001, 1004):
+        imu_sent(node, imu, (0.0, 1.7, 9.66), sec, frame='base_link')
+        assert lockstep(probe, [sec]) == [sec]
+    assert node.session.pairing.paired == 0
+    assert node.session.pairing.refusals['other_frame'] >= 3
+    probe.diagnostics.clear()
+    assert wait_for(lambda: any('base_link' in s.message for s in probe.statuses_of(node)))
+    status = [s for s in probe.statuses_of(node) if 'base_link' in s.message][-1]
+    assert status.level == DiagnosticStatus.WARN
+    assert "'base_link'" in status.message and "'imu_link'" in status.message
+    assert int(values_of(status)['imu_rejected_other_frame']) >= 3
+    stop(ros, probe, node)
+
+
+def test_a_stuck_fit_worker_is_restarted_and_calibrate_answers_why(ros, tmp_path, monkeypatch):
+    """A fit worker that stopped (SIGSTOP): ~/calibrate waited for ever, diagnostics stayed OK.
+    (A deadline of 15 s: a small fit on a machine this busy still answers well within it.)"""
+    monkeypatch.setattr(fit_worker, 'JOB_DEADLINE_S', 15.0)  # read when the node starts it
+    driver = ros.driver('stuck_worker', **{'sim.motion': 'tumble', 'sim.seed': 5})
+    node = ros.calibrator('stuck_worker', auto_calibrate=False, progress_log_period=0.0,
+                          min_coverage=0.5, calibration_file=str(tmp_path / 'none.yaml'))
+    probe = Probe(ros, 'stuck_worker')
+    session = node.session
+    assert wait_for(lambda: session.buffer.coverage().fraction >= 0.6, timeout_s=60.0)
+    ros.remove(driver)
+    assert wait_for(lambda: 'icm20948_driver' not in node.get_node_names())
+    seen = [-1]
+
+    def idle() -> bool:
+        """No message since the last look (a second ago), no fit running, none held."""
+        accepted, seen[0] = seen[0], session.accepted
+        return accepted == session.accepted and not session.runner.busy and not session.held
+
+    assert wait_for(idle, step_s=1.0)
+    os.kill(session.runner.pid, signal.SIGSTOP)
+    response = call_trigger(probe, 'mag_calibrator/calibrate', timeout_s=60.0)
+    assert not response.success
+    assert 'the fit worker did not answer within 15 s: restarted' in response.message
+    probe.diagnostics.clear()
+    assert wait_for(lambda: any(values_of(s).get('fit_worker_restarts') == '1'
+                                for s in probe.statuses_of(node)))
+    response = call_trigger(probe, 'mag_calibrator/calibrate', timeout_s=60.0)
+    assert response.success, response.message
     stop(ros, probe, node)

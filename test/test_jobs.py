@@ -162,3 +162,48 @@ def test_the_worker_yields_the_cpu_to_the_node():
             os.getpriority(os.PRIO_PROCESS, 0) + fit_worker.WORKER_NICENESS, 19)
     finally:
         runner.close()
+
+
+def test_a_worker_that_stops_answering_is_killed_restarted_and_said():
+    """A stopped (SIGSTOP) worker never answered: ~/calibrate waited for ever. The watchdog kills
+    it after the deadline, the job comes back as an error naming why, a new worker takes over."""
+    runner = ProcessRunner(deadline_s=15.0)
+    try:
+        runner.submit(job())
+        assert wait(runner).result.success and runner.problem is None  # up and ready
+        stopped = runner.pid
+        os.kill(stopped, signal.SIGSTOP)
+        runner.submit(job())
+        outcome = wait(runner)
+        assert outcome.error == ('the fit worker did not answer within 15 s: restarted; the next '
+                                 'fit runs in the new worker')
+        assert runner.restarts == 1 and runner.pid != stopped
+        with pytest.raises(ProcessLookupError):  # killed and reaped
+            os.kill(stopped, 0)
+        os.kill(runner.pid, signal.SIGSTOP)  # caught while it imports: still restarting
+        assert runner.problem == ('the fit worker is restarting (restart 1: the fit worker did '
+                                  'not answer within 15 s); fits wait until it is up')
+        os.kill(runner.pid, signal.SIGCONT)
+        runner.submit(job())
+        assert wait(runner).result.success and runner.problem is None and runner.restarts == 1
+    finally:
+        runner.close()
+
+
+def test_a_worker_that_dies_between_fits_is_said_and_replaced_at_once():
+    runner = ProcessRunner()
+    try:
+        runner.submit(job())
+        wait(runner)
+        os.kill(runner.pid, signal.SIGKILL)
+        deadline = time.monotonic() + 30.0
+        while runner.problem is None and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert runner.problem == ('the fit worker process ended (exit status -9); it is being '
+                                  'restarted')
+        assert runner.poll() is None and runner.restarts == 1
+        assert runner.last_restart == 'the fit worker process ended (exit status -9)'
+        runner.submit(job())
+        assert wait(runner).result.success and runner.problem is None
+    finally:
+        runner.close()

@@ -65,6 +65,9 @@ def messages(events, level=None, adopted=None):
 class ManualRunner:
     """A worker that finishes a job only when told: shows what happens while a fit runs."""
 
+    problem = None
+    restarts = 0
+
     def __init__(self):
         self.job = None
         self.released = None
@@ -693,5 +696,51 @@ def test_with_the_worker_process_refinement_and_misfits_are_decided_too():
         assert any('does not fit' in m for m in messages(events, level='warning'))
         assert session.adoptions.get('auto') == 1
         assert direction_error_deg(session.calibration) < 0.5
+    finally:
+        runner.close()
+
+
+def test_a_stuck_fit_worker_answers_the_request_says_error_and_is_replaced():
+    """A fit worker that stopped answering: ~/calibrate waited for ever, waiting_readings grew
+    to its limit and /diagnostics stayed OK."""
+    import os
+    import signal
+    import time
+
+    from mag_calibrator_ros.calibration.live.worker import ProcessRunner
+
+    runner = ProcessRunner(deadline_s=15.0)
+    session = CalibrationSession(SessionSettings(auto_calibrate=False), runner=runner)
+
+    def answer(ticket):
+        deadline = time.monotonic() + 60.0
+        while time.monotonic() < deadline:
+            session.poll()
+            for event in session.take_events():
+                if event.ticket == ticket:
+                    return event.attempt
+            time.sleep(0.01)
+        raise AssertionError('never answered')
+
+    try:
+        stream(session, distorted('tumble', 600, seed=9))
+        while runner.busy or session.held:
+            session.poll()
+        os.kill(runner.pid, signal.SIGSTOP)
+        attempt = answer(session.request_calibration())
+        assert not attempt.success
+        assert attempt.message.startswith('calibration failed: the fit worker did not answer '
+                                          'within 15 s: restarted; the next fit runs in the new '
+                                          'worker')
+        os.kill(runner.pid, signal.SIGSTOP)  # the new worker, caught while it imports
+        level, message = session.diagnostics_level(session.coverage(), 50.0)
+        assert level == 'ERROR' and message.startswith('the fit worker is restarting (restart 1')
+        values = session.diagnostic_values(1.0)
+        assert values['fit_worker_restarts'] == 1
+        assert values['fit_worker_last_restart'] == 'the fit worker did not answer within 15 s'
+        os.kill(runner.pid, signal.SIGCONT)
+        attempt = answer(session.request_calibration())
+        assert attempt.success, attempt.message
+        assert session.diagnostics_level(session.coverage(), 50.0)[0] == 'OK'
     finally:
         runner.close()

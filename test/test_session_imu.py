@@ -175,3 +175,158 @@ def test_a_fit_that_fails_its_own_gates_says_nothing_about_the_place(misaligned)
     assert not [e for e in session.take_events() if e.level == 'warning']
     assert session.findings.earth_check is None and session.findings.alignment is None
     assert session.calibration is truth
+
+
+# -- what is paired: a plausible specific force, in the magnetometer's frame, on its clock ------
+
+
+@pytest.mark.parametrize(('force', 'reason'), [
+    ((1e-200, 0.0, 0.0), 'too_weak'),  # its squares underflow: |a| computed as 0
+    ((5e-324, 0.0, 0.0), 'too_weak'),  # subnormal
+    ((0.05, 0.02, 0.0), 'too_weak'),  # free fall, or a unit other than m/s^2
+    ((1e200, 1e200, 0.0), 'too_strong'),  # its squares overflow
+    ((3000.0, 0.0, 0.0), 'too_strong'),
+])
+def test_an_implausible_specific_force_is_refused_and_never_stalls_the_output(force, reason):
+    """One (1e-200, 0, 0) on imu/data_raw raised in ``process`` for every reading paired with
+    it: the corrected output thinned out and an uncalibrated node never calibrated."""
+    truth = Calibration(np.array(HARD_IRON_UT) * 1e-6,
+                        np.linalg.inv(np.reshape(SOFT_IRON, (3, 3))), 50e-6, 'full')
+    mag, accel, gyro, _ = recording(4.0, motion='tumble', seed=3)
+    session = CalibrationSession(SessionSettings(auto_calibrate=False), calibration=truth)
+    for index, row in enumerate(mag):
+        stamp = index * 10_000_000
+        bad = index % 10 == 5
+        assert session.process_imu(stamp, 'imu_link', force if bad else accel[index],
+                                   gyro[index]) is not bad
+        assert session.process(stamp, 'imu_link', row).corrected is not None
+    refused = len(mag) // 10
+    assert session.pairing.refusals == {**dict.fromkeys(session.pairing.refusals, 0),
+                                        reason: refused}
+    values = session.diagnostic_values(1.0)
+    assert values[f'imu_rejected_{reason}'] == values['imu_messages_refused'] == refused
+    assert session.pairing.paired == len(mag)  # a reading beside a refused one pairs 10 ms away
+
+
+def test_an_uncalibrated_session_calibrates_through_a_subnormal_accelerometer_sample(misaligned):
+    mag, accel, gyro, _ = misaligned
+    accel = accel.copy()
+    accel[::50] = (1e-200, 0.0, 0.0)
+    session = CalibrationSession(SessionSettings())
+    session.feed(mag, RATE_HZ, frame_id='imu_link', accel=accel, gyro=gyro)
+    assert session.calibration is not None and session.calibration.aligned
+    assert session.pairing.refusals['too_weak'] == len(mag[::50])
+
+
+def test_the_offline_session_takes_an_accelerometer_in_any_unit():
+    """mag_calibrator_fit reads logs in counts or g: only zero and non-finite norms go."""
+    session = CalibrationSession(SessionSettings(auto_calibrate=False))
+    session.pairing.force_range = None
+    assert session.process_imu(0, '', (16384.0, 0.0, 0.0))  # 1 g in counts
+    assert session.process_imu(1, '', (0.0, 0.0, 1.0))  # 1 g in g
+    assert session.process_imu(2, '', (1e-200, 0.0, 0.0))  # hypot: no underflow
+    assert not session.process_imu(3, '', (5e-324, 0.0, 0.0))
+    assert not session.process_imu(4, '', (1.5e308, 1.5e308, 0.0))  # |a| beyond a float
+    session.process(2, '', (20e-6, 0.0, 40e-6))
+    assert session.pairing.pair(2) == ((1e-200, 0.0, 0.0), None)
+
+
+def rotated(rows: np.ndarray, degrees: float) -> np.ndarray:
+    """Rows in a frame turned ``degrees`` about z (an IMU mounted in base_link)."""
+    c, s = math.cos(math.radians(degrees)), math.sin(math.radians(degrees))
+    return rows @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]).T
+
+
+def warnings_of(session) -> list[str]:
+    return [e.message for e in session.take_events() if e.level == 'warning']
+
+
+def test_an_imu_in_another_frame_is_not_paired_and_said_once(misaligned):
+    """An IMU in base_link, 10 deg from imu_link: its 10 deg were adopted as the magnetometer's
+    mounting, and the corrected field (stamped imu_link) rotated into base_link."""
+    mag, accel, gyro, _ = misaligned
+    session = CalibrationSession(SessionSettings(auto_calibrate=False))
+    for index, row in enumerate(mag):
+        stamp = index * 10_000_000
+        session.process_imu(stamp, 'base_link', rotated(accel[index], 10.0),
+                            rotated(gyro[index], 10.0))
+        session.process(stamp, 'imu_link', row)
+    attempt = session.calibrate_now()
+    assert attempt.success and not session.calibration.aligned
+    assert session.pairing.paired == 0
+    assert session.pairing.refusals['other_frame'] == len(mag) - 1  # the first: frame unknown
+    (warning,) = [w for w in warnings_of(session) if 'frame' in w]
+    assert "imu/data_raw is in frame 'base_link' but imu/mag in 'imu_link'" in warning
+    values = session.diagnostic_values(1.0)
+    assert values['imu_rejected_other_frame'] == len(mag) - 1
+    level, message = session.diagnostics_level(session.coverage(), 100.0)
+    assert level == 'WARN' and "'base_link'" in message and "'imu_link'" in message
+    assert "'base_link'" in values['imu_warning'] and "'imu_link'" in values['imu_warning']
+
+
+def test_of_two_imus_in_different_frames_only_the_magnetometers_frame_pairs(misaligned):
+    """Two IMU publishers, imu_link and base_link: pairing whichever came nearest gave a
+    'remap the magnetometer (x, y, z) -> (-y, x, z)' that was wrong."""
+    mag, accel, gyro, board = misaligned
+    session = CalibrationSession(SessionSettings(auto_calibrate=False))
+    for index, row in enumerate(mag):
+        stamp = index * 10_000_000
+        session.process_imu(stamp + 1_000_000, 'base_link', rotated(accel[index], 90.0),
+                            rotated(gyro[index], 90.0))
+        session.process_imu(stamp + 2_000_000, 'imu_link', accel[index], gyro[index])
+        session.process(stamp, 'imu_link', row)
+    attempt = session.calibrate_now()
+    assert attempt.success and 'remap' not in attempt.message, attempt.message
+    assert rotation_angle_deg(session.calibration.rotation @ board.mag_misalignment.T) < 0.2
+    assert session.pairing.paired == len(mag)
+    assert len([w for w in warnings_of(session) if 'base_link' in w]) == 1
+
+
+def test_an_imu_whose_frame_changes_mid_stream_is_refused_from_then_on(misaligned):
+    mag, accel, gyro, _ = misaligned
+    session = CalibrationSession(SessionSettings(auto_calibrate=False))
+    half = len(mag) // 2
+    for index, row in enumerate(mag):
+        stamp = index * 10_000_000
+        frame = 'imu_link' if index < half else 'imu_link_renamed'
+        session.process_imu(stamp, frame, accel[index], gyro[index])
+        session.process(stamp, 'imu_link', row)
+    assert session.pairing.paired == half + 2  # two within 20 ms of the last good sample
+    assert session.pairing.refusals['other_frame'] == len(mag) - half
+    assert len([w for w in warnings_of(session) if 'imu_link_renamed' in w]) == 1
+
+
+def stream_with_imu_offset(session, mag, accel, offset_ns, start=0):
+    for index in range(start, len(mag)):
+        stamp = index * 10_000_000
+        session.process_imu(stamp + offset_ns, 'imu_link', accel[index])
+        session.process(stamp, 'imu_link', mag[index])
+
+
+def test_imu_stamps_behind_the_magnetometers_are_said_with_the_offset(misaligned):
+    """imu/data_raw 0.8 s behind imu/mag: 280 of 1500 readings paired and nothing said."""
+    mag, accel, _, _ = misaligned
+    session = CalibrationSession(SessionSettings(auto_calibrate=False))
+    stream_with_imu_offset(session, mag[:1500], accel, -800_000_000)
+    assert session.pairing.paired < 100
+    (warning,) = [w for w in warnings_of(session) if 'imu/data_raw stamps' in w]
+    assert "imu/data_raw stamps are 0.800 s behind imu/mag's" in warning
+    assert 'readings found no imu/data_raw sample within 20 ms' in warning
+    assert 'imu/data_raw stamps are 0.800 s behind' in session.diagnostic_values(1.0)[
+        'imu_warning']
+    level, message = session.diagnostics_level(session.coverage(), 100.0)
+    assert level == 'WARN' and '0.800 s behind' in message
+    # once the clocks agree, pairing resumes and the warning goes
+    stream_with_imu_offset(session, mag[:3000], accel, 0, start=1500)
+    assert session.diagnostic_values(2.0)['imu_warning'] == ''
+    assert not [w for w in warnings_of(session) if 'imu/data_raw' in w]
+
+
+def test_an_imu_that_stops_or_keeps_time_is_no_starvation(misaligned):
+    mag, accel, _, _ = misaligned
+    session = CalibrationSession(SessionSettings(auto_calibrate=False))
+    stream_with_imu_offset(session, mag[:300], accel, 3_000_000)  # 3 ms apart: paired
+    session.feed(mag[300:600], RATE_HZ, start_ns=3_000_000_000, frame_id='imu_link')  # IMU gone
+    assert session.pairing.paired == 302  # two within 20 ms of the last sample
+    assert not [w for w in warnings_of(session) if 'imu/data_raw' in w]
+    assert session.pairing.warning() == ''

@@ -9,7 +9,8 @@ Subscribed topics (sensor-data QoS: best effort, depth 100):
 
 - ``imu/mag`` (sensor_msgs/MagneticField): the raw field, tesla.
 - ``imu/data_raw`` (sensor_msgs/Imu), while ``use_imu``: the accelerometer (and gyroscope) the
-  calibration is aligned to, from readings held still.
+  calibration is aligned to, from readings held still; in ``imu/mag``'s frame (samples in
+  another are refused: ``pairing.py``).
 - ``gps/fix`` (sensor_msgs/NavSatFix): a plausible fix locates the robot for the World
   Magnetic Model when ``latitude``/``longitude`` are NaN and ``use_gps`` holds; one over
   10 km away replaces it (``nodes/location.py``).

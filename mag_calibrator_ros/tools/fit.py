@@ -304,6 +304,7 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     session = None
     if settings is not None:
         session = CalibrationSession(settings, metadata=metadata)
+        session.pairing.force_range = None  # a log's accelerometer may be in g or counts
         session.set_earth_field(earth)
         stream(session, recording.samples, args.rate, progress, recording.accel)
         session.attitudes.finish()  # the recording ends: its last still stretch too

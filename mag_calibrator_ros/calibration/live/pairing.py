@@ -4,6 +4,12 @@ The IMU's samples (``CalibrationSession.process_imu``) wait in a short ring; eac
 magnetometer reading takes the one nearest its stamp. A pair tells the alignment which way is
 up while the sensor is held still (``alignment.StaticAttitudes``) and the buffer the gravity
 direction behind a sample (``levelled.py``).
+
+Only what can mean that is paired: a sample that is no plausible specific force, or that is in
+another frame than the magnetometer's (an alignment between two frames would rotate the
+corrected field out of the frame its header names), is refused and counted by reason. When an
+IMU is there but its stamps never meet the readings' (another clock, a delay), most readings
+go unpaired: that is measured and said, with the offset.
 """
 
 from __future__ import annotations
@@ -12,6 +18,8 @@ from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 import math
+import statistics
+import sys
 
 Vector = tuple[float, float, float]
 Pair = tuple[Vector, Vector | None]
@@ -22,6 +30,33 @@ IMU_RING = 256
 PAIR_TOLERANCE_NS = 20_000_000
 """A magnetometer reading pairs with the accelerometer sample nearest its stamp within 20 ms
 (a 50 Hz IMU); a still reading does not change in that time, a moving one is never still."""
+
+IMU_REASONS = ('non_finite', 'too_weak', 'too_strong', 'other_frame')
+"""Why an accelerometer sample is not kept: a NaN/Inf (or no three numbers); a specific force
+below or beyond ``force_range``; a frame other than the magnetometer stream's."""
+
+SPECIFIC_FORCE_RANGE = (1.0, 500.0)
+"""Plausible |specific force| in m/s^2 (sensor_msgs/Imu, REP-103). At rest an accelerometer
+reads g (9.81 m/s^2); a moving robot or a hand adds a few m/s^2, a shock tens. Below 1 m/s^2
+(a tenth of g: free fall, a zero or underflowing value, or another unit such as g) a sample
+tells nothing of gravity's direction; beyond 500 m/s^2 (about 50 g: the ICM-20948's largest
+full scale, 16 g on every axis at once, is 27.7 g) it is no reading of a moving robot."""
+
+STARVATION_WINDOW = 200
+"""Readings over which pairing is judged while an IMU is there (2 s at 100 Hz). Starvation is
+said when more than three in four of them found no sample (stamps on other clocks leave nearly
+all unpaired; IMU messages that a busy computer delivers after the readings of their instant,
+some), and over once fewer than half did."""
+STARVATION_MIN = 50
+"""Readings judged before starvation is said (one unpaired reading is no pattern)."""
+IMU_ABSENT_READINGS = 25
+"""Readings without a new accelerometer sample after which the IMU counts as gone, not late
+(its stream stopped: nothing to pair with, nothing to say about its stamps). Half of
+STARVATION_MIN, so the readings after an IMU stops never make half a window unpaired alone."""
+FRAME_WARNING_MESSAGES = IMU_RING
+"""A frame refusal is shown in /diagnostics until this many IMU messages passed without one."""
+MAX_WARNED_FRAMES = 16
+"""Frame pairs warned about once each (a bound: a frame name per message cannot fill memory)."""
 
 
 @dataclass
@@ -40,70 +75,199 @@ class RateMeter:
         return self.rate
 
 
-class ImuPairing:
-    """The accelerometer ring and its counters, for /diagnostics."""
+def _vector(values: Sequence[float] | None) -> Vector | None:
+    """Three finite floats, or None."""
+    try:
+        x, y, z = (float(value) for value in values)
+    except (TypeError, ValueError):
+        return None
+    return (x, y, z) if math.isfinite(x) and math.isfinite(y) and math.isfinite(z) else None
 
-    def __init__(self) -> None:
-        self._ring: deque[tuple[int, float, float, float, Vector | None]] = deque(
+
+def force_problem(force: Vector, force_range: tuple[float, float] | None) -> str | None:
+    """Why a finite specific force is unusable ('too_weak', 'too_strong'), or None. The norm is
+    ``math.hypot``'s, which neither underflows nor overflows on the way: (1e-200, 0, 0) is
+    1e-200, not 0. Without a range (the unit unknown) only a norm that is zero, subnormal or
+    beyond the largest float is refused, so gravity's direction can always be computed."""
+    norm = math.hypot(*force)
+    low, high = force_range if force_range is not None else (sys.float_info.min, math.inf)
+    if not norm >= max(low, sys.float_info.min):
+        return 'too_weak'
+    if not norm <= high or math.isinf(norm):
+        return 'too_strong'
+    return None
+
+
+class ImuPairing:
+    """The accelerometer ring, its refusals by reason and the pairing's health, for
+    /diagnostics and the log."""
+
+    def __init__(self, force_range: tuple[float, float] | None = SPECIFIC_FORCE_RANGE) -> None:
+        self.force_range = force_range
+        """Plausible |specific force| (SPECIFIC_FORCE_RANGE, m/s^2); None when the unit is
+        unknown (``mag_calibrator_fit`` reads logs in counts or g)."""
+        self._ring: deque[tuple[int, float, float, float, Vector | None, str]] = deque(
             maxlen=IMU_RING)
         self.rate = RateMeter()
         self.accepted = 0
-        self.refused = 0
+        self.refusals = dict.fromkeys(IMU_REASONS, 0)
         self.paired = 0
         """Magnetometer readings paired with an accelerometer sample."""
+        self.other_frame: tuple[str, str] | None = None
+        """(IMU frame, magnetometer frame) of the latest sample refused for its frame."""
+        self._since_other_frame = FRAME_WARNING_MESSAGES
+        self._warned_frames: set[tuple[str, str]] = set()
+        self._gaps: deque[int] = deque(maxlen=STARVATION_WINDOW)  # nearest sample - reading, ns
+        self._unpaired = 0  # readings in _gaps that found no sample within the tolerance
+        self._since_sample = IMU_ABSENT_READINGS  # readings since the latest kept sample
+        self._starving = False
+        self._warnings: list[str] = []
 
-    def add(self, stamp_ns: int, accel: Sequence[float],
-            gyro: Sequence[float] | None = None) -> bool:
-        """Keep one accelerometer (and gyroscope, rad/s) sample; O(1). False when refused
-        (non-finite or zero specific force). A gyroscope sample with a non-finite value counts
-        as none."""
+    @property
+    def refused(self) -> int:
+        """Accelerometer samples refused, every reason."""
+        return sum(self.refusals.values())
+
+    def add(self, stamp_ns: int, accel: Sequence[float], gyro: Sequence[float] | None = None,
+            frame_id: str = '', stream_frame: str | None = None) -> bool:
+        """Keep one accelerometer (and gyroscope, rad/s) sample; O(1). False when refused (by
+        IMU_REASONS): a non-finite or implausible specific force, or a ``frame_id`` other than
+        the magnetometer stream's ``stream_frame`` (None while unknown: then readings pair only
+        with samples of their own frame). A gyroscope sample with a non-finite value counts as
+        none."""
         self.rate.count += 1
-        try:
-            ax, ay, az = (float(value) for value in accel)
-        except (TypeError, ValueError):
-            ax = ay = az = math.nan
-        if not (math.isfinite(ax + ay + az) and (ax or ay or az)):
-            self.refused += 1
+        self._since_other_frame += 1
+        force = _vector(accel)
+        reason = 'non_finite' if force is None else force_problem(force, self.force_range)
+        frame_id = str(frame_id)
+        if reason is None and stream_frame is not None and frame_id != stream_frame:
+            reason = 'other_frame'
+            self._refuse_frame(frame_id, stream_frame)
+        if reason is not None:
+            self.refusals[reason] += 1
             return False
-        rates = None
-        if gyro is not None:
-            try:
-                gx, gy, gz = (float(value) for value in gyro)
-            except (TypeError, ValueError):
-                gx = gy = gz = math.nan
-            rates = (gx, gy, gz) if math.isfinite(gx + gy + gz) else None
-        self._ring.append((int(stamp_ns), ax, ay, az, rates))
+        self._ring.append((int(stamp_ns), *force, None if gyro is None else _vector(gyro),
+                           frame_id))
         self.accepted += 1
+        self._since_sample = 0
         return True
 
-    def pair(self, stamp_ns: int) -> Pair | None:
-        """The accelerometer sample nearest ``stamp_ns`` within PAIR_TOLERANCE_NS, searched from
-        the newest back (samples arrive in stamp order: a few steps)."""
-        if not self._ring:
-            return None
-        best, best_gap = None, PAIR_TOLERANCE_NS + 1
-        for sample in reversed(self._ring):
-            gap = sample[0] - stamp_ns
-            if abs(gap) < best_gap:
-                best, best_gap = sample, abs(gap)
-            elif gap < 0:
-                break  # older still: only further away
-        if best is None:
+    def _refuse_frame(self, frame_id: str, stream_frame: str) -> None:
+        self.other_frame, self._since_other_frame = (frame_id, stream_frame), 0
+        if (frame_id, stream_frame) in self._warned_frames:
+            return
+        if len(self._warned_frames) < MAX_WARNED_FRAMES:
+            self._warned_frames.add((frame_id, stream_frame))
+            self._warnings.append(
+                f"imu/data_raw is in frame '{frame_id}' but imu/mag in '{stream_frame}': its "
+                'samples are not paired (aligning to an IMU in another frame would rotate the '
+                "corrected field out of the frame its header names); publish the IMU in the "
+                "magnetometer's frame (the driver's frame_id), or set use_imu false")
+
+    def pair(self, stamp_ns: int, frame_id: str | None = None) -> Pair | None:
+        """The accelerometer sample of ``frame_id`` (None: any) nearest ``stamp_ns`` within
+        PAIR_TOLERANCE_NS, searched from the newest back (samples arrive in stamp order: a few
+        steps). How near the nearest one was, paired or not, feeds the starvation measure."""
+        best, best_gap = None, math.inf
+        ring = self._ring
+        if ring and ring[0][0] > stamp_ns and (frame_id is None or ring[0][5] == frame_id):
+            best, best_gap = ring[0], ring[0][0] - stamp_ns  # every sample is newer
+        else:
+            for sample in reversed(ring):
+                if frame_id is not None and sample[5] != frame_id:
+                    continue
+                gap = sample[0] - stamp_ns
+                if abs(gap) < abs(best_gap):
+                    best, best_gap = sample, gap
+                elif gap < 0:
+                    break  # older still: only further away
+        self._judge(best_gap)
+        if best is None or abs(best_gap) > PAIR_TOLERANCE_NS:
             return None
         self.paired += 1
         return (best[1], best[2], best[3]), best[4]
 
+    def _judge(self, gap: float) -> None:
+        """One reading's nearest gap into the starvation window, while an IMU is there."""
+        self._since_sample += 1
+        if self._since_sample > IMU_ABSENT_READINGS or math.isinf(gap):
+            if self._gaps:
+                self._gaps.clear()
+                self._unpaired, self._starving = 0, False
+            return
+        gaps = self._gaps
+        if len(gaps) == gaps.maxlen and abs(gaps[0]) > PAIR_TOLERANCE_NS:
+            self._unpaired -= 1
+        gaps.append(int(gap))
+        if abs(gap) > PAIR_TOLERANCE_NS:
+            self._unpaired += 1
+        if len(gaps) < STARVATION_MIN:
+            return
+        if not self._starving and 4 * self._unpaired > 3 * len(gaps):
+            self._starving = True
+            self._warnings.append(self.starvation())
+        elif self._starving and 2 * self._unpaired < len(gaps):
+            self._starving = False  # mostly paired again: a later starvation is said anew
+
+    def starvation(self) -> str:
+        """Why most readings find no accelerometer sample to pair with ('' when they do)."""
+        if not self._starving:
+            return ''
+        gaps = list(self._gaps)
+        offset = statistics.median(gaps) / 1e9
+        what = (f'{self._unpaired} of the last {len(gaps)} imu/mag readings found no '
+                f'imu/data_raw sample within {PAIR_TOLERANCE_NS / 1e6:.0f} ms, so they are not '
+                'paired (no alignment to the IMU, no levelling)')
+        if abs(offset) * 1e9 > PAIR_TOLERANCE_NS:
+            side = 'behind' if offset < 0 else 'ahead of'
+            return (f"imu/data_raw stamps are {abs(offset):.3f} s {side} imu/mag's: {what}; "
+                    'stamp both from one clock (the same driver, or synchronised clocks), and '
+                    'deliver imu/data_raw without delay')
+        spacing = statistics.median(abs(gap) for gap in gaps) / 1e6
+        return (f'imu/data_raw samples are too sparse: {what} (median distance to the nearest '
+                f'{spacing:.0f} ms); publish the IMU at 50 Hz or more')
+
+    def warning(self) -> str:
+        """What is wrong with the IMU input now, for a /diagnostics WARN ('' if nothing)."""
+        if self._since_other_frame < FRAME_WARNING_MESSAGES and self.other_frame is not None:
+            imu, mag = self.other_frame
+            return (f"imu/data_raw samples in frame '{imu}' are refused: imu/mag is in "
+                    f"'{mag}' (publish the IMU in the magnetometer's frame)")
+        return self.starvation()
+
+    def take_warnings(self) -> list[str]:
+        """New warnings since the last call, each said once (a frame pair, a starvation)."""
+        warnings, self._warnings = self._warnings, []
+        return warnings
+
+    @property
+    def has_warnings(self) -> bool:
+        return bool(self._warnings)
+
     def clear(self) -> None:
         """Forget the samples (a reset: a new sensor may follow); the counters stay."""
         self._ring.clear()
+        self._gaps.clear()
+        self._unpaired, self._starving = 0, False
+        self._since_sample = IMU_ABSENT_READINGS
 
 
 def up_direction(accel: Sequence[float]) -> Vector:
-    """Gravity's unit direction from a paired specific force (never zero: ``add`` refuses
-    that)."""
+    """Gravity's unit direction from a paired specific force (its norm a normal float: ``add``
+    refuses the rest); ``math.hypot`` neither underflows nor overflows."""
     ax, ay, az = accel
-    norm = math.sqrt(ax * ax + ay * ay + az * az)
+    norm = math.hypot(ax, ay, az)
     return ax / norm, ay / norm, az / norm
 
 
-__all__ = ['IMU_RING', 'PAIR_TOLERANCE_NS', 'ImuPairing', 'Pair', 'RateMeter', 'up_direction']
+__all__ = [
+    'IMU_REASONS',
+    'IMU_RING',
+    'PAIR_TOLERANCE_NS',
+    'SPECIFIC_FORCE_RANGE',
+    'ImuPairing',
+    'Pair',
+    'RateMeter',
+    'force_problem',
+    'up_direction',
+]

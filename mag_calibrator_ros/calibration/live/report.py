@@ -31,6 +31,7 @@ from mag_calibrator_ros.calibration.live.jobs import JobOutcome
 from mag_calibrator_ros.calibration.live.pairing import ImuPairing, RateMeter
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
 from mag_calibrator_ros.calibration.live.tracker import OnlineTracker
+from mag_calibrator_ros.calibration.live.worker import FitRunner
 
 TESLA_TO_MICROTESLA = 1e6
 
@@ -210,11 +211,12 @@ def progress_text(state: str, calibration: Calibration | None, coverage: Coverag
 
 def diagnostics_level(state: str, progress: str, input_rate_hz: float, no_input: str, *,
                       problem: str | None = None, refused: Mapping[str, int] | None = None,
-                      misfit: str = '', earth_warning: str = '', alignment_warning: str = ''
-                      ) -> tuple[Level, str]:
+                      misfit: str = '', earth_warning: str = '', alignment_warning: str = '',
+                      imu_warning: str = '') -> tuple[Level, str]:
     """The level and message of the calibrator's /diagnostics status: the first that applies of
-    a problem of the node (ERROR), messages refused since the last report, a misfit, a disturbed
-    field, a mounting error (WARN), calibrated (OK), no input, still calibrating (WARN)."""
+    a problem of the node or its fit worker (ERROR), messages refused since the last report, a
+    misfit, a disturbed field, a mounting error, an IMU that cannot be paired (WARN), calibrated
+    (OK), no input, still calibrating (WARN)."""
     if problem is not None:
         return 'ERROR', problem
     if refused:
@@ -227,6 +229,8 @@ def diagnostics_level(state: str, progress: str, input_rate_hz: float, no_input:
         return 'WARN', f'{state}: {earth_warning}'
     if calibrated and alignment_warning:
         return 'WARN', f'{state}: {alignment_warning}'
+    if imu_warning:
+        return 'WARN', f'{state}: {imu_warning}'
     if calibrated:
         return 'OK', progress
     if input_rate_hz == 0.0:
@@ -254,6 +258,7 @@ class ReportedSession(Protocol):
     tracked_updates: int
     hold_overflows: int
     findings: Findings
+    runner: FitRunner
 
     @property
     def state(self) -> str: ...
@@ -307,6 +312,9 @@ def diagnostic_values(session: ReportedSession, now: float, coverage: Coverage
         values['tracked_updates'] = session.tracked_updates
     if session.hold_overflows:
         values['hold_overflows'] = session.hold_overflows
+    if session.runner.restarts:
+        values['fit_worker_restarts'] = int(session.runner.restarts)
+        values['fit_worker_last_restart'] = session.runner.last_restart
     values.update(_reference_values(session, now))
     return values
 
@@ -319,7 +327,9 @@ def _reference_values(session: ReportedSession, now: float) -> dict[str, object]
         values['imu_rate_hz'] = round(pairing.rate.read(now), 2)
         values['imu_messages_accepted'] = int(pairing.accepted)
         values['imu_messages_refused'] = int(pairing.refused)
+        values.update({f'imu_rejected_{k}': int(v) for k, v in pairing.refusals.items()})
         values['readings_paired'] = int(pairing.paired)
+        values['imu_warning'] = pairing.warning()
         values['static_attitudes'] = int(session.attitudes.fill)
     calibration = session.calibration
     if calibration is not None and calibration.aligned:

@@ -255,7 +255,9 @@ class CalibrationSession:
         self.accepted += 1
         reading = np.array((x0, x1, x2))
         self._latest = reading
-        pair = self.pairing.pair(stamp_ns)
+        pair = self.pairing.pair(stamp_ns, frame_id)
+        if self.pairing.has_warnings:
+            self._imu_warnings()
         self._advance()
         if self._job is None and not self._held:
             self._ingest(reading, stamp_ns, pair)
@@ -268,10 +270,17 @@ class CalibrationSession:
 
     def process_imu(self, stamp_ns: int, frame_id: str, accel: Sequence[float],
                     gyro: Sequence[float] | None = None) -> bool:
-        """Keep one accelerometer (and gyroscope, rad/s) sample to pair magnetometer readings
-        with (``ImuPairing.add``); False when refused. ``frame_id`` is not needed: the
-        alignment finds the rotation between the IMU's frame and the magnetometer's."""
-        return self.pairing.add(stamp_ns, accel, gyro)
+        """Keep one accelerometer (m/s^2) and gyroscope (rad/s) sample to pair magnetometer
+        readings with (``ImuPairing.add``); False when refused, counted by reason: no plausible
+        specific force, or ``frame_id`` not the magnetometer stream's (said once a frame)."""
+        kept = self.pairing.add(stamp_ns, accel, gyro, frame_id, self.screen.frame_id)
+        if self.pairing.has_warnings:
+            self._imu_warnings()
+        return kept
+
+    def _imu_warnings(self) -> None:
+        for warning in self.pairing.take_warnings():
+            self._event('warning', warning)
 
     def set_earth_field(self, field: EarthField | None) -> None:
         """The World Magnetic Model's field here (None: unknown); used by the next fits."""
@@ -773,13 +782,15 @@ class CalibrationSession:
                           problem: str | None = None, no_input: str = ''
                           ) -> tuple[report.Level, str]:
         """The level and message of /diagnostics (report.diagnostics_level) for a node with
-        ``problem`` (None if none) and ``input_rate_hz`` from ``diagnostic_values``. Refused
-        messages are taken only when no problem outranks them, so they are reported later."""
+        ``problem`` (None if none; the fit worker's is added) and ``input_rate_hz`` from
+        ``diagnostic_values``. Refused messages are taken only when no problem outranks them,
+        so they are reported later."""
+        problem = '; '.join(text for text in (problem, self.runner.problem) if text) or None
         return report.diagnostics_level(
             self.state, self.progress_text(coverage), input_rate_hz, no_input, problem=problem,
             refused=self.new_screen_rejects() if problem is None else None,
             misfit=self.misfit_text(), earth_warning=self.earth_warning(),
-            alignment_warning=self.alignment_warning())
+            alignment_warning=self.alignment_warning(), imu_warning=self.pairing.warning())
 
 
 __all__ = [
