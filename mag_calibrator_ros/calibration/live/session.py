@@ -660,9 +660,8 @@ class CalibrationSession:
     def feed(self, samples: np.ndarray, rate_hz: float = 100.0, start_ns: int = 0,
              frame_id: str = '', accel: np.ndarray | None = None,
              gyro: np.ndarray | None = None) -> None:
-        """Stream recorded rows through ``process`` with stamps at ``rate_hz`` (offline use);
-        ``accel`` (and ``gyro``, rad/s) rows, when given, go through ``process_imu`` first with
-        the same stamps."""
+        """Stream recorded rows through ``process`` stamped at ``rate_hz`` (offline use); ``accel``
+        (and ``gyro``, rad/s) rows go through ``process_imu`` first with the same stamps."""
         step = 1e9 / rate_hz
         accel_rows = None if accel is None else np.asarray(accel, dtype=float).tolist()
         gyro_rows = None if gyro is None else np.asarray(gyro, dtype=float).tolist()
@@ -764,8 +763,7 @@ class CalibrationSession:
         return report.misfit_text(self.misfit.last, self.units, self.settings.auto_calibrate)
 
     def new_screen_rejects(self) -> dict[str, int]:
-        """Messages refused by screening since the previous call, by reason (those that
-        occurred)."""
+        """Messages refused by screening since the previous call, by the reasons that occurred."""
         counts = self.screen.counts
         new = {reason: count - self._reported_rejects[reason]
                for reason, count in counts.items() if count > self._reported_rejects[reason]}
@@ -781,10 +779,8 @@ class CalibrationSession:
     def diagnostics_level(self, coverage: Coverage, input_rate_hz: float,
                           problem: str | None = None, no_input: str = ''
                           ) -> tuple[report.Level, str]:
-        """The level and message of /diagnostics (report.diagnostics_level) for a node with
-        ``problem`` (None if none; the fit worker's is added) and ``input_rate_hz`` from
-        ``diagnostic_values``. Refused messages are taken only when no problem outranks them,
-        so they are reported later."""
+        """/diagnostics' level and message (report.diagnostics_level), the node's ``problem`` and
+        the fit worker's first; refused messages are taken only when no problem outranks them."""
         problem = '; '.join(text for text in (problem, self.runner.problem) if text) or None
         return report.diagnostics_level(
             self.state, self.progress_text(coverage), input_rate_hz, no_input, problem=problem,
