@@ -10,6 +10,7 @@ import sys
 import numpy as np
 import pytest
 
+from mag_calibrator_ros.calibration.fit.coverage import HEADING_SECTORS
 from mag_calibrator_ros.calibration.fit.fitting import FitOptions
 from mag_calibrator_ros.calibration.live.jobs import FitJob, readiness, run_job
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
@@ -219,3 +220,31 @@ def test_a_few_still_attitudes_too_few_are_still_reported():
     assert alignment_text(few, 'full').startswith('alignment not determined: too few')
     assert 'turning in place' in alignment_text(few, 'planar')
     assert alignment_text(Alignment(False, 'too few static attitudes (0 of 0 ...)'), 'full') == ''
+
+
+def test_a_robot_that_starts_turning_is_reported_on_the_heading_circle_at_once():
+    """Reports take the fit worker's latest coverage while it is fresh: one measured while the
+    robot stood (the sphere's kind) must not be reported once the buffer is the heading circle,
+    or a ground robot is told to roll (seen over DDS as a flaky diagnostics line)."""
+    rng = np.random.default_rng(1)
+    field = motion.earth_field(50e-6, 60.0)
+    hard_iron = np.array([55e-6, -45e-6, 25e-6])
+    session = CalibrationSession(SessionSettings())
+    turned_at = None
+    for index in range(600):
+        t = index / 100.0
+        yaw = 0.0 if t < 1.5 else -0.4 * (t - 1.5)  # stands, then turns right
+        c, s = math.cos(yaw), math.sin(yaw)
+        rotation = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        session.process(index * 10_000_000, 'imu',
+                        rotation.T @ field + hard_iron + rng.normal(0.0, 0.3e-6, 3))
+        if index % 25 == 0:
+            session.poll()
+            if session.yaw_only():
+                turned_at = t
+                break
+    assert turned_at is not None, 'the buffer never became yaw-only'
+    reported = session.reported_coverage()
+    assert reported.cells == HEADING_SECTORS, session.progress_text(reported)
+    for word in ROTATION_WORDS:
+        assert word not in session.progress_text(reported)

@@ -692,8 +692,7 @@ class CalibrationSession:
         return {**self.screen.counts, **self.refusals}
 
     def coverage(self) -> Coverage:
-        """The buffer's coverage now: of the heading circle when the motion is yaw-only (see
-        ``yaw_only``), else of the direction sphere (milliseconds: call at the reporting rate)."""
+        """The buffer's coverage now: of the heading circle if ``yaw_only``, else of the sphere."""
         if self.yaw_only():
             return self.heading_coverage().coverage
         return self.buffer.coverage()
@@ -706,11 +705,12 @@ class CalibrationSession:
     def reported_coverage(self) -> Coverage:
         """``coverage()`` for reports (diagnostics, the progress log), without its milliseconds
         on the caller's thread: what the fit worker measured with its latest check or readiness
-        test (jobs.buffer_coverage), while no older than REPORTED_COVERAGE_AGE_S of stream (a
-        stream that stopped changes no buffer); measured here otherwise. Heading coverage is
-        looked at here, so its hint knows which way the robot turns."""
+        test (jobs.buffer_coverage), while no older than REPORTED_COVERAGE_AGE_S of stream and of
+        the kind the buffer is now (a robot that starts turning); measured here otherwise.
+        Heading coverage is looked at here, so its hint knows which way the robot turns."""
         measured = self._measured_coverage
-        if measured is None or self.clock.now - measured[0] > REPORTED_COVERAGE_AGE_S:
+        if (measured is None or self.clock.now - measured[0] > REPORTED_COVERAGE_AGE_S
+                or (measured[1].cells == HEADING_SECTORS) != self.yaw_only()):
             return self.coverage()
         if measured[1].cells == HEADING_SECTORS:
             return self.heading_coverage().coverage
