@@ -88,14 +88,7 @@ def driver(context: LaunchContext, config: str) -> list[Node]:
         if text:
             given[name] = parameter_value(text, kind)
     parameters.append(given)
-    return [Node(
-        package=PACKAGE,
-        executable='icm20948_driver',
-        name='icm20948_driver',
-        namespace=argument(context, 'namespace'),
-        output='screen',
-        parameters=parameters,
-    )]
+    return [_node(context, 'icm20948_driver', parameters)]
 
 
 def calibrator(context: LaunchContext, config: str) -> list[Node]:
@@ -107,14 +100,13 @@ def calibrator(context: LaunchContext, config: str) -> list[Node]:
     if calibration_file:
         given['calibration_file'] = calibration_file
     parameters.append(given)
-    return [Node(
-        package=PACKAGE,
-        executable='mag_calibrator',
-        name='mag_calibrator',
-        namespace=argument(context, 'namespace'),
-        output='screen',
-        parameters=parameters,
-    )]
+    return [_node(context, 'mag_calibrator', parameters)]
+
+
+def _node(context: LaunchContext, executable: str, parameters: list) -> Node:
+    """One of the package's nodes, named as its executable, in the launch's namespace."""
+    return Node(package=PACKAGE, executable=executable, name=executable,
+                namespace=argument(context, 'namespace'), output='screen', parameters=parameters)
 
 
 def _use_sim_time(context: LaunchContext) -> bool:
