@@ -60,7 +60,8 @@ class Commander(Node):
     def _on_diagnostics(self, message: DiagnosticArray) -> None:
         with self._lock:
             for status in message.status:
-                if self.get_namespace() in status.hardware_id or 'calibration' in status.name:
+                # This robot's calibrator only: /diagnostics carries every node's status.
+                if self.get_namespace() in status.hardware_id and 'calibration' in status.name:
                     values = ' '.join(f'{kv.key}={kv.value}' for kv in status.values
                                       if kv.key == 'coverage_hint')
                     self.diagnostics.append(f'{status.message} {values}')
@@ -288,8 +289,9 @@ def test_a_turn_restarted_after_cmd_vel_stamped_changed_commands_the_new_type(ro
     as a base has its own process."""
     namespace = 'retyped'
     twist_side, stamped_side = Ros(), Ros()
+    driver = calibrator = caller = None
     try:
-        ros.driver(namespace)
+        driver = ros.driver(namespace)
         calibrator = ros.calibrator(namespace, progress_log_period=0.0,
                                     calibration_file=str(tmp_path / 'c.yaml'))
         caller = ros.add(Node('caller', namespace=namespace, context=ros.context))
@@ -311,6 +313,7 @@ def test_a_turn_restarted_after_cmd_vel_stamped_changed_commands_the_new_type(ro
         assert call_trigger(caller, 'mag_calibrator/stop_rotation').success
         assert wait_for(lambda: stamped_base.last_twist() == 0.0)
     finally:
+        remove_all(ros, caller, calibrator, driver)  # the module's graph outlives this test
         twist_side.close()
         stamped_side.close()
 

@@ -117,6 +117,10 @@ def test_the_node_draws_its_buffer_for_rviz_while_watched(tmp_path):
                                         received[name].append, latched)
         assert wait_for(lambda: received['corrected'], timeout_s=60.0), (
             node.session.progress_text())
+        # A view is three messages on three topics, delivered in no set order: wait for the
+        # markers of a calibrated view too.
+        assert wait_for(lambda: received['markers'] and any(
+            marker.ns == 'corrected sphere' for marker in received['markers'][-1].markers))
         raw = decode(received['raw'][-1])
         scale = node.get_parameter('view_scale').value
         assert len(raw) > 10 and np.all(raw[:, 3] >= 1.0)  # weights: readings per point
