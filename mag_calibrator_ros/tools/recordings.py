@@ -245,24 +245,18 @@ def _bounded_lines(stream: Iterable[str], source: str) -> Iterator[str]:
 def _head(lines: Iterator[str]) -> list[str]:
     """The first LAYOUT_SAMPLE_LINES lines (fewer when they pass BLOCK_CHARS), to find the
     layout in; the caller streams the rest from ``lines``."""
-    head: list[str] = []
-    held = 0
-    for line in lines:
-        head.append(line)
-        held += len(line)
-        if len(head) >= LAYOUT_SAMPLE_LINES or held >= BLOCK_CHARS:
-            break
-    return head
+    return next(_blocks(lines, LAYOUT_SAMPLE_LINES), [])
 
 
-def _blocks(lines: Iterator[str]) -> Iterator[list[str]]:
-    """Lines in blocks of at most BLOCK_LINES lines and about BLOCK_CHARS characters."""
+def _blocks(lines: Iterator[str], max_lines: int = BLOCK_LINES) -> Iterator[list[str]]:
+    """Lines in blocks of at most ``max_lines`` lines and about BLOCK_CHARS characters; a
+    block is yielded as soon as it is full, so an abandoned generator has read no further."""
     block: list[str] = []
     held = 0
     for line in lines:
         block.append(line)
         held += len(line)
-        if len(block) >= BLOCK_LINES or held >= BLOCK_CHARS:
+        if len(block) >= max_lines or held >= BLOCK_CHARS:
             yield block
             block, held = [], 0
     if block:
