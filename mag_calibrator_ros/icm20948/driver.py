@@ -14,9 +14,16 @@ Data-ready is polled (no interrupt line): INT_STATUS_1 for the accel/gyro/temper
   host bus; ST1 is polled, the 8-byte HXL..ST2 burst read on DRDY (15 wire bytes per sample plus
   4 per idle poll).
 - the ICM-20948's own I2C master (``aux_master=True``): its slaves 0 and 1 read ST1..HZH and ST2
-  on every accel/gyro sample into EXT_SLV_SENS_DATA_00..07, right after TEMP_OUT_L, and the host
-  reads them by lengthening the accel/gyro burst by 8 bytes only while a magnetometer sample is
-  due: 8-10 wire bytes per sample. The AK09916 is configured through single SLV4 transfers.
+  on every round of the master into EXT_SLV_SENS_DATA_00..07, right after TEMP_OUT_L, and the
+  host reads them by lengthening the accel/gyro burst by 8 bytes while a magnetometer sample is
+  due, taking each sample by its copied DRDY. The AK09916 is configured through single SLV4
+  transfers with the master on its 1.1 kHz duty cycle (LP_CONFIG I2C_MST_CYCLE = 1, its reset
+  value, I2C_MST_ODR_CONFIG = 0), so bring-up waits rounds of a known clock, not the gyro's
+  start-up. Then the driver sets the round clock it reads by (``master_odr_config``): by default
+  I2C_MST_CYCLE = 0, one round per accel/gyro sample, so each copy lives exactly one sample and
+  8-10 wire bytes per magnetometer sample suffice; or the duty cycle at 1.1 kHz / 2^n with the
+  slaves delayed (I2C_SLV4_DLY) so each copy outlives one accel/gyro sample. Left at reset, the
+  master would run at 1.1 kHz whatever the gyro does and a copied DRDY would live ~0.9 ms.
 
 Register facts: TDK DS-000189 and the AKM AK09916 datasheet, collected in ``registers``.
 """
@@ -42,10 +49,13 @@ READ_ATTEMPTS = 2
 # The ICM-20948's sample clock is its own oscillator: assume consecutive samples can come this
 # much sooner than the nominal period when judging whether a read straddled one.
 CLOCK_TOLERANCE = 0.10
-# Through the I2C master the AK09916 is read once per accel/gyro sample: at least this many of
-# those per magnetometer period, so a copy holding a new sample never outlives the gap after which
-# the driver looks for the next one (the copied DRDY is then seen at most once per sample).
+# Through the I2C master on the sample clock (I2C_MST_CYCLE = 0) the AK09916 is read once per
+# accel/gyro sample: at least this many of those per magnetometer period, so a copy holding a new
+# sample never outlives the gap after which the driver looks for the next one (the copied DRDY is
+# then seen at most once per sample).
 MASTER_SAMPLES_PER_MAG = 2.0
+# Bring-up's SLV4 transfers run with the master on its duty cycle at I2C_MST_ODR_CONFIG = 0.
+BRING_UP_ROUND_S = 1.0 / reg.MASTER_CYCLE_RATE_HZ
 # After a new magnetometer sample, the burst is lengthened again from this long before the next
 # one is expected (in accel/gyro sample periods): early enough to catch its DRDY at the first copy.
 MAG_DUE_LEAD_PERIODS = 0.5
@@ -74,6 +84,45 @@ class ConfigNotAcceptedError(OSError):
 
 class AuxiliaryBusError(OSError):
     """A transfer of the ICM-20948's I2C master (SLV4) was not acknowledged or never finished."""
+
+
+@dataclass(frozen=True)
+class MasterPlan:
+    """How the I2C master carries the magnetometer: ``odr_config`` None runs it on the
+    accel/gyro sample clock (LP_CONFIG I2C_MST_CYCLE = 0), else on its duty cycle at
+    1.1 kHz / 2^odr_config, the AK09916's slaves read on one round in ``1 + delay``
+    (I2C_SLV4_DLY). ``read_period_s``: how long one copy in EXT_SLV_SENS_DATA lives."""
+
+    odr_config: int | None
+    round_hz: float
+    delay: int
+
+    @property
+    def read_period_s(self) -> float:
+        return (1 + self.delay) / self.round_hz
+
+
+def master_plan(mag_rate_hz: int, imu: ImuSettings | None,
+                odr_config: int | None = None) -> MasterPlan | None:
+    """The master's set-up for these rates, or None when it cannot carry every magnetometer
+    sample by its DRDY. On the sample clock: ``MASTER_SAMPLES_PER_MAG`` rounds per magnetometer
+    period. On the duty cycle (its own oscillator, not locked to the samples): the smallest slave
+    delay whose copies outlive one accel/gyro sample (so every copy is looked at), provided the
+    AK09916 is still read faster than it measures."""
+    if imu is None:
+        return None
+    if odr_config is None:
+        if imu.odr_hz < MASTER_SAMPLES_PER_MAG * mag_rate_hz:
+            return None
+        return MasterPlan(None, imu.odr_hz, 0)
+    if not isinstance(odr_config, int) or not 0 <= odr_config <= reg.I2C_MST_ODR_CONFIG_MASK:
+        return None
+    round_hz = reg.MASTER_CYCLE_RATE_HZ / (1 << odr_config)
+    delay = max(0, math.ceil(round_hz / (imu.odr_hz * (1.0 - CLOCK_TOLERANCE)) - 1e-9) - 1)
+    if delay > reg.I2C_SLV4_DLY_MASK or round_hz / (1 + delay) < (
+            1.0 + CLOCK_TOLERANCE) * mag_rate_hz:
+        return None
+    return MasterPlan(odr_config, round_hz, delay)
 
 
 @dataclass(frozen=True)
@@ -216,7 +265,13 @@ class Icm20948:
         self.overruns = 0
         self.overflows = 0
         self.imu_resyncs = 0
+        self.mag_fallbacks = 0  # master path: samples found without their copied DRDY
         self.aux_master = False
+        self.master: MasterPlan | None = None
+        self._slv4_delay = 0
+        self._round_period = BRING_UP_ROUND_S
+        self._imu_valid_at = 0.0  # no accel/gyro sample is read before the gyro's start-up
+        self._mag_taken_at = -math.inf
         self._mag_due_at = 0.0  # master path: lengthen the burst from this clock time on
         self._mag_last_copy = b''  # HXL..HZH, ST2 of the last sample taken from a copy
         self._mag_pending: tuple[int, bytes] | None = None  # (ST1, HXL..HZH ST2) not yet taken
@@ -228,11 +283,11 @@ class Icm20948:
     # --- bring-up --------------------------------------------------------------------------------
 
     def initialise(self, mag_rate_hz: int = 100, imu: ImuSettings | None = None,
-                   aux_master: bool = False) -> None:
+                   aux_master: bool = False, master_odr_config: int | None = None) -> None:
         """Reset the chip, configure accel/gyro (or power them down when ``imu`` is None), reach
-        the AK09916 (``aux_master``: through the chip's I2C master, which needs ``imu`` running at
-        least ``MASTER_SAMPLES_PER_MAG`` times the magnetometer rate; else bypass) and start its
-        continuous measurement.
+        the AK09916 (``aux_master``: through the chip's I2C master, set up as ``master_plan``
+        says for ``master_odr_config``: None, one round per accel/gyro sample; n, its duty cycle
+        at 1.1 kHz / 2^n; else bypass) and start its continuous measurement.
 
         Raises ``DeviceNotFoundError`` / ``UnreliableBusError`` (OSErrors) when the chip does not
         answer, ``WrongDeviceError`` (a ValueError) on a wrong identity, ``OSError`` on a bus
@@ -246,14 +301,19 @@ class Icm20948:
             )
         if imu is not None and imu.problems():
             raise ValueError('; '.join(imu.problems()))
-        if aux_master and not master_possible(mag_rate_hz, imu):
+        plan = master_plan(mag_rate_hz, imu, master_odr_config) if aux_master else None
+        if aux_master and plan is None:
             raise ValueError(
-                f'the I2C master path needs the accelerometer/gyroscope running at least '
-                f'{MASTER_SAMPLES_PER_MAG:g} x the magnetometer rate ({mag_rate_hz} Hz), got '
-                f'{"none" if imu is None else f"{imu.odr_hz:.1f} Hz"}'
+                f'the I2C master path cannot carry every {mag_rate_hz} Hz magnetometer sample '
+                f'with the accelerometer/gyroscope at '
+                f'{"none" if imu is None else f"{imu.odr_hz:.1f} Hz"} and I2C_MST_ODR_CONFIG '
+                f'{master_odr_config}: on the sample clock it needs at least '
+                f'{MASTER_SAMPLES_PER_MAG:g} x the magnetometer rate; on the duty cycle, rounds '
+                f'faster than the magnetometer once slowed to the accel/gyro rate; use bypass'
             )
-        self.mag_rate_hz = self.imu = None
+        self.mag_rate_hz = self.imu = self.master = None
         self.aux_master = False
+        self._mag_taken_at = -math.inf
         self._mag_pending = None
         self._mag_last_copy = b''
         self._imu_synced_at = None
@@ -262,6 +322,7 @@ class Icm20948:
         self._sleep(reg.DEVICE_RESET_WAIT_S)
         self._select_bank(0)  # reset returns to bank 0; be explicit
         self._write_icm(reg.PWR_MGMT_1, reg.PWR_MGMT_1_CLKSEL_AUTO)  # wake, auto clock
+        self._imu_valid_at = self._clock() + reg.SENSOR_STARTUP_S
         self._sleep(reg.WAKE_WAIT_S)
         if imu is None:
             self._write_icm(reg.PWR_MGMT_2,
@@ -270,7 +331,7 @@ class Icm20948:
             self._write_icm(reg.PWR_MGMT_2, reg.PWR_MGMT_2_ALL_ON)
             self._configure_inertial(imu)
         if aux_master:
-            self._start_master(mag_rate_hz, imu)
+            self._start_master(mag_rate_hz, plan)
         else:
             user_ctrl = self._retry(self.bus.read_byte_data, self.address, reg.USER_CTRL)
             self._write_icm(reg.USER_CTRL, user_ctrl & ~reg.USER_CTRL_I2C_MST_EN & 0xFF)
@@ -279,6 +340,7 @@ class Icm20948:
             self._start_magnetometer(mag_rate_hz)
         self.mag_rate_hz = mag_rate_hz
         self.aux_master = aux_master
+        self.master = plan
         self._mag_period = 1.0 / mag_rate_hz
         self._mag_due_at = self._clock()
         if imu is not None:
@@ -348,33 +410,56 @@ class Icm20948:
 
     # --- the I2C master path ---------------------------------------------------------------------
 
-    def _start_master(self, rate_hz: int, imu: ImuSettings) -> None:
-        """Bypass off, master on (slave 0 idle), the AK09916 reset and started through SLV4,
-        then slave 0 reading ST1..ST2 on every sample (DS-000189 I2C master; AK09916 sequence as
-        in ``_start_magnetometer``)."""
+    def _start_master(self, rate_hz: int, plan: MasterPlan) -> None:
+        """Bypass off, master on (slaves idle) on its 1.1 kHz duty cycle, the AK09916 reset and
+        started through SLV4 (AK09916 sequence as in ``_start_magnetometer``), then slaves 0 and 1
+        reading ST1..HZH and ST2 on the round clock of ``plan`` (DS-000189 §8.3 p.37, §11)."""
         pin_cfg = self._retry(self.bus.read_byte_data, self.address, reg.INT_PIN_CFG)
         self._write_icm(reg.INT_PIN_CFG, pin_cfg & ~reg.INT_PIN_CFG_BYPASS_EN & 0xFF)
+        self._slv4_delay = 0
+        self._round_period = BRING_UP_ROUND_S
         self._select_bank(reg.MASTER_BANK)
         try:
             self._write_icm(reg.I2C_SLV0_CTRL, 0)
             self._write_icm(reg.I2C_SLV0_CTRL + reg.I2C_SLV_STRIDE, 0)
             self._write_icm(reg.I2C_MST_CTRL, reg.I2C_MST_CTRL_P_NSR | reg.I2C_MST_CLK_345_KHZ)
             self._write_icm(reg.I2C_MST_DELAY_CTRL, reg.I2C_MST_DELAY_ES_SHADOW)
+            self._write_icm(reg.I2C_MST_ODR_CONFIG, 0)
         finally:
             self._select_bank(0)
+        self._write_lp_config(reg.LP_CONFIG_I2C_MST_CYCLE)
         user_ctrl = self._retry(self.bus.read_byte_data, self.address, reg.USER_CTRL)
         self._write_icm(reg.USER_CTRL, user_ctrl | reg.USER_CTRL_I2C_MST_EN)
-        # The first master round comes with the first sample after the sensors' start-up.
-        first_round = reg.SENSOR_STARTUP_S
-        period = 1.0 / imu.odr_hz
         # A NACK or a round that never comes raises AuxiliaryBusError naming the AK09916; the
         # ICM-20948 itself answered its identity check moments ago.
-        found = [self._slv4(reg.WIA1, period, first_round), self._slv4(reg.WIA2, period)]
+        period = BRING_UP_ROUND_S
+        found = [self._slv4(reg.WIA1, period), self._slv4(reg.WIA2, period)]
         self._check_ak09916_ids(found)
         self._slv4(reg.CNTL3, period, value=reg.CNTL3_SRST)
         self._sleep(reg.SOFT_RESET_WAIT_S)
         self._slv4(reg.CNTL2, period, value=reg.MODE_POWER_DOWN)
-        self._sleep(reg.MODE_CHANGE_WAIT_S)
+        delayed = (1 << 0) | (1 << 1) if plan.delay else 0  # I2C_SLV0/1_DELAY_EN
+        self._select_bank(reg.MASTER_BANK)
+        try:
+            for offset, register, length in ((0, reg.ST1, reg.MAG_MASTER_SLV0_LENGTH),
+                                             (reg.I2C_SLV_STRIDE, reg.ST2, 1)):
+                self._write_icm(reg.I2C_SLV0_ADDR + offset,
+                                reg.I2C_SLV_RNW | reg.AK09916_ADDRESS)
+                self._write_icm(reg.I2C_SLV0_REG + offset, register)
+                self._write_icm(reg.I2C_SLV0_CTRL + offset, reg.I2C_SLV_EN | length)
+            self._write_icm(reg.I2C_SLV4_CTRL, plan.delay)  # I2C_SLV4_DLY, no transfer
+            self._write_icm(reg.I2C_MST_DELAY_CTRL, reg.I2C_MST_DELAY_ES_SHADOW | delayed)
+            if plan.odr_config is not None:
+                self._write_icm(reg.I2C_MST_ODR_CONFIG, plan.odr_config)
+        finally:
+            self._select_bank(0)
+        if plan.odr_config is None:
+            # On the sample clock rounds start with the gyro's first sample (its start-up time,
+            # DS-000189 table 1): the AK09916 starts measuring once they run, none is lost.
+            self._sleep(max(reg.MODE_CHANGE_WAIT_S, self._imu_valid_at - self._clock()))
+        self._write_lp_config(0 if plan.odr_config is None else reg.LP_CONFIG_I2C_MST_CYCLE)
+        self._slv4_delay = plan.delay
+        self._round_period = period = 1.0 / plan.round_hz
         mode = reg.CONTINUOUS_MODES[rate_hz]
         self._slv4(reg.CNTL2, period, value=mode)
         found_mode = self._slv4(reg.CNTL2, period)
@@ -384,22 +469,24 @@ class Icm20948:
                 f'accept continuous mode {rate_hz} Hz: CNTL2 expected {mode:#04x}, found '
                 f'{found_mode:#04x}'
             )
-        self._select_bank(reg.MASTER_BANK)
-        try:
-            for offset, register, length in ((0, reg.ST1, reg.MAG_MASTER_SLV0_LENGTH),
-                                             (reg.I2C_SLV_STRIDE, reg.ST2, 1)):
-                self._write_icm(reg.I2C_SLV0_ADDR + offset,
-                                reg.I2C_SLV_RNW | reg.AK09916_ADDRESS)
-                self._write_icm(reg.I2C_SLV0_REG + offset, register)
-                self._write_icm(reg.I2C_SLV0_CTRL + offset, reg.I2C_SLV_EN | length)
-        finally:
-            self._select_bank(0)
 
-    def _slv4(self, register: int, period: float, extra_wait: float = 0.0,
-              value: int | None = None) -> int | None:
+    def _write_lp_config(self, value: int) -> None:
+        """LP_CONFIG (DS-000189 §8.3 p.37): I2C_MST_CYCLE as the master's plan needs, the
+        accelerometer and gyroscope not duty-cycled; read back."""
+        self._write_icm(reg.LP_CONFIG, value)
+        found = self._retry(self.bus.read_byte_data, self.address, reg.LP_CONFIG)
+        if found != value:
+            raise ConfigNotAcceptedError(
+                f'ICM-20948 at {self.address:#04x} on {self.bus_name} did not keep LP_CONFIG: '
+                f'expected {value:#04x}, found {found:#04x}'
+            )
+
+    def _slv4(self, register: int, period: float, value: int | None = None) -> int | None:
         """One SLV4 transfer with the AK09916 (a write of ``value``, else a read): set it up in
         bank 3, start it, poll I2C_MST_STATUS (bank 0, read-to-clear) for I2C_SLV4_DONE; the
-        master runs it on its next round. Returns the byte read (I2C_SLV4_DI). Leaves bank 0."""
+        master runs it on its next round (``period``: of the master's clock): the wait is a count
+        of polls, ``SLV4_TIMEOUT_PERIODS`` rounds. Returns the byte read (I2C_SLV4_DI). Leaves
+        bank 0."""
         read = value is None
         self._select_bank(reg.MASTER_BANK)
         try:
@@ -411,10 +498,10 @@ class Icm20948:
             self._select_bank(0)
             self._retry(self.bus.read_byte_data, self.address, reg.I2C_MST_STATUS)  # stale bits
             self._select_bank(reg.MASTER_BANK)
-            self._write_icm(reg.I2C_SLV4_CTRL, reg.I2C_SLV_EN)
+            self._write_icm(reg.I2C_SLV4_CTRL, reg.I2C_SLV_EN | self._slv4_delay)
         finally:
             self._select_bank(0)
-        polls = math.ceil(2.0 * (extra_wait / period + reg.SLV4_TIMEOUT_PERIODS))
+        polls = 2 * reg.SLV4_TIMEOUT_PERIODS
         for poll in range(polls + 1):  # counted, not timed: a stalled clock cannot hang it
             self._sleep(period / 2.0)
             status = self._retry(self.bus.read_byte_data, self.address, reg.I2C_MST_STATUS)
@@ -424,7 +511,7 @@ class Icm20948:
                 raise AuxiliaryBusError(
                     f'the I2C master of the ICM-20948 at {self.address:#04x} on {self.bus_name} '
                     f'did not finish a transfer with the AK09916 (register {register:#04x}) '
-                    f'within {reg.SLV4_TIMEOUT_PERIODS} sample periods: asleep or reset?'
+                    f'within {reg.SLV4_TIMEOUT_PERIODS} rounds of its clock: asleep or reset?'
                 )
         if status & reg.I2C_MST_STATUS_SLV4_NACK:
             raise AuxiliaryBusError(
@@ -444,7 +531,7 @@ class Icm20948:
         """CNTL2 as the AK09916 reports it now (0 after a reset: the chip stopped measuring);
         through the master a single SLV4 read, which never finishes on a sleeping chip."""
         if self.aux_master:
-            return self._slv4(reg.CNTL2, self._imu_period)
+            return self._slv4(reg.CNTL2, self._round_period)
         return self.bus.read_byte_data(reg.AK09916_ADDRESS, reg.CNTL2)
 
     def power_state(self) -> int:
@@ -535,8 +622,8 @@ class Icm20948:
         """
         if self.imu is None:
             raise RuntimeError('read_imu() needs initialise() with ImuSettings')
-        if self._imu_synced_at is None:
-            self._resync_imu()
+        if self._imu_synced_at is None or self._clock() < self._imu_valid_at:
+            self._resync_imu()  # before the gyro's start-up only the accelerometer would be in
             return None
         polled_at = self._clock()
         status = self._read(self.bus.read_byte_data, self.address, reg.INT_STATUS_1)
@@ -566,20 +653,33 @@ class Icm20948:
         return self._decode_imu(raw[:reg.IMU_BURST_LENGTH])
 
     def _take_mag_copy(self, copy: list[int], burst_at: float) -> None:
-        """The master's copy of ST1, HXL..HZH, ST2 as of this sample. It holds a sample not yet
-        taken if its copied DRDY is set (only the round that found the sample copies DRDY, and
-        the next look comes at least MASTER_SAMPLES_PER_MAG - MAG_DUE_LEAD_PERIODS = 1.5 rounds
-        later, so that copy is never taken twice) or if its data differ from the last sample
-        taken (the DRDY round was missed: a failed burst, a late poll; the copy always holds the
-        AK09916's newest sample). A new sample equal to the previous one in every byte, or all
-        zero as the registers read after a reset, is lost if its DRDY round was missed (never one
-        taken twice, never a reset's zeros)."""
+        """The master's copy of ST1, HXL..HZH, ST2 as of its last read of the AK09916. It holds a
+        sample not yet taken if its copied DRDY is set (only the read that found the sample
+        copies DRDY), unless it is the copy taken last seen once more: on the sample clock a copy
+        lives one accel/gyro sample and the next look comes at least MASTER_SAMPLES_PER_MAG -
+        MAG_DUE_LEAD_PERIODS = 1.5 rounds later; on the duty cycle every burst looks, a copy
+        outlives a sample, and the same data with DRDY within one read period of the last take
+        is that copy again. Without DRDY a copy whose data differ from the last sample taken is
+        a sample whose DRDY copy was missed (a failed burst, a late poll), taken and counted in
+        ``mag_fallbacks``. A new sample equal to the previous one in every byte, or all zero as
+        the registers read after a reset, is lost if its DRDY copy was missed (never one taken
+        twice, never a reset's zeros)."""
         st1, data = copy[0], bytes(copy[1:])
         drdy = bool(st1 & reg.ST1_DRDY)
-        if not drdy and (data == self._mag_last_copy or not any(data)):
+        duty_cycled = self.master is not None and self.master.odr_config is not None
+        if drdy:
+            if duty_cycled and data == self._mag_last_copy and burst_at - self._mag_taken_at \
+                    < self.master.read_period_s / (1.0 - CLOCK_TOLERANCE):
+                return
+        elif data == self._mag_last_copy or not any(data):
             return  # not there yet (all zero: the AK09916 just reset): keep lengthening
+        else:
+            self.mag_fallbacks += 1
         self._mag_last_copy = data
         self._mag_pending = (st1, data)
+        self._mag_taken_at = burst_at
+        if duty_cycled:
+            return  # every burst looks
         # With DRDY the sample arrived within the last round, the next one is due a period on;
         # found without, it arrived at least a round earlier than this look.
         lead = MAG_DUE_LEAD_PERIODS + (0.0 if drdy else 1.0)
@@ -653,7 +753,7 @@ class Icm20948:
             pass
 
 
-def master_possible(mag_rate_hz: int, imu: ImuSettings | None) -> bool:
-    """Whether the I2C master path can carry the magnetometer: its rounds come with the
-    accel/gyro samples, at least ``MASTER_SAMPLES_PER_MAG`` of them per magnetometer period."""
-    return imu is not None and imu.odr_hz >= MASTER_SAMPLES_PER_MAG * mag_rate_hz
+def master_possible(mag_rate_hz: int, imu: ImuSettings | None,
+                    odr_config: int | None = None) -> bool:
+    """Whether the I2C master path can carry every magnetometer sample (``master_plan``)."""
+    return master_plan(mag_rate_hz, imu, odr_config) is not None

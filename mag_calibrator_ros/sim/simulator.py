@@ -1,27 +1,38 @@
 """Register-level model of an ICM-20948 with its AK09916, behind the smbus2.SMBus methods.
 
 No hardware exists on the development and CI machines, so the driver is exercised against this
-model of the chip's registers rather than a mock returning vectors: banks (configuration lives in
-bank 2, data in bank 0), WHO_AM_I, reset and sleep, the sensors' start-up time, sample-rate
-dividers, full-scale ranges, DLPF settings (noise bandwidth), the raw-data-ready flag (cleared by
-reading INT_STATUS_1, set again by every new sample), big-endian int16 accel/gyro/temperature
-with saturation at the rails; the I2C bypass (the AK09916 answers at 0x0C only with the ICM's I2C
-master off and bypass on) and the I2C master (bank 3: slaves 0-3 read or write the AK09916 once
-per accel/gyro sample, reads copied into EXT_SLV_SENS_DATA after TEMP_OUT_L; single SLV4
-transfers finishing at the next sample with I2C_SLV4_DONE, or SLV4_NACK for an address nobody
-answers, in the read-to-clear I2C_MST_STATUS; no rounds while asleep or with accel and gyro off,
-the duty-cycled I2C_MST_ODR_CONFIG mode is not modelled), the AK09916 measurement modes driven
-by a clock, ST1/ST2 semantics (DRDY, DOR, HOFL, data protection from the first data read until
-ST2), int16 saturation and 0.15 uT quantisation.
+model of the chip's registers rather than a mock returning vectors. Each behaviour follows TDK
+DS-000189 and the AKM AK09916 datasheet (cited where it is modelled), so that drivers written by
+others against real chips run against it unchanged (``test/test_icm20948_peers.py``):
+
+- banks, WHO_AM_I, DEVICE_RESET, sleep, the sensors' start-up times (gyro 35 ms, accel 20 ms);
+- accelerometer and gyroscope on sample clocks of their own: each its own divider, 9 kHz / 4.5 kHz
+  with the DLPF bypassed (FCHOICE = 0), clocks that keep running across configuration writes and
+  restart together only on a divider write with ODR_ALIGN_EN = 1; full-scale ranges, DLPF noise
+  bandwidths, RAW_DATA_0_RDY (cleared by reading INT_STATUS_1), big-endian int16 with saturation;
+- the I2C bypass (the AK09916 answers at 0x0C only with the master off and bypass on);
+- the I2C master (bank 3): rounds on its own duty-cycle clock, 1.1 kHz / 2^I2C_MST_ODR_CONFIG,
+  while LP_CONFIG I2C_MST_CYCLE = 1 (its reset value), on the gyro's (else the accel's) sample
+  clock with I2C_MST_CYCLE = 0; slaves 0-3 copied into EXT_SLV_SENS_DATA after TEMP_OUT_L,
+  delayed slaves (I2C_MST_DELAY_CTRL, I2C_SLV4_DLY) on one round in 1 + DLY; single SLV4
+  transfers ending with I2C_SLV4_DONE (and SLV4_NACK for an address nobody answers) in the
+  read-to-clear I2C_MST_STATUS;
+- the AK09916's continuous, single-measurement and self-test modes driven by a clock, ST1/ST2
+  semantics (DRDY, DOR, HOFL, data protection from the first data read until ST2), int16
+  saturation and 0.15 uT quantisation.
+
+Where the datasheets are silent the model says so and picks what breaks fewest real drivers.
 
 Physics (``board.BoardModel``): the board moves along a ``motion`` trajectory through the earth's
 field and gravity. Faults: random I2C errors, an outage (device vanishes) and a chip reset
 mid-run, on every transaction of either die. Truth: ``truth_for_reading`` (magnetometer) and
 ``imu_truth_for_reading`` (accel/gyro/temperature) give the error-free values behind a reading;
 ``mag_samples_read``/``mag_repeated_reads`` and ``imu_samples_read``/``imu_repeated_reads`` count
-data reads of new samples and of samples already read, so a test can tell a sample read twice
-from two samples that happen to be equal (through the master: host reads of the copied data; a
-copy of an already read sample counts as repeated only if its copied ST1 claims DRDY).
+data reads of new samples and second deliveries of samples already read, so a test can tell a
+sample read twice from two samples that happen to be equal (an inertial read is repeated only if
+every byte it covers was read before from that sample: accel and gyro of one sample read in two
+transactions is one delivery; through the master a copy of an already read magnetometer sample
+counts as repeated only if its copied ST1 claims DRDY).
 
 Thread-safe: a test may inject faults while a driver thread polls.
 """
@@ -51,7 +62,7 @@ from mag_calibrator_ros.sim import motion
 from mag_calibrator_ros.sim.board import BoardModel, ImuTruth
 from mag_calibrator_ros.sim.config import SimConfig
 
-MEASUREMENT_TIME_S = 0.0072  # AK09916 measurement duration before the first DRDY in a mode
+MEASUREMENT_TIME_S = reg.SINGLE_MEASUREMENT_S  # before the first DRDY in any measuring mode
 TRUTH_LOG_SIZE = 8192  # magnetometer readings remembered for truth_for_reading
 IMU_TRUTH_LOG_SIZE = 16384  # inertial samples remembered (15 s at 1125 Hz)
 REGISTER_STARTUP_S = 0.001  # after DEVICE_RESET the ICM-20948 NACKs for this long
@@ -65,13 +76,65 @@ _IMU_WORDS = struct.Struct('>7h')
 class _ImuConfig:
     """What the bank-2 registers say, decoded once per write (not once per transaction)."""
 
-    odr_hz: float
+    gyro_odr_hz: float
+    accel_odr_hz: float
     accel_range_g: int
     gyro_range_dps: int
     accel_scale: float  # SI units per LSB
     gyro_scale: float
     accel_noise_bandwidth_hz: float
     gyro_noise_bandwidth_hz: float
+
+
+@dataclass
+class _SampleClock:
+    """One sample clock: sample ``k`` at ``origin + k / rate_hz``, none before ``ready_at`` (the
+    start-up time); ``origin`` None while off."""
+
+    origin: float | None = None
+    rate_hz: float = reg.INTERNAL_RATE_HZ
+    index: int = -1  # the newest sample taken on this clock
+    ready_at: float = 0.0
+
+    def due(self, now: float) -> int:
+        """Index of the newest sample due by ``now`` (-1: none yet)."""
+        if self.origin is None or now < self.ready_at - TIME_EPSILON_S:
+            return -1
+        index = int(math.floor((now - self.origin) * self.rate_hz + 1e-9))
+        return index if self.time_of(index) >= self.ready_at - TIME_EPSILON_S else -1
+
+    def time_of(self, index: int) -> float:
+        return self.origin + index / self.rate_hz
+
+    def first_after(self, t: float) -> int:
+        """Index of the first sample after sim time ``t`` (and not before ``ready_at``)."""
+        after = int(math.floor((t - self.origin) * self.rate_hz + 1e-9)) + 1 \
+            if t > -math.inf else 0
+        ready = int(math.ceil((self.ready_at - self.origin) * self.rate_hz - 1e-9))
+        return max(after, ready, 0)
+
+    def start(self, now: float, delay: float) -> None:
+        if self.origin is None:
+            self.origin, self.index, self.ready_at = now + delay, -1, now + delay
+
+    def stop(self) -> None:
+        self.origin, self.index = None, -1
+
+    def retime(self, rate_hz: float) -> None:
+        """A new rate without alignment: the clock keeps its phase at the last sample it took
+        (DS-000189 is silent on when a new divider takes effect: from the next sample)."""
+        if rate_hz == self.rate_hz:
+            return
+        if self.origin is not None and self.index >= 0:
+            self.origin, self.index = self.time_of(self.index), 0
+        self.rate_hz = rate_hz
+
+    def align(self, now: float) -> None:
+        """ODR_ALIGN_EN: the clock's phase restarts at ``now``; still starting up, its first
+        sample stays after its start-up time."""
+        if self.origin is not None:
+            self.origin = now
+            self.index = 0 if now >= self.ready_at else -1
 
 
 def _saturated_counts(field_tesla: np.ndarray) -> np.ndarray:
@@ -105,12 +168,29 @@ class _ReadCounter:
     fresh: int = 0
     repeated: int = 0
     delivered: deque = field(default_factory=lambda: deque(maxlen=IMU_TRUTH_LOG_SIZE))
+    bytes_read: int = 0  # bit mask of the latched sample's bytes read so far
 
     def latch(self, sample_id: int, truth: object) -> None:
         self.latched, self.latched_truth = sample_id, truth
 
     def forget(self) -> None:  # power-on: no sample latched; the counts stay
         self.latched = self.last_read = self.latched_truth = None
+        self.bytes_read = 0
+
+    def bytes_of(self, mask: int) -> None:
+        """A read of the data bytes in ``mask`` of the latched sample: new if the first of it,
+        repeated only if it delivers nothing not read before (accel, then gyro: one delivery)."""
+        if self.latched is None or not mask:
+            return
+        if self.latched != self.last_read:
+            self.fresh += 1
+            self.last_read = self.latched
+            self.delivered.append(self.latched_truth)
+            self.bytes_read = mask
+            return
+        if not mask & ~self.bytes_read:
+            self.repeated += 1
+        self.bytes_read |= mask
 
     def data_read(self) -> None:
         self.read_of(self.latched, self.latched_truth, claims_new=True)
@@ -162,6 +242,7 @@ class SimulatedIcm20948Bus:
         self._t0 = clock()
         self.board = BoardModel(self.config, trajectory)
         self._fault_rng = np.random.default_rng([self.config.seed, 11])
+        self._self_test_rng = np.random.default_rng([self.config.seed, 13])
         self._truth: OrderedDict[tuple[int, int, int], np.ndarray] = OrderedDict()
         self._imu_truth: OrderedDict[tuple[int, ...], ImuTruth] = OrderedDict()
         self._outage_until = -math.inf
@@ -187,16 +268,19 @@ class SimulatedIcm20948Bus:
         self._bank = 0
         self._banks = [bytearray(128) for _ in range(4)]
         self._banks[0][reg.PWR_MGMT_1] = reg.PWR_MGMT_1_RESET_VALUE
+        self._banks[0][reg.LP_CONFIG] = reg.LP_CONFIG_RESET_VALUE  # DS-000189 §8.3 p.37
         self._banks[2][reg.GYRO_CONFIG_1] = reg.GYRO_CONFIG_1_RESET_VALUE
         self._banks[2][reg.ACCEL_CONFIG] = reg.ACCEL_CONFIG_RESET_VALUE
         self._icm_ready_at = -math.inf
         self._imu_config = self._decode_imu_config()
-        self._imu_origin: float | None = None  # sample clock start (None: not sampling)
-        self._imu_index = -1  # newest sample index latched since the origin
+        self._gyro = _SampleClock(rate_hz=self._imu_config.gyro_odr_hz)
+        self._accel = _SampleClock(rate_hz=self._imu_config.accel_odr_hz)
+        self._master_clock = _SampleClock(rate_hz=reg.MASTER_CYCLE_RATE_HZ)  # its duty cycle
         self._imu_ready = False
         self._imu_reads.forget()
         self._mst_status = 0  # I2C_MST_STATUS, cleared by reading it
-        self._master_index = -1  # last sample index the I2C master ran its round on
+        self._last_round_at = -math.inf  # sim time of the master's last round
+        self._round_number = 0  # rounds since reset: the phase of delayed slaves
         # The AK09916 sample in the EXT_SLV_SENS_DATA copy: (sample id, truth, copied DRDY,
         # first and last EXT register of its HXL..HZH), for counting host reads of it.
         self._ext_mag: tuple[int | None, object, bool, int, int] | None = None
@@ -217,6 +301,7 @@ class SimulatedIcm20948Bus:
     def write_magnetometer(self, register: int, value: int) -> None:
         """A write reaching the AK09916 by whatever path (fault injection: a foreign master, a
         glitch), bypass on or not."""
+        self._advance_master()
         self._advance()
         self._write_ak(register, value & 0xFF)
 
@@ -265,6 +350,7 @@ class SimulatedIcm20948Bus:
         if i2c_addr == self.config.address:
             if self._now() < self._icm_ready_at:
                 raise _nack(f'ICM-20948 at {i2c_addr:#04x} busy resetting')
+            self._advance_master()
             self._advance_imu()
             return
         if i2c_addr == reg.AK09916_ADDRESS and self._ak_on_host_bus():
@@ -307,6 +393,23 @@ class SimulatedIcm20948Bus:
         ) and register + length <= reg.REG_BANK_SEL:
             return list(self._banks[self._bank][register:register + length])  # plain registers
         return [self._read_register(i2c_addr, register + i) for i in range(length)]
+
+    @_locked
+    def write_i2c_block_data(
+        self, i2c_addr: int, register: int, data: list[int], force: bool | None = None
+    ) -> None:
+        """Consecutive registers from ``register`` in one transaction (both dies auto-increment
+        the register address, DS-000189 §6.3; AK09916 datasheet §8.3)."""
+        if not 0 < len(data) <= 32:
+            raise ValueError(f'Data length cannot exceed 32 bytes or be 0: {len(data)}')
+        self._transaction(i2c_addr, f'block write to register {register:#04x}')
+        for offset, value in enumerate(data):
+            self._write_register(i2c_addr, register + offset, int(value) & 0xFF)
+
+    @_locked
+    def write_quick(self, i2c_addr: int, force: bool | None = None) -> None:
+        """An address-only transfer: acknowledged by a device that is there (a probe)."""
+        self._transaction(i2c_addr, 'address probe')
 
     def close(self) -> None:
         """Nothing to release; present because the node closes whatever bus it opened."""
@@ -355,86 +458,114 @@ class SimulatedIcm20948Bus:
             return
         if self._bank == 0 and register == reg.USER_CTRL:
             value &= ~reg.USER_CTRL_I2C_MST_RST & 0xFF  # self-clearing
+        if self._bank == 0 and register == reg.PWR_MGMT_1:
+            value &= ~reg.PWR_MGMT_1_DEVICE_RESET & 0xFF
         self._banks[self._bank][register] = value
         if self._bank == 0 and register in (reg.PWR_MGMT_1, reg.PWR_MGMT_2):
-            self._restart_sampling(startup=True)
+            self._power_sensors()
         elif self._bank == reg.CONFIG_BANK and register in (
             reg.GYRO_SMPLRT_DIV, reg.GYRO_CONFIG_1, reg.ACCEL_SMPLRT_DIV_1,
             reg.ACCEL_SMPLRT_DIV_2, reg.ACCEL_CONFIG,
         ):
             self._imu_config = self._decode_imu_config()
-            self._restart_sampling(startup=False)
+            self._gyro.retime(self._imu_config.gyro_odr_hz)
+            self._accel.retime(self._imu_config.accel_odr_hz)
+            if register in (reg.GYRO_SMPLRT_DIV, reg.ACCEL_SMPLRT_DIV_1, reg.ACCEL_SMPLRT_DIV_2):
+                self._align_clocks()
+        elif self._bank == reg.MASTER_BANK and register == reg.I2C_MST_ODR_CONFIG:
+            self._master_clock.retime(self._master_cycle_rate())
+            self._align_clocks()
 
     # --- ICM-20948 sampling ----------------------------------------------------------------------
 
-    def _sampling(self) -> bool:
-        awake = not self._banks[0][reg.PWR_MGMT_1] & reg.PWR_MGMT_1_SLEEP
-        disabled = reg.PWR_MGMT_2_DISABLE_ACCEL | reg.PWR_MGMT_2_DISABLE_GYRO
-        return awake and (self._banks[0][reg.PWR_MGMT_2] & disabled) != disabled
+    def _awake(self) -> bool:
+        return not self._banks[0][reg.PWR_MGMT_1] & reg.PWR_MGMT_1_SLEEP
 
-    def _restart_sampling(self, startup: bool) -> None:
-        """Waking (or enabling the sensors) starts the sample clock after the start-up time; a
-        new divider or filter restarts it (ODR_ALIGN_EN keeps accel and gyro together)."""
-        if not self._sampling():
-            self._imu_origin = None
-        elif self._imu_origin is None:
-            self._imu_origin = self._now() + reg.SENSOR_STARTUP_S
-        elif startup:
-            return  # already running: PWR_MGMT writes that keep it running change nothing
-        else:  # a new configuration restarts the clock, never before the start-up time is over
-            self._imu_origin = max(self._now(), self._imu_origin)
-        self._imu_index = -1
+    def _power_sensors(self) -> None:
+        """PWR_MGMT_1/2 decide which clocks run: a sensor switched on starts sampling after its
+        start-up time (DS-000189 tables 1 and 2: gyro 35 ms, accel 20 ms); one switched off or
+        put to sleep stops. The master's duty-cycle clock runs while the chip is awake; the
+        datasheet does not say whether the I2C master runs in sleep: here it does not (every
+        driver seen wakes the chip before it talks to the AK09916)."""
+        now, awake = self._now(), self._awake()
+        pwr_mgmt_2 = self._banks[0][reg.PWR_MGMT_2]
+        for clock, disable, startup in (
+            (self._gyro, reg.PWR_MGMT_2_DISABLE_GYRO, reg.SENSOR_STARTUP_S),
+            (self._accel, reg.PWR_MGMT_2_DISABLE_ACCEL, reg.ACCEL_STARTUP_S),
+        ):
+            if awake and (pwr_mgmt_2 & disable) != disable:
+                clock.start(now, startup)
+            else:
+                clock.stop()
+        if awake:
+            self._master_clock.start(now, 0.0)
+        else:
+            self._master_clock.stop()
+
+    def _align_clocks(self) -> None:
+        """ODR_ALIGN_EN = 1 (DS-000189 §10.10): a write of GYRO_SMPLRT_DIV, ACCEL_SMPLRT_DIV_1/2 or
+        I2C_MST_ODR_CONFIG restarts the sample clocks together; with 0 nothing restarts."""
+        if self._banks[2][reg.ODR_ALIGN_EN] & 0x01:
+            now = self._now()
+            for clock in (self._gyro, self._accel, self._master_clock):
+                clock.align(now)
+
+    def _master_cycle_rate(self) -> float:
+        """1.1 kHz / 2^I2C_MST_ODR_CONFIG[3:0] (DS-000189 §11.1)."""
+        config = self._banks[3][reg.I2C_MST_ODR_CONFIG] & reg.I2C_MST_ODR_CONFIG_MASK
+        return reg.MASTER_CYCLE_RATE_HZ / (1 << config)
 
     def _decode_imu_config(self) -> _ImuConfig:
-        """ODR, ranges and DLPF from the bank-2 registers (accel and gyro share the divider)."""
+        """Rates, ranges and DLPF from the bank-2 registers: each sensor its own divider (12 bits
+        for the accelerometer), FCHOICE = 0 bypassing filter and divider (DS-000189 tables 16
+        and 18: gyro 9 kHz, accel 4.5 kHz)."""
         bank2 = self._banks[2]
         gyro_config, accel_config = bank2[reg.GYRO_CONFIG_1], bank2[reg.ACCEL_CONFIG]
-        dlpf = (gyro_config >> reg.CONFIG_DLPF_SHIFT) & 0x07
-        divider = bank2[reg.GYRO_SMPLRT_DIV]
-        if not gyro_config & reg.CONFIG_FCHOICE or dlpf not in reg.DLPF_SETTINGS:
-            divider = 0  # DS-000189: the divider acts only with the DLPF on, 0 < DLPFCFG < 7
+        if gyro_config & reg.CONFIG_FCHOICE:
+            gyro_odr = reg.INTERNAL_RATE_HZ / (1 + bank2[reg.GYRO_SMPLRT_DIV])
+            gyro_nbw = reg.GYRO_DLPF_HZ[(gyro_config >> reg.CONFIG_DLPF_SHIFT) & 0x07][1]
+        else:
+            gyro_odr, gyro_nbw = reg.GYRO_BYPASS_RATE_HZ, reg.GYRO_BYPASS_HZ[1]
+        if accel_config & reg.CONFIG_FCHOICE:
+            divider = ((bank2[reg.ACCEL_SMPLRT_DIV_1] << 8) | bank2[reg.ACCEL_SMPLRT_DIV_2]) \
+                & reg.ACCEL_DIVIDER_MAX
+            accel_odr = reg.INTERNAL_RATE_HZ / (1 + divider)
+            accel_nbw = reg.ACCEL_DLPF_HZ[(accel_config >> reg.CONFIG_DLPF_SHIFT) & 0x07][1]
+        else:
+            accel_odr, accel_nbw = reg.ACCEL_BYPASS_RATE_HZ, reg.ACCEL_BYPASS_HZ[1]
         accel_range = {code: g for g, (code, _) in reg.ACCEL_RANGES_G.items()}[
             (accel_config >> reg.CONFIG_FS_SHIFT) & 0x03]
         gyro_range = {code: d for d, (code, _) in reg.GYRO_RANGES_DPS.items()}[
             (gyro_config >> reg.CONFIG_FS_SHIFT) & 0x03]
-        bandwidth = dlpf if dlpf in reg.DLPF_SETTINGS else 1
-        return _ImuConfig(
-            reg.INTERNAL_RATE_HZ / (1 + divider), accel_range, gyro_range,
-            accel_scale(accel_range), gyro_scale(gyro_range),
-            reg.ACCEL_DLPF_HZ[bandwidth][1], reg.GYRO_DLPF_HZ[bandwidth][1],
-        )
+        return _ImuConfig(gyro_odr, accel_odr, accel_range, gyro_range,
+                          accel_scale(accel_range), gyro_scale(gyro_range), accel_nbw, gyro_nbw)
 
     def _advance_imu(self) -> None:
-        """Latch the newest accel/gyro/temperature sample due by now (older ones are lost)."""
-        if self._imu_origin is None:
-            return
-        elapsed = self._now() - self._imu_origin
-        if elapsed < 0.0:
-            return
+        """Latch each sensor's newest sample due by now (older ones are lost): the data
+        registers hold the accelerometer's and the gyroscope's latest, each from its own clock."""
+        now = self._now()
         config = self._imu_config
-        due = int(math.floor(elapsed * config.odr_hz + 1e-9))
-        if due <= self._imu_index:
+        words = list(_IMU_WORDS.unpack_from(self._banks[0], reg.ACCEL_XOUT_H))
+        truth = None
+        for clock, first in ((self._accel, 0), (self._gyro, 3)):
+            due = clock.due(now)
+            if due <= clock.index:
+                continue
+            clock.index = due
+            accel, gyro, truth = self.board.inertial(clock.time_of(due),
+                                                     config.accel_noise_bandwidth_hz,
+                                                     config.gyro_noise_bandwidth_hz)
+            values = accel / config.accel_scale if first == 0 else gyro / config.gyro_scale
+            words[first:first + 3] = (_int16(v) for v in values)
+            words[6] = temperature_counts(truth.temperature_c)
+        if truth is None:
             return
-        if self._banks[0][reg.USER_CTRL] & reg.USER_CTRL_I2C_MST_EN:
-            # One master round per sample, each on its own sample's time, so the AK09916 sees
-            # every read (DRDY cleared, no overrun) even when the host polled rarely.
-            for index in range(max(self._imu_index + 1, self._master_index + 1), due + 1):
-                self._master_round(self._imu_origin + index / config.odr_hz)
-            self._master_index = due
-        self._imu_index = due
-        sample_time = self._imu_origin + due / config.odr_hz
-        accel, gyro, truth = self.board.inertial(
-            sample_time, config.accel_noise_bandwidth_hz, config.gyro_noise_bandwidth_hz)
-        a, g = config.accel_scale, config.gyro_scale
-        counts = (_int16(accel[0] / a), _int16(accel[1] / a), _int16(accel[2] / a),
-                  _int16(gyro[0] / g), _int16(gyro[1] / g), _int16(gyro[2] / g),
-                  temperature_counts(truth.temperature_c))
-        _IMU_WORDS.pack_into(self._banks[0], reg.ACCEL_XOUT_H, *counts)
+        _IMU_WORDS.pack_into(self._banks[0], reg.ACCEL_XOUT_H, *words)
         self._imu_ready = True
         self._sample_id += 1
         self._imu_reads.latch(self._sample_id, truth)
         self.imu_samples_measured += 1
-        key = counts[:6]
+        key = tuple(words[:6])
         self._imu_truth[key] = truth
         self._imu_truth.move_to_end(key)
         if len(self._imu_truth) > IMU_TRUTH_LOG_SIZE:
@@ -442,10 +573,73 @@ class SimulatedIcm20948Bus:
 
     # --- the I2C master (bank 3) -----------------------------------------------------------------
 
-    def _master_round(self, t: float) -> None:
-        """What the I2C master does on the sample at sim time ``t``: slaves 0-3 in order (reads
-        copied into EXT_SLV_SENS_DATA, packed in slave order), then a pending SLV4 transfer."""
+    def _round_clock(self) -> _SampleClock | None:
+        """The clock the master's rounds run on, or None while it does not run (master off, or
+        the chip asleep). DS-000189 §8.3 p.37 and §11.1: I2C_MST_CYCLE = 1, its own duty cycle;
+        0, the gyro's ODR, the accel's with the gyro off, I2C_MST_ODR_CONFIG's with both off."""
+        if not self._banks[0][reg.USER_CTRL] & reg.USER_CTRL_I2C_MST_EN or not self._awake():
+            return None
+        if self._banks[0][reg.LP_CONFIG] & reg.LP_CONFIG_I2C_MST_CYCLE:
+            return self._master_clock
+        for clock in (self._gyro, self._accel):
+            if clock.origin is not None:
+                return clock
+        return self._master_clock
+
+    def _advance_master(self) -> None:
+        """Run every master round due by now, each at its own time, so the AK09916 sees every
+        read. Rounds that cannot change anything (no AK09916 event since, no transfer pending,
+        a copy that stayed the same for a full delay cycle) are skipped in one step."""
+        clock = self._round_clock()
+        now = self._now()
+        if clock is None or clock.origin is None:
+            self._last_round_at = now  # rounds start with the clock's next tick
+            return
+        last = clock.due(now)
+        k = clock.first_after(self._last_round_at)
+        quiet = 0
+        while k <= last:
+            t = clock.time_of(k)
+            changed = self._master_round(t)
+            self._last_round_at = t
+            self._round_number += 1
+            quiet = 0 if changed else quiet + 1
+            k += 1
+            if quiet > self._delay_cycle():
+                event = self._next_ak_event()
+                skip_to = last + 1 if event > now else max(
+                    k, clock.first_after(event - TIME_EPSILON_S))
+                skip_to = min(skip_to, last + 1)
+                self._round_number += skip_to - k
+                if skip_to > k:
+                    self._last_round_at = clock.time_of(skip_to - 1)
+                k, quiet = skip_to, 0
+
+    def _delay_cycle(self) -> int:
+        """Rounds in one cycle of the delayed slaves: 1 + I2C_SLV4_DLY if any is delayed."""
+        if self._banks[3][reg.I2C_MST_DELAY_CTRL] & 0x1F:
+            return 1 + (self._banks[3][reg.I2C_SLV4_CTRL] & reg.I2C_SLV4_DLY_MASK)
+        return 1
+
+    def _slave_runs(self, slave: int) -> bool:
+        """I2C_SLVn_DELAY_EN (DS-000189 §11.3): a delayed slave runs on one round in 1 + DLY."""
+        if not self._banks[3][reg.I2C_MST_DELAY_CTRL] & (1 << slave):
+            return True
+        cycle = 1 + (self._banks[3][reg.I2C_SLV4_CTRL] & reg.I2C_SLV4_DLY_MASK)
+        return self._round_number % cycle == 0
+
+    def _master_state(self) -> tuple:
+        return (bytes(self._banks[0][reg.EXT_SLV_SENS_DATA_00:reg.EXT_SLV_SENS_DATA_00
+                                     + reg.EXT_SLV_SENS_DATA_COUNT]),
+                self._mst_status, self._banks[3][reg.I2C_SLV4_CTRL], self._mode, self._drdy,
+                self._dor, self._locked, self._mag_reads.latched, self._pending is not None)
+
+    def _master_round(self, t: float) -> bool:
+        """One round of the I2C master at sim time ``t``: slaves 0-3 in order (reads copied into
+        EXT_SLV_SENS_DATA, packed in slave order; a delayed slave resting this round keeps its
+        bytes), then a pending SLV4 transfer. Returns whether anything changed."""
         bank3 = self._banks[3]
+        before = self._master_state()
         self._at = t
         try:
             copy = bytearray()
@@ -458,14 +652,19 @@ class SimulatedIcm20948Bus:
                 length = ctrl & reg.I2C_SLV_LENG_MASK
                 if not ctrl & reg.I2C_SLV_EN or length == 0:
                     continue
-                if address & 0x7F != reg.AK09916_ADDRESS:
-                    self._mst_status |= 1 << slave  # I2C_SLVn_NACK; its bytes stay as they were
+                reads_mag = address & reg.I2C_SLV_RNW and register <= reg.HXL \
+                    and register + length - 1 >= reg.HZH
+                if not self._slave_runs(slave) or address & 0x7F != reg.AK09916_ADDRESS:
+                    if self._slave_runs(slave):
+                        self._mst_status |= 1 << slave  # I2C_SLVn_NACK
+                    elif reads_mag:
+                        ext_mag = self._ext_mag  # resting: its copy stays as it was
                     copy += self._banks[0][reg.EXT_SLV_SENS_DATA_00 + len(copy):][:length]
                     continue
                 self._advance()
                 if address & reg.I2C_SLV_RNW:
                     values = [self._read_ak(register + i) for i in range(length)]
-                    if register <= reg.HXL and register + length - 1 >= reg.HZH:
+                    if reads_mag:
                         start = reg.EXT_SLV_SENS_DATA_00 + len(copy) + reg.HXL - register
                         drdy = register <= reg.ST1 and bool(values[reg.ST1 - register]
                                                             & reg.ST1_DRDY)
@@ -478,7 +677,7 @@ class SimulatedIcm20948Bus:
             self._banks[0][reg.EXT_SLV_SENS_DATA_00:end] = copy[:end - reg.EXT_SLV_SENS_DATA_00]
             self._ext_mag = ext_mag
             ctrl = bank3[reg.I2C_SLV4_CTRL]
-            if ctrl & reg.I2C_SLV_EN:
+            if ctrl & reg.I2C_SLV_EN and self._slave_runs(4):
                 bank3[reg.I2C_SLV4_CTRL] = ctrl & ~reg.I2C_SLV_EN & 0xFF  # one transfer
                 address = bank3[reg.I2C_SLV4_ADDR]
                 if address & 0x7F != reg.AK09916_ADDRESS:
@@ -492,13 +691,16 @@ class SimulatedIcm20948Bus:
                 self._mst_status |= reg.I2C_MST_STATUS_SLV4_DONE
         finally:
             self._at = None
+        return self._master_state() != before
 
     def _note_data_read(self, i2c_addr: int, register: int, length: int) -> None:
         """Count a read of sensor data: a new sample, or one that was already read."""
         last = register + length - 1
         if i2c_addr == self.config.address and self._bank == 0:
-            if register <= reg.TEMP_OUT_L and last >= reg.ACCEL_XOUT_H:
-                self._imu_reads.data_read()
+            first, end = max(register, reg.ACCEL_XOUT_H), min(last, reg.TEMP_OUT_L)
+            if first <= end:
+                mask = ((1 << (end - first + 1)) - 1) << (first - reg.ACCEL_XOUT_H)
+                self._imu_reads.bytes_of(mask)
             if self._ext_mag is not None and register <= self._ext_mag[3] \
                     and last >= self._ext_mag[4]:
                 sample_id, truth, drdy, _, _ = self._ext_mag
@@ -580,8 +782,31 @@ class SimulatedIcm20948Bus:
         self._mode_since = self._now()
         self._next_sample_index = 0
 
+    def _next_ak_event(self) -> float:
+        """Sim time of the AK09916's next measurement (inf: none coming)."""
+        if self._mode in reg.CONTINUOUS_RATES:
+            period = 1.0 / reg.CONTINUOUS_RATES[self._mode]
+            return self._mode_since + MEASUREMENT_TIME_S + self._next_sample_index * period
+        if self._mode in (reg.MODE_SINGLE, reg.MODE_SELF_TEST):
+            return self._mode_since + MEASUREMENT_TIME_S
+        return math.inf
+
     def _advance(self) -> None:
-        """Complete every magnetometer measurement due by now; only the newest is kept."""
+        """Complete every magnetometer measurement due by now; only the newest is kept.
+        Continuous modes measure on their own clock; single measurement and self-test take one
+        sample, set DRDY and fall back to power-down (AK09916 datasheet §9.3, §9.4; DS-000189
+        §13.2 p.78), so CNTL2 reads 0 again once the sample is there."""
+        if self._mode in (reg.MODE_SINGLE, reg.MODE_SELF_TEST):
+            done_at = self._mode_since + MEASUREMENT_TIME_S
+            if self._now() < done_at - TIME_EPSILON_S:
+                return
+            self.samples_measured += 1
+            sample = (self._measure(done_at) if self._mode == reg.MODE_SINGLE
+                      else self._self_test_sample())
+            self._mode = reg.MODE_POWER_DOWN
+            self._powered_down_at = done_at
+            self._store(sample, skipped=0)
+            return
         if self._mode not in reg.CONTINUOUS_RATES:
             return
         period = 1.0 / reg.CONTINUOUS_RATES[self._mode]
@@ -595,15 +820,30 @@ class SimulatedIcm20948Bus:
         sample_time = self._mode_since + MEASUREMENT_TIME_S + last_due * period
         self._next_sample_index = last_due + 1
         self.samples_measured += 1
-        data, truth = self._measure(sample_time)
+        self._store(self._measure(sample_time), skipped)
+
+    def _store(self, sample: tuple[bytearray, np.ndarray], skipped: int) -> None:
+        """A finished measurement: latched, or held while a data read protects the registers
+        (DOR when a sample was lost: one skipped, or one still unread replaced)."""
         if self._locked:
             if self._pending is not None or skipped:
                 self._dor = True
-            self._pending = (data, truth)
+            self._pending = sample
             return
         if self._drdy or skipped:
             self._dor = True
-        self._latch(data, truth)
+        self._latch(*sample)
+
+    def _self_test_sample(self) -> tuple[bytearray, np.ndarray]:
+        """Self-test: the AK09916 measures a field of its own internal source. The datasheet's
+        judgement limits (``SELF_TEST_LIMITS``) leave no room for the ambient field, so the model
+        reports the source alone: the middle of each limit, with the configured noise."""
+        centre = np.array([(low + high) / 2.0 for low, high in reg.SELF_TEST_LIMITS])
+        noise = self._self_test_rng.normal(0.0, self.config.noise_ut / 1e6 / reg.TESLA_PER_LSB, 3)
+        counts = np.rint(centre + noise).astype(np.int64)
+        data = bytearray(counts.astype('<i2').tobytes()) + bytes([0, 0])
+        truth = centre * np.asarray(reg.AXIS_SIGNS) * reg.TESLA_PER_LSB  # chip frame, tesla
+        return data, truth
 
     def _latch(self, data: bytearray, truth: np.ndarray) -> None:
         self._data = data
