@@ -13,9 +13,10 @@ SHARED_DATA ?= ../shared/data
 
 setup: $(STAMP)
 
-$(STAMP): requirements.txt requirements-dev.txt setup.py setup.cfg package.xml scripts/bootstrap_venv.sh
+$(STAMP): requirements.txt requirements-dev.txt requirements-peers.txt setup.py setup.cfg package.xml scripts/bootstrap_venv.sh
 	bash scripts/bootstrap_venv.sh $(VENV)
 	$(PY) -m pip install --disable-pip-version-check -q -r requirements-dev.txt
+	$(PY) -m pip install --disable-pip-version-check -q --no-deps -r requirements-peers.txt
 	$(PY) -m pip install --disable-pip-version-check -q --no-deps -e .
 	touch $(STAMP)
 
