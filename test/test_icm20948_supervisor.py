@@ -310,9 +310,11 @@ def test_status_windows_rates_and_bus_load():
     assert mag.values['i2c bytes/s'] == pytest.approx(
         (after.wire_bytes - before.wire_bytes) / elapsed, rel=0.02)
     assert imu.values['accel range (g)'] == 4 and imu.values['dlpf'].startswith('3 (')
-    # The magnetometer's own share (issue #11): 8 bytes per look through the I2C master.
+    # The magnetometer's own share (issue #11): 8 bytes per look through the I2C master, at most
+    # two looks per sample (issue #23: looks start from the round the next sample can first be
+    # copied by, as late as a reader polling 1.5 times per sample can know it).
     assert mag.values['path'] == 'I2C master'
-    assert 8 * 99 <= mag.values['magnetometer i2c bytes/s'] <= 10.5 * 101
+    assert 8 * 99 <= mag.values['magnetometer i2c bytes/s'] <= 16 * 101
 
 
 def test_magnetometer_only_stays_in_bypass_with_its_bytes_measured():

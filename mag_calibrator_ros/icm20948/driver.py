@@ -54,11 +54,13 @@ CLOCK_TOLERANCE = 0.10
 # sample never outlives the gap after which the driver looks for the next one (the copied DRDY is
 # then seen at most once per sample).
 MASTER_SAMPLES_PER_MAG = 2.0
+# The reader (``Icm20948Supervisor``) polls data-ready this many times per accel/gyro sample, so
+# it reads each within 1/POLLS_PER_SAMPLE of a period and its looks at the master's copy come at
+# most 1 + 1/POLLS_PER_SAMPLE periods apart: on the duty cycle a copy must live that long.
+POLLS_PER_SAMPLE = 1.5
+LOOK_GAP_PERIODS = 1.0 + 1.0 / POLLS_PER_SAMPLE
 # Bring-up's SLV4 transfers run with the master on its duty cycle at I2C_MST_ODR_CONFIG = 0.
 BRING_UP_ROUND_S = 1.0 / reg.MASTER_CYCLE_RATE_HZ
-# After a new magnetometer sample, the burst is lengthened again from this long before the next
-# one is expected (in accel/gyro sample periods): early enough to catch its DRDY at the first copy.
-MAG_DUE_LEAD_PERIODS = 0.5
 MAG_SHARE = 'magnetometer'  # BusMonitor label of the magnetometer's wire bytes
 
 
@@ -107,8 +109,8 @@ def master_plan(mag_rate_hz: int, imu: ImuSettings | None,
     """The master's set-up for these rates, or None when it cannot carry every magnetometer
     sample by its DRDY. On the sample clock: ``MASTER_SAMPLES_PER_MAG`` rounds per magnetometer
     period. On the duty cycle (its own oscillator, not locked to the samples): the smallest slave
-    delay whose copies outlive one accel/gyro sample (so every copy is looked at), provided the
-    AK09916 is still read faster than it measures."""
+    delay whose copies outlive the longest gap between two looks (``LOOK_GAP_PERIODS``), so
+    every copy is looked at, provided the AK09916 is still read as fast as it may measure."""
     if imu is None:
         return None
     if odr_config is None:
@@ -118,9 +120,10 @@ def master_plan(mag_rate_hz: int, imu: ImuSettings | None,
     if not isinstance(odr_config, int) or not 0 <= odr_config <= reg.I2C_MST_ODR_CONFIG_MASK:
         return None
     round_hz = reg.MASTER_CYCLE_RATE_HZ / (1 << odr_config)
-    delay = max(0, math.ceil(round_hz / (imu.odr_hz * (1.0 - CLOCK_TOLERANCE)) - 1e-9) - 1)
+    lifetime = LOOK_GAP_PERIODS / (imu.odr_hz * (1.0 - CLOCK_TOLERANCE))
+    delay = max(0, math.ceil(lifetime * round_hz - 1e-9) - 1)
     if delay > reg.I2C_SLV4_DLY_MASK or round_hz / (1 + delay) < (
-            1.0 + CLOCK_TOLERANCE) * mag_rate_hz:
+            1.0 + CLOCK_TOLERANCE) * mag_rate_hz - 1e-6:
         return None
     return MasterPlan(odr_config, round_hz, delay)
 
@@ -642,7 +645,7 @@ class Icm20948:
         if length > reg.IMU_BURST_LENGTH:
             extra = length - reg.IMU_BURST_LENGTH  # 9 bit times each with its ACK
             self.bus.monitor.attribute(MAG_SHARE, extra, 9 * extra)
-            self._take_mag_copy(raw[reg.IMU_BURST_LENGTH:], burst_at)
+            self._take_mag_copy(raw[reg.IMU_BURST_LENGTH:], burst_at, since)
         if self._clock() - since >= self._imu_window:
             self.imu_resyncs += 1
             self._imu_synced_at = None
@@ -652,12 +655,13 @@ class Icm20948:
                 pass  # still unsynced: the next call starts with the resync
         return self._decode_imu(raw[:reg.IMU_BURST_LENGTH])
 
-    def _take_mag_copy(self, copy: list[int], burst_at: float) -> None:
+    def _take_mag_copy(self, copy: list[int], burst_at: float, since: float) -> None:
         """The master's copy of ST1, HXL..HZH, ST2 as of its last read of the AK09916. It holds a
         sample not yet taken if its copied DRDY is set (only the read that found the sample
         copies DRDY), unless it is the copy taken last seen once more: on the sample clock a copy
-        lives one accel/gyro sample and the next look comes at least MASTER_SAMPLES_PER_MAG -
-        MAG_DUE_LEAD_PERIODS = 1.5 rounds later; on the duty cycle every burst looks, a copy
+        lives one accel/gyro sample, each burst reads a new one, and the looks start again with
+        the round the next sample can first be copied by (the round just read came after
+        ``since``, the previous data-ready poll); on the duty cycle every burst looks, a copy
         outlives a sample, and the same data with DRDY within one read period of the last take
         is that copy again. Without DRDY a copy whose data differ from the last sample taken is
         a sample whose DRDY copy was missed (a failed burst, a late poll), taken and counted in
@@ -680,10 +684,13 @@ class Icm20948:
         self._mag_taken_at = burst_at
         if duty_cycled:
             return  # every burst looks
-        # With DRDY the sample arrived within the last round, the next one is due a period on;
-        # found without, it arrived at least a round earlier than this look.
-        lead = MAG_DUE_LEAD_PERIODS + (0.0 if drdy else 1.0)
-        self._mag_due_at = burst_at + self._mag_period - lead * self._imu_period
+        # With DRDY the sample arrived after the round before the one just read (itself after
+        # ``since``); the next arrives a magnetometer period on (clock tolerance: the AK09916's
+        # and the sample clock are two oscillators) and is copied by the first round after it.
+        # Found without, it arrived at least a round earlier than that.
+        rounds = math.ceil(self._mag_period * (1.0 - CLOCK_TOLERANCE) / self._imu_period
+                           - 1.0 - 1e-9) - (0 if drdy else 1)
+        self._mag_due_at = since + max(rounds, 0) * self._imu_period * (1.0 - CLOCK_TOLERANCE)
 
     @staticmethod
     def _read(operation: Callable, *args: int):

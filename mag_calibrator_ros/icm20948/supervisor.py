@@ -24,6 +24,7 @@ from mag_calibrator_ros.icm20948 import registers as reg
 from mag_calibrator_ros.icm20948.bus import BusCounters, BusMonitor, CountingBus, SmbusLike
 from mag_calibrator_ros.icm20948.driver import (
     MAG_SHARE,
+    POLLS_PER_SAMPLE,
     Icm20948,
     ImuReading,
     ImuSettings,
@@ -32,7 +33,6 @@ from mag_calibrator_ros.icm20948.driver import (
     master_possible,
 )
 
-POLLS_PER_SAMPLE = 1.5
 # Reads failing this many times in a row for at least this long mean the device is gone or reset:
 # re-initialise. (The time matters at kHz polling, where a few failures in a row are chance.)
 ERRORS_BEFORE_REINIT = 3
@@ -100,8 +100,9 @@ class Icm20948Supervisor:
     come back as a new device). ``imu`` None leaves the accelerometer and gyroscope powered down.
     ``stamp`` gives the stamp attached to each sample (the node passes its ROS clock); ``log``
     receives (level, message) with level 'info' | 'warning' | 'error'. ``mag_via_master``: read
-    the AK09916 through the chip's I2C master whenever ``master_possible`` (accel/gyro running
-    at least twice the magnetometer rate), else in bypass.
+    the AK09916 through the chip's I2C master whenever ``master_possible`` for
+    ``master_odr_config`` (None: one round per accel/gyro sample, which needs them at least
+    twice the magnetometer rate; n: the master's duty cycle at 1.1 kHz / 2^n), else in bypass.
     """
 
     def __init__(
@@ -115,6 +116,7 @@ class Icm20948Supervisor:
         publish_imu: bool = True,
         publish_temperature: bool = True,
         mag_via_master: bool = True,
+        master_odr_config: int | None = None,
         clock: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], None] = time.sleep,
         stamp: Callable[[], object] | None = None,
@@ -134,7 +136,8 @@ class Icm20948Supervisor:
         self.imu_settings = imu
         self.publish_imu = publish_imu
         self.publish_temperature = publish_temperature
-        self.aux_master = mag_via_master and master_possible(mag_rate_hz, imu)
+        self.aux_master = mag_via_master and master_possible(mag_rate_hz, imu, master_odr_config)
+        self.master_odr_config = master_odr_config
         self._clock = clock
         self._sleep = sleep
         self._stamp = stamp if stamp is not None else time.time_ns
@@ -251,7 +254,8 @@ class Icm20948Supervisor:
             if self._bus is None:
                 self._bus = CountingBus(self._open_bus(), self.monitor)
             driver = Icm20948(self._bus, self.address, self.bus_name, self._sleep, self._clock)
-            driver.initialise(self.mag_rate_hz, self.imu_settings, self.aux_master)
+            driver.initialise(self.mag_rate_hz, self.imu_settings, self.aux_master,
+                              self.master_odr_config)
         except (OSError, WrongDeviceError) as error:
             self._fault(f'initialisation failed: {error}', now)
             self._close_bus()  # a USB adapter may come back as a new device: reopen next time
