@@ -9,7 +9,8 @@ and imu/temperature and measures what arrives (header stamps). The node reports 
 
 - mag only: publish_imu and publish_temperature false (accel/gyro off: the AK09916 in bypass);
   every row reports the magnetometer's own wire bytes (BusMonitor share), through the chip's I2C
-  master in the IMU rows;
+  master in the IMU rows, on the round clock the driver sets (one round per accel/gyro sample),
+  and the samples taken without their copied DRDY;
 - IMU 200 Hz and 1 kHz requested (the chip runs 225 Hz and 1125 Hz), nominal;
 - the same with sim.i2c_error_rate 0.05;
 - a 2 s outage 5 s in (the device comes back power-cycled): rates outside it, recovery time.
@@ -111,6 +112,8 @@ def _driver_process(duration_s: float, imu_rate: int | None, error_rate: float,
         'mag_bytes_per_s': mag_bus.wire_bytes / wall,
         'mag_share': mag_bus.bits / wall / 400_000,
         'mag_via_master': node.supervisor.aux_master,
+        'master_clock': node.supervisor.master_clock,
+        'mag_fallbacks': node.supervisor.mag_fallbacks,
         'i2c_errors': node.i2c_errors,
         'reinitialisations': node.reinitialisations,
         'overruns': node.overruns,
@@ -231,6 +234,8 @@ def run_scenario(sink: _Sink, name: str, duration_s: float, imu_rate: int | None
         'mag_bytes_per_s': result['mag_bytes_per_s'],
         'mag_bus_pct': 100.0 * result['mag_share'],
         'mag_via_master': result['mag_via_master'],
+        'master_clock': result['master_clock'],
+        'mag_fallbacks': result['mag_fallbacks'],
         'i2c_errors': result['i2c_errors'],
         'reinits': result['reinitialisations'],
         'overruns': result['overruns'],
@@ -406,7 +411,8 @@ def main() -> int:
               f" of before, {'I2C master' if row['mag_via_master'] else 'bypass'}")
     for row in rows:
         print(f"  {row['scenario']}: temperature {row['temperature_hz']:.1f} Hz, overruns "
-              f"{row['overruns']}, imu resyncs {row['imu_resyncs']}")
+              f"{row['overruns']}, imu resyncs {row['imu_resyncs']}, magnetometer samples "
+              f"without DRDY {row['mag_fallbacks']}, I2C master clock {row['master_clock']}")
     if args.skip_accuracy:
         return 0
     print('\nAccuracy against the simulator truth (node in this process, its published Imu '

@@ -30,6 +30,7 @@ from mag_calibrator_ros.icm20948.driver import (
     ImuSettings,
     MagReading,
     WrongDeviceError,
+    master_plan,
     master_possible,
 )
 
@@ -155,7 +156,7 @@ class Icm20948Supervisor:
         self._consecutive_errors = 0
         self._failing_since = 0.0
         self._warned_at: dict[str, float] = {}
-        self._base = {'overflows': 0, 'overruns': 0, 'imu_resyncs': 0}
+        self._base = {'overflows': 0, 'overruns': 0, 'imu_resyncs': 0, 'mag_fallbacks': 0}
         self.reinitialisations = 0
         self.last_recovery_s: float | None = None
         self.imu_saturated = 0
@@ -197,6 +198,22 @@ class Icm20948Supervisor:
     @property
     def imu_resyncs(self) -> int:
         return self._driver_count('imu_resyncs')
+
+    @property
+    def mag_fallbacks(self) -> int:
+        """Magnetometer samples found through the master without their copied DRDY."""
+        return self._driver_count('mag_fallbacks')
+
+    @property
+    def master_clock(self) -> str:
+        """The I2C master's round clock as the driver set it up, for people."""
+        if not self.aux_master:
+            return 'none (bypass)'
+        plan = master_plan(self.mag_rate_hz, self.imu_settings, self.master_odr_config)
+        if plan.odr_config is None:
+            return f'{plan.round_hz:.1f} Hz, one round per accel/gyro sample (I2C_MST_CYCLE 0)'
+        return (f'{plan.round_hz:.1f} Hz duty cycle (I2C_MST_ODR_CONFIG {plan.odr_config}), '
+                f'the AK09916 read every {1 + plan.delay} rounds')
 
     # --- the loop --------------------------------------------------------------------------------
 
@@ -467,6 +484,8 @@ class Icm20948Supervisor:
                 'overflows (HOFL)': self.overflows,
                 'overruns (DOR)': self.overruns,
                 'path': 'I2C master' if self.aux_master else 'bypass',
+                'I2C master clock': self.master_clock,
+                'samples without DRDY': self.mag_fallbacks,
                 'magnetometer i2c bytes/s': mag_window.wire_bytes / elapsed,
             })]
             if self._imu is not None:

@@ -544,22 +544,23 @@ class SimulatedIcm20948Bus:
         """Latch each sensor's newest sample due by now (older ones are lost): the data
         registers hold the accelerometer's and the gyroscope's latest, each from its own clock."""
         now = self._now()
+        due = {}  # sample time -> the sensors' register offsets whose sample falls then
+        for clock, first in ((self._accel, 0), (self._gyro, 3)):
+            index = clock.due(now)
+            if index > clock.index:
+                clock.index = index
+                due.setdefault(round(clock.time_of(index), 9), []).append(first)
+        if not due:
+            return
         config = self._imu_config
         words = list(_IMU_WORDS.unpack_from(self._banks[0], reg.ACCEL_XOUT_H))
-        truth = None
-        for clock, first in ((self._accel, 0), (self._gyro, 3)):
-            due = clock.due(now)
-            if due <= clock.index:
-                continue
-            clock.index = due
-            accel, gyro, truth = self.board.inertial(clock.time_of(due),
-                                                     config.accel_noise_bandwidth_hz,
+        for t in sorted(due):  # aligned clocks: one evaluation of the board for both
+            accel, gyro, truth = self.board.inertial(t, config.accel_noise_bandwidth_hz,
                                                      config.gyro_noise_bandwidth_hz)
-            values = accel / config.accel_scale if first == 0 else gyro / config.gyro_scale
-            words[first:first + 3] = (_int16(v) for v in values)
+            for first in due[t]:
+                values = accel / config.accel_scale if first == 0 else gyro / config.gyro_scale
+                words[first:first + 3] = (_int16(v) for v in values)
             words[6] = temperature_counts(truth.temperature_c)
-        if truth is None:
-            return
         _IMU_WORDS.pack_into(self._banks[0], reg.ACCEL_XOUT_H, *words)
         self._imu_ready = True
         self._sample_id += 1
