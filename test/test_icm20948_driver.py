@@ -68,8 +68,9 @@ def test_initialise_sequence_and_waits():
     order = [
         ('w', 0x69, reg.REG_BANK_SEL, 0),
         ('w', 0x69, reg.PWR_MGMT_1, reg.PWR_MGMT_1_DEVICE_RESET),
-        ('w', 0x69, reg.PWR_MGMT_1, reg.PWR_MGMT_1_CLKSEL_AUTO),
+        # Sensors off before waking: they never start (the accelerometer would 20 ms after).
         ('w', 0x69, reg.PWR_MGMT_2, reg.PWR_MGMT_2_DISABLE_ACCEL | reg.PWR_MGMT_2_DISABLE_GYRO),
+        ('w', 0x69, reg.PWR_MGMT_1, reg.PWR_MGMT_1_CLKSEL_AUTO),
         ('w', 0x69, reg.USER_CTRL, 0),
         ('w', 0x69, reg.INT_PIN_CFG, reg.INT_PIN_CFG_BYPASS_EN),
         ('w', reg.AK09916_ADDRESS, reg.CNTL3, reg.CNTL3_SRST),

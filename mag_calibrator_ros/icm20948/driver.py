@@ -324,14 +324,14 @@ class Icm20948:
         self._write_icm(reg.PWR_MGMT_1, reg.PWR_MGMT_1_DEVICE_RESET)
         self._sleep(reg.DEVICE_RESET_WAIT_S)
         self._select_bank(0)  # reset returns to bank 0; be explicit
+        # Sensors chosen while still asleep: with imu None they never start (DS-000189: the
+        # accelerometer would start 20 ms after waking with PWR_MGMT_2 at its reset value).
+        self._write_icm(reg.PWR_MGMT_2, reg.PWR_MGMT_2_ALL_ON if imu is not None else
+                        reg.PWR_MGMT_2_DISABLE_ACCEL | reg.PWR_MGMT_2_DISABLE_GYRO)
         self._write_icm(reg.PWR_MGMT_1, reg.PWR_MGMT_1_CLKSEL_AUTO)  # wake, auto clock
         self._imu_valid_at = self._clock() + reg.SENSOR_STARTUP_S
         self._sleep(reg.WAKE_WAIT_S)
-        if imu is None:
-            self._write_icm(reg.PWR_MGMT_2,
-                            reg.PWR_MGMT_2_DISABLE_ACCEL | reg.PWR_MGMT_2_DISABLE_GYRO)
-        else:
-            self._write_icm(reg.PWR_MGMT_2, reg.PWR_MGMT_2_ALL_ON)
+        if imu is not None:
             self._configure_inertial(imu)
         if aux_master:
             self._start_master(mag_rate_hz, plan)
