@@ -20,6 +20,7 @@ the gyroscope integrated over 10 s of tumbling / turning versus the true rotatio
 
     python benchmarks/bench_driver.py                  # 30 s per nominal row, 20 s per fault row
     python benchmarks/bench_driver.py --duration 10 --fault-duration 10   # quicker
+    python benchmarks/bench_driver.py --master-clocks --duration 10   # the master's clocks only
 """
 
 from __future__ import annotations
@@ -269,6 +270,67 @@ def print_table(rows: list[dict]) -> None:
               f"{row['i2c_errors']} | {row['reinits']} |")
 
 
+# --- the magnetometer's path at each master clock (simulated time) ------------------------------
+
+def master_clocks(seconds: float) -> int:
+    """The supervisor (driver and simulator, no ROS) on a simulated clock stepped to each poll it
+    asks for, at each I2C master clock it can run and in bypass: the magnetometer's wire bytes
+    per sample, samples taken without their copied DRDY, samples lost, with no machine load."""
+    from mag_calibrator_ros.icm20948.driver import ImuSettings
+    from mag_calibrator_ros.icm20948.supervisor import Icm20948Supervisor, ImuSample, MagSample
+    from mag_calibrator_ros.sim.config import SimConfig
+    from mag_calibrator_ros.sim.simulator import SimulatedIcm20948Bus
+
+    class Clock:
+        now = 1000.0
+
+        def __call__(self) -> float:
+            return self.now
+
+        def sleep(self, dt: float) -> None:
+            self.now += dt
+
+    print(f'magnetometer {MAG_RATE_HZ} Hz through each I2C master clock, {seconds:g} s simulated '
+          f'after 1 s:')
+    print('| IMU (chip) | path / master clock | mag Hz | mag bytes / sample | without DRDY | '
+          'lost | IMU Hz |')
+    print('|---|---|---:|---:|---:|---:|---:|')
+    for imu_rate in (200, 1000):
+        for via_master, odr_config in ((True, None), (True, 0), (True, 3), (False, None)):
+            clock = Clock()
+            sim = SimulatedIcm20948Bus(SimConfig(seed=1), clock=clock)
+            supervisor = Icm20948Supervisor(
+                lambda sim=sim: sim, imu=ImuSettings(rate_hz=imu_rate), clock=clock,
+                sleep=clock.sleep, stamp=clock, mag_via_master=via_master,
+                master_odr_config=odr_config)
+            if via_master and not supervisor.aux_master:
+                continue  # this clock cannot carry 100 Hz at this IMU rate (master_plan)
+            samples: list = []
+
+            def advance(duration: float, supervisor=supervisor, samples=samples,
+                        clock=clock) -> None:
+                end = clock.now + duration
+                while clock.now < end:
+                    clock.now = max(clock.now, min(supervisor.next_due(), end)) + 20e-6
+                    samples.extend(supervisor.step())
+
+            advance(1.0)
+            mag0 = sum(isinstance(x, MagSample) for x in samples)
+            imu0 = sum(isinstance(x, ImuSample) for x in samples)
+            bytes0 = supervisor.monitor.share('magnetometer').wire_bytes
+            measured0, fallbacks0 = sim.samples_measured, supervisor.mag_fallbacks
+            advance(seconds)
+            mag = sum(isinstance(x, MagSample) for x in samples) - mag0
+            imu = sum(isinstance(x, ImuSample) for x in samples) - imu0
+            wire = supervisor.monitor.share('magnetometer').wire_bytes - bytes0
+            lost = sim.samples_measured - measured0 - mag
+            path = supervisor.master_clock if via_master else 'bypass'
+            print(f'| {imu_rate} ({supervisor.imu_settings.odr_hz:.0f} Hz) | {path} | '
+                  f'{mag / seconds:.2f} | {wire / max(mag, 1):.2f} | '
+                  f'{supervisor.mag_fallbacks - fallbacks0} | {lost} | {imu / seconds:.1f} |')
+    return 0
+
+
 # --- accuracy against the simulator's truth (in this process) -----------------------------------
 
 def _collect(imu_rate: int, motion: str, seconds: float, warmup_s: float = 1.0):
@@ -370,6 +432,9 @@ def main() -> int:
     parser.add_argument('--duration', type=float, default=30.0, help='nominal rows (s)')
     parser.add_argument('--fault-duration', type=float, default=20.0, help='fault rows (s)')
     parser.add_argument('--skip-accuracy', action='store_true')
+    parser.add_argument('--master-clocks', action='store_true',
+                        help='only the magnetometer path at each I2C master clock, on a '
+                             'simulated clock (no ROS, no machine load in the numbers)')
     parser.add_argument('--driver-process', action='store_true', help=argparse.SUPPRESS)
     parser.add_argument('--imu-rate', type=int, default=None, help=argparse.SUPPRESS)
     parser.add_argument('--error-rate', type=float, default=0.0, help=argparse.SUPPRESS)
@@ -377,6 +442,8 @@ def main() -> int:
     args = parser.parse_args()
     if args.driver_process:
         return _driver_process(args.duration, args.imu_rate, args.error_rate, args.outage)
+    if args.master_clocks:
+        return master_clocks(args.duration)
 
     os.environ.setdefault('ROS_DOMAIN_ID', str(random.SystemRandom().randint(101, 180)))
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
