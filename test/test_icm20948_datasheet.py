@@ -67,8 +67,8 @@ def test_lp_config_resets_to_duty_cycled_master():
 
 @pytest.mark.parametrize('odr_config', [0, 3, 4])
 def test_duty_cycled_rounds_at_1100_over_two_to_the_odr_config(odr_config):
-    """§11.1: 1.1 kHz / 2^I2C_MST_ODR_CONFIG, right after waking (no gyro start-up to wait out)
-    and with the accelerometer and gyroscope off."""
+    """§11.1 (page not verified): 1.1 kHz / 2^I2C_MST_ODR_CONFIG, right after waking (no gyro
+    start-up to wait out) and with the accelerometer and gyroscope off."""
     period = (1 << odr_config) / reg.MASTER_CYCLE_RATE_HZ
     for pwr_mgmt_2 in (reg.PWR_MGMT_2_ALL_ON,
                        reg.PWR_MGMT_2_DISABLE_ACCEL | reg.PWR_MGMT_2_DISABLE_GYRO):
@@ -107,7 +107,7 @@ def test_no_rounds_while_asleep_or_with_the_master_off():
 
 def test_cycle_zero_rounds_ride_on_the_gyro_then_the_accel_samples():
     """I2C_MST_CYCLE = 0: rounds at the gyro's ODR (after its start-up), the accel's with the
-    gyro off (§11.1)."""
+    gyro off (§11.1, page not verified)."""
     for pwr_mgmt_2, startup in ((reg.PWR_MGMT_2_ALL_ON, reg.SENSOR_STARTUP_S),
                                 (reg.PWR_MGMT_2_DISABLE_GYRO, reg.ACCEL_STARTUP_S)):
         clock, sim = make()
@@ -127,7 +127,7 @@ def test_cycle_zero_rounds_ride_on_the_gyro_then_the_accel_samples():
 
 
 def test_delayed_slaves_run_on_one_round_in_one_plus_dly():
-    """I2C_MST_DELAY_CTRL I2C_SLV0_DELAY_EN with I2C_SLV4_DLY = 4 (§11.3, §11.21): slave 0
+    """I2C_MST_DELAY_CTRL I2C_SLV0_DELAY_EN with I2C_SLV4_DLY = 4 (§11.3, §11.22): slave 0
     reads the AK09916 on one round in five, 220 Hz at the 1.1 kHz duty cycle; the copy in
     EXT_SLV_SENS_DATA stays between its reads."""
     clock, sim = make(SimConfig(seed=2))
@@ -170,8 +170,8 @@ def rate_of(sim, clock, seconds: float, step: float) -> float:
 
 
 def test_each_sensor_its_own_divider_and_the_bypass_rates():
-    """DS-000189 tables 16 and 18: 1125 / (1 + divider) each, and with FCHOICE = 0 9 kHz for
-    the gyro, 4.5 kHz for the accelerometer."""
+    """DS-000189 tables 16 and 18 (pages not verified): 1125 / (1 + divider) each, and with
+    FCHOICE = 0 9 kHz for the gyro, 4.5 kHz for the accelerometer."""
     clock, sim = make()
     wake(sim, reg.PWR_MGMT_2_DISABLE_GYRO)  # the accelerometer alone
     clock.sleep(0.05)
@@ -209,9 +209,9 @@ def sample_times(sim, clock, seconds: float, step: float = 1e-5) -> list[float]:
 
 @pytest.mark.parametrize('align', [0, 1])
 def test_sample_clock_restarts_only_on_a_divider_write_with_odr_align_en(align):
-    """§10.10 ODR_ALIGN_EN: with 1, a divider write restarts the sample clocks at the write;
-    with 0 (its reset value), and for any GYRO_CONFIG_1/ACCEL_CONFIG write, they keep their
-    phase."""
+    """§10.10 ODR_ALIGN_EN (page not verified): with 1, a divider write restarts the sample
+    clocks at the write; with 0 (its reset value), and for any GYRO_CONFIG_1/ACCEL_CONFIG write,
+    they keep their phase."""
     clock, sim = make()
     wake(sim, reg.PWR_MGMT_2_DISABLE_ACCEL)
     bank(sim, reg.CONFIG_BANK)
@@ -242,8 +242,9 @@ def test_sample_clock_restarts_only_on_a_divider_write_with_odr_align_en(align):
 
 @pytest.mark.parametrize('mode', [reg.MODE_SINGLE, reg.MODE_SELF_TEST])
 def test_single_measurement_and_self_test_take_one_sample_and_power_down(mode):
-    """AK09916: CNTL2 0x01 / 0x10 measure once, set DRDY, and return to power-down (DS-000189
-    §13.2 p.78); self-test reads the internal source within the judgement limits."""
+    """AK09916: CNTL2 0x01 / 0x10 measure once, set DRDY (DS-000189 §13.2 p.78), and return to
+    power-down (AK09916 datasheet, page not verified); self-test reads the internal source within
+    the judgement limits."""
     clock, sim = make(SimConfig(seed=9))
     wake(sim)
     sim.write_byte_data(ICM, reg.INT_PIN_CFG, reg.INT_PIN_CFG_BYPASS_EN)
@@ -305,3 +306,29 @@ def test_accel_and_gyro_of_one_sample_in_two_reads_is_one_delivery():
     clock.sleep(0.001)
     sim.read_i2c_block_data(ICM, reg.ACCEL_XOUT_H, 12)
     assert sim.imu_samples_read == 2 and sim.imu_repeated_reads == 1
+
+
+def test_ak09916_multi_byte_transfers_follow_its_address_sequence():
+    """DS-000189 §12 p.77: the AK09916 auto-increments 00h-03h then 10h-18h and back to 00h, and
+    30h-32h back to 30h; in bypass, through slave 0 and in a block write alike."""
+    clock, sim = make(SimConfig(seed=4))
+    wake(sim)
+    sim.write_byte_data(ICM, reg.INT_PIN_CFG, reg.INT_PIN_CFG_BYPASS_EN)
+    clock.sleep(0.01)
+    ak = reg.AK09916_ADDRESS
+    assert sim.read_i2c_block_data(ak, reg.ST2, 3) == [0, reg.WIA1_VALUE, reg.WIA2_VALUE]
+    assert sim.read_i2c_block_data(ak, 0x03, 2) == [0, 0]  # 03h then ST1 (no sample yet)
+    sim.write_i2c_block_data(ak, reg.CNTL2, [reg.MODE_SINGLE, 0, 0])  # 31h, 32h, 30h
+    assert sim.read_i2c_block_data(ak, reg.CNTL3, 3) == [0, 0, reg.MODE_SINGLE]  # 32h, 30h, 31h
+    clock.sleep(reg.SINGLE_MEASUREMENT_S + 1e-4)
+    assert sim.read_i2c_block_data(ak, 0x03, 2) == [0, reg.ST1_DRDY]
+    sim.write_byte_data(ICM, reg.INT_PIN_CFG, 0)
+    bank(sim, reg.MASTER_BANK)
+    sim.write_byte_data(ICM, reg.I2C_SLV0_ADDR, reg.I2C_SLV_RNW | ak)
+    sim.write_byte_data(ICM, reg.I2C_SLV0_REG, reg.ST2)
+    sim.write_byte_data(ICM, reg.I2C_SLV0_CTRL, reg.I2C_SLV_EN | 3)
+    bank(sim, 0)
+    sim.write_byte_data(ICM, reg.USER_CTRL, reg.USER_CTRL_I2C_MST_EN)
+    clock.sleep(0.01)
+    copy = sim.read_i2c_block_data(ICM, reg.EXT_SLV_SENS_DATA_00, 3)
+    assert copy == [0, reg.WIA1_VALUE, reg.WIA2_VALUE]

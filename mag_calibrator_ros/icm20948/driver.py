@@ -324,8 +324,9 @@ class Icm20948:
         self._write_icm(reg.PWR_MGMT_1, reg.PWR_MGMT_1_DEVICE_RESET)
         self._sleep(reg.DEVICE_RESET_WAIT_S)
         self._select_bank(0)  # reset returns to bank 0; be explicit
-        # Sensors chosen while still asleep: with imu None they never start (DS-000189: the
-        # accelerometer would start 20 ms after waking with PWR_MGMT_2 at its reset value).
+        # Sensors chosen while still asleep: with imu None they never start (DS-000189 table 2,
+        # page not verified: the accelerometer would start 20 ms after waking with PWR_MGMT_2 at
+        # its reset value).
         self._write_icm(reg.PWR_MGMT_2, reg.PWR_MGMT_2_ALL_ON if imu is not None else
                         reg.PWR_MGMT_2_DISABLE_ACCEL | reg.PWR_MGMT_2_DISABLE_GYRO)
         self._write_icm(reg.PWR_MGMT_1, reg.PWR_MGMT_1_CLKSEL_AUTO)  # wake, auto clock
@@ -458,7 +459,8 @@ class Icm20948:
             self._select_bank(0)
         if plan.odr_config is None:
             # On the sample clock rounds start with the gyro's first sample (its start-up time,
-            # DS-000189 table 1): the AK09916 starts measuring once they run, none is lost.
+            # DS-000189 table 1, page not verified): the AK09916 starts measuring once they run,
+            # none is lost.
             self._sleep(max(reg.MODE_CHANGE_WAIT_S, self._imu_valid_at - self._clock()))
         self._write_lp_config(0 if plan.odr_config is None else reg.LP_CONFIG_I2C_MST_CYCLE)
         self._slv4_delay = plan.delay

@@ -60,8 +60,9 @@ EXT_SLV_SENS_DATA_COUNT = 24
 CONFIG_BANK = 2
 GYRO_SMPLRT_DIV = 0x00  # 8-bit divider
 GYRO_CONFIG_1 = 0x01  # bits 5:3 GYRO_DLPFCFG, 2:1 GYRO_FS_SEL, 0 GYRO_FCHOICE (1 = DLPF on)
-# ODR_ALIGN_EN (DS-000189 §10.10): 1 aligns the sample clocks' start times whenever
-# GYRO_SMPLRT_DIV, ACCEL_SMPLRT_DIV_1/2 or I2C_MST_ODR_CONFIG is written; 0: each keeps running.
+# ODR_ALIGN_EN (DS-000189 §10.10, page not verified): 1 aligns the sample clocks' start times
+# whenever GYRO_SMPLRT_DIV, ACCEL_SMPLRT_DIV_1/2 or I2C_MST_ODR_CONFIG is written; 0: each keeps
+# running.
 ODR_ALIGN_EN = 0x09
 ACCEL_SMPLRT_DIV_1 = 0x10  # divider bits 11:8
 ACCEL_SMPLRT_DIV_2 = 0x11  # divider bits 7:0
@@ -73,21 +74,24 @@ GYRO_CONFIG_1_RESET_VALUE = 0x01
 ACCEL_CONFIG_RESET_VALUE = 0x01
 
 # Bank 3: the ICM-20948's own I2C master on the auxiliary bus, where the AK09916 sits
-# (DS-000189 §11). A round of the master runs slaves 0-3, then a pending SLV4 transfer. With
-# LP_CONFIG I2C_MST_CYCLE = 1 (reset) rounds come at 1.1 kHz / 2^I2C_MST_ODR_CONFIG[3:0] on the
-# master's own duty-cycle clock (§11.1); with I2C_MST_CYCLE = 0 on the gyro's ODR (the accel's
-# with the gyro off; I2C_MST_ODR_CONFIG's with both off, §11.1).
+# (DS-000189 §11; §11.9-11.10 are on p.71, the pages of the others not verified). A round of the
+# master runs slaves 0-3, then a pending SLV4 transfer. With LP_CONFIG I2C_MST_CYCLE = 1 (reset,
+# §8.3 p.37) rounds come at 1.1 kHz / 2^I2C_MST_ODR_CONFIG[3:0] on the master's own duty-cycle
+# clock (§11.1); with I2C_MST_CYCLE = 0 on the gyro's ODR (the accel's with the gyro off;
+# I2C_MST_ODR_CONFIG's with both off, §11.1).
 MASTER_BANK = 3
 I2C_MST_ODR_CONFIG = 0x00
 I2C_MST_ODR_CONFIG_MASK = 0x0F
 MASTER_CYCLE_RATE_HZ = 1100.0  # I2C_MST_ODR_CONFIG = 0
 I2C_MST_CTRL = 0x01  # bit 7 MULT_MST_EN, bit 4 I2C_MST_P_NSR, bits 3:0 I2C_MST_CLK
 I2C_MST_CTRL_P_NSR = 1 << 4  # stop (not repeated start) between slave reads
-I2C_MST_CLK_345_KHZ = 0x07  # the datasheet's recommended setting (345.6 kHz, 46.67 % duty)
+I2C_MST_CLK_345_KHZ = 0x07  # recommended setting (345.6 kHz, 46.67 % duty; page not verified)
 I2C_MST_DELAY_CTRL = 0x02  # bit 7 DELAY_ES_SHADOW, bit 4 I2C_SLV4_DELAY_EN, bits 3:0 SLVn
 I2C_MST_DELAY_ES_SHADOW = 1 << 7  # shadow EXT_SLV_SENS_DATA only once every slave's data is in
 # I2C_SLVn_DELAY_EN (bits 4:0, n = 0..4; §11.3): a delayed slave is accessed only on one round in
-# (1 + I2C_SLV4_DLY), I2C_SLV4_DLY being I2C_SLV4_CTRL bits 4:0 (§11.21).
+# (1 + I2C_SLV4_DLY), I2C_SLV4_DLY being I2C_SLV4_CTRL bits 4:0 (§11.22: bank-3 sections run in
+# address order, §11.9 = 0x08 on p.71, so 0x15 is §11.22, §11.21 being I2C_SLV4_REG; pages of
+# §11.3 and §11.22 not verified).
 I2C_SLV4_DELAY_EN = 1 << 4
 I2C_SLV4_DLY_MASK = 0x1F
 I2C_SLV0_ADDR = 0x03  # bit 7 I2C_SLV0_RNW (1 = read), bits 6:0 the slave's 7-bit address
@@ -106,8 +110,9 @@ I2C_SLV_LENG_MASK = 0x0F
 
 # Output data rate with FCHOICE = 1: 1125 / (1 + divider) Hz, each sensor by its own divider
 # (GYRO_SMPLRT_DIV 8 bits, ACCEL_SMPLRT_DIV_1/2 12 bits; DS-000189 tables 16 and 18, §10.1 and
-# §10.11-10.12: 1.125 kHz, the gyroscope's rounded to 1.1 kHz in places). With FCHOICE = 0 the DLPF
-# and the divider are bypassed: the gyroscope runs at 9 kHz, the accelerometer at 4.5 kHz.
+# §10.11-10.12, pages not verified: 1.125 kHz, the gyroscope's rounded to 1.1 kHz in places).
+# With FCHOICE = 0 the DLPF and the divider are bypassed: the gyroscope runs at 9 kHz, the
+# accelerometer at 4.5 kHz (tables 16 and 18, pages not verified).
 # The driver offers DLPFCFG 1-6 (the filters the datasheet's tables give a bandwidth for that
 # rounds well below the rate); the simulator models all eight.
 INTERNAL_RATE_HZ = 1125.0
@@ -116,7 +121,8 @@ ACCEL_BYPASS_RATE_HZ = 4500.0
 GYRO_DIVIDER_MAX = 0xFF
 ACCEL_DIVIDER_MAX = 0xFFF
 DLPF_SETTINGS = (1, 2, 3, 4, 5, 6)
-# DLPFCFG -> (3 dB bandwidth, noise bandwidth) in Hz, DS-000189 tables 16 (gyro) and 18 (accel).
+# DLPFCFG -> (3 dB bandwidth, noise bandwidth) in Hz, DS-000189 tables 16 (gyro) and 18 (accel)
+# (pages not verified).
 GYRO_DLPF_HZ = {0: (196.6, 229.8), 1: (151.8, 187.6), 2: (119.5, 154.3), 3: (51.2, 73.3),
                 4: (23.9, 35.9), 5: (11.6, 17.8), 6: (5.7, 8.9), 7: (361.4, 376.5)}
 ACCEL_DLPF_HZ = {0: (246.0, 265.0), 1: (246.0, 265.0), 2: (111.4, 136.0), 3: (50.4, 68.8),
@@ -136,8 +142,8 @@ TEMP_OFFSET_C = 21.0
 
 DEVICE_RESET_WAIT_S = 0.010  # after PWR_MGMT_1 DEVICE_RESET
 WAKE_WAIT_S = 0.001  # clock start-up after leaving sleep (the AK09916 itself needs none)
-SENSOR_STARTUP_S = 0.035  # gyroscope start-up from sleep (the longer of the two): no data before
-ACCEL_STARTUP_S = 0.020  # accelerometer start-up from sleep (DS-000189 table 2)
+SENSOR_STARTUP_S = 0.035  # gyro start-up from sleep (DS-000189 table 1, page not verified)
+ACCEL_STARTUP_S = 0.020  # accel start-up from sleep (DS-000189 table 2, page not verified)
 
 # --- AK09916 (magnetometer, on the host bus at 0x0C once bypass is on) ---------------------------
 AK09916_ADDRESS = 0x0C
@@ -180,14 +186,16 @@ CONTINUOUS_RATES = {mode: rate for rate, mode in CONTINUOUS_MODES.items()}
 
 MODE_CHANGE_WAIT_S = 100e-6  # power-down -> other mode: >= 100 us
 # Single measurement (CNTL2 0x01) and self-test (0x10) take one sample, set DRDY and return to
-# power-down by themselves (AK09916 datasheet §9.3-9.4; DS-000189 §13.2 p.78).
+# power-down by themselves. DRDY: DS-000189 §13.2 p.78; CNTL2 codes: §13.5 from p.79 (the codes
+# after continuous mode 1 on a page not verified); the return to power-down: AK09916 datasheet
+# (section and page not verified).
 SINGLE_MEASUREMENT_S = 0.0072  # measurement time, also before a continuous mode's first sample
-# Self-test judgement (AK09916 datasheet §9.4.4): an internal field of -200..200 (x, y) and
-# -1000..-200 (z) counts.
+# Self-test judgement (AK09916 datasheet, section and page not verified): an internal field of
+# -200..200 (x, y) and -1000..-200 (z) counts.
 SELF_TEST_LIMITS = ((-200, 200), (-200, 200), (-1000, -200))
 SOFT_RESET_WAIT_S = 0.001  # CNTL3 SRST completes well within 1 ms
 
-MEASUREMENT_LIMIT = 32752  # |counts| beyond this is an overflow (ST2 HOFL)
+MEASUREMENT_LIMIT = 32752  # |counts| beyond this is an overflow (ST2 HOFL; DS-000189 p.79)
 TESLA_PER_LSB = 0.15e-6  # 0.15 uT per count
 
 # AK09916 axes into the ICM-20948 accel/gyro frame: x kept, y and z inverted (REP-145).

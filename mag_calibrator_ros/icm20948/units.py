@@ -36,7 +36,8 @@ def gyro_scale(range_dps: int) -> float:
 
 
 def temperature_celsius(raw: int) -> float:
-    """TEMP_OUT -> degC (DS-000189: (TEMP_OUT - RoomTemp_Offset) / 333.87 + 21)."""
+    """TEMP_OUT -> degC (DS-000189 TEMP_OUT_L, page not verified: (TEMP_OUT - RoomTemp_Offset)
+    / 333.87 + 21; RoomTemp_Offset taken as 0)."""
     return raw / reg.TEMP_SENSITIVITY_LSB_PER_C + reg.TEMP_OFFSET_C
 
 

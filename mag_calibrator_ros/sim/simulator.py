@@ -140,7 +140,7 @@ class _SampleClock:
 def _saturated_counts(field_tesla: np.ndarray) -> np.ndarray:
     """``tesla_to_counts`` for any field, however large: in floats, a field beyond every count
     (even infinite, or NaN from an absurd distortion) becomes one count past the measurement
-    range, so it reads as the datasheet's overflow (DS-000189 rev. 1.3 p. 79: the range is
+    range, so it reads as the datasheet's overflow (DS-000189 rev. 1.3 §13.3-13.4 p.79: range
     ±32752 counts, ±4912 µT, and HOFL in ST2 says the sensor overflowed) rather than wrapping
     around in the integer conversion to a plausible value without HOFL."""
     with np.errstate(over='ignore', invalid='ignore'):
@@ -149,6 +149,24 @@ def _saturated_counts(field_tesla: np.ndarray) -> np.ndarray:
     beyond = reg.MEASUREMENT_LIMIT + 1
     chip = np.nan_to_num(chip, nan=beyond, posinf=beyond, neginf=-beyond)
     return np.clip(chip, -beyond, beyond).astype(np.int64)
+
+
+def _ak_addresses(register: int, length: int) -> list[int]:
+    """The AK09916's register addresses in one multi-byte transfer: it auto-increments
+    00h-03h then 10h-18h and back to 00h, and 30h-32h back to 30h (DS-000189 §12 p.77);
+    elsewhere the datasheet calls the data not correct, modelled as a plain increment."""
+    addresses = []
+    for _ in range(length):
+        addresses.append(register)
+        if register == 0x03:
+            register = reg.ST1
+        elif register == reg.ST2:
+            register = reg.WIA1
+        elif register == reg.CNTL3:
+            register = reg.CNTL3 - 2
+        else:
+            register = (register + 1) & 0xFF
+    return addresses
 
 
 def _int16(value: float) -> int:
@@ -392,6 +410,8 @@ class SimulatedIcm20948Bus:
             self._bank != 0 or register > reg.INT_STATUS_1
         ) and register + length <= reg.REG_BANK_SEL:
             return list(self._banks[self._bank][register:register + length])  # plain registers
+        if i2c_addr == reg.AK09916_ADDRESS:
+            return [self._read_ak(address) for address in _ak_addresses(register, length)]
         return [self._read_register(i2c_addr, register + i) for i in range(length)]
 
     @_locked
@@ -399,12 +419,15 @@ class SimulatedIcm20948Bus:
         self, i2c_addr: int, register: int, data: list[int], force: bool | None = None
     ) -> None:
         """Consecutive registers from ``register`` in one transaction (both dies auto-increment
-        the register address, DS-000189 §6.3; AK09916 datasheet §8.3)."""
+        the register address: the ICM-20948 DS-000189 §6.3 p.30, the AK09916 as
+        ``_ak_addresses``)."""
         if not 0 < len(data) <= 32:
             raise ValueError(f'Data length cannot exceed 32 bytes or be 0: {len(data)}')
         self._transaction(i2c_addr, f'block write to register {register:#04x}')
-        for offset, value in enumerate(data):
-            self._write_register(i2c_addr, register + offset, int(value) & 0xFF)
+        addresses = (_ak_addresses(register, len(data)) if i2c_addr == reg.AK09916_ADDRESS
+                     else [register + offset for offset in range(len(data))])
+        for address, value in zip(addresses, data, strict=True):
+            self._write_register(i2c_addr, address, int(value) & 0xFF)
 
     @_locked
     def write_quick(self, i2c_addr: int, force: bool | None = None) -> None:
@@ -483,10 +506,10 @@ class SimulatedIcm20948Bus:
 
     def _power_sensors(self) -> None:
         """PWR_MGMT_1/2 decide which clocks run: a sensor switched on starts sampling after its
-        start-up time (DS-000189 tables 1 and 2: gyro 35 ms, accel 20 ms); one switched off or
-        put to sleep stops. The master's duty-cycle clock runs while the chip is awake; the
-        datasheet does not say whether the I2C master runs in sleep: here it does not (every
-        driver seen wakes the chip before it talks to the AK09916)."""
+        start-up time (DS-000189 tables 1 and 2, page not verified: gyro 35 ms, accel 20 ms);
+        one switched off or put to sleep stops. The master's duty-cycle clock runs while the
+        chip is awake; the datasheet does not say whether the I2C master runs in sleep: here it
+        does not (every driver seen wakes the chip before it talks to the AK09916)."""
         now, awake = self._now(), self._awake()
         pwr_mgmt_2 = self._banks[0][reg.PWR_MGMT_2]
         for clock, disable, startup in (
@@ -503,22 +526,24 @@ class SimulatedIcm20948Bus:
             self._master_clock.stop()
 
     def _align_clocks(self) -> None:
-        """ODR_ALIGN_EN = 1 (DS-000189 §10.10): a write of GYRO_SMPLRT_DIV, ACCEL_SMPLRT_DIV_1/2 or
-        I2C_MST_ODR_CONFIG restarts the sample clocks together; with 0 nothing restarts."""
+        """ODR_ALIGN_EN = 1 (DS-000189 §10.10, page not verified): a write of GYRO_SMPLRT_DIV,
+        ACCEL_SMPLRT_DIV_1/2 or I2C_MST_ODR_CONFIG restarts the sample clocks together; with 0
+        nothing restarts."""
         if self._banks[2][reg.ODR_ALIGN_EN] & 0x01:
             now = self._now()
             for clock in (self._gyro, self._accel, self._master_clock):
                 clock.align(now)
 
     def _master_cycle_rate(self) -> float:
-        """1.1 kHz / 2^I2C_MST_ODR_CONFIG[3:0] (DS-000189 §11.1)."""
+        """1.1 kHz / 2^I2C_MST_ODR_CONFIG[3:0] (DS-000189 §11.1, page not verified; §8.3 p.37:
+        with I2C_MST_CYCLE = 1 the master's ODR is determined by I2C_MST_ODR_CONFIG)."""
         config = self._banks[3][reg.I2C_MST_ODR_CONFIG] & reg.I2C_MST_ODR_CONFIG_MASK
         return reg.MASTER_CYCLE_RATE_HZ / (1 << config)
 
     def _decode_imu_config(self) -> _ImuConfig:
         """Rates, ranges and DLPF from the bank-2 registers: each sensor its own divider (12 bits
         for the accelerometer), FCHOICE = 0 bypassing filter and divider (DS-000189 tables 16
-        and 18: gyro 9 kHz, accel 4.5 kHz)."""
+        and 18, pages not verified: gyro 9 kHz, accel 4.5 kHz)."""
         bank2 = self._banks[2]
         gyro_config, accel_config = bank2[reg.GYRO_CONFIG_1], bank2[reg.ACCEL_CONFIG]
         if gyro_config & reg.CONFIG_FCHOICE:
@@ -576,8 +601,9 @@ class SimulatedIcm20948Bus:
 
     def _round_clock(self) -> _SampleClock | None:
         """The clock the master's rounds run on, or None while it does not run (master off, or
-        the chip asleep). DS-000189 §8.3 p.37 and §11.1: I2C_MST_CYCLE = 1, its own duty cycle;
-        0, the gyro's ODR, the accel's with the gyro off, I2C_MST_ODR_CONFIG's with both off."""
+        the chip asleep). DS-000189 §8.3 p.37: I2C_MST_CYCLE = 1, its own duty cycle; §11.1
+        (page not verified): 0, the gyro's ODR, the accel's with the gyro off,
+        I2C_MST_ODR_CONFIG's with both off."""
         if not self._banks[0][reg.USER_CTRL] & reg.USER_CTRL_I2C_MST_EN or not self._awake():
             return None
         if self._banks[0][reg.LP_CONFIG] & reg.LP_CONFIG_I2C_MST_CYCLE:
@@ -623,7 +649,8 @@ class SimulatedIcm20948Bus:
         return 1
 
     def _slave_runs(self, slave: int) -> bool:
-        """I2C_SLVn_DELAY_EN (DS-000189 §11.3): a delayed slave runs on one round in 1 + DLY."""
+        """I2C_SLVn_DELAY_EN (DS-000189 §11.3, page not verified): a delayed slave runs on one
+        round in 1 + I2C_SLV4_DLY (§11.22)."""
         if not self._banks[3][reg.I2C_MST_DELAY_CTRL] & (1 << slave):
             return True
         cycle = 1 + (self._banks[3][reg.I2C_SLV4_CTRL] & reg.I2C_SLV4_DLY_MASK)
@@ -664,7 +691,7 @@ class SimulatedIcm20948Bus:
                     continue
                 self._advance()
                 if address & reg.I2C_SLV_RNW:
-                    values = [self._read_ak(register + i) for i in range(length)]
+                    values = [self._read_ak(a) for a in _ak_addresses(register, length)]
                     if reads_mag:
                         start = reg.EXT_SLV_SENS_DATA_00 + len(copy) + reg.HXL - register
                         drdy = register <= reg.ST1 and bool(values[reg.ST1 - register]
@@ -795,8 +822,8 @@ class SimulatedIcm20948Bus:
     def _advance(self) -> None:
         """Complete every magnetometer measurement due by now; only the newest is kept.
         Continuous modes measure on their own clock; single measurement and self-test take one
-        sample, set DRDY and fall back to power-down (AK09916 datasheet §9.3, §9.4; DS-000189
-        §13.2 p.78), so CNTL2 reads 0 again once the sample is there."""
+        sample, set DRDY (DS-000189 §13.2 p.78) and fall back to power-down (AK09916 datasheet,
+        section and page not verified), so CNTL2 reads 0 again once the sample is there."""
         if self._mode in (reg.MODE_SINGLE, reg.MODE_SELF_TEST):
             done_at = self._mode_since + MEASUREMENT_TIME_S
             if self._now() < done_at - TIME_EPSILON_S:
