@@ -101,10 +101,17 @@ class StaticAttitudes:
     starts no still stretch is the board passing through, accelerating. ``field_scale`` (the
     field's radius in raw units, set by the owner once known) lets the field tell a turn about
     the vertical, which the accelerometer cannot see, and tells poses apart.
+
+    ``clock=False`` is for a log without time stamps, whose rate nobody knows: stillness is
+    then judged without time (no MIN_STILL_S, no MAX_GAP_S), by consecutive readings whose
+    accelerometer (and field) directions agree as above, and every stretch, a lone reading
+    included, becomes an attitude. ``estimate_alignment`` screens them (|a| near g, a clean
+    field, robust to the few taken in motion), so no guessed rate can make or break it.
     """
 
-    def __init__(self, capacity: int = ATTITUDE_CAPACITY) -> None:
+    def __init__(self, capacity: int = ATTITUDE_CAPACITY, clock: bool = True) -> None:
         self.capacity = int(capacity)
+        self.clock = bool(clock)
         self._rows = np.zeros((self.capacity, ATTITUDE_WIDTH))
         self.fill = 0
         self.stretches = 0
@@ -164,7 +171,7 @@ class StaticAttitudes:
     def _continues(self, segment: list, time_s: float, reading: tuple, accel: tuple,
                    norm: float, has_gyro: bool) -> bool:
         first_a = segment[4]
-        if not 0.0 <= time_s - segment[3] <= MAX_GAP_S or has_gyro != segment[6]:
+        if has_gyro != segment[6] or self.clock and not 0.0 <= time_s - segment[3] <= MAX_GAP_S:
             return False
         if abs(norm / first_a[3] - 1.0) > STILL_MAGNITUDE:
             return False
@@ -185,7 +192,7 @@ class StaticAttitudes:
         sums, count, start, end, _, _, _, gap = segment
         held = end - start >= MIN_STILL_S
         alone = count == 1 and gap >= MIN_STILL_S and next_time - end >= MIN_STILL_S
-        if not (held or alone):
+        if self.clock and not (held or alone):
             return
         row = np.array([*(value / count for value in sums), count, end - start])
         self._keep(row)
@@ -220,7 +227,7 @@ class StaticAttitudes:
         has lasted MIN_STILL_S (the sensor held still while a calibration is asked for)."""
         rows = self._rows[: self.fill].copy()
         segment = self._open
-        if segment is not None and segment[3] - segment[2] >= MIN_STILL_S:
+        if segment is not None and (not self.clock or segment[3] - segment[2] >= MIN_STILL_S):
             count = segment[1]
             current = [*(value / count for value in segment[0]), count, segment[3] - segment[2]]
             rows = np.vstack([rows, current])
