@@ -90,6 +90,41 @@ def test_a_log_without_time_aligns_whatever_rate_is_guessed(shared_data, capsys,
     assert alignment['dip_std_deg'] < alignment['dip_std_before_deg']
 
 
+@pytest.mark.parametrize('name', ['icm_20948_get_cal_data_OUTPUT', 'example_Arduino_output.txt'])
+@pytest.mark.parametrize('rate', [None, 1.0, 100.0])
+def test_public_hand_taken_logs_name_their_remap_at_any_rate(public_recording, capsys, name,
+                                                              rate):
+    """ICM-20948 and LSM9DS1 logs of jremington's AHRS projects (accelerometer, then
+    magnetometer, no time): their magnetometers' (x, -y, -z) axes are named, whatever --rate."""
+    rate_option = [] if rate is None else ['--rate', str(rate)]
+    status, out, _ = run([public_recording(name), '--accel-columns', '0,1,2', '--json',
+                          *rate_option], capsys)
+    alignment = json.loads(out)['alignment']
+    assert status == 0
+    assert alignment['remap'] == '(x, -y, -z)', alignment['reason']
+    assert alignment['static_samples'] >= 100 and not alignment['applied']
+    assert alignment['dip_std_deg'] < 3.0 < alignment['dip_std_before_deg']
+
+
+@pytest.mark.parametrize('rate', [None, 1.0, 100.0])
+def test_a_fast_log_without_time_aligns_from_its_holds(tmp_path, capsys, rate):
+    """The simulated 100 Hz log with its time column dropped: no --rate, or any, aligns it."""
+    timed = tmp_path / 'timed.csv'
+    board = simulated_log(timed, mag_misalignment_deg=(1.8, -1.9, 1.4))
+    untimed = tmp_path / 'untimed.csv'
+    untimed.write_text(''.join(line.split(',', 1)[1] + '\n'
+                               for line in timed.read_text().splitlines()))
+    rate_option = [] if rate is None else ['--rate', str(rate)]
+    status, out, _ = run([untimed, '--accel-columns', 'ax,ay,az', '--units', 'uT', '--json',
+                          '--all', *rate_option], capsys)
+    summary = json.loads(out)
+    assert status == 0, summary['reason']
+    assert not summary['time']['stamped']
+    rotation = np.reshape(summary['alignment']['rotation'], (3, 3))
+    assert summary['alignment']['applied'], summary['alignment']['reason']
+    assert rotation_angle_deg(rotation @ board.mag_misalignment.T) < 0.2
+
+
 def test_rate_is_refused_for_a_log_with_its_own_clock(misaligned_log, capsys):
     path, _ = misaligned_log
     status, _, err = run([path, '--accel-columns', 'ax,ay,az', '--rate', '50'], capsys)

@@ -708,6 +708,8 @@ def _explicit_layout(spec: str, lines: list[str], source: str) -> TextLayout:
         candidates = [[token.lower() for token in _split(line)]]
         candidates += [[cell.strip().strip('"\'').lower() for cell in line.split(delimiter)]
                        for delimiter in (',', '\t', ';') if delimiter in line]
+        if found is not None:  # names that align with the data fields first ('Time (s),ax')
+            candidates.sort(key=lambda tokens: len(tokens) != found[0])
         for tokens in candidates:
             if all(name in tokens for name in columns):
                 indices = tuple(tokens.index(str(name)) for name in columns)
