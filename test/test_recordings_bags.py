@@ -79,6 +79,7 @@ def small_bag(tmp_path: Path, imu_offset_ns: int = 3_000_000, zero_mag_stamps: b
         message = magnetic_field(row, 0 if zero_mag_stamps else stamp)
         messages.append(('/imu/mag', MAGNETIC_FIELD, message, stamp))
     messages.sort(key=lambda message: message[3])
+    tmp_path.mkdir(exist_ok=True)
     return write_ros1(tmp_path / 'small.bag', messages)
 
 
@@ -101,6 +102,11 @@ def test_an_imu_beyond_the_pairing_tolerance_pairs_nothing(tmp_path):
                                accel_topic='/imu/data_raw')
     assert np.isnan(recording.accel[:20]).all()  # the Imu starts 0.5 s late
     assert np.isfinite(recording.accel[30:]).all()
+    elsewhere = read_recording(small_bag(tmp_path / 'x', imu_offset_ns=60 * 10**9),
+                               accel_topic='/imu/data_raw')
+    assert np.isnan(elsewhere.accel).all()
+    assert 'none, so nothing aligns (do /imu/mag and /imu/data_raw stamp by different clocks' \
+        in elsewhere.notes[0]
 
 
 def test_a_header_without_a_stamp_takes_the_bags_receive_time(tmp_path):

@@ -1138,7 +1138,10 @@ def read_rosbag(
         accel, gyro, paired = pair_by_stamp(table[:, 0], imu_rows.result())
         layout += f'; accelerometer topic {imu_topic}'
         notes = (f'{paired} of {len(table)} readings paired with a {imu_topic} sample within '
-                 f'{PAIR_TOLERANCE_NS / 1e6:g} ms of their stamps',)
+                 f'{PAIR_TOLERANCE_NS / 1e6:g} ms of their stamps'
+                 + ('' if paired or not len(table) else
+                    f': none, so nothing aligns (do {chosen} and {imu_topic} stamp by different '
+                    'clocks, or was the Imu recorded at another time?)'),)
     return Recording(table[:, 1:].copy(), str(path), 'ROS 1 bag' if ros1 else 'rosbag2', layout,
                      dict(skipped), 'T', notes, accel=accel, gyro=gyro, stamps=table[:, 0].copy(),
                      time_source=f'header stamps of {chosen}')

@@ -114,10 +114,10 @@ class StaticAttitudes:
     from passing: in a fast log (consecutive readings agree even in motion, so the median
     stretch has two readings or more), or when at least MIN_ATTITUDES stretches last
     HELD_FACTOR times the median, only those long stretches are attitudes; in a slow log
-    (each reading its own stretch) every stretch is. A slow log moved fast cannot be told
-    from one moved slowly: the screens below are then its only guard. ``estimate_alignment`` screens
-    them (|a| near g, a clean field, robust to a few taken in motion), so no guessed rate can
-    make or break it.
+    (each reading its own stretch) every stretch is. ``estimate_alignment`` screens them (|a|
+    near g, a clean field, robust to a few taken in motion), so no guessed rate can make or
+    break it; a slow log moved fast cannot be told from one moved slowly, and those screens
+    are then its only guard.
     """
 
     def __init__(self, capacity: int = ATTITUDE_CAPACITY, clock: bool = True) -> None:
