@@ -138,6 +138,13 @@ def test_ros1_bag_options_that_do_not_fit_say_so(tmp_path, options, message):
     assert message in str(error.value)
 
 
+def test_accel_on_a_text_log_points_to_accel_columns(tmp_path):
+    log = tmp_path / 'log.csv'
+    log.write_text('1,2,3\n' * 20)
+    with pytest.raises(RecordingError, match='not to a text file .a text log: --accel-columns.'):
+        read_recording(log, accel_topic='')
+
+
 def test_a_ros1_bag_under_another_name_is_still_a_bag(tmp_path):
     bag = small_bag(tmp_path)
     renamed = bag.rename(tmp_path / 'recording.log')

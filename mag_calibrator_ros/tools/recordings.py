@@ -203,8 +203,9 @@ def read_recording(
         else:
             if topic is not None or accel_topic is not None:
                 option = '--topic' if topic is not None else '--accel'
+                hint = ' (a text log: --accel-columns)' if topic is None else ''
                 raise RecordingError(f'{path}: {option} applies to rosbag2 or ROS 1 bags (a bag '
-                                     'directory, .db3, .mcap or .bag), not to a text file')
+                                     f'directory, .db3, .mcap or .bag), not to a text file{hint}')
             recording = read_text_file(path, columns=columns, progress=progress)
     if recording.rows < max(min_rows, 1):
         found = 'no usable rows' if recording.rows == 0 else f'only {recording.rows} usable rows'
