@@ -2,6 +2,7 @@
 #   make demo   - set up and run the live demo on a simulated ICM-20948
 #   make test   - set up and run lint + all tests
 #   make bench  - set up and run the benchmarks (not part of the tests)
+#   make fetch-recordings - the public recordings some tests use, outside the repository
 
 SHELL := /bin/bash
 VENV ?= .venv
@@ -9,7 +10,8 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 SHARED_DATA ?= ../shared/data
 
-.PHONY: setup demo test lint bench bench-engine bench-replay bench-node colcon-build clean
+.PHONY: setup demo test lint bench bench-engine bench-replay bench-node bench-recordings \
+	fetch-recordings colcon-build clean
 
 setup: $(STAMP)
 
@@ -39,6 +41,12 @@ bench-replay: setup
 
 bench-node: setup
 	$(PY) benchmarks/bench_node.py
+
+fetch-recordings: setup
+	$(PY) scripts/fetch_public_recordings.py
+
+bench-recordings: fetch-recordings
+	$(PY) benchmarks/bench_recordings.py --data $(SHARED_DATA)
 
 colcon-build: setup
 	source $(VENV)/bin/activate && colcon build --base-paths . --build-base build --install-base install

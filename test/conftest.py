@@ -57,3 +57,26 @@ def ros():
     ros = Ros()
     yield ros
     ros.close()
+
+
+PUBLIC_RECORDINGS = Path(os.environ.get(
+    'MAG_PUBLIC_RECORDINGS', Path('~/.cache/mag_calibrator_ros/recordings').expanduser()))
+"""Public recordings kept outside the repository (test/data/public_recordings.json lists them;
+scripts/fetch_public_recordings.py downloads them here)."""
+TEST_DATA = REPO_ROOT / 'test' / 'data'
+"""Small real recordings committed with their provenance and licence (CI reads these)."""
+
+
+@pytest.fixture(scope='session')
+def public_recording():
+    """``public_recording(name)``: the path of a fetched public recording, or a skip that says
+    how to get it."""
+
+    def find(name: str) -> Path:
+        path = PUBLIC_RECORDINGS / name
+        if not path.is_file():
+            pytest.skip(f'{name} not in {PUBLIC_RECORDINGS}: run python '
+                        'scripts/fetch_public_recordings.py (or set MAG_PUBLIC_RECORDINGS)')
+        return path
+
+    return find

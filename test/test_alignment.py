@@ -297,3 +297,70 @@ def test_the_same_pose_held_twice_is_merged_and_a_full_store_stays_spread():
     closest = min(np.degrees(np.arccos(np.clip(a @ b, -1, 1)))
                   for i, a in enumerate(gravity) for b in gravity[i + 1:])
     assert closest > 10.0  # the kept poses are spread, not the first eight
+
+
+# -- without a clock (a log without time stamps) --------------------------------------------------
+
+
+def test_without_a_clock_the_rows_decide_not_a_guessed_rate():
+    """A slow log: every row is an attitude whatever time it is said to have been taken at."""
+    rows = attitudes(np.eye(3), 10)
+    snapshots = []
+    for rate in (1.0, 3.0, 100.0, 1e4):
+        collected = StaticAttitudes(clock=False)
+        for k, row in enumerate(rows):
+            collected.add(k / rate, row[:3], row[3:6])
+        collected.finish()
+        snapshots.append(collected.snapshot())
+    assert len(snapshots[0]) == 10
+    for snapshot in snapshots[1:]:
+        np.testing.assert_array_equal(snapshot, snapshots[0])
+
+
+def clockless(trajectory_kind: str, rate_hz: float, seconds: float = 40.0):
+    """The simulated board's stream without its times or gyroscope (a log of six columns)."""
+    board = BoardModel(SimConfig(mag_misalignment_deg=(1.8, -1.9, 1.4),
+                                 hard_iron_ut=tuple(HARD_IRON),
+                                 soft_iron=tuple(SOFT_IRON.reshape(9)), noise_ut=0.3,
+                                 motion=trajectory_kind, seed=0))
+    collected = StaticAttitudes(clock=False)
+    collected.field_scale = 50.0 / np.linalg.det(EXACT.matrix) ** (1 / 3)
+    for k in range(int(seconds * rate_hz)):
+        field, _ = board.magnetometer(k / rate_hz)
+        accel, _, _ = board.inertial(k / rate_hz, 57.0, 57.0)
+        collected.add(0.0, field, accel)
+    collected.finish()
+    return collected, board
+
+
+@pytest.mark.parametrize('rate_hz', [100.0, 25.0])
+def test_without_a_clock_a_fast_log_uses_its_holds_not_its_turns(rate_hz):
+    collected, board = clockless('poses', rate_hz)
+    rows = collected.snapshot()
+    assert 19 <= len(rows) <= 24  # the holds (a pose every 2 s), not the hundreds of turns
+    assert collected.stretches > 10 * len(rows)
+    alignment = estimate_alignment(rows, EXACT)
+    assert alignment.success, alignment.reason
+    assert rotation_angle_deg(alignment.rotation @ board.mag_misalignment.T) < 0.15
+
+
+def test_without_a_clock_a_tumble_is_refused_not_aligned_wrong():
+    collected, _ = clockless('tumble', 100.0, seconds=20.0)
+    alignment = estimate_alignment(collected.snapshot(), EXACT)
+    assert not alignment.success
+    assert 'too few static attitudes' in alignment.reason
+
+
+def test_without_a_clock_a_full_store_keeps_its_holds():
+    collected = StaticAttitudes(capacity=4, clock=False)
+    collected.field_scale = 50.0
+    rows = attitudes(np.eye(3), 12, noise=0.0, accel_noise=0.0, seed=5)
+    for row in rows[:4]:  # four holds of 50 readings ...
+        for _ in range(50):
+            collected.add(0.0, row[:3], row[3:6])
+        collected.add(0.0, [math.nan] * 3, row[3:6])
+    for row in rows[4:]:  # ... then eight poses passed through
+        collected.add(0.0, row[:3], row[3:6])
+        collected.add(0.0, [math.nan] * 3, row[3:6])
+    collected.finish()
+    assert sorted(collected.snapshot()[:, 7]) == [50, 50, 50, 50]

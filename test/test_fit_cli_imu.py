@@ -70,12 +70,66 @@ def test_the_real_log_is_aligned_to_its_accelerometer(shared_data, capsys, tmp_p
     assert saved.metadata['static_samples'] == alignment['static_samples']
 
 
-def test_without_the_rate_a_fast_log_is_never_still_and_says_why(shared_data, capsys):
+@pytest.mark.parametrize('rate', [None, 1.0, 3.0, 10.0, 100.0])
+def test_a_log_without_time_aligns_whatever_rate_is_guessed(shared_data, capsys, rate):
+    """No time column: still readings are found without a clock, so the alignment is the same
+    with no --rate and with any --rate from 1 to 100 (at 10 and 100 Hz it used to find no still
+    attitude at all and refuse)."""
     log = shared_data / 'lsm303dlhc-altimu10v3' / 'cal_output_2.log'
-    status, out, _ = run([log, '--accel-columns', '0,1,2'], capsys)
-    assert status == 0  # the magnetometer calibration itself is fine
-    assert 'alignment not determined: too few static attitudes' in out
-    assert 'needs its real rate' in out
+    rate_option = [] if rate is None else ['--rate', str(rate)]
+    status, out, _ = run([log, '--accel-columns', '0,1,2', '--all', '--json', *rate_option],
+                         capsys)
+    summary = json.loads(out)
+    assert status == 0, summary['reason']
+    assert summary['time']['stamped'] is False
+    assert 'still readings found without a clock' in summary['time']['source']
+    alignment = summary['alignment']
+    assert alignment['applied'], alignment['reason']
+    assert alignment['static_samples'] >= 100
+    assert 0.3 < alignment['angle_deg'] < 2.0
+    assert alignment['dip_std_deg'] < alignment['dip_std_before_deg']
+
+
+@pytest.mark.parametrize('name', ['icm_20948_get_cal_data_OUTPUT', 'example_Arduino_output.txt'])
+@pytest.mark.parametrize('rate', [None, 1.0, 100.0])
+def test_public_hand_taken_logs_name_their_remap_at_any_rate(public_recording, capsys, name,
+                                                              rate):
+    """ICM-20948 and LSM9DS1 logs of jremington's AHRS projects (accelerometer, then
+    magnetometer, no time): their magnetometers' (x, -y, -z) axes are named, whatever --rate."""
+    rate_option = [] if rate is None else ['--rate', str(rate)]
+    status, out, _ = run([public_recording(name), '--accel-columns', '0,1,2', '--json',
+                          *rate_option], capsys)
+    alignment = json.loads(out)['alignment']
+    assert status == 0
+    assert alignment['remap'] == '(x, -y, -z)', alignment['reason']
+    assert alignment['static_samples'] >= 100 and not alignment['applied']
+    assert alignment['dip_std_deg'] < 3.0 < alignment['dip_std_before_deg']
+
+
+@pytest.mark.parametrize('rate', [None, 1.0, 100.0])
+def test_a_fast_log_without_time_aligns_from_its_holds(tmp_path, capsys, rate):
+    """The simulated 100 Hz log with its time column dropped: no --rate, or any, aligns it."""
+    timed = tmp_path / 'timed.csv'
+    board = simulated_log(timed, mag_misalignment_deg=(1.8, -1.9, 1.4))
+    untimed = tmp_path / 'untimed.csv'
+    untimed.write_text(''.join(line.split(',', 1)[1] + '\n'
+                               for line in timed.read_text().splitlines()))
+    rate_option = [] if rate is None else ['--rate', str(rate)]
+    status, out, _ = run([untimed, '--accel-columns', 'ax,ay,az', '--units', 'uT', '--json',
+                          '--all', *rate_option], capsys)
+    summary = json.loads(out)
+    assert status == 0, summary['reason']
+    assert not summary['time']['stamped']
+    rotation = np.reshape(summary['alignment']['rotation'], (3, 3))
+    assert summary['alignment']['applied'], summary['alignment']['reason']
+    assert rotation_angle_deg(rotation @ board.mag_misalignment.T) < 0.2
+
+
+def test_rate_is_refused_for_a_log_with_its_own_clock(misaligned_log, capsys):
+    path, _ = misaligned_log
+    status, _, err = run([path, '--accel-columns', 'ax,ay,az', '--rate', '50'], capsys)
+    assert status == 2
+    assert '--rate is for logs without time stamps' in err and "column 't' (field 0)" in err
 
 
 @pytest.mark.parametrize('mode', [[], ['--all']])

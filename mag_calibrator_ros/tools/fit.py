@@ -10,9 +10,16 @@ units; ``--output`` writes it in tesla, the node's unit, so it needs the recordi
 the tesla per count of raw counts (``--scale``, which converts the samples to tesla as they are
 read).
 
-With ``--accel-columns`` (a text log with the accelerometer on each line) the calibration is
-aligned to the accelerometer from the readings held still, as the node does with imu/data_raw;
-with ``--latitude``/``--longitude`` it is checked against the World Magnetic Model there.
+With ``--accel-columns`` (a text log with the accelerometer on each line) or ``--accel`` (a
+bag's Imu topic, paired by stamp) the calibration is aligned to the accelerometer from the
+readings held still, as the node does with imu/data_raw; with ``--latitude``/``--longitude`` it
+is checked against the World Magnetic Model there.
+
+Time: a bag's header stamps or a log's time column time the live session and tell still
+readings; the summary says which. A log without time has no rate anyone knows: its rows are
+replayed ``--rate`` apart (default 100 Hz) for the session's timing only, and its still
+readings are found without a clock (``StaticAttitudes(clock=False)``), so no ``--rate`` makes or
+breaks its alignment.
 
 Exit codes: 0 calibrated; 1 the fit failed a quality gate (the best-effort numbers are printed,
 marked NOT passing, and no calibration file is written: a robot must never load a calibration
@@ -24,7 +31,7 @@ from __future__ import annotations
 import argparse
 from collections import Counter
 from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 import json
 import math
 import os
@@ -171,9 +178,11 @@ def build_parser() -> argparse.ArgumentParser:
                           help='|corrected| = F in input units (default: the fitted mean radius)')
     strength.add_argument('--normalise', '--normalize', action='store_true',
                           help='F = 1 (unit-length corrected field, as mag-calibrator-rs)')
-    parser.add_argument('--rate', type=float, metavar='HZ', default=DEFAULT_RATE_HZ,
-                        help='sample rate of the recording: the live session times its fits by '
-                        f'message stamps, replayed here at HZ (default {DEFAULT_RATE_HZ:g})')
+    parser.add_argument('--rate', type=float, metavar='HZ', default=None,
+                        help='a text log without a time column: the rate its rows are replayed '
+                        'at for the live session, which times its fits by message stamps '
+                        f'(default {DEFAULT_RATE_HZ:g}); a bag or a log with a time column '
+                        'has its own clock')
     parser.add_argument('--full-scale', type=float, metavar='V', default=None,
                         help='refuse readings with a component at or beyond V (saturated), in '
                         'input units (default: no check)')
@@ -190,7 +199,8 @@ def build_parser() -> argparse.ArgumentParser:
                         'for "Mx 144 My -270 Mz 415") or three header names (mx,my,mz); '
                         'default: detected')
     parser.add_argument('--topic', default=None,
-                        help='rosbag2 input: the MagneticField topic (default: the only one)')
+                        help='bag input (rosbag2 or ROS 1 .bag): the MagneticField topic '
+                        '(default: the only one)')
     parser.add_argument('--units', default=None,
                         help="the input's unit: uT, nT, G, mG or T (also µT, mT, gauss); "
                         '--output is converted from it to tesla. Any other word only labels '
@@ -209,9 +219,13 @@ def build_parser() -> argparse.ArgumentParser:
                         'the format follows the suffix, .png added when there is none')
     imu = parser.add_argument_group(
         "gravity and the Earth's field",
-        'Align the calibration to an accelerometer logged on the same lines (readings held '
-        'still for 0.2 s, judged by --rate; a slow log without time stamps needs its real '
-        '--rate) and check it against the World Magnetic Model at a location.')
+        "Align the calibration to an accelerometer (a bag's Imu topic, or logged on the same "
+        'lines of a text log) from the readings held still, and check it against the World '
+        'Magnetic Model at a location. Still readings are judged by the time stamps when '
+        'there are any, else without a clock (consecutive rows that agree).')
+    imu.add_argument('--accel', metavar='TOPIC', nargs='?', const='', default=None,
+                     help='bag input: pair each reading with the sensor_msgs/Imu sample nearest '
+                     'its stamp on TOPIC (default: the only Imu topic)')
     imu.add_argument('--accel-columns', metavar='COLS', default=None,
                      help="text input: the accelerometer's three zero-based field indices "
                      '(e.g. 0,1,2) or header names (ax,ay,az); the magnetometer is then '
@@ -275,15 +289,18 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
 
     earth = location(args)  # usage errors before reading anything
     if args.accel_columns is not None:
-        if args.topic is not None:
-            raise UsageError('--accel-columns applies to text input, not to a rosbag2 bag')
+        if args.topic is not None or args.accel is not None:
+            raise UsageError('--accel-columns applies to text input, not to a bag (use --accel '
+                             'for its Imu topic)')
         recording = read_paired_recording(args.input, accel_columns=args.accel_columns,
                                           columns=args.columns, min_rows=options.min_samples,
                                           progress=progress.reading)
     else:
         recording = read_recording(args.input, columns=args.columns, topic=args.topic,
-                                   min_rows=options.min_samples, progress=progress.reading)
+                                   accel_topic=args.accel, min_rows=options.min_samples,
+                                   progress=progress.reading)
     progress.finish()
+    clock = Clock.of(recording, args.rate)
     units = input_units(args, recording)
     if args.scale is not None:
         recording = scaled_recording(recording, args.scale)
@@ -304,9 +321,12 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     session = None
     if settings is not None:
         session = CalibrationSession(settings, metadata=metadata)
-        session.pairing.force_range = None  # a log's accelerometer may be in g or counts
+        if recording.kind == 'text':
+            session.pairing.force_range = None  # a log's accelerometer may be in g or counts
+        session.attitudes = StaticAttitudes(clock=clock.stamped)
         session.set_earth_field(earth)
-        stream(session, recording.samples, args.rate, progress, recording.accel)
+        stream(session, recording.samples, clock.stamps_ns, progress, recording.accel,
+               recording.gyro)
         session.attitudes.finish()  # the recording ends: its last still stretch too
         attempt = session.calibrate_now()
         if attempt.outcome is None or attempt.outcome.result is None:
@@ -318,8 +338,8 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
         fitted, screening, kept = screen_all(recording.samples, args.full_scale)
         attitudes = ups = None
         if recording.accel is not None:
-            attitudes = still_attitudes(recording.samples, recording.accel, args.rate,
-                                        args.full_scale)
+            attitudes = still_attitudes(recording.samples, recording.accel, clock,
+                                        args.full_scale, recording.gyro)
             ups = gravity_directions(recording.accel[kept])
         if earth is not None and args.field_strength is None and not args.normalise:
             intensity = earth.intensity_in(units)
@@ -343,7 +363,7 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
 
     summary = build_summary(args, recording, units, result, calibration, session, screening,
                             written, plotted)
-    add_reference(summary, outcome, earth, args.rate)
+    add_reference(summary, outcome, earth, clock)
     status = EXIT_CALIBRATED if result.success else EXIT_FAILED_GATES
     try:
         if args.json:
@@ -471,18 +491,54 @@ def alignment_settings(args: argparse.Namespace) -> SessionSettings:
     return settings
 
 
-def still_attitudes(samples: np.ndarray, accel: np.ndarray, rate_hz: float,
-                    full_scale: float | None) -> np.ndarray:
-    """--all: the rows' still stretches (StaticAttitudes), rows at ``rate_hz``; rows the fit
-    refuses (non-finite, zero, saturated) end a stretch."""
-    attitudes = StaticAttitudes()
+@dataclass(frozen=True)
+class Clock:
+    """When each row was taken: a bag's or a time column's stamps (``stamped``), or, for a log
+    without time, rows replayed ``rate_hz`` apart for the live session's timing only."""
+
+    stamps_ns: np.ndarray
+    stamped: bool
+    rate_hz: float
+    source: str
+
+    @classmethod
+    def of(cls, recording: Recording, rate: float | None) -> Clock:
+        """The recording's own clock; --rate only for a log without one (refused otherwise:
+        two clocks would disagree)."""
+        if recording.stamps is not None:
+            if rate is not None:
+                raise UsageError(f'--rate is for logs without time stamps; {recording.source} '
+                                 f'has its own ({recording.time_source}): drop --rate')
+            seconds = recording.stamps - (recording.stamps[0] if len(recording.stamps) else 0)
+            steps = np.diff(seconds)
+            steps = steps[steps > 0]
+            measured = 1.0 / float(np.median(steps)) if len(steps) else math.nan
+            return cls(np.round(seconds * 1e9).astype(np.int64), True, measured,
+                       str(recording.time_source))
+        rate_hz = DEFAULT_RATE_HZ if rate is None else rate
+        if not (math.isfinite(rate_hz) and rate_hz > 0.0):
+            raise UsageError(f'--rate must be a positive number of Hz, got {rate_hz}')
+        stamps = np.round(np.arange(recording.rows) * (1e9 / rate_hz)).astype(np.int64)
+        given = '--rate' if rate is not None else 'the default; --rate sets it'
+        return cls(stamps, False, rate_hz, f'none in the log: rows replayed {rate_hz:g} Hz apart '
+                   f'({given}) for the live session; still readings found without a clock')
+
+
+def still_attitudes(samples: np.ndarray, accel: np.ndarray, clock: Clock,
+                    full_scale: float | None, gyro: np.ndarray | None = None) -> np.ndarray:
+    """--all: the rows' still stretches (StaticAttitudes, without a clock when the recording
+    has none); rows the fit refuses (non-finite, zero, saturated) end a stretch."""
+    attitudes = StaticAttitudes(clock=clock.stamped)
     span = np.ptp(samples, axis=0)
     attitudes.field_scale = float(np.mean(span)) / 2.0 or None
-    for index, (field, force) in enumerate(zip(samples.tolist(), accel.tolist(), strict=True)):
+    times = (clock.stamps_ns * 1e-9).tolist()
+    rates = [None] * len(samples) if gyro is None else gyro.tolist()
+    for time_s, field, force, rate in zip(times, samples.tolist(), accel.tolist(), rates,
+                                          strict=True):
         if reading_problem(*field, full_scale) is None:
-            attitudes.add(index / rate_hz, field, force)
+            attitudes.add(time_s, field, force, rate)
         else:
-            attitudes.add(index / rate_hz, (math.nan,) * 3, force)
+            attitudes.add(time_s, (math.nan,) * 3, force, rate)
     attitudes.finish()
     return attitudes.snapshot()
 
@@ -496,7 +552,7 @@ def session_settings(args: argparse.Namespace, options: FitOptions) -> SessionSe
     if not 1 <= k < capacity:
         raise UsageError(f'--k must be between 1 and the buffer size - 1 ({capacity - 1}), '
                          f'got {k}')
-    if not (math.isfinite(args.rate) and args.rate > 0.0):
+    if args.rate is not None and not (math.isfinite(args.rate) and args.rate > 0.0):
         raise UsageError(f'--rate must be a positive number of Hz, got {args.rate}')
     return replace(
         alignment_settings(args), buffer_size=capacity, k=k, model=options.model,
@@ -516,18 +572,25 @@ def input_units(args: argparse.Namespace, recording: Recording) -> str:
     return args.units if args.units is not None else 'input'
 
 
-def stream(session: CalibrationSession, samples: np.ndarray, rate_hz: float,
-           progress: ProgressBar, accel: np.ndarray | None = None) -> None:
-    """Offer every sample in order, stamped at ``rate_hz``, as the node receives messages
-    (with its accelerometer row first, as imu/data_raw, when given)."""
+def stream(session: CalibrationSession, samples: np.ndarray, stamps_ns: np.ndarray,
+           progress: ProgressBar, accel: np.ndarray | None = None,
+           gyro: np.ndarray | None = None) -> None:
+    """Offer every sample in order with its stamp, as the node receives messages (with its
+    accelerometer row first, as imu/data_raw, when given)."""
     total = len(samples)
-    step_ns = 1e9 / rate_hz
     for start in range(0, total, PROGRESS_CHUNK):
-        chunk = slice(start, start + PROGRESS_CHUNK)
-        session.feed(samples[chunk], rate_hz, round(start * step_ns),
-                     accel=None if accel is None else accel[chunk])
+        end = min(start + PROGRESS_CHUNK, total)
+        rows = samples[start:end].tolist()
+        stamps = stamps_ns[start:end].tolist()
+        forces = None if accel is None else accel[start:end].tolist()
+        rates = None if gyro is None else gyro[start:end].tolist()
+        for index, (stamp, row) in enumerate(zip(stamps, rows, strict=True)):
+            if forces is not None:
+                session.process_imu(stamp, '', forces[index],
+                                    None if rates is None else rates[index])
+            session.process(stamp, '', row)
         session.take_events()
-        progress.fitting(min(start + PROGRESS_CHUNK, total), total)
+        progress.fitting(end, total)
 
 
 SCREEN_BLOCK = 1 << 16
@@ -651,12 +714,14 @@ def build_summary(
 
 
 def add_reference(summary: dict[str, Any], outcome: JobOutcome,
-                  earth: EarthField | None, rate_hz: float) -> None:
+                  earth: EarthField | None, clock: Clock) -> None:
     """The --json 'alignment' and 'earth_field' objects (when an accelerometer / a location
-    was given) and the calibration's rotation."""
+    was given), the calibration's rotation and the recording's clock ('time', 'rate_hz': the
+    stamps' median rate, or the replay rate of a log without time)."""
     calibration = outcome.result.calibration if outcome.result is not None else None
     summary['rotation'] = None if calibration is None else _floats(calibration.rotation.reshape(9))
-    summary['rate_hz'] = float(rate_hz)
+    summary['rate_hz'] = _finite(float(clock.rate_hz))
+    summary['time'] = {'stamped': clock.stamped, 'source': clock.source}
     if outcome.alignment is not None:
         summary['alignment'] = _finite(outcome.alignment.as_dict())
     if outcome.earth_check is not None:
@@ -684,6 +749,8 @@ def human_summary(summary: dict[str, Any]) -> str:
     skipped = describe_skips(source['skipped']) if source['skipped'] else 'none'
     lines.append(f'          skipped: {skipped}')
     lines.extend(f'          note: {note}' for note in source['notes'])
+    if 'time' in summary:
+        lines.append(f"time      {summary['time']['source']}")
     if summary['mode'] == 'buffer':
         info = summary['buffer']
         fits = ', '.join(f'{count} {kind}' for kind, count in info['fits'].items()) or 'none'
@@ -739,8 +806,6 @@ def reference_lines(summary: dict[str, Any]) -> list[str]:
     if alignment is not None:
         if alignment['dip_deg'] is None:
             lines.append(f"alignment not determined: {alignment['reason']}")
-            lines.append(f"          (rows are taken {summary['rate_hz']:g} Hz apart (--rate): a "
-                         'log without time stamps needs its real rate to tell still rows)')
         else:
             verdict = 'applied' if alignment['applied'] else f"NOT applied: {alignment['reason']}"
             lines.append(f"alignment rotation {alignment['angle_deg']:.2f} deg to the "

@@ -20,9 +20,17 @@ in tesla. Lines are converted a block at a time (numpy for plain numbers) into o
 float array, so memory holds the samples (8 bytes a value), not the text; a line longer than
 ``MAX_LINE_CHARS`` (binary data, a NUL tail) is refused.
 
-rosbag2 (a bag directory, or a single ``.db3`` / ``.mcap`` file): the
-``sensor_msgs/msg/MagneticField`` topic named by ``topic``, or the only such topic in the bag.
-Values are tesla (REP-103).
+Bags: rosbag2 (a bag directory, or a single ``.db3`` / ``.mcap`` file) and ROS 1 (a ``.bag``
+file, as most IMU drivers, filters and public robot datasets ship their data): the
+``sensor_msgs/MagneticField`` topic named by ``topic``, or the only such topic in the bag, each
+message with its header stamp; optionally an Imu topic paired with it by stamp. Values are
+tesla (REP-103).
+
+Time: a text log whose header names a time column (``Time (s)``, ``time``, ``t``, ``stamp``,
+``timestamp``, ``millis`` ...) is stamped by it, in the unit its header gives or, without one,
+the unit its values show (seconds or milliseconds, :func:`time_unit`); ``Recording.time_source``
+says which column and unit were taken. A log without one has ``stamps`` None: its rate is
+unknown, and nothing that reads it may depend on a guessed one.
 
 Nothing is dropped silently: every skipped line or message is counted by reason in
 ``Recording.skipped`` (NaN/Inf, values beyond ``screening.MAX_READING``, ...). Problems a user
@@ -34,7 +42,7 @@ from __future__ import annotations
 from array import array
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import itertools
 import math
 from pathlib import Path
@@ -46,10 +54,14 @@ import warnings
 import numpy as np
 
 from mag_calibrator_ros.calibration.fit.earth_field import TESLA_PER_UNIT
+from mag_calibrator_ros.calibration.live.pairing import PAIR_TOLERANCE_NS
 from mag_calibrator_ros.calibration.live.screening import MAX_READING
 
 MAGNETIC_FIELD = 'sensor_msgs/msg/MagneticField'
+IMU = 'sensor_msgs/msg/Imu'
 BAG_SUFFIXES = ('.db3', '.mcap')
+ROS1_SUFFIX = '.bag'
+ROS1_MAGIC = b'#ROSBAG V2.0'
 BINARY_CONTROL_FRACTION = 0.1
 """Share of control bytes in the first 4 KiB that marks a binary file (serial noise has fewer)."""
 STDIN = '-'
@@ -79,6 +91,7 @@ SKIP_REASONS = {
     'out_of_range': f'beyond ±{MAX_READING:.0e} (no magnetometer reads that in any unit)',
     'undecodable': 'undecodable message',
     'incomplete': 'message without magnetic_field x, y, z',
+    'bad_time': 'time column not a finite number',
 }
 """Why a line or message was skipped: key -> words for the summary."""
 
@@ -97,7 +110,7 @@ class Recording:
     samples: np.ndarray
     source: str
     kind: str
-    """'text' or 'rosbag2'."""
+    """'text', 'rosbag2' or 'ROS 1 bag'."""
     layout: str
     """Which fields or topic the samples came from, e.g. 'fields 1,3,5' or 'topic /imu/mag'."""
     skipped: dict[str, int] = field(default_factory=dict)
@@ -106,7 +119,15 @@ class Recording:
     notes: tuple[str, ...] = ()
     """Things the user should know, e.g. that more numeric fields were present than used."""
     accel: np.ndarray | None = None
-    """(n, 3) accelerometer rows beside ``samples`` (``read_paired_recording``), else None."""
+    """(n, 3) accelerometer rows beside ``samples`` (``read_paired_recording``, or a bag's Imu
+    topic paired by stamp, NaN where no sample was near), else None."""
+    gyro: np.ndarray | None = None
+    """(n, 3) angular rates (rad/s) beside ``samples`` from a bag's Imu topic, else None."""
+    stamps: np.ndarray | None = None
+    """(n,) seconds of each row (a bag's header stamps, a log's time column); None when the
+    recording has no time."""
+    time_source: str | None = None
+    """Where ``stamps`` come from, for the user: 'column time (field 0), milliseconds ...'."""
 
     @property
     def rows(self) -> int:
@@ -155,31 +176,36 @@ def read_recording(
     *,
     columns: str | None = None,
     topic: str | None = None,
+    accel_topic: str | None = None,
     min_rows: int = 1,
     stdin: TextIO | None = None,
     progress: ProgressCallback | None = None,
 ) -> Recording:
     """Read any supported recording; ``'-'`` reads text from ``stdin`` (default ``sys.stdin``).
+    ``accel_topic``: a bag's Imu topic to pair by stamp (``''``: the only one).
 
     Raises ``RecordingError`` for missing or unreadable input, options that do not fit the input,
     no usable rows, or fewer than ``min_rows``.
     """
     if str(source) == STDIN:
-        if topic is not None:
-            raise RecordingError('--topic applies to rosbag2 input, not to text on stdin')
+        if topic is not None or accel_topic is not None:
+            raise RecordingError('--topic and --accel apply to a bag, not to text on stdin')
         recording = read_text(stdin if stdin is not None else sys.stdin, 'stdin',
                               columns=columns, progress=progress)
     else:
         path = Path(source)
         if is_rosbag(path):
             if columns is not None:
-                raise RecordingError(f'{path}: --columns applies to text input, not to a rosbag2 '
-                                     'bag (use --topic)')
-            recording = read_rosbag(path, topic=topic, progress=progress)
+                raise RecordingError(f'{path}: --columns applies to text input, not to a bag '
+                                     '(use --topic)')
+            recording = read_rosbag(path, topic=topic, accel_topic=accel_topic,
+                                    progress=progress)
         else:
-            if topic is not None:
-                raise RecordingError(f'{path}: --topic applies to rosbag2 input (a bag directory, '
-                                     '.db3 or .mcap), not to a text file')
+            if topic is not None or accel_topic is not None:
+                option = '--topic' if topic is not None else '--accel'
+                hint = ' (a text log: --accel-columns)' if topic is None else ''
+                raise RecordingError(f'{path}: {option} applies to rosbag2 or ROS 1 bags (a bag '
+                                     f'directory, .db3, .mcap or .bag), not to a text file{hint}')
             recording = read_text_file(path, columns=columns, progress=progress)
     if recording.rows < max(min_rows, 1):
         found = 'no usable rows' if recording.rows == 0 else f'only {recording.rows} usable rows'
@@ -190,10 +216,10 @@ def read_recording(
 
 
 def is_rosbag(path: Path) -> bool:
-    """A bag directory (has metadata.yaml) or a storage file named .db3 / .mcap."""
+    """A bag directory (has metadata.yaml), a storage file named .db3 / .mcap, or a ROS 1 bag."""
     if path.is_dir():
         return True  # read_rosbag explains when it is not a bag
-    return path.suffix.lower() in BAG_SUFFIXES
+    return path.suffix.lower() in BAG_SUFFIXES or is_ros1_bag(path)
 
 
 # --- text ------------------------------------------------------------------------------------
@@ -305,6 +331,13 @@ class TextLayout:
     numpy_fields: int | None = None
     units: str | None = None
     """The unit the header gives the chosen columns (``Magnetometer X (uT)``), else None."""
+    time_index: int | None = None
+    """The field of the time column a header names (:func:`time_column`), else None."""
+
+    @property
+    def fields(self) -> tuple[int, ...]:
+        """The fields read from each line: x, y, z, then the time when there is one."""
+        return self.indices if self.time_index is None else (*self.indices, self.time_index)
 
 
 def _split(line: str) -> list[str]:
@@ -676,6 +709,8 @@ def _explicit_layout(spec: str, lines: list[str], source: str) -> TextLayout:
         candidates = [[token.lower() for token in _split(line)]]
         candidates += [[cell.strip().strip('"\'').lower() for cell in line.split(delimiter)]
                        for delimiter in (',', '\t', ';') if delimiter in line]
+        if found is not None:  # names that align with the data fields first ('Time (s),ax')
+            candidates.sort(key=lambda tokens: len(tokens) != found[0])
         for tokens in candidates:
             if all(name in tokens for name in columns):
                 indices = tuple(tokens.index(str(name)) for name in columns)
@@ -708,17 +743,115 @@ def _read_lines(
         raise RecordingError(f'{source}: empty (no data lines)')
     else:
         layout = detect_layout(first, source)
-    samples, skipped = _parse(itertools.chain(first, lines), layout, progress, total)
-    return Recording(samples, source, 'text', layout.description, skipped, layout.units,
-                     (*notes, *layout.notes))
+    time = time_column(first, layout.indices)
+    if time is not None:
+        layout = replace(layout, time_index=time.index)
+    table, skipped = _parse(itertools.chain(first, lines), layout, progress, total)
+    stamps, time_source = _stamps(table, time)
+    return Recording(table[:, :3] if time is None else table[:, :3].copy(), source, 'text',
+                     layout.description, skipped, layout.units, (*notes, *layout.notes),
+                     stamps=stamps, time_source=time_source)
+
+
+@dataclass(frozen=True)
+class TimeColumn:
+    """A time column a header names: its field, its name and the unit its header gives."""
+
+    index: int
+    name: str
+    header_unit: str | None
+
+
+TIME_NAMES = frozenset({'time', 't', 'stamp', 'timestamp', 'time_stamp', 'ts', 'millis',
+                        'elapsed', 'elapsed_time', 'time_elapsed', 'seconds', 'secs',
+                        'header_stamp', 'field_header_stamp'})
+"""Header names of a time column (units in brackets or as a suffix _s, _ms, _us, _ns dropped;
+``%time`` of ``rostopic echo -p`` is 'time')."""
+TIME_UNITS = {'s': 1.0, 'sec': 1.0, 'secs': 1.0, 'seconds': 1.0, 'ms': 1e-3, 'msec': 1e-3,
+              'millis': 1e-3, 'milliseconds': 1e-3, 'us': 1e-6, '\u00b5s': 1e-6,
+              'microseconds': 1e-6, 'ns': 1e-9, 'nanoseconds': 1e-9}
+"""Seconds per unit of the time units a header may give."""
+_TIME_UNIT_WORDS = {1.0: 'seconds', 1e-3: 'milliseconds', 1e-6: 'microseconds',
+                    1e-9: 'nanoseconds'}
+
+
+def _time_name(cell: str) -> tuple[str, str | None]:
+    """(the name without units, the unit the cell gives or None): 'Time (ms)' -> ('time',
+    'ms'), 'time_ms' -> ('time', 'ms'), 'millis' -> ('millis', 'ms')."""
+    bracketed = _UNITS.findall(cell)
+    unit = bracketed[0][1:-1].strip().lower() if len(bracketed) == 1 else None
+    name = '_'.join(re.findall(r'[a-z0-9]+', _UNITS.sub(' ', cell).lower()))
+    base, _, suffix = name.rpartition('_')
+    if unit is None and base and suffix in TIME_UNITS and base in TIME_NAMES:
+        name, unit = base, suffix
+    if unit is None and name == 'millis':
+        unit = 'ms'
+    return name, unit
+
+
+def time_column(lines: list[str], taken: Sequence[int]) -> TimeColumn | None:
+    """The time column the header before the data names (one cell of TIME_NAMES, a number on
+    the data lines, not one of the ``taken`` fields); None when there is none or several."""
+    found = _data_pattern(lines)
+    if found is None:
+        return None
+    field_count, numeric, position = found
+    for line in reversed(lines[:position]):
+        if not line.strip():
+            continue
+        cells = _header_cells(line, field_count)
+        if cells is None:
+            return None
+        hits = []
+        for index, cell in enumerate(cells):
+            name, unit = _time_name(cell)
+            if name in TIME_NAMES and index in numeric and index not in taken:
+                hits.append(TimeColumn(index, cell.strip(), unit))
+        return hits[0] if len(hits) == 1 else None
+    return None
+
+
+def time_unit(values: np.ndarray, header_unit: str | None = None) -> tuple[float, str]:
+    """(seconds per unit, why) of a time column: the header's unit when it gives one; else
+    from the values: epoch-sized numbers by their size (s, ms, us, ns since 1970), and
+    elapsed time by its steps: integer steps of a millisecond or more are milliseconds (an
+    Arduino's millis()), as are steps of 5 or more (no log has 5 s between readings and calls
+    it a calibration); anything else is seconds."""
+    if header_unit is not None and header_unit in TIME_UNITS:
+        scale = TIME_UNITS[header_unit]
+        return scale, f'{_TIME_UNIT_WORDS[scale]} (from the header)'
+    finite = values[np.isfinite(values)]
+    if len(finite) < 2:
+        return 1.0, 'seconds (too few values to tell)'
+    size = float(np.median(np.abs(finite)))
+    for threshold, scale in ((1e17, 1e-9), (1e14, 1e-6), (1e11, 1e-3), (1e8, 1.0)):
+        if size >= threshold:
+            return scale, f'{_TIME_UNIT_WORDS[scale]} since 1970 (from their size)'
+    steps = np.diff(finite)
+    steps = steps[steps > 0]
+    step = float(np.median(steps)) if len(steps) else 0.0
+    integers = bool(np.all(finite == np.round(finite)))
+    if step >= 5.0 or (integers and step >= 1.0):
+        return 1e-3, f'milliseconds (from steps of {step:g}: a {1000.0 / step:.3g} Hz log)'
+    rate = f': a {1.0 / step:.3g} Hz log' if step > 0 else ''
+    return 1.0, f'seconds (from steps of {step:g}{rate})'
+
+
+def _stamps(table: np.ndarray, time: TimeColumn | None) -> tuple[np.ndarray | None, str | None]:
+    """Seconds of each row from the time column read as the table's last column."""
+    if time is None:
+        return None, None
+    scale, why = time_unit(table[:LAYOUT_SAMPLE_LINES, -1], time.header_unit)
+    return table[:, -1] * scale, f"column '{time.name}' (field {time.index}), {why}"
 
 
 def _parse(
     lines: Iterator[str], layout: TextLayout, progress: ProgressCallback | None, total: int | None,
 ) -> tuple[np.ndarray, dict[str, int]]:
     """Every line, a block at a time (_blocks): numpy reads a block of plain numeric lines at
-    once, any other block goes line by line (with the same result, see _parse_block)."""
-    rows = _GrowingRows(3)
+    once, any other block goes line by line (with the same result, see _parse_block). Rows:
+    x, y, z and the time when the layout has one."""
+    rows = _GrowingRows(len(layout.fields))
     skipped: Counter[str] = Counter()
     consumed = 0
     any_block = False
@@ -839,7 +972,7 @@ def _parse_block(
     layout's delimiter and field count is converted by numpy in one call; numpy refuses
     anything else (text, missing or extra fields, comments), and such a block is parsed line by
     line instead, so both give the same rows and the same counts."""
-    if layout.numpy_fields is not None and max(layout.indices) < layout.numpy_fields:
+    if layout.numpy_fields is not None and max(layout.fields) < layout.numpy_fields:
         try:
             with warnings.catch_warnings():  # a block of blank lines is no news
                 warnings.simplefilter('ignore', UserWarning)
@@ -848,26 +981,31 @@ def _parse_block(
         except ValueError:
             table = None
         if table is not None and table.shape[1] == layout.numpy_fields:
-            return _screen_rows(table[:, list(layout.indices)])
+            return _screen_rows(table[:, list(layout.fields)])
     return _parse_lines(block, layout, seen_rows)
 
 
 def _screen_rows(rows: np.ndarray) -> tuple[np.ndarray, Counter[str]]:
-    """Drop rows with a NaN/Inf or a value beyond MAX_READING, counted."""
+    """Drop rows with a NaN/Inf or a value beyond MAX_READING in x, y, z, or a time (a fourth
+    column) that is no finite number, counted."""
     skipped: Counter[str] = Counter()
-    finite = np.all(np.isfinite(rows), axis=1)
-    in_range = np.all(np.abs(rows) <= MAX_READING, axis=1)  # False for NaN too
+    finite = np.all(np.isfinite(rows[:, :3]), axis=1)
+    keep = np.all(np.abs(rows[:, :3]) <= MAX_READING, axis=1)  # False for NaN too
     skipped['non_finite'] = int(np.count_nonzero(~finite))
-    skipped['out_of_range'] = int(np.count_nonzero(finite & ~in_range))
-    return (rows if in_range.all() else rows[in_range]), skipped
+    skipped['out_of_range'] = int(np.count_nonzero(finite & ~keep))
+    if rows.shape[1] > 3:
+        timed = np.isfinite(rows[:, 3])
+        skipped['bad_time'] = int(np.count_nonzero(keep & ~timed))
+        keep &= timed
+    return (rows if keep.all() else rows[keep]), skipped
 
 
 def _parse_lines(
     block: list[str], layout: TextLayout, seen_rows: bool
 ) -> tuple[np.ndarray, Counter[str]]:
-    rows: list[tuple[float, float, float]] = []
+    rows: list[tuple[float, ...]] = []
     skipped: Counter[str] = Counter()
-    needed = max(layout.indices) + 1
+    needed = max(layout.fields) + 1
     for line in block:
         tokens = _data_tokens(line, skipped)
         if tokens is None:
@@ -877,7 +1015,7 @@ def _parse_lines(
             rows.append(row)
         else:
             _count_skipped(skipped, tokens, reason, before_data=not (seen_rows or rows))
-    return np.array(rows, dtype=np.float64).reshape(-1, 3), skipped
+    return np.array(rows, dtype=np.float64).reshape(-1, len(layout.fields)), skipped
 
 
 def _data_tokens(line: str, skipped: Counter[str]) -> list[str] | None:
@@ -898,35 +1036,48 @@ def _count_skipped(skipped: Counter[str], tokens: list[str], reason: str, before
 
 def _parse_line(
     tokens: list[str], layout: TextLayout, needed: int,
-) -> tuple[str, tuple[float, float, float] | None]:
+) -> tuple[str, tuple[float, ...] | None]:
+    """(why not, None) or ('', (x, y, z[, time])) of one line's fields."""
     if layout.field_count is not None and len(tokens) != layout.field_count:
         return 'wrong_field_count', None
     if len(tokens) < needed:
         return 'too_few_fields', None
-    values = [_number(tokens[i]) for i in layout.indices]
-    if any(value is None for value in values):
+    values = [_number(tokens[i]) for i in layout.fields]
+    if any(value is None for value in values[:3]):
         return 'not_numeric', None
-    x, y, z = values
+    x, y, z = values[:3]
     if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
         return 'non_finite', None
     if max(abs(x), abs(y), abs(z)) > MAX_READING:
         return 'out_of_range', None
-    return '', (x, y, z)  # type: ignore[return-value]
+    if len(values) > 3 and (values[3] is None or not math.isfinite(values[3])):
+        return 'bad_time', None
+    return '', tuple(values)  # type: ignore[arg-type]
 
 
-# --- rosbag2 ---------------------------------------------------------------------------------
+# --- bags: rosbag2 and ROS 1 --------------------------------------------------------------
 
 
 def read_rosbag(
-    path: Path, *, topic: str | None = None, progress: ProgressCallback | None = None,
+    path: Path, *, topic: str | None = None, accel_topic: str | None = None,
+    progress: ProgressCallback | None = None,
 ) -> Recording:
-    """Read ``magnetic_field`` of every message on a MagneticField topic of a rosbag2 bag."""
+    """Read ``magnetic_field`` of every message on a MagneticField topic of a rosbag2 bag or a
+    ROS 1 ``.bag``, with each message's header stamp (its receive time when the header has
+    none). ``accel_topic`` (``''``: the only sensor_msgs Imu topic) adds the Imu sample nearest
+    each reading's stamp, within PAIR_TOLERANCE_NS as the node pairs them (NaN when none is):
+    its ``linear_acceleration`` as ``accel``, its ``angular_velocity`` as ``gyro``."""
+    ros1 = is_ros1_bag(path)
+    kind = 'ROS 1 bag' if ros1 else 'rosbag2 bag'
     try:  # only bags need it (and apt ROS users may not have it: README, rosdep#979)
-        from rosbags.rosbag2 import Reader, ReaderError
         from rosbags.typesys import Stores, get_typestore
+        if ros1:
+            from rosbags.rosbag1 import Reader, ReaderError
+        else:
+            from rosbags.rosbag2 import Reader, ReaderError  # type: ignore[assignment]
     except ImportError as error:
         raise RecordingError(
-            f'{path}: reading rosbag2 bags needs the rosbags library ({error}): '
+            f'{path}: reading a {kind} needs the rosbags library ({error}): '
             'pip install rosbags (in a venv, or --user --break-system-packages on Ubuntu 24.04)'
         ) from None
 
@@ -934,58 +1085,140 @@ def read_rosbag(
         raise RecordingError(f'{path}: no such file or bag directory')
     if path.is_dir() and not (path / 'metadata.yaml').exists():
         raise RecordingError(f'{path}: a directory but not a rosbag2 bag (no metadata.yaml)')
-    typestore = get_typestore(Stores.ROS2_JAZZY)
-    samples = _GrowingRows(3)
-    rows: list[tuple[float, float, float]] = []
+    typestore = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_JAZZY)
+    deserialize = typestore.deserialize_ros1 if ros1 else typestore.deserialize_cdr
     skipped: Counter[str] = Counter()
+    imu_rows = _GrowingRows(7)
     try:
         with Reader(path) as reader:
-            chosen = _choose_topic(path, {name: info.msgtype for name, info in
-                                          reader.topics.items()}, topic)
-            info = reader.topics[chosen]
-            total = info.msgcount or None
+            topics = _bag_topics(reader)
+            chosen = _choose_topic(path, topics, topic)
+            imu_topic = None if accel_topic is None else _choose_topic(
+                path, topics, accel_topic or None, IMU, '--accel')
+            wanted = {chosen} | ({imu_topic} if imu_topic else set())
+            connections = [c for c in reader.connections if c.topic in wanted]
+            total = sum(c.msgcount for c in connections if c.topic == chosen) or None
+            mag_rows = _GrowingRows(4)
+            pending: list[tuple[float, ...]] = []
             count = 0
-            for count, (connection, _, rawdata) in enumerate(
-                    reader.messages(connections=info.connections), start=1):
-                if count % BLOCK_LINES == 0:
-                    _add_screened(samples, rows, skipped)
+            for connection, log_time, rawdata in reader.messages(connections=connections):
+                try:
+                    message = deserialize(rawdata, connection.msgtype)
+                except Exception:  # noqa: BLE001 - a corrupt message is counted, not fatal
+                    if connection.topic == chosen:
+                        skipped['undecodable'] += 1
+                    continue
+                stamp = _stamp_s(message, log_time)
+                if connection.topic != chosen:
+                    a, w = message.linear_acceleration, message.angular_velocity
+                    imu_rows.extend([(stamp, a.x, a.y, a.z, w.x, w.y, w.z)])
+                    continue
+                vector = message.magnetic_field
+                pending.append((stamp, float(vector.x), float(vector.y), float(vector.z)))
+                count += 1
+                if len(pending) >= BLOCK_LINES:
+                    mag_rows.extend(pending)
+                    pending.clear()
                     if progress is not None:
                         progress(count, total)
-                try:
-                    vector = typestore.deserialize_cdr(rawdata, connection.msgtype).magnetic_field
-                except Exception:  # noqa: BLE001 - a corrupt message is counted, not fatal
-                    skipped['undecodable'] += 1
-                    continue
-                rows.append((float(vector.x), float(vector.y), float(vector.z)))
+            mag_rows.extend(pending)
             if progress is not None:
                 progress(count, count)
     except RecordingError:
         raise
     except (ReaderError, OSError, ValueError, KeyError) as error:
-        raise RecordingError(f'{path}: cannot read rosbag2 bag ({_one_line(error)})') from error
-    _add_screened(samples, rows, skipped)
+        raise RecordingError(f'{path}: cannot read {kind} ({_one_line(error)})') from error
+    table = mag_rows.result()
+    keep = _usable(table[:, 1:], skipped)
+    table = table[keep]
     skipped = Counter({reason: count for reason, count in skipped.items() if count})
-    return Recording(samples.result(), str(path), 'rosbag2', f'topic {chosen}', dict(skipped),
-                     'T')
+    layout = f'topic {chosen}'
+    accel = gyro = None
+    notes: tuple[str, ...] = ()
+    if imu_topic is not None:
+        accel, gyro, paired = pair_by_stamp(table[:, 0], imu_rows.result())
+        layout += f'; accelerometer topic {imu_topic}'
+        notes = (f'{paired} of {len(table)} readings paired with a {imu_topic} sample within '
+                 f'{PAIR_TOLERANCE_NS / 1e6:g} ms of their stamps'
+                 + ('' if paired or not len(table) else
+                    f': none, so nothing aligns (do {chosen} and {imu_topic} stamp by different '
+                    'clocks, or was the Imu recorded at another time?)'),)
+    return Recording(table[:, 1:].copy(), str(path), 'ROS 1 bag' if ros1 else 'rosbag2', layout,
+                     dict(skipped), 'T', notes, accel=accel, gyro=gyro, stamps=table[:, 0].copy(),
+                     time_source=f'header stamps of {chosen}')
 
 
-def _choose_topic(path: Path, topics: dict[str, str | None], wanted: str | None) -> str:
-    listing = ', '.join(f'{name} ({msgtype})' for name, msgtype in sorted(topics.items()))
+def is_ros1_bag(path: Path) -> bool:
+    """A ROS 1 bag: named ``.bag`` (or any file starting with its ``#ROSBAG V2.0`` line)."""
+    if path.suffix.lower() == ROS1_SUFFIX:
+        return True
+    try:
+        with path.open('rb') as probe:
+            return probe.read(len(ROS1_MAGIC)) == ROS1_MAGIC
+    except OSError:
+        return False
+
+
+def _bag_topics(reader) -> dict[str, str | None]:  # noqa: ANN001 - either rosbags Reader
+    return {connection.topic: connection.msgtype for connection in reader.connections}
+
+
+def _stamp_s(message, log_time_ns: int) -> float:  # noqa: ANN001 - a deserialized message
+    """The header stamp in seconds; the bag's receive time when a driver left it zero."""
+    stamp = message.header.stamp
+    seconds = stamp.sec + stamp.nanosec * 1e-9
+    return seconds if seconds > 0.0 else log_time_ns * 1e-9
+
+
+def pair_by_stamp(stamps: np.ndarray, imu: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """(accel, gyro, paired): for each stamp (s), the (stamp, accel (3), gyro (3)) ``imu`` row
+    nearest it within PAIR_TOLERANCE_NS, NaN rows where none is; as the node's ImuPairing does
+    message by message."""
+    accel = np.full((len(stamps), 3), math.nan)
+    gyro = np.full((len(stamps), 3), math.nan)
+    if len(imu) == 0 or len(stamps) == 0:
+        return accel, gyro, 0
+    imu = imu[np.argsort(imu[:, 0], kind='stable')]
+    after = np.clip(np.searchsorted(imu[:, 0], stamps), 1, len(imu) - 1)
+    before = after - 1
+    if len(imu) == 1:
+        nearest = np.zeros(len(stamps), dtype=int)
+    else:
+        nearest = np.where(np.abs(imu[after, 0] - stamps) < np.abs(stamps - imu[before, 0]),
+                           after, before)
+    close = np.abs(imu[nearest, 0] - stamps) <= PAIR_TOLERANCE_NS * 1e-9
+    accel[close] = imu[nearest[close], 1:4]
+    gyro[close] = imu[nearest[close], 4:7]
+    return accel, gyro, int(np.count_nonzero(close))
+
+
+def _usable(rows: np.ndarray, skipped: Counter[str]) -> np.ndarray:
+    """Which rows are usable readings (finite, within MAX_READING); the others counted."""
+    finite = np.all(np.isfinite(rows), axis=1)
+    in_range = np.all(np.abs(rows) <= MAX_READING, axis=1)
+    skipped['non_finite'] += int(np.count_nonzero(~finite))
+    skipped['out_of_range'] += int(np.count_nonzero(finite & ~in_range))
+    return in_range
+
+
+def _choose_topic(path: Path, topics: dict[str, str | None], wanted: str | None,
+                  msgtype: str = MAGNETIC_FIELD, option: str = '--topic') -> str:
+    listing = ', '.join(f'{name} ({kind})' for name, kind in sorted(topics.items()))
     listing = listing or 'none'
     if wanted is not None:
         name = wanted if wanted in topics else '/' + wanted.lstrip('/')
         if name not in topics:
             raise RecordingError(f"{path}: no topic '{wanted}' in this bag; topics: {listing}")
-        if topics[name] != MAGNETIC_FIELD:
-            raise RecordingError(f"{path}: topic '{name}' is {topics[name]}, not {MAGNETIC_FIELD}")
+        if topics[name] != msgtype:
+            raise RecordingError(f"{path}: topic '{name}' is {topics[name]}, not {msgtype}")
         return name
-    candidates = sorted(name for name, msgtype in topics.items() if msgtype == MAGNETIC_FIELD)
+    candidates = sorted(name for name, kind in topics.items() if kind == msgtype)
     if len(candidates) == 1:
         return candidates[0]
     if not candidates:
-        raise RecordingError(f'{path}: no {MAGNETIC_FIELD} topic in this bag; topics: {listing}')
-    raise RecordingError(f'{path}: {len(candidates)} {MAGNETIC_FIELD} topics '
-                         f'({", ".join(candidates)}); choose one with --topic')
+        raise RecordingError(f'{path}: no {msgtype} topic in this bag; topics: {listing}')
+    raise RecordingError(f'{path}: {len(candidates)} {msgtype} topics '
+                         f'({", ".join(candidates)}); choose one with {option}')
 
 
 def _one_line(error: BaseException) -> str:
@@ -1056,13 +1289,16 @@ def _read_paired(stream: Iterable[str], source: str, accel_columns: str, columns
     if set(mag.indices) & set(accel.indices):
         raise RecordingError(f'{source}: the magnetometer fields {mag.description} overlap the '
                              f'accelerometer fields {accel.description}')
-    needed = max(*mag.indices, *accel.indices) + 1
+    time = time_column(first, (*mag.indices, *accel.indices))
+    time_fields = () if time is None else (time.index,)
+    needed = max(*mag.indices, *accel.indices, *time_fields) + 1
     found = _data_pattern(first)
     field_count = None if found is None else found[0]
     units = mag.units
-    mag = TextLayout(mag.indices, field_count, mag.description)
+    mag = TextLayout(mag.indices, field_count, mag.description,
+                     time_index=None if time is None else time.index)
     accel_layout = TextLayout(accel.indices, field_count, accel.description)
-    rows = _GrowingRows(6)
+    rows = _GrowingRows(7 if time is not None else 6)
     skipped: Counter[str] = Counter()
     consumed = 0
     for block in _blocks(itertools.chain(first, lines)):
@@ -1077,7 +1313,7 @@ def _read_paired(stream: Iterable[str], source: str, accel_columns: str, columns
             if field is not None:
                 reason, specific_force = _parse_line(tokens, accel_layout, needed)
             if field is not None and specific_force is not None:
-                block_rows.append((*field, *specific_force))
+                block_rows.append((*field[:3], *specific_force, *field[3:]))
             else:
                 _count_skipped(skipped, tokens, reason,
                                before_data=not (block_rows or len(rows)))
@@ -1092,8 +1328,9 @@ def _read_paired(stream: Iterable[str], source: str, accel_columns: str, columns
         found_rows = 'no usable rows' if len(data) == 0 else f'only {len(data)} usable rows'
         need = f' (need at least {min_rows})' if min_rows > 1 else ''
         raise RecordingError(f'{source}: {found_rows} from {layout}{need}')
+    stamps, time_source = _stamps(data, time)
     return Recording(data[:, :3].copy(), source, 'text', layout, dict(skipped), units, notes,
-                     accel=data[:, 3:].copy())
+                     accel=data[:, 3:6].copy(), stamps=stamps, time_source=time_source)
 
 
 def _other_numeric_fields(lines: list[str], taken: tuple[int, ...], source: str) -> TextLayout:

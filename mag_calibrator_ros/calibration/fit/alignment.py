@@ -61,7 +61,13 @@ MERGE_DISTANCE = math.radians(2.0)
 """A new attitude this close to a kept one (gravity and field directions) is the same pose held
 again: the two are averaged, weighted by their readings."""
 ATTITUDE_WIDTH = 8
-"""Attitude rows: mean raw field (3), mean specific force (3), readings, seconds held."""
+"""Attitude rows: mean raw field (3), mean specific force (3), readings, seconds held (without a
+clock: the readings of its longest single stretch)."""
+HELD_FACTOR = 4.0
+"""Without a clock: a stretch of this many times the median stretch's readings (and at least
+MIN_HELD_READINGS) was held, where a stretch in motion ends after a few. A fast log's holds
+stand out so; a slow log's readings are each a stretch of one, and every one is used."""
+MIN_HELD_READINGS = 3
 
 # -- estimating the rotation ----------------------------------------------------------------------
 
@@ -101,10 +107,22 @@ class StaticAttitudes:
     starts no still stretch is the board passing through, accelerating. ``field_scale`` (the
     field's radius in raw units, set by the owner once known) lets the field tell a turn about
     the vertical, which the accelerometer cannot see, and tells poses apart.
+
+    ``clock=False`` is for a log without time stamps, whose rate nobody knows: stillness is
+    then judged without time (no MIN_STILL_S, no MAX_GAP_S), by consecutive readings whose
+    accelerometer (and field) directions agree as above, and the log's own rows tell held
+    from passing: in a fast log (consecutive readings agree even in motion, so the median
+    stretch has two readings or more), or when at least MIN_ATTITUDES stretches last
+    HELD_FACTOR times the median, only those long stretches are attitudes; in a slow log
+    (each reading its own stretch) every stretch is. ``estimate_alignment`` screens them (|a|
+    near g, a clean field, robust to a few taken in motion), so no guessed rate can make or
+    break it; a slow log moved fast cannot be told from one moved slowly, and those screens
+    are then its only guard.
     """
 
-    def __init__(self, capacity: int = ATTITUDE_CAPACITY) -> None:
+    def __init__(self, capacity: int = ATTITUDE_CAPACITY, clock: bool = True) -> None:
         self.capacity = int(capacity)
+        self.clock = bool(clock)
         self._rows = np.zeros((self.capacity, ATTITUDE_WIDTH))
         self.fill = 0
         self.stretches = 0
@@ -114,6 +132,8 @@ class StaticAttitudes:
         self.refused = 0
         """Readings with a non-finite or zero value."""
         self.field_scale: float | None = None
+        self._lengths: dict[int, int] = {}
+        """Without a clock: how many stretches had each number of readings (capped)."""
         self._last_time = -math.inf
         # [sums (6), count, start, end, first accel (ax, ay, az, |a|), first field, gyro, gap]
         self._open: list | None = None
@@ -122,6 +142,7 @@ class StaticAttitudes:
 
     def clear(self) -> None:
         self.fill = 0
+        self._lengths = {}
         self._open = None
         self._last_time = -math.inf
 
@@ -164,7 +185,7 @@ class StaticAttitudes:
     def _continues(self, segment: list, time_s: float, reading: tuple, accel: tuple,
                    norm: float, has_gyro: bool) -> bool:
         first_a = segment[4]
-        if not 0.0 <= time_s - segment[3] <= MAX_GAP_S or has_gyro != segment[6]:
+        if has_gyro != segment[6] or self.clock and not 0.0 <= time_s - segment[3] <= MAX_GAP_S:
             return False
         if abs(norm / first_a[3] - 1.0) > STILL_MAGNITUDE:
             return False
@@ -185,9 +206,13 @@ class StaticAttitudes:
         sums, count, start, end, _, _, _, gap = segment
         held = end - start >= MIN_STILL_S
         alone = count == 1 and gap >= MIN_STILL_S and next_time - end >= MIN_STILL_S
-        if not (held or alone):
+        if self.clock and not (held or alone):
             return
-        row = np.array([*(value / count for value in sums), count, end - start])
+        if not self.clock and not segment[6]:
+            length = min(count, 1 << 16)
+            self._lengths[length] = self._lengths.get(length, 0) + 1
+        row = np.array([*(value / count for value in sums), count,
+                        end - start if self.clock else count])
         self._keep(row)
 
     def _keep(self, row: np.ndarray) -> None:
@@ -204,11 +229,11 @@ class StaticAttitudes:
             total = old[6] + row[6]
             old[:6] = (old[:6] * old[6] + row[:6] * row[6]) / total
             old[6] = total
-            old[7] += row[7]
+            old[7] = old[7] + row[7] if self.clock else max(old[7], row[7])
         elif self.fill < self.capacity:
             self._rows[self.fill] = row
             self.fill += 1
-        else:
+        elif self.clock or row[7] >= kept[nearest, 7]:
             self._rows[nearest] = row  # keeps the set spread: a new pose displaces its nearest
 
     def finish(self) -> None:
@@ -220,11 +245,28 @@ class StaticAttitudes:
         has lasted MIN_STILL_S (the sensor held still while a calibration is asked for)."""
         rows = self._rows[: self.fill].copy()
         segment = self._open
-        if segment is not None and segment[3] - segment[2] >= MIN_STILL_S:
+        if segment is not None and (not self.clock or segment[3] - segment[2] >= MIN_STILL_S):
             count = segment[1]
-            current = [*(value / count for value in segment[0]), count, segment[3] - segment[2]]
+            current = [*(value / count for value in segment[0]), count,
+                       segment[3] - segment[2] if self.clock else count]
             rows = np.vstack([rows, current])
+        if not self.clock and self._lengths:
+            median = self.median_stretch()
+            held = rows[:, 7] >= max(MIN_HELD_READINGS, HELD_FACTOR * median)
+            if median >= 2 or np.count_nonzero(held) >= MIN_ATTITUDES:
+                rows = rows[held]
         return rows
+
+    def median_stretch(self) -> int:
+        """Without a clock: the median readings of the stretches judged without a gyroscope
+        (a gyroscope judges stillness by itself, clock or none); 0 when there are none."""
+        total = sum(self._lengths.values())
+        seen = 0
+        for length in sorted(self._lengths):
+            seen += self._lengths[length]
+            if 2 * seen >= total:
+                return length
+        return 0
 
 
 def _attitude_distance(kept: np.ndarray, row: np.ndarray, scale: float | None) -> np.ndarray:
