@@ -15,8 +15,15 @@ apart. A motion is any ``motion.Trajectory``; the world is ENU with the earth's 
 - accelerometer: specific force ``R.T @ (a_world - g_world) + bias + noise`` (m/s^2), so a board
   lying level reads +g on z;
 - gyroscope: body angular rate ``+ bias + noise`` (rad/s);
-- die temperature: ``temperature_c + temperature_rise_c * (1 - exp(-t / 600 s))``, a slow
-  warm-up after power-on.
+- die temperature: ``temperature_c + temperature_rise_c * (1 - exp(-t / tau))``, a
+  first-order warm-up after power-on towards ``temperature_c + temperature_rise_c`` with the
+  time constant ``tau = temperature_time_constant_s`` (600 s by default);
+- the robot's own field, added to the hard iron in the magnetometer's axes (``raw - b - K u -
+  c (T - T0)`` of issue #26 undoes it): ``K * I`` with ``K = current_field_ut_per_a`` and
+  ``I`` the battery current of a ``cmd_vel`` robot (``motion.DriveCurrent``), and ``c * (T -
+  T0)`` with ``c = hard_iron_drift_ut_per_c``, ``T`` the die temperature and ``T0 =
+  temperature_c`` (the hard iron is ``hard_iron_ut`` at power-on). ``interference_truth`` gives
+  K, c and T0 in SI units for tests and benchmarks.
 
 Noise per sample is the noise density times the square root of the DLPF's noise bandwidth, the
 way DS-000189 specifies it; the DLPF's delay is not modelled.
@@ -37,7 +44,6 @@ from mag_calibrator_ros.sim import motion
 if TYPE_CHECKING:
     from mag_calibrator_ros.sim.config import SimConfig
 
-TEMPERATURE_TIME_CONSTANT_S = 600.0
 GRAVITY_WORLD = np.array([0.0, 0.0, -reg.STANDARD_GRAVITY])  # ENU: down
 
 
@@ -54,6 +60,22 @@ class ImuTruth:
     specific_force: np.ndarray
     angular_velocity: np.ndarray
     temperature_c: float
+
+
+@dataclass(frozen=True)
+class InterferenceTruth:
+    """The robot's own field as simulated, SI units, magnetometer axes (chip frame): the reading
+    is ``S (earth) + hard_iron + current_field * I + temperature_drift * (T - T0)``.
+
+    ``current_field``: (3,) tesla per ampere of battery current; ``temperature_drift``: (3,)
+    tesla per degC; ``reference_temperature_c``: T0, where the hard iron is ``hard_iron`` (3,)
+    tesla.
+    """
+
+    current_field: np.ndarray
+    temperature_drift: np.ndarray
+    reference_temperature_c: float
+    hard_iron: np.ndarray
 
 
 class BoardModel:
@@ -83,6 +105,12 @@ class BoardModel:
         self._imu_rng = np.random.default_rng([config.seed, 12])
         self._accel_bias = np.asarray(config.accel_bias_mps2, dtype=float)
         self._gyro_bias = np.radians(np.asarray(config.gyro_bias_dps, dtype=float))
+        self._draws_current = bool(np.any(config.current_field != 0.0))
+        self._drifts = bool(np.any(config.hard_iron_drift != 0.0))
+        if self._draws_current and not callable(getattr(self.trajectory, 'battery_current',
+                                                        None)):
+            raise ValueError(f'current_field_ut_per_a needs a motion that draws a battery '
+                             f'current (cmd_vel), got a {type(self.trajectory).__name__}')
 
     @property
     def earth_field_ut(self) -> np.ndarray:
@@ -99,7 +127,7 @@ class BoardModel:
         # An absurd distortion may leave the doubles (inf, NaN): the chip reads that as an
         # overflow, the simulator's business, not a warning on every sample.
         with np.errstate(over='ignore', invalid='ignore'):
-            sensed = self._sensing @ earth_chip_ut + self.config.hard_iron
+            sensed = self._sensing @ earth_chip_ut + self.hard_iron_ut(t)
             if self.config.noise_ut > 0.0:
                 sensed = sensed + self._mag_rng.normal(0.0, self.config.noise_ut, 3)
         return sensed, earth_chip_ut * 1e-6
@@ -122,8 +150,31 @@ class BoardModel:
 
     def temperature_c(self, t: float) -> float:
         """First-order warm-up from ``temperature_c`` by ``temperature_rise_c``."""
-        warm = 1.0 - math.exp(-max(t, 0.0) / TEMPERATURE_TIME_CONSTANT_S)
+        warm = 1.0 - math.exp(-max(t, 0.0) / self.config.temperature_time_constant_s)
         return self.config.temperature_c + self.config.temperature_rise_c * warm
+
+    def battery_current_a(self, t: float) -> float | None:
+        """The battery current (A) the robot draws at ``t``; None for a motion without one."""
+        current = getattr(self.trajectory, 'battery_current', None)
+        return float(current(max(t, 0.0))) if callable(current) else None
+
+    def hard_iron_ut(self, t: float) -> np.ndarray:
+        """The offset the magnetometer reads at ``t`` (µT): the hard iron, the current's field
+        and the hard iron's drift with the die temperature."""
+        offset = self.config.hard_iron
+        if self._draws_current:
+            offset = offset + self.config.current_field * self.trajectory.battery_current(
+                max(t, 0.0))
+        if self._drifts:
+            offset = offset + self.config.hard_iron_drift * (
+                self.temperature_c(t) - self.config.temperature_c)
+        return offset
+
+    def interference_truth(self) -> InterferenceTruth:
+        """K, c and T0 as simulated (SI), for tests and benchmarks to judge a learned model."""
+        return InterferenceTruth(self.config.current_field * 1e-6,
+                                 self.config.hard_iron_drift * 1e-6,
+                                 float(self.config.temperature_c), self.config.hard_iron * 1e-6)
 
 
 def board_readings(board: BoardModel, seconds: float, rate_hz: float,
