@@ -460,6 +460,14 @@ class DriveCurrent:
     idle_a: float = 0.5
     full_a: float = 5.0
     track_width_m: float = 0.3
+    NOMINAL_V = 12.0
+    RESISTANCE_OHM = 0.05
+    """The pack: 12 V nominal with a 0.05 ohm internal resistance (a voltage to publish; the
+    sag does not change the current)."""
+
+    def voltage(self, current: float) -> float:
+        """The pack's voltage (V) while it supplies ``current`` A."""
+        return self.NOMINAL_V - self.RESISTANCE_OHM * current
 
     def current(self, speed: float, yaw_rate: float, top_speed: float) -> float:
         """Amperes drawn at ``speed`` m/s (forward, either sign) and ``yaw_rate`` rad/s, the
