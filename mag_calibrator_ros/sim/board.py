@@ -192,3 +192,62 @@ def board_readings(board: BoardModel, seconds: float, rate_hz: float,
         accel.append(force)
         gyro.append(rate)
     return np.array(mag), np.array(accel), np.array(gyro)
+
+
+@dataclass(frozen=True)
+class CourseRecording:
+    """A driven course as a robot's sensors recorded it, one row per magnetometer sample.
+
+    ``times`` (s since power-on); ``mag`` (T, with distortion, the robot's own field and noise),
+    ``truth`` (T, the earth's field in the chip frame), ``accel`` (m/s^2), ``gyro`` (rad/s), all
+    (n, 3) and read at the same instant (what pairing by stamp gives); ``temperature_c`` (the
+    die), ``current_a`` (the battery current the robot draws, positive), ``speed`` (m/s) and
+    ``yaw_rate`` (rad/s), all (n,).
+    """
+
+    times: np.ndarray
+    mag: np.ndarray
+    truth: np.ndarray
+    accel: np.ndarray
+    gyro: np.ndarray
+    temperature_c: np.ndarray
+    current_a: np.ndarray
+    speed: np.ndarray
+    yaw_rate: np.ndarray
+
+    @property
+    def moving(self) -> np.ndarray:
+        """Which rows the robot was driving or turning in (not standing still)."""
+        return (np.abs(self.speed) > 1e-3) | (np.abs(self.yaw_rate) > 1e-3)
+
+
+def course_recording(board: BoardModel, course: motion.CourseDriver | None = None,
+                     rate_hz: float = 100.0, command_period_s: float = 0.1,
+                     start_s: float = 0.0) -> CourseRecording:
+    """Drive a ``cmd_vel`` board's robot over ``course`` (``motion.GROUND_COURSE`` by default)
+    from ``start_s``, its commands re-sent every ``command_period_s`` as a teleop does, and
+    record its sensors at ``rate_hz``; the inertial noise at 57 Hz bandwidth."""
+    trajectory = board.trajectory
+    if not isinstance(trajectory, motion.CmdVelTrajectory):
+        raise ValueError(f'a course needs a board whose motion is cmd_vel, got a '
+                         f'{type(trajectory).__name__}')
+    course = course or motion.CourseDriver()
+    rows: dict[str, list] = {name: [] for name in CourseRecording.__dataclass_fields__}
+    next_command = 0.0
+    for k in range(int(round(course.duration_s * rate_hz))):
+        into = k / rate_hz
+        while next_command <= into:
+            speed, yaw_rate = course.command_at(next_command)
+            trajectory.command(yaw_rate, start_s + next_command, speed=speed)
+            next_command += command_period_s
+        t = start_s + into
+        field, truth = board.magnetometer(t)
+        accel, gyro, _ = board.inertial(t, 57.0, 57.0)
+        _, rate = trajectory.yaw_and_rate(t)
+        for name, value in (('times', t), ('mag', field * 1e-6), ('truth', truth),
+                            ('accel', accel), ('gyro', gyro),
+                            ('temperature_c', board.temperature_c(t)),
+                            ('current_a', trajectory.battery_current(t)),
+                            ('speed', trajectory.speed(t)), ('yaw_rate', rate)):
+            rows[name].append(value)
+    return CourseRecording(**{name: np.array(values) for name, values in rows.items()})
