@@ -122,3 +122,26 @@ def test_without_the_robots_field_the_board_reads_as_before():
 def test_bad_robot_field_settings_are_named(kwargs, message):
     with pytest.raises(ValueError, match=message):
         SimConfig(**kwargs)
+
+
+def test_a_recorded_course_logs_the_current_and_temperature_each_reading_saw():
+    from mag_calibrator_ros.sim.board import course_recording
+
+    board = BoardModel(SimConfig(noise_ut=0.0, motion='cmd_vel', seed=2, temperature_c=30.0,
+                                 temperature_rise_c=10.0, temperature_time_constant_s=5.0,
+                                 current_field_ut_per_a=(2.0, 0.0, 0.0),
+                                 hard_iron_drift_ut_per_c=(0.0, 0.5, 0.0)))
+    course = motion.CourseDriver((motion.Leg(2.0), motion.Leg(4.0, speed=0.5),
+                                  motion.Leg(2.0, yaw_rate=0.8)))
+    recording = course_recording(board, course, rate_hz=50.0)
+    assert len(recording.times) == 400 and recording.times[-1] == pytest.approx(7.98)
+    offset = (recording.mag - recording.truth) * 1e6
+    expected = np.column_stack([2.0 * recording.current_a, 0.5 * (recording.temperature_c - 30.0),
+                                np.zeros(400)])
+    np.testing.assert_allclose(offset, expected, atol=1e-9)
+    assert recording.current_a[:100].max() == 0.5 and recording.current_a.max() == 5.0
+    assert not recording.moving[:100].any() and recording.moving[150:].all()
+    warmed = 30.0 + 10.0 * (1.0 - math.exp(-7.98 / 5.0))
+    assert recording.temperature_c[-1] == pytest.approx(warmed)
+    with pytest.raises(ValueError, match='motion is cmd_vel'):
+        course_recording(BoardModel(SimConfig(**QUIET)), course)
