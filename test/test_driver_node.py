@@ -475,6 +475,12 @@ def test_missing_i2c_bus_keeps_the_node_alive_with_an_error(harness_factory):
     ({'sim.accel_bias_mps2': [1e308, 0.0, 0.0]}, 'accel_bias_mps2 must be within'),
     ({'sim.gyro_bias_dps': [0.0, 0.0, -1e308]}, 'gyro_bias_dps must be within'),
     ({'sim.i2c_error_rate': 1.0}, 'sim.i2c_error_rate'),
+    # the robot's own field (issue #26)
+    ({'sim.current_field_ut_per_a': [8.0, 0.0, 0.0]}, 'current_field_ut_per_a needs motion '
+                                                      'cmd_vel'),
+    ({'sim.hard_iron_drift_ut_per_c': [0.0, 1e3, 0.0]}, 'hard_iron_drift_ut_per_c must be within'),
+    ({'sim.idle_current_a': 3.0, 'sim.full_current_a': 2.0},
+     'sim.full_current_a must be in [idle_current_a, 1000] A'),
 ])
 def test_invalid_parameters_are_refused_with_a_reason(overrides, fragment):
     parameters = [Parameter('backend', value='sim')]
