@@ -690,6 +690,11 @@ class Icm20948DriverNode(Node):
         self._follow_cmd_vel_type()
         self.create_timer(CMD_VEL_CHECK_S, self._follow_cmd_vel_type)
         self._battery_publisher = self.create_publisher(BatteryState, BATTERY_TOPIC, DRIVER_QOS)
+        self._battery_message = message = BatteryState()
+        message.temperature = message.charge = message.capacity = math.nan  # unmeasured
+        message.design_capacity = message.percentage = math.nan
+        message.power_supply_status = BatteryState.POWER_SUPPLY_STATUS_DISCHARGING
+        message.present = True
         self.create_timer(1.0 / BATTERY_RATE_HZ, self._publish_battery)
 
     def _follow_cmd_vel_type(self) -> None:
@@ -721,18 +726,14 @@ class Icm20948DriverNode(Node):
         self.cmd_vel_received += 1
 
     def _publish_battery(self) -> None:
-        """The simulated robot's battery: the current its motion draws now."""
-        robot = self.settings.cmd_vel
+        """The simulated robot's battery: the current its motion draws now (one message,
+        refilled: the executor's thread also serves cmd_vel)."""
+        robot, message = self.settings.cmd_vel, self._battery_message
         amperes = robot.battery_current(self.simulator.sim_time_s)
-        message = BatteryState()
         message.header.stamp = self.get_clock().now().to_msg()
         message.header.frame_id = self._frame_id
         message.voltage = float(robot.drive.voltage(amperes))
         message.current = -float(amperes)  # negative when discharging (BatteryState.msg)
-        message.temperature = message.charge = message.capacity = math.nan
-        message.design_capacity = message.percentage = math.nan
-        message.power_supply_status = BatteryState.POWER_SUPPLY_STATUS_DISCHARGING
-        message.present = True
         self._battery_publisher.publish(message)
 
     def destroy_node(self) -> None:
