@@ -13,11 +13,13 @@ At a 25 uT horizontal field, 8 uT across the heading is up to 18°, and 4 uT up 
 
 Scored: the heading (azimuth about the chip z axis, the robot's yaw axis) of the corrected field
 against the simulator's true field, RMS over the samples while the robot moves (driving or
-turning; 82 % of the course), and the worst sample. Rows:
+turning; 82 % of the course), and the worst sample; and the same corrections applied to the
+readings of a noise-free twin of the robot (the same course and commands), which shows the
+error of the correction itself under the 0.7° a single sample's noise adds. Rows:
 
 (a) ``no interference``: the same course and robot without K and c, through the live calibrator
     (``CalibrationSession`` with its defaults, as the node runs it, fits inline): the floor.
-(b) ``static calibration, perfect``: the true hard and soft iron at power-on (cold, motors
+(b) ``static, perfect, both``: the true hard and soft iron at power-on (cold, motors
     idle: what the best static calibration done standing there holds) applied to every
     reading: the heading error the robot's own field alone causes; also with only the
     current's field, and only the temperature's.
@@ -42,7 +44,7 @@ import time
 
 import numpy as np
 
-from mag_calibrator_ros.calibration.live.session import CalibrationSession
+from mag_calibrator_ros.calibration.live.session import CalibrationSession, Processed
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
 from mag_calibrator_ros.sim import motion
 from mag_calibrator_ros.sim.board import BoardModel, CourseRecording, course_recording
@@ -70,7 +72,7 @@ POLL_EVERY = 10
 
 
 def robot(seed: int, interference: bool = True, current: bool = True,
-          temperature: bool = True) -> BoardModel:
+          temperature: bool = True, noise_ut: float = 0.3) -> BoardModel:
     """The benchmark's simulated ground robot, its own field on or off (or only the current's,
     only the temperature's)."""
     drive = motion.DriveCurrent()
@@ -78,7 +80,7 @@ def robot(seed: int, interference: bool = True, current: bool = True,
     per_ampere = FULL_CURRENT_FIELD_UT / drive.full_a
     config = SimConfig(
         field_ut=FIELD_UT, inclination_deg=INCLINATION_DEG, hard_iron_ut=GROUND_HARD_IRON_UT,
-        soft_iron=SOFT_IRON, noise_ut=0.3, motion='cmd_vel', seed=seed,
+        soft_iron=SOFT_IRON, noise_ut=noise_ut, motion='cmd_vel', seed=seed,
         temperature_c=COLD_C, temperature_rise_c=WARM_UP_C,
         temperature_time_constant_s=WARM_UP_TIME_CONSTANT_S,
         current_field_ut_per_a=((per_ampere, 0.0, 0.0) if interference and current
@@ -89,33 +91,36 @@ def robot(seed: int, interference: bool = True, current: bool = True,
     return BoardModel(config, trajectory)
 
 
-def feed(session: CalibrationSession, recording: CourseRecording, index: int) -> np.ndarray | None:
-    """One row through the session as the node passes it (the IMU sample first, same stamp);
-    the corrected field, None while uncalibrated. The compensating calibrator adds the row's
-    die temperature and battery current here."""
+def feed(session: CalibrationSession, recording: CourseRecording, index: int) -> Processed:
+    """One row through the session as the node passes it (the IMU sample first, same stamp).
+    The compensating calibrator adds the row's die temperature and battery current here."""
     stamp = round(recording.times[index] * 1e9)
     session.process_imu(stamp, FRAME_ID, recording.accel[index], recording.gyro[index])
     processed = session.process(stamp, FRAME_ID, recording.mag[index])
     if index % POLL_EVERY == 0:
         session.poll()
-    return processed.corrected
+    return processed
 
 
-def live(recording: CourseRecording, settings: SessionSettings | None = None
-         ) -> tuple[np.ndarray, float | None, CalibrationSession]:
-    """(corrected rows, NaN until calibrated; stream seconds of the first calibration; the
-    session) of the live calibrator over the course."""
+def live(recording: CourseRecording, clean: CourseRecording,
+         settings: SessionSettings | None = None
+         ) -> tuple[np.ndarray, np.ndarray, float | None, CalibrationSession]:
+    """(corrected rows, NaN until calibrated; the same calibrations applied to the noise-free
+    ``clean`` twin's rows; stream seconds of the first calibration; the session) of the live
+    calibrator over the course."""
     session = CalibrationSession(settings or SessionSettings())
     corrected = np.full_like(recording.mag, math.nan)
+    noise_free = np.full_like(recording.mag, math.nan)
     first = None
     for index in range(len(recording.times)):
-        row = feed(session, recording, index)
-        if row is not None:
-            corrected[index] = row
+        processed = feed(session, recording, index)
+        if processed.corrected is not None:
+            corrected[index] = processed.corrected
+            noise_free[index] = processed.calibration.apply(clean.mag[index])
             if first is None:
                 first = float(recording.times[index])
     session.close()
-    return corrected, first, session
+    return corrected, noise_free, first, session
 
 
 def static_perfect(board: BoardModel, recording: CourseRecording) -> np.ndarray:
@@ -135,20 +140,28 @@ def heading(corrected: np.ndarray, recording: CourseRecording) -> tuple[float, f
     return float(np.sqrt(np.mean(errors**2))), float(np.max(np.abs(errors))), int(keep.sum())
 
 
-def one_seed(seed: int) -> dict[str, tuple[float, float, int]]:
+def one_seed(seed: int) -> dict[str, tuple[float, float, int, float]]:
+    """Per row: (RMS, worst, samples, RMS of the same corrections on noise-free readings)."""
     results = {}
-    quiet = course_recording(robot(seed, interference=False), rate_hz=RATE_HZ)
-    results['no interference, live calibrator'] = heading(live(quiet)[0], quiet)
-    for name, kind in (('current', {'temperature': False}), ('temperature', {'current': False})):
-        part = robot(seed, **kind)
-        recording = course_recording(part, rate_hz=RATE_HZ)
-        results[f'static, perfect, {name} only'] = heading(static_perfect(part, recording),
-                                                           recording)
-    board = robot(seed)
-    recording = course_recording(board, rate_hz=RATE_HZ)
-    results['static calibration, perfect'] = heading(static_perfect(board, recording), recording)
-    corrected, first, session = live(recording)
-    results['live calibrator, today'] = heading(corrected, recording)
+
+    def record(**kwargs) -> tuple[BoardModel, CourseRecording, CourseRecording]:
+        board = robot(seed, **kwargs)
+        return (board, course_recording(board, rate_hz=RATE_HZ),
+                course_recording(robot(seed, noise_ut=0.0, **kwargs), rate_hz=RATE_HZ))
+
+    _, quiet, clean = record(interference=False)
+    corrected, noise_free, _, _ = live(quiet, clean)
+    results['no interference, live calibrator'] = (*heading(corrected, quiet),
+                                                   heading(noise_free, clean)[0])
+    for name, kind in (('current', {'temperature': False}), ('temperature', {'current': False}),
+                       ('both', {})):
+        board, recording, clean = record(**kind)
+        results[f'static, perfect, {name}'] = (
+            *heading(static_perfect(board, recording), recording),
+            heading(static_perfect(board, clean), clean)[0])
+    corrected, noise_free, first, session = live(recording, clean)
+    results['live calibrator, today'] = (*heading(corrected, recording),
+                                         heading(noise_free, clean)[0])
     truth = board.interference_truth()
     print(f'seed {seed}: first calibration at {first} s of the course '
           f'({session.calibration.model if session.calibration else "none"}, adoptions '
@@ -171,9 +184,10 @@ def main(argv: list[str] | None = None) -> int:
     for name in runs[0]:
         rms = [run[name][0] for run in runs]
         worst = max(run[name][1] for run in runs)
+        clean = [run[name][3] for run in runs]
         print(f'  {name:34s} {min(rms):6.2f}-{max(rms):6.2f}° RMS (median '
               f'{statistics.median(rms):.2f}°), worst {worst:6.2f}°, '
-              f'{runs[0][name][2]} samples')
+              f'{runs[0][name][2]} samples; noise-free {min(clean):.2f}-{max(clean):.2f}°')
     print('  with compensation                   not yet: the calibrator does not learn K and c')
     return 0
 

@@ -670,8 +670,10 @@ def run_ground(args: argparse.Namespace, context: Context) -> int:
                          title='mag_calibrator_demo --ground-robot', units='uT')
         print(f'\nCalibration file: {calibration_file}\nBefore/after plot: {plot_file}')
         own = noise_free_heading_error(calibration, driver)
-        print(f'Calibration alone (noise-free readings, a full turn on the same floor): heading '
-              f'error {own.rms:.2f} deg RMS, {own.max:.2f} deg max.')
+        die_c = driver.simulator.board.temperature_c(driver.simulator.sim_time_s)
+        now = f', standing, the die at {die_c:.1f} degC' if args.robot_field else ''
+        print(f'Calibration alone (noise-free readings, a full turn on the same floor{now}): '
+              f'heading error {own.rms:.2f} deg RMS, {own.max:.2f} deg max.')
         heading = after['heading error (deg)']
         driving = None
         if args.drive_seconds > 0:
