@@ -244,6 +244,10 @@ def test_the_simulated_robot_publishes_its_battery_current_and_its_field_follows
     assert h.spin_until(lambda: driving() and np.allclose(offset_ut(), [48.0, 0.0, -12.0],
                                                           atol=0.3), 20.0)
     assert h.node.settings.cmd_vel.speed(h.node.simulator.sim_time_s) == pytest.approx(0.5)
+    # stamped as the imu/mag reading it went out with, at most every 50 ms
+    battery_stamps = h.stamps(batteries)
+    assert set(battery_stamps) & set(h.stamps())
+    assert np.all(np.diff(battery_stamps) >= 0.05 - 1e-9)
 
 
 def test_imu_temperature_follows_the_warming_die(harness_factory):

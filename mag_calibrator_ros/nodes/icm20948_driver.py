@@ -22,9 +22,9 @@ remapped into it; every stamp from the node's clock, taken at the read):
 
 With ``sim.motion: cmd_vel`` (the simulated ground robot), also:
 
-- ``battery_state`` (sensor_msgs/BatteryState), 20 Hz: the battery current the
-  robot draws (``current``, negative: discharging, as the message defines it), the pack's
-  voltage; the rest NaN (unmeasured).
+- ``battery_state`` (sensor_msgs/BatteryState), at most 20 Hz, with an imu/mag reading's
+  stamp: the battery current the robot draws (``current``, negative: discharging, as the
+  message defines it), the pack's voltage; the rest NaN (unmeasured).
 
 Subscribed topics (only with ``sim.motion: cmd_vel``): ``cmd_vel`` (geometry_msgs/Twist, or
 TwistStamped when only that is published): the simulated robot drives at its linear x and turns
@@ -132,8 +132,10 @@ TOPIC = 'imu/mag'
 IMU_TOPIC = 'imu/data_raw'
 TEMPERATURE_TOPIC = 'imu/temperature'
 BATTERY_TOPIC = 'battery_state'
-BATTERY_RATE_HZ = 20.0
-"""How often the simulated robot's battery current is published (a battery monitor's rate)."""
+BATTERY_PERIOD_NS = 50_000_000
+"""The simulated robot's battery current goes out with the first imu/mag message at least this
+long after the last (20 Hz at the default rate: a battery monitor's), stamped as it: the
+current when the field was read, and no timer waking the executor twenty times a second."""
 BACKENDS = ('smbus2', 'sim')
 LEVELS = {OK: diagnostics.OK, WARN: diagnostics.WARN, ERROR: diagnostics.ERROR}
 
@@ -444,6 +446,7 @@ class Icm20948DriverNode(Node):
         self._temperature_publisher = (
             self.create_publisher(Temperature, TEMPERATURE_TOPIC, DRIVER_QOS)
             if s.publish_temperature else None)
+        self._battery_publisher = None  # the simulated robot's, set by _follow_cmd_vel_wiring
         self._diagnostics = diagnostics.DiagnosticsPublisher(self)
         clock = self.get_clock()
         inertial = s.publish_imu or s.publish_temperature
@@ -642,6 +645,8 @@ class Icm20948DriverNode(Node):
         message.magnetic_field_covariance = self._mag_covariance
         self._publisher.publish(message)
         self.published += 1
+        if self._battery_publisher is not None:
+            self._publish_battery(sample.stamp)
 
     def _publish_imu(self, sample: ImuSample) -> None:
         reading = sample.reading
@@ -689,13 +694,14 @@ class Icm20948DriverNode(Node):
             return
         self._follow_cmd_vel_type()
         self.create_timer(CMD_VEL_CHECK_S, self._follow_cmd_vel_type)
-        self._battery_publisher = self.create_publisher(BatteryState, BATTERY_TOPIC, DRIVER_QOS)
+        self._battery_due_ns = 0
         self._battery_message = message = BatteryState()
         message.temperature = message.charge = message.capacity = math.nan  # unmeasured
         message.design_capacity = message.percentage = math.nan
         message.power_supply_status = BatteryState.POWER_SUPPLY_STATUS_DISCHARGING
         message.present = True
-        self.create_timer(1.0 / BATTERY_RATE_HZ, self._publish_battery)
+        # last: the supervisor's thread publishes once this is set
+        self._battery_publisher = self.create_publisher(BatteryState, BATTERY_TOPIC, DRIVER_QOS)
 
     def _follow_cmd_vel_type(self) -> None:
         topic = self.resolve_topic_name(CMD_VEL_TOPIC)
@@ -725,12 +731,17 @@ class Icm20948DriverNode(Node):
                                       speed=twist.linear.x)
         self.cmd_vel_received += 1
 
-    def _publish_battery(self) -> None:
-        """The simulated robot's battery: the current its motion draws now (one message,
-        refilled: the executor's thread also serves cmd_vel)."""
+    def _publish_battery(self, stamp) -> None:
+        """The simulated robot's battery: the current its motion draws now, with the stamp of
+        the imu/mag reading just published (on the supervisor's thread; one message, refilled),
+        at most every BATTERY_PERIOD_NS."""
+        stamp_ns = stamp.sec * 1_000_000_000 + stamp.nanosec
+        if stamp_ns < self._battery_due_ns:
+            return
+        self._battery_due_ns = stamp_ns + BATTERY_PERIOD_NS
         robot, message = self.settings.cmd_vel, self._battery_message
         amperes = robot.battery_current(self.simulator.sim_time_s)
-        message.header.stamp = self.get_clock().now().to_msg()
+        message.header.stamp = stamp
         message.header.frame_id = self._frame_id
         message.voltage = float(robot.drive.voltage(amperes))
         message.current = -float(amperes)  # negative when discharging (BatteryState.msg)
