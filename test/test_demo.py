@@ -1,5 +1,7 @@
 """mag_calibrator_demo end to end with a short configuration: exit 0, file and PNG written."""
 
+import re
+
 from mag_calibrator_ros.calibration.store.calibration_file import load_calibration
 from mag_calibrator_ros.tools import demo
 
@@ -23,14 +25,25 @@ def test_demo_rejects_bad_options(capsys):
 
     with pytest.raises(SystemExit):
         demo.main(['--evaluate-seconds', '0'])
+    with pytest.raises(SystemExit):
+        demo.main(['--ground-robot', '--drive-seconds', '500'])  # longer than the course
+    assert '--drive-seconds must be within [0, 180]' in capsys.readouterr().err
 
 
 def test_ground_robot_demo_turns_calibrates_stops_and_scores_the_heading(tmp_path, capsys):
     out = tmp_path / 'ground_out'
-    status = demo.main(['--ground-robot', '--output-dir', str(out), '--seed', '2'])
+    status = demo.main(['--ground-robot', '--output-dir', str(out), '--seed', '2',
+                        '--drive-seconds', '25'])
     printed = capsys.readouterr().out
     assert status == 0, printed
     assert 'rotation stopped after' in printed and 'calibrated (model planar' in printed
     assert (out / 'calibration.png').stat().st_size > 10_000
     assert load_calibration(out / 'calibration.yaml').model == 'planar'
     assert 'heading error' in printed and 'DONE' in printed
+    # it drove (25 s of the course: a turn in place, then a straight leg at top speed) with its
+    # own field and showed the battery current and the heading error while driving
+    assert 'Its own field' in printed and 'Heading error while driving' in printed
+    table = printed.split('Driving 25 s of the ground course')[1]
+    currents = [float(match) for match in re.findall(
+        r'^\s*\d+\s+[-\d.]+\s+[-\d.]+\s+([\d.]+)\s+[\d.]+\s', table, re.MULTILINE)]
+    assert len(currents) >= 3 and max(currents) > 1.0  # above the 0.5 A idle: it drove
