@@ -107,9 +107,22 @@ def automatic_verdict(outcome: JobOutcome, current: Calibration | None, misfit: 
 
 
 def refinement_verdict(outcome: JobOutcome, current: Calibration | None) -> Verdict:
-    """A refinement goes in force when it passed its gates, is better than the calibration it
-    was fitted against on held-out readings (``evidence.compare_on_evidence``), that one is
-    still in force, and it covers no less (``coverage_kept``)."""
+    """The adoption rule of refinement: a fit of the buffer goes in force when all of these hold,
+    and each one that fails is the reason logged (debug) for keeping the calibration in force:
+
+    - it passed its gates (``fitting``): it is what ``~/calibrate`` would put in force now;
+    - it is better than the calibration it was judged against on held-out readings no fit has
+      seen (``evidence.compare_on_evidence``): at least MIN_EVIDENCE of them spanning
+      MIN_EVIDENCE_SPAN of the directions, a capped residual lower by SIGNIFICANCE standard
+      errors and by MIN_GAIN, and still lower without the stretches of time most in its favour
+      (a magnet that stayed a while is not an improvement);
+    - that calibration is still in force, and the fit covers no fewer directions
+      (``coverage_kept``).
+
+    It converges: the held-out store keeps up to READINGS_PER_CELL a direction cell, so a real
+    gain of a few per cent is proven once the sensor has turned long enough, and the calibration
+    in force ends as good as what ``~/calibrate`` gives (benchmarks/bench_replay.py); what is
+    left meanwhile is reported as ``could_be_better`` (report.could_be_better)."""
     result, comparison = outcome.result, outcome.comparison
     if outcome.error:
         return Verdict(level='warning', message=f'refinement failed: {outcome.error}')
