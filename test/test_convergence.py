@@ -18,6 +18,7 @@ from mag_calibrator_ros.calibration.live.evidence import Comparison
 from mag_calibrator_ros.calibration.live.findings import Findings
 from mag_calibrator_ros.calibration.live.report import could_be_better
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
+from mag_calibrator_ros.calibration.live.verdicts import COVERAGE_SLACK, coverage_kept
 from mag_calibrator_ros.sim import motion
 
 FIELD_T = 50e-6
@@ -158,3 +159,14 @@ def test_diagnostics_report_the_headroom_of_the_calibration_in_force_until_it_ch
     attempt = session.calibrate_now()
     assert attempt.success
     assert 'could_be_better_pct' not in session.diagnostic_values(0.0)  # judged the old one
+
+
+def test_a_fit_one_or_two_cells_narrower_may_replace_the_calibration_in_force():
+    """Which of the 80 direction cells a buffer of 100 points reaches changes by a cell or two
+    as points are replaced: a candidate better on held-out readings is not refused for that,
+    but three cells fewer is a narrower buffer."""
+    current = Calibration(HARD_IRON_T, np.linalg.inv(SOFT_IRON), FIELD_T, 'full',
+                          {'coverage': 0.9})
+    assert coverage_kept(current, current.with_metadata(coverage=0.9 - COVERAGE_SLACK))
+    assert COVERAGE_SLACK == pytest.approx(2.0 / 80.0)
+    assert not coverage_kept(current, current.with_metadata(coverage=0.9 - 3.0 / 80.0))
