@@ -65,18 +65,19 @@ def truth_error(calibration, truth):
 def test_evidence_keeps_the_latest_few_per_direction_and_forgets_old_times():
     store = HeldOutEvidence()
     up = np.array([0.0, 0.0, 1.0])
-    for i in range(20):  # a robot standing still: one cell, refreshed
+    stood = READINGS_PER_CELL + 12
+    for i in range(stood):  # a robot standing still: one cell, refreshed
         store.add(np.array([0.0, 0.0, 50.0 + i]), up, float(i))
     assert len(store) == READINGS_PER_CELL
-    np.testing.assert_array_equal(np.sort(store.readings()[:, 2]),
-                                  50.0 + np.arange(20 - READINGS_PER_CELL, 20))
+    np.testing.assert_array_equal(store.readings()[:, 2],  # the latest, oldest first
+                                  50.0 + np.arange(stood - READINGS_PER_CELL, stood))
     rng = np.random.default_rng(0)
     for i, unit in enumerate(directions(rng, 400)):
-        store.add(50.0 * unit, unit, 20.0 + i / 100.0)
+        store.add(50.0 * unit, unit, stood + i / 100.0)
     assert READINGS_PER_CELL < len(store) <= 80 * READINGS_PER_CELL
-    assert len(store.readings(since_s=23.0)) < len(store)
-    store.forget_before(23.0)
-    assert len(store) == len(store.readings(since_s=23.0))
+    assert len(store.readings(since_s=stood + 3.0)) < len(store)
+    store.forget_before(stood + 3.0)
+    assert len(store) == len(store.readings(since_s=stood + 3.0))
     store.clear()
     assert len(store) == 0 and store.readings().shape == (0, 3)
 
@@ -145,6 +146,27 @@ def test_a_worse_candidate_is_never_judged_better(
     candidate = perturbed(good, candidate_error, rng)
     assume(truth_error(candidate, truth) > 1.1 * truth_error(current, truth))
     assert not compare_on_evidence(current, candidate, evidence).better
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    noise=st.floats(0.002, 0.04),
+    current_error=st.floats(0.0, 0.05),
+    candidate_error=st.floats(0.0, 0.1),
+    spike_share=st.floats(0.0, 0.1),
+    disturbed_share=st.floats(0.0, 0.3),
+    disturbance=st.floats(0.05, 0.5),
+    count=st.integers(320, 80 * READINGS_PER_CELL),
+)
+def test_a_worse_candidate_is_never_judged_better_on_a_full_store(
+    seed, noise, current_error, candidate_error, spike_share, disturbed_share, disturbance, count
+):
+    """As above with as many held-out readings as the store keeps: many readings shrink the
+    standard error, not the bias a magnet leaves, so they must not let a worse candidate in."""
+    test_a_worse_candidate_is_never_judged_better.hypothesis.inner_test(
+        seed, noise, current_error, candidate_error, spike_share, disturbed_share, disturbance,
+        count)
 
 
 # -- does the calibration in force still fit? -----------------------------------------------------

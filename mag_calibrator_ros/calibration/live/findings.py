@@ -20,6 +20,7 @@ from mag_calibrator_ros.calibration.fit.earth_field import (
     disturbance_text,
 )
 from mag_calibrator_ros.calibration.fit.fitting import FitOptions
+from mag_calibrator_ros.calibration.live.evidence import Comparison
 from mag_calibrator_ros.calibration.live.jobs import JobOutcome
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
 
@@ -37,6 +38,10 @@ class Findings:
         self.alignment_warning = ''
         """A mounting error the latest alignment found ('' if none)."""
         self._earth_warning = ''
+        self.headroom: tuple[Calibration, Comparison] | None = None
+        """The latest refinement that passed its gates, judged against the calibration in force
+        then (that calibration, the comparison): how far it is from the best fit of what the
+        node holds, which is what ``~/calibrate`` would put in force (report.could_be_better)."""
 
     def earth_reference(self, settings: SessionSettings, units: str) -> EarthReference | None:
         """The model's field here with the tolerances a fit is checked by."""
@@ -58,6 +63,10 @@ class Findings:
     def note(self, outcome: JobOutcome) -> list[str]:
         """Remember a fit's alignment and model check; the warnings of new findings."""
         warnings = []
+        result, current = outcome.result, outcome.job.current
+        if (outcome.job.kind == 'refine' and result is not None and result.success
+                and outcome.comparison is not None and current is not None):
+            self.headroom = (current, outcome.comparison)
         if outcome.alignment is not None:
             self.alignment = alignment = outcome.alignment
             finding = ('' if alignment.success or not math.isfinite(alignment.dip_deg)

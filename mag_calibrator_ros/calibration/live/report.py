@@ -21,6 +21,7 @@ from mag_calibrator_ros.calibration.fit.earth_field import EarthField, EarthRefe
 from mag_calibrator_ros.calibration.fit.heading import COMPLETE_HEADING_COVERAGE
 from mag_calibrator_ros.calibration.live.buffer import SampleBuffer
 from mag_calibrator_ros.calibration.live.evidence import (
+    MIN_GAIN,
     MISFIT_WINDOW_S,
     FitCheck,
     HeldOutEvidence,
@@ -299,6 +300,10 @@ def diagnostic_values(session: ReportedSession, now: float, coverage: Coverage
                              for source, count in sorted(session.adoptions.items())),
     }
     values.update({f'rejected_{k}': int(v) for k, v in session.rejects().items()})
+    headroom = could_be_better(session.findings, calibration)
+    if headroom is not None:
+        values['could_be_better_pct'] = round(headroom[0], 2)
+        values['could_be_better'] = headroom[1]
     check = session.misfit.last
     if check is not None and check.judged:
         values['live_median_error_pct'] = round(check.median_error_pct, 2)
@@ -317,6 +322,33 @@ def diagnostic_values(session: ReportedSession, now: float, coverage: Coverage
         values['fit_worker_last_restart'] = session.runner.last_restart
     values.update(_reference_values(session, now))
     return values
+
+
+def could_be_better(findings: Findings, calibration: Calibration | None
+                    ) -> tuple[float, str] | None:
+    """How far ``calibration`` (the one in force) is from the latest fit of what the node holds
+    that passed its gates, on the same held-out readings: (percent lower residual, what to do);
+    None when no such fit was judged against it yet. What the fit of the buffer gives is what
+    ``~/calibrate`` puts in force, so a user can act on it; refinement adopts it by itself once
+    the gain is beyond noise."""
+    headroom = findings.headroom
+    if headroom is None or calibration is None or headroom[0] is not calibration:
+        return None
+    comparison = headroom[1]
+    gain = comparison.gain_pct
+    if gain is None:
+        return None
+    gain = max(gain, 0.0)
+    if gain < 100.0 * MIN_GAIN:
+        return gain, (f'the calibration in force is as good as a fit of the buffer now '
+                      f'({comparison.current_pct:.2f} % vs {comparison.candidate_pct:.2f} % on '
+                      f'{comparison.readings} held-out readings)')
+    why = ('it covers fewer directions than the calibration in force' if comparison.better
+           else 'not yet beyond noise')
+    return gain, (f'could be better by {gain:.1f} %: a fit of the buffer now has residual '
+                  f'{comparison.candidate_pct:.2f} % against {comparison.current_pct:.2f} % on '
+                  f'{comparison.readings} held-out readings ({why}); call ~/calibrate to put '
+                  'it in force now, or keep turning the sensor for refinement to prove it')
 
 
 def _reference_values(session: ReportedSession, now: float) -> dict[str, object]:
@@ -370,6 +402,7 @@ __all__ = [
     'alignment_reason',
     'alignment_text',
     'calibration_summary',
+    'could_be_better',
     'coverage_pct',
     'diagnostic_values',
     'diagnostics_level',
