@@ -54,6 +54,8 @@ MIN_TEMPERATURE_SPAN = 2.0
 """Degrees Celsius: a narrower span is reported as 'did not vary' without a fit of c."""
 TEMPERATURE = 'temperature'
 """The name of the temperature term in reports."""
+LEARNED = ('compensation_time', 'compensation_removed_pct', 'compensation_readings')
+"""Metadata of a learned compensation, carried with it into later static fits."""
 
 
 @dataclass(frozen=True)
@@ -317,6 +319,6 @@ def _with_reason(fit: CompensationFit, reports: list[TermReport]) -> Compensatio
     return CompensationFit(None, fit.terms, fit.readings, fit.residual_pct, reason=reason)
 
 
-__all__ = ['DETERMINED_PCT', 'MIN_READINGS', 'SIGNIFICANT_SIGMA', 'TEMPERATURE',
+__all__ = ['DETERMINED_PCT', 'LEARNED', 'MIN_READINGS', 'SIGNIFICANT_SIGMA', 'TEMPERATURE',
            'CompensationData', 'CompensationFit', 'TermReport', 'fit_compensation',
            'magnitude_spread_pct']

@@ -21,6 +21,7 @@ import numpy as np
 
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
 from mag_calibrator_ros.calibration.fit.compensation import (
+    LEARNED,
     MIN_READINGS,
     TEMPERATURE,
     CompensationData,
@@ -44,8 +45,6 @@ HELD = 1000
 HOLD_OUT_EVERY = 5
 LEARN_PERIOD_S = 10.0
 """Stream seconds between compensation fits while there is something to learn."""
-LEARNED = ('compensation_time', 'compensation_removed_pct', 'compensation_readings')
-"""Metadata of a learned compensation, carried with it into later static fits."""
 
 
 class _Series:

@@ -24,6 +24,7 @@ from mag_calibrator_ros.calibration.fit.alignment import (
 )
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
 from mag_calibrator_ros.calibration.fit.compensation import (
+    LEARNED,
     CompensationData,
     CompensationFit,
     fit_compensation,
@@ -191,7 +192,7 @@ def _run(job: FitJob) -> JobOutcome:
         stamped = result.calibration.with_metadata(
             time=time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()), **job.metadata
         )
-        result = replace(result, calibration=stamped)
+        result = replace(result, calibration=kept_compensation(stamped, job.current))
     result, alignment, earth_check = align_and_check(job, result)
     comparison = None
     if (result.success and job.current is not None and job.evidence is not None
@@ -199,6 +200,15 @@ def _run(job: FitJob) -> JobOutcome:
         comparison = compare_on_evidence(job.current, result.calibration, job.evidence)
     return JobOutcome(job, result, comparison=comparison, coverage=coverage,
                       alignment=alignment, earth_check=earth_check)
+
+
+def kept_compensation(calibration: Calibration, current: Calibration | None) -> Calibration:
+    """A static fit keeps the compensation in force: its samples were compensated by it (the
+    answer to ``~/calibrate`` and the file then show it)."""
+    if current is None or current.compensation is None or calibration.compensation is not None:
+        return calibration
+    learned = {key: current.metadata[key] for key in LEARNED if key in current.metadata}
+    return calibration.with_compensation(current.compensation, **learned)
 
 
 def align_and_check(job: FitJob, result: FitResult
