@@ -63,3 +63,85 @@ def test_a_disturbed_place_scales_and_dips_the_field():
 def test_bad_earth_and_mounting_settings_are_named(kwargs, message):
     with pytest.raises(ValueError, match=message):
         SimConfig(**kwargs)
+
+
+# -- the robot's own field: the battery current and the warming die (issue #26) ------------------
+
+def driving_board(**kwargs) -> BoardModel:
+    """A quiet cmd_vel robot standing 5 s, then driving straight at top speed."""
+    board = BoardModel(SimConfig(noise_ut=0.0, motion='cmd_vel', seed=3, **kwargs))
+    for t in np.arange(5.0, 30.0, 0.1):
+        board.trajectory.command(0.0, float(t), speed=0.5)
+    return board
+
+
+def test_the_battery_current_adds_its_field_along_the_configured_axes():
+    board = driving_board(current_field_ut_per_a=(1.6, 0.0, -0.4), temperature_rise_c=0.0)
+    plain = driving_board(temperature_rise_c=0.0)
+    for t, amperes in ((2.0, 0.5), (20.0, 5.0)):  # idle, then the full current at top speed
+        assert board.battery_current_a(t) == pytest.approx(amperes)
+        difference = board.magnetometer(t)[0] - plain.magnetometer(t)[0]
+        np.testing.assert_allclose(difference, np.array([1.6, 0.0, -0.4]) * amperes, atol=1e-9)
+    truth = board.interference_truth()
+    np.testing.assert_allclose(truth.current_field, [1.6e-6, 0.0, -0.4e-6])
+    np.testing.assert_array_equal(truth.temperature_drift, np.zeros(3))
+
+
+def test_the_hard_iron_drifts_with_the_warming_die_from_the_power_on_temperature():
+    config = dict(temperature_c=20.0, temperature_rise_c=20.0, temperature_time_constant_s=60.0,
+                  hard_iron_ut=(10.0, -5.0, 3.0))
+    board = BoardModel(SimConfig(hard_iron_drift_ut_per_c=(0.2, 0.0, 0.1), **QUIET, **config))
+    plain = BoardModel(SimConfig(**QUIET, **config))
+    assert board.temperature_c(0.0) == 20.0
+    assert board.temperature_c(60.0) == pytest.approx(20.0 + 20.0 * (1.0 - math.exp(-1.0)))
+    assert board.temperature_c(1e5) == pytest.approx(40.0)
+    for t in (0.0, 60.0, 600.0):
+        rise = board.temperature_c(t) - 20.0
+        difference = board.magnetometer(t)[0] - plain.magnetometer(t)[0]
+        np.testing.assert_allclose(difference, np.array([0.2, 0.0, 0.1]) * rise, atol=1e-9)
+    truth = board.interference_truth()
+    assert truth.reference_temperature_c == 20.0
+    np.testing.assert_allclose(truth.temperature_drift, [0.2e-6, 0.0, 0.1e-6])
+    np.testing.assert_allclose(truth.hard_iron, [10e-6, -5e-6, 3e-6])
+    assert board.battery_current_a(1.0) is None  # a hand-held board draws no motor current
+
+
+def test_without_the_robots_field_the_board_reads_as_before():
+    board = driving_board()
+    for t in (0.0, 12.0, 25.0):
+        sensed, truth = board.magnetometer(t)
+        np.testing.assert_allclose(sensed, truth * 1e6, atol=1e-12)
+
+
+@pytest.mark.parametrize(('kwargs', 'message'), [
+    ({'current_field_ut_per_a': (8.0, 0.0, 0.0)}, 'needs motion cmd_vel'),
+    ({'motion': 'cmd_vel', 'current_field_ut_per_a': (500.0, 0.0, 0.0)}, 'a wire 2 mm'),
+    ({'hard_iron_drift_ut_per_c': (0.2, math.nan, 0.0)}, 'hard_iron_drift_ut_per_c must be 3'),
+    ({'temperature_time_constant_s': 0.0}, 'temperature_time_constant_s must be in'),
+])
+def test_bad_robot_field_settings_are_named(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        SimConfig(**kwargs)
+
+
+def test_a_recorded_course_logs_the_current_and_temperature_each_reading_saw():
+    from mag_calibrator_ros.sim.board import course_recording
+
+    board = BoardModel(SimConfig(noise_ut=0.0, motion='cmd_vel', seed=2, temperature_c=30.0,
+                                 temperature_rise_c=10.0, temperature_time_constant_s=5.0,
+                                 current_field_ut_per_a=(2.0, 0.0, 0.0),
+                                 hard_iron_drift_ut_per_c=(0.0, 0.5, 0.0)))
+    course = motion.CourseDriver((motion.Leg(2.0), motion.Leg(4.0, speed=0.5),
+                                  motion.Leg(2.0, yaw_rate=0.8)))
+    recording = course_recording(board, course, rate_hz=50.0)
+    assert len(recording.times) == 400 and recording.times[-1] == pytest.approx(7.98)
+    offset = (recording.mag - recording.truth) * 1e6
+    expected = np.column_stack([2.0 * recording.current_a, 0.5 * (recording.temperature_c - 30.0),
+                                np.zeros(400)])
+    np.testing.assert_allclose(offset, expected, atol=1e-9)
+    assert recording.current_a[:100].max() == 0.5 and recording.current_a.max() == 5.0
+    assert not recording.moving[:100].any() and recording.moving[150:].all()
+    warmed = 30.0 + 10.0 * (1.0 - math.exp(-7.98 / 5.0))
+    assert recording.temperature_c[-1] == pytest.approx(warmed)
+    with pytest.raises(ValueError, match='motion is cmd_vel'):
+        course_recording(BoardModel(SimConfig(**QUIET)), course)

@@ -23,14 +23,22 @@ def test_demo_rejects_bad_options(capsys):
 
     with pytest.raises(SystemExit):
         demo.main(['--evaluate-seconds', '0'])
+    with pytest.raises(SystemExit):
+        demo.main(['--ground-robot', '--drive-seconds', '500'])  # longer than the course
+    assert '--drive-seconds must be within [0, 180]' in capsys.readouterr().err
 
 
 def test_ground_robot_demo_turns_calibrates_stops_and_scores_the_heading(tmp_path, capsys):
     out = tmp_path / 'ground_out'
-    status = demo.main(['--ground-robot', '--output-dir', str(out), '--seed', '2'])
+    status = demo.main(['--ground-robot', '--output-dir', str(out), '--seed', '2',
+                        '--drive-seconds', '25'])
     printed = capsys.readouterr().out
     assert status == 0, printed
     assert 'rotation stopped after' in printed and 'calibrated (model planar' in printed
     assert (out / 'calibration.png').stat().st_size > 10_000
     assert load_calibration(out / 'calibration.yaml').model == 'planar'
     assert 'heading error' in printed and 'DONE' in printed
+    # it drove (25 s of the course reach a straight leg at top speed: the full 5 A) with its
+    # own field and showed the heading error while driving
+    assert 'Its own field' in printed and 'Heading error while driving' in printed
+    assert '5.00' in printed.split('Driving 25 s of the ground course')[1]

@@ -8,13 +8,14 @@ import sys
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import Twist
 import numpy as np
 import pytest
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
-from sensor_msgs.msg import Imu, MagneticField, Temperature
+from sensor_msgs.msg import BatteryState, Imu, MagneticField, Temperature
 
 from mag_calibrator_ros.icm20948 import registers as reg
 from mag_calibrator_ros.nodes.icm20948_driver import (
@@ -210,6 +211,59 @@ def test_every_published_sample_is_the_simulators_truth_plus_noise(harness_facto
         assert truth is not None
         assert np.max(np.abs(acceleration - truth.specific_force)) < 0.15  # m/s^2
         assert np.max(np.abs(rate - truth.angular_velocity)) < 0.02  # rad/s
+
+
+def test_the_simulated_robot_publishes_its_battery_current_and_its_field_follows_it(
+        harness_factory):
+    """sim.motion cmd_vel: the current its driving draws is on battery_state (negative:
+    discharging) and the magnetometer reads K times it on top of the earth's field."""
+    h = harness_factory(sim__motion='cmd_vel', sim__noise_ut=0.0, sim__seed=5,
+                        sim__temperature_rise_c=0.0, sim__current_field_ut_per_a=[8.0, 0.0, -2.0],
+                        sim__idle_current_a=1.0, sim__full_current_a=6.0)
+    batteries: list[BatteryState] = []
+    h.listener.create_subscription(BatteryState, 'battery_state', batteries.append, 10)
+    teleop = h.listener.create_publisher(Twist, 'cmd_vel', 10)
+
+    def offset_ut() -> np.ndarray:  # the reading minus the earth's field, newest sample
+        field = h.fields()[-1]
+        return (field - h.node.simulator.truth_for_reading(field)) * 1e6
+
+    assert h.spin_until(lambda: len(batteries) >= 3 and len(h.messages) >= 10)
+    assert batteries[-1].current == pytest.approx(-1.0)  # standing: the idle current
+    assert batteries[-1].voltage > 0.0 and math.isnan(batteries[-1].percentage)
+    assert batteries[-1].header.frame_id == 'imu_link'
+    np.testing.assert_allclose(offset_ut(), [8.0, 0.0, -2.0], atol=0.3)  # 1 A
+
+    def driving() -> bool:
+        twist = Twist()
+        twist.linear.x = 0.5  # the default top speed: the full current
+        teleop.publish(twist)
+        return bool(batteries) and batteries[-1].current == pytest.approx(-6.0)
+
+    assert h.spin_until(driving, 20.0)
+    assert h.spin_until(lambda: driving() and np.allclose(offset_ut(), [48.0, 0.0, -12.0],
+                                                          atol=0.3), 20.0)
+    assert h.node.settings.cmd_vel.speed(h.node.simulator.sim_time_s) == pytest.approx(0.5)
+
+
+def test_imu_temperature_follows_the_warming_die(harness_factory):
+    h = harness_factory(sim__motion='still', sim__temperature_c=20.0, sim__temperature_rise_c=20.0,
+                        sim__temperature_time_constant_s=2.0,
+                        sim__hard_iron_drift_ut_per_c=[0.2, 0.0, 0.0])
+    assert h.spin_until(lambda: len(h.temperatures) >= 1)
+    first = h.temperatures[0].temperature
+    assert 20.0 <= first < 30.0
+    assert h.spin_until(lambda: h.temperatures[-1].temperature > 39.0, 30.0)
+    board = h.node.simulator.board
+    truth = board.interference_truth()
+    assert truth.reference_temperature_c == 20.0
+    np.testing.assert_allclose(truth.temperature_drift, [0.2e-6, 0.0, 0.0])
+    now = h.node.simulator.sim_time_s
+    drift = board.hard_iron_ut(now)  # 0.2 uT/degC over the warm-up so far (19-20 degC)
+    np.testing.assert_allclose(drift, [0.2 * (board.temperature_c(now) - 20.0), 0.0, 0.0])
+    assert 3.8 < drift[0] <= 4.0
+    publishers = h.listener.get_publisher_names_and_types_by_node('icm20948_driver', '/robot')
+    assert all(topic != '/robot/battery_state' for topic, _ in publishers)  # no robot, no current
 
 
 def test_unknown_covariance_is_all_zeros_never_minus_one(harness_factory):
@@ -421,6 +475,12 @@ def test_missing_i2c_bus_keeps_the_node_alive_with_an_error(harness_factory):
     ({'sim.accel_bias_mps2': [1e308, 0.0, 0.0]}, 'accel_bias_mps2 must be within'),
     ({'sim.gyro_bias_dps': [0.0, 0.0, -1e308]}, 'gyro_bias_dps must be within'),
     ({'sim.i2c_error_rate': 1.0}, 'sim.i2c_error_rate'),
+    # the robot's own field (issue #26)
+    ({'sim.current_field_ut_per_a': [8.0, 0.0, 0.0]}, 'current_field_ut_per_a needs motion '
+                                                      'cmd_vel'),
+    ({'sim.hard_iron_drift_ut_per_c': [0.0, 1e3, 0.0]}, 'hard_iron_drift_ut_per_c must be within'),
+    ({'sim.idle_current_a': 3.0, 'sim.full_current_a': 2.0},
+     'sim.full_current_a must be in [idle_current_a, 1000] A'),
 ])
 def test_invalid_parameters_are_refused_with_a_reason(overrides, fragment):
     parameters = [Parameter('backend', value='sim')]

@@ -290,3 +290,70 @@ def test_poses_move_the_board_a_few_centimetres_smoothly():
     assert 0.01 < max(accelerations) < 1.0
     steps = np.diff([trajectory.state(t).angular_velocity for t in np.arange(0, 30, 0.01)], axis=0)
     assert np.max(np.linalg.norm(steps, axis=1)) < 0.2  # minimum jerk: no jumps in rate
+
+
+# -- cmd_vel: the robot drives, and draws a battery current (issue #26) --------------------------
+
+def test_cmd_vel_robot_drives_at_the_commanded_speed_within_its_limits():
+    trajectory = motion.CmdVelTrajectory(seed=1, max_speed=0.5, max_linear_acceleration=0.5)
+    for t in np.arange(1.0, 10.0, 0.1):
+        trajectory.command(0.0, float(t), speed=2.0)
+    assert trajectory.speed(1.0) == 0.0
+    assert trajectory.speed(1.4) == pytest.approx(0.2)  # 0.5 m/s^2 for 0.4 s
+    assert trajectory.speed(5.0) == pytest.approx(0.5)  # clamped to max_speed
+    state = trajectory.state(1.4)  # accelerating forward: along the body's x axis
+    np.testing.assert_allclose(state.rotation.T @ state.linear_acceleration, [0.5, 0.0, 0.0],
+                               atol=1e-12)
+    np.testing.assert_array_equal(trajectory.state(5.0).linear_acceleration, np.zeros(3))
+    assert trajectory.speed(10.9) == pytest.approx(0.5 - 0.5 * 0.5)  # timed out at 10.4 s
+    assert trajectory.speed(12.0) == 0.0
+    trajectory.command(0.0, 13.0, speed=math.nan)
+    assert trajectory.speed(14.0) == 0.0
+
+
+def test_driving_in_an_arc_adds_the_centripetal_acceleration():
+    trajectory = motion.CmdVelTrajectory(seed=1, wobble_deg=0.0)
+    for t in np.arange(0.0, 5.0, 0.1):
+        trajectory.command(0.4, float(t), speed=0.3)
+    state = trajectory.state(4.0)
+    np.testing.assert_allclose(state.rotation.T @ state.linear_acceleration, [0.0, 0.12, 0.0],
+                               atol=1e-12)
+
+
+def test_the_battery_current_follows_the_wheel_speeds():
+    drive = motion.DriveCurrent(idle_a=0.5, full_a=5.0, track_width_m=0.4)
+    assert drive.current(0.0, 0.0, 0.5) == 0.5
+    assert drive.current(0.5, 0.0, 0.5) == pytest.approx(5.0)
+    assert drive.current(-0.25, 0.0, 0.5) == pytest.approx(2.75)  # backwards draws too
+    assert drive.current(0.0, 1.0, 0.5) == pytest.approx(0.5 + 4.5 * 0.2 / 0.5)  # in place
+    trajectory = motion.CmdVelTrajectory(seed=2, drive=drive)
+    assert trajectory.battery_current(3.0) == 0.5  # standing: idle
+    for t in np.arange(0.0, 5.0, 0.1):
+        trajectory.command(0.0, float(t), speed=0.5)
+    assert trajectory.battery_current(4.0) == pytest.approx(5.0)
+
+
+@pytest.mark.parametrize(('kwargs', 'message'), [
+    ({'max_speed': 0.0}, 'max_speed must be in'),
+    ({'max_linear_acceleration': math.inf}, 'max_linear_acceleration must be in'),
+    ({'drive': motion.DriveCurrent(idle_a=-1.0)}, 'idle_current_a must be in'),
+    ({'drive': motion.DriveCurrent(idle_a=2.0, full_a=1.0)}, 'includes the idle current'),
+    ({'drive': motion.DriveCurrent(track_width_m=0.0)}, 'track_width must be in'),
+])
+def test_cmd_vel_drive_settings_are_checked(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        motion.CmdVelTrajectory(**kwargs)
+
+
+def test_the_ground_course_drives_legs_turns_and_stops_for_three_minutes():
+    course = motion.CourseDriver()
+    assert course.duration_s == 180.0
+    assert course.command_at(0.0) == (0.0, 0.0)
+    commands = [course.command_at(t) for t in np.arange(0.0, 180.0, 0.5)]
+    speeds = {speed for speed, rate in commands if rate == 0.0 and speed > 0.0}
+    assert len(speeds) >= 4 and max(speeds) == 0.5  # straight legs at varying speed
+    assert any(speed == 0.0 and rate > 0.0 for speed, rate in commands)  # turns both ways
+    assert any(speed == 0.0 and rate < 0.0 for speed, rate in commands)
+    assert course.command_at(200.0) == (0.0, 0.0)
+    with pytest.raises(ValueError, match='at least one leg'):
+        motion.CourseDriver(())

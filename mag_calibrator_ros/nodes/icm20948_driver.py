@@ -20,8 +20,15 @@ remapped into it; every stamp from the node's clock, taken at the read):
 - ``/diagnostics`` (diagnostic_msgs/DiagnosticArray): one status per stream, once a second;
   ``resyncs``: IMU reads so slow a newer sample may have landed (data-ready re-armed; bus busy?).
 
+With ``sim.motion: cmd_vel`` (the simulated ground robot), also:
+
+- ``battery_state`` (sensor_msgs/BatteryState), 20 Hz: the battery current the
+  robot draws (``current``, negative: discharging, as the message defines it), the pack's
+  voltage; the rest NaN (unmeasured).
+
 Subscribed topics (only with ``sim.motion: cmd_vel``): ``cmd_vel`` (geometry_msgs/Twist, or
-TwistStamped when only that is published): the simulated robot turns at its angular z.
+TwistStamped when only that is published): the simulated robot drives at its linear x and turns
+at its angular z.
 
 Services: none. Timers: diagnostics every second; with ``sim.motion: cmd_vel``, the check of
 cmd_vel's message type every CMD_VEL_CHECK_S.
@@ -60,11 +67,19 @@ The simulator (``backend: sim`` only):
   at most 1.0 per sqrt(Hz).
 - A magnetometer distortion beyond the AK09916's ±4912 µT reads as its overflow (ST2 HOFL):
   the sample is dropped and counted, as on the chip.
-- ``sim.temperature_c`` (25.0), ``sim.temperature_rise_c`` (2.0): the die and its warm-up.
+- ``sim.temperature_c`` (25.0), ``sim.temperature_rise_c`` (2.0),
+  ``sim.temperature_time_constant_s`` (600.0): the die and its first-order warm-up.
+- ``sim.hard_iron_drift_ut_per_c`` ([0, 0, 0]): the hard iron's drift, µT per degC of die
+  temperature above ``sim.temperature_c``; ``sim.current_field_ut_per_a`` ([0, 0, 0]): the
+  field of the battery current at the sensor, µT per ampere (``sim.motion: cmd_vel`` only).
 - ``sim.motion`` (tumble): tumble, yaw, still, poses, or cmd_vel (a robot following cmd_vel).
 - ``sim.i2c_error_rate`` (0.0): share of failing I2C transactions; ``sim.seed`` (0).
 - ``sim.max_yaw_rate`` (1.0), ``sim.max_yaw_acceleration`` (1.0), ``sim.tilt_wobble_deg``
-  (2.0), ``sim.cmd_vel_timeout`` (0.5): the cmd_vel robot's limits, tilt and command timeout.
+  (2.0), ``sim.cmd_vel_timeout`` (0.5): the cmd_vel robot's limits, tilt and command timeout;
+  ``sim.max_speed`` (0.5), ``sim.max_linear_acceleration`` (1.0): its driving limits.
+- ``sim.track_width`` (0.3), ``sim.idle_current_a`` (0.5), ``sim.full_current_a`` (5.0): the
+  cmd_vel robot's battery current, idle plus a share of the full current by the wheels' mean
+  speed against ``sim.max_speed`` (``motion.DriveCurrent``).
 """
 
 from __future__ import annotations
@@ -87,7 +102,7 @@ from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValu
 from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import Imu, MagneticField, Temperature
+from sensor_msgs.msg import BatteryState, Imu, MagneticField, Temperature
 
 from mag_calibrator_ros.icm20948 import registers as reg
 from mag_calibrator_ros.icm20948.driver import ImuSettings
@@ -116,6 +131,9 @@ NODE_NAME = 'icm20948_driver'
 TOPIC = 'imu/mag'
 IMU_TOPIC = 'imu/data_raw'
 TEMPERATURE_TOPIC = 'imu/temperature'
+BATTERY_TOPIC = 'battery_state'
+BATTERY_RATE_HZ = 20.0
+"""How often the simulated robot's battery current is published (a battery monitor's rate)."""
 BACKENDS = ('smbus2', 'sim')
 LEVELS = {OK: diagnostics.OK, WARN: diagnostics.WARN, ERROR: diagnostics.ERROR}
 
@@ -232,7 +250,7 @@ PARAMETERS: dict[str, tuple[object, ParameterDescriptor]] = {
     'sim.motion': ('tumble', _descriptor(
         'Simulator: how the board moves: tumble (hand), yaw (ground robot turning), still, or '
         'poses (held still at one tilt after another: what aligning to the IMU needs), or '
-        'cmd_vel (a ground robot turning in place only as commanded on cmd_vel).',
+        'cmd_vel (a ground robot driving and turning only as commanded on cmd_vel).',
         constraints=' | '.join(motion.TRAJECTORY_KINDS))),
     'sim.i2c_error_rate': (0.0, _descriptor(
         'Simulator: probability that an I2C transaction fails with EREMOTEIO.',
@@ -252,8 +270,17 @@ PARAMETERS: dict[str, tuple[object, ParameterDescriptor]] = {
     'sim.temperature_c': (25.0, _descriptor(
         'Simulator: die temperature at power-on in degC.', float_range=(-40.0, 85.0))),
     'sim.temperature_rise_c': (2.0, _descriptor(
-        'Simulator: warm-up of the die after power-on in degC (time constant 10 min).',
+        'Simulator: warm-up of the die after power-on in degC (sim.temperature_time_constant_s).',
         float_range=(-50.0, 50.0))),
+    'sim.temperature_time_constant_s': (600.0, _descriptor(
+        "Simulator: time constant of the die's first-order warm-up, seconds.",
+        float_range=(0.01, 86400.0))),
+    'sim.hard_iron_drift_ut_per_c': ([0.0, 0.0, 0.0], _descriptor(
+        'Simulator: drift of the hard iron [x, y, z], uT per degC of die temperature above '
+        'sim.temperature_c.', constraints='3 finite doubles, each within ±50')),
+    'sim.current_field_ut_per_a': ([0.0, 0.0, 0.0], _descriptor(
+        'Simulator (motion cmd_vel): field of the battery current at the sensor [x, y, z], uT '
+        'per ampere.', constraints='3 finite doubles, each within ±100')),
     'sim.mag_misalignment_deg': ([0.0, 0.0, 0.0], _descriptor(
         'Simulator: rotation vector [x, y, z] in degrees of the magnetometer axes against the '
         'accel/gyro frame (what aligning to the IMU recovers).',
@@ -273,7 +300,7 @@ PARAMETERS: dict[str, tuple[object, ParameterDescriptor]] = {
     'sim.inclination_offset_deg': (0.0, _descriptor(
         'Simulator: a disturbed place: the dip moved by this many degrees.',
         float_range=(-90.0, 90.0))),
-    # sim.motion cmd_vel: a ground robot following cmd_vel's angular z (Twist or TwistStamped)
+    # sim.motion cmd_vel: a ground robot following cmd_vel's linear x and angular z
     'sim.max_yaw_rate': (1.0, _descriptor(
         'Simulator (motion cmd_vel): largest yaw rate the robot turns at, rad/s.',
         float_range=(0.01, 10.0))),
@@ -286,6 +313,20 @@ PARAMETERS: dict[str, tuple[object, ParameterDescriptor]] = {
     'sim.cmd_vel_timeout': (0.5, _descriptor(
         'Simulator (motion cmd_vel): the robot stops by itself when no command came for this '
         "long, seconds (as a base controller's command timeout).", float_range=(0.01, 60.0))),
+    'sim.max_speed': (0.5, _descriptor(
+        'Simulator (motion cmd_vel): top forward speed, m/s.', float_range=(0.01, 20.0))),
+    'sim.max_linear_acceleration': (1.0, _descriptor(
+        'Simulator (motion cmd_vel): largest forward acceleration, m/s^2.',
+        float_range=(0.01, 100.0))),
+    'sim.track_width': (0.3, _descriptor(
+        'Simulator (motion cmd_vel): distance between the wheels, m (a turn in place spins '
+        'them at yaw rate x half of it).', float_range=(0.01, 10.0))),
+    'sim.idle_current_a': (0.5, _descriptor(
+        'Simulator (motion cmd_vel): battery current with the wheels still, A.',
+        float_range=(0.0, 1000.0))),
+    'sim.full_current_a': (5.0, _descriptor(
+        'Simulator (motion cmd_vel): battery current with both wheels at sim.max_speed, A '
+        '(idle included).', float_range=(0.0, 1000.0))),
 }
 CMD_VEL_TOPIC = 'cmd_vel'
 CMD_VEL_TYPES = {'geometry_msgs/msg/Twist': Twist, 'geometry_msgs/msg/TwistStamped': TwistStamped}
@@ -318,10 +359,14 @@ def settings_problems(values: dict[str, object]) -> list[str]:
     return problems
 
 
-def cmd_vel_limits(values: dict[str, object]) -> tuple[object, object, object, object]:
-    """(max rate, max acceleration, wobble, command timeout) of a sim cmd_vel robot."""
+def cmd_vel_limits(values: dict[str, object]) -> tuple:
+    """(max rate, max acceleration, wobble, command timeout, max speed, max linear
+    acceleration, drive current) of a sim cmd_vel robot."""
+    drive = motion.DriveCurrent(values['sim.idle_current_a'], values['sim.full_current_a'],
+                                values['sim.track_width'])
     return (values['sim.max_yaw_rate'], values['sim.max_yaw_acceleration'],
-            values['sim.tilt_wobble_deg'], values['sim.cmd_vel_timeout'])
+            values['sim.tilt_wobble_deg'], values['sim.cmd_vel_timeout'],
+            values['sim.max_speed'], values['sim.max_linear_acceleration'], drive)
 
 
 def imu_settings(values: dict[str, object]) -> ImuSettings:
@@ -486,6 +531,9 @@ class Icm20948DriverNode(Node):
                     gyro_noise_density=values['sim.gyro_noise_density'],
                     temperature_c=values['sim.temperature_c'],
                     temperature_rise_c=values['sim.temperature_rise_c'],
+                    temperature_time_constant_s=values['sim.temperature_time_constant_s'],
+                    current_field_ut_per_a=tuple(values['sim.current_field_ut_per_a']),
+                    hard_iron_drift_ut_per_c=tuple(values['sim.hard_iron_drift_ut_per_c']),
                     mag_misalignment_deg=tuple(values['sim.mag_misalignment_deg']),
                     latitude=values['sim.latitude'],
                     longitude=values['sim.longitude'],
@@ -497,8 +545,7 @@ class Icm20948DriverNode(Node):
                 problems.append(f'sim.*: {error}')
         cmd_vel = None
         if sim is not None and sim.motion == 'cmd_vel' and not problems:
-            rate, acceleration, wobble, timeout = cmd_vel_limits(values)
-            cmd_vel = motion.CmdVelTrajectory(sim.seed, rate, acceleration, wobble, timeout)
+            cmd_vel = motion.CmdVelTrajectory(sim.seed, *cmd_vel_limits(values))
         if problems:
             message = 'refusing to start, invalid parameters:\n  ' + '\n  '.join(problems)
             self.get_logger().fatal(message)
@@ -630,7 +677,7 @@ class Icm20948DriverNode(Node):
             for status in self.supervisor.status()
         ])
 
-    # --- sim.motion cmd_vel: the simulated robot turns as commanded --------------------------
+    # --- sim.motion cmd_vel: the simulated robot drives as commanded -------------------------
 
     def _follow_cmd_vel_wiring(self) -> None:
         """With the cmd_vel motion: subscribe to cmd_vel in the type its publishers use (Twist,
@@ -642,6 +689,13 @@ class Icm20948DriverNode(Node):
             return
         self._follow_cmd_vel_type()
         self.create_timer(CMD_VEL_CHECK_S, self._follow_cmd_vel_type)
+        self._battery_publisher = self.create_publisher(BatteryState, BATTERY_TOPIC, DRIVER_QOS)
+        self._battery_message = message = BatteryState()
+        message.temperature = message.charge = message.capacity = math.nan  # unmeasured
+        message.design_capacity = message.percentage = math.nan
+        message.power_supply_status = BatteryState.POWER_SUPPLY_STATUS_DISCHARGING
+        message.present = True
+        self.create_timer(1.0 / BATTERY_RATE_HZ, self._publish_battery)
 
     def _follow_cmd_vel_type(self) -> None:
         topic = self.resolve_topic_name(CMD_VEL_TOPIC)
@@ -664,10 +718,23 @@ class Icm20948DriverNode(Node):
         self._cmd_vel_type = wanted
 
     def _on_cmd_vel(self, message: Twist | TwistStamped) -> None:
-        """Turn in place at the commanded yaw rate (linear velocities are ignored)."""
+        """Drive at the commanded forward speed and yaw rate (a differential drive: linear y,
+        z and angular x, y are ignored)."""
         twist = message.twist if isinstance(message, TwistStamped) else message
-        self.settings.cmd_vel.command(twist.angular.z, self.simulator.sim_time_s)
+        self.settings.cmd_vel.command(twist.angular.z, self.simulator.sim_time_s,
+                                      speed=twist.linear.x)
         self.cmd_vel_received += 1
+
+    def _publish_battery(self) -> None:
+        """The simulated robot's battery: the current its motion draws now (one message,
+        refilled: the executor's thread also serves cmd_vel)."""
+        robot, message = self.settings.cmd_vel, self._battery_message
+        amperes = robot.battery_current(self.simulator.sim_time_s)
+        message.header.stamp = self.get_clock().now().to_msg()
+        message.header.frame_id = self._frame_id
+        message.voltage = float(robot.drive.voltage(amperes))
+        message.current = -float(amperes)  # negative when discharging (BatteryState.msg)
+        self._battery_publisher.publish(message)
 
     def destroy_node(self) -> None:
         self._stop.set()

@@ -15,8 +15,15 @@ apart. A motion is any ``motion.Trajectory``; the world is ENU with the earth's 
 - accelerometer: specific force ``R.T @ (a_world - g_world) + bias + noise`` (m/s^2), so a board
   lying level reads +g on z;
 - gyroscope: body angular rate ``+ bias + noise`` (rad/s);
-- die temperature: ``temperature_c + temperature_rise_c * (1 - exp(-t / 600 s))``, a slow
-  warm-up after power-on.
+- die temperature: ``temperature_c + temperature_rise_c * (1 - exp(-t / tau))``, a
+  first-order warm-up after power-on towards ``temperature_c + temperature_rise_c`` with the
+  time constant ``tau = temperature_time_constant_s`` (600 s by default);
+- the robot's own field, added to the hard iron in the magnetometer's axes (``raw - b - K u -
+  c (T - T0)`` of issue #26 undoes it): ``K * I`` with ``K = current_field_ut_per_a`` and
+  ``I`` the battery current of a ``cmd_vel`` robot (``motion.DriveCurrent``), and ``c * (T -
+  T0)`` with ``c = hard_iron_drift_ut_per_c``, ``T`` the die temperature and ``T0 =
+  temperature_c`` (the hard iron is ``hard_iron_ut`` at power-on). ``interference_truth`` gives
+  K, c and T0 in SI units for tests and benchmarks.
 
 Noise per sample is the noise density times the square root of the DLPF's noise bandwidth, the
 way DS-000189 specifies it; the DLPF's delay is not modelled.
@@ -37,7 +44,6 @@ from mag_calibrator_ros.sim import motion
 if TYPE_CHECKING:
     from mag_calibrator_ros.sim.config import SimConfig
 
-TEMPERATURE_TIME_CONSTANT_S = 600.0
 GRAVITY_WORLD = np.array([0.0, 0.0, -reg.STANDARD_GRAVITY])  # ENU: down
 
 
@@ -54,6 +60,22 @@ class ImuTruth:
     specific_force: np.ndarray
     angular_velocity: np.ndarray
     temperature_c: float
+
+
+@dataclass(frozen=True)
+class InterferenceTruth:
+    """The robot's own field as simulated, SI units, magnetometer axes (chip frame): the reading
+    is ``S (earth) + hard_iron + current_field * I + temperature_drift * (T - T0)``.
+
+    ``current_field``: (3,) tesla per ampere of battery current; ``temperature_drift``: (3,)
+    tesla per degC; ``reference_temperature_c``: T0, where the hard iron is ``hard_iron`` (3,)
+    tesla.
+    """
+
+    current_field: np.ndarray
+    temperature_drift: np.ndarray
+    reference_temperature_c: float
+    hard_iron: np.ndarray
 
 
 class BoardModel:
@@ -83,6 +105,12 @@ class BoardModel:
         self._imu_rng = np.random.default_rng([config.seed, 12])
         self._accel_bias = np.asarray(config.accel_bias_mps2, dtype=float)
         self._gyro_bias = np.radians(np.asarray(config.gyro_bias_dps, dtype=float))
+        self._draws_current = bool(np.any(config.current_field != 0.0))
+        self._drifts = bool(np.any(config.hard_iron_drift != 0.0))
+        if self._draws_current and not callable(getattr(self.trajectory, 'battery_current',
+                                                        None)):
+            raise ValueError(f'current_field_ut_per_a needs a motion that draws a battery '
+                             f'current (cmd_vel), got a {type(self.trajectory).__name__}')
 
     @property
     def earth_field_ut(self) -> np.ndarray:
@@ -99,7 +127,7 @@ class BoardModel:
         # An absurd distortion may leave the doubles (inf, NaN): the chip reads that as an
         # overflow, the simulator's business, not a warning on every sample.
         with np.errstate(over='ignore', invalid='ignore'):
-            sensed = self._sensing @ earth_chip_ut + self.config.hard_iron
+            sensed = self._sensing @ earth_chip_ut + self.hard_iron_ut(t)
             if self.config.noise_ut > 0.0:
                 sensed = sensed + self._mag_rng.normal(0.0, self.config.noise_ut, 3)
         return sensed, earth_chip_ut * 1e-6
@@ -122,8 +150,31 @@ class BoardModel:
 
     def temperature_c(self, t: float) -> float:
         """First-order warm-up from ``temperature_c`` by ``temperature_rise_c``."""
-        warm = 1.0 - math.exp(-max(t, 0.0) / TEMPERATURE_TIME_CONSTANT_S)
+        warm = 1.0 - math.exp(-max(t, 0.0) / self.config.temperature_time_constant_s)
         return self.config.temperature_c + self.config.temperature_rise_c * warm
+
+    def battery_current_a(self, t: float) -> float | None:
+        """The battery current (A) the robot draws at ``t``; None for a motion without one."""
+        current = getattr(self.trajectory, 'battery_current', None)
+        return float(current(max(t, 0.0))) if callable(current) else None
+
+    def hard_iron_ut(self, t: float) -> np.ndarray:
+        """The offset the magnetometer reads at ``t`` (µT): the hard iron, the current's field
+        and the hard iron's drift with the die temperature."""
+        offset = self.config.hard_iron
+        if self._draws_current:
+            offset = offset + self.config.current_field * self.trajectory.battery_current(
+                max(t, 0.0))
+        if self._drifts:
+            offset = offset + self.config.hard_iron_drift * (
+                self.temperature_c(t) - self.config.temperature_c)
+        return offset
+
+    def interference_truth(self) -> InterferenceTruth:
+        """K, c and T0 as simulated (SI), for tests and benchmarks to judge a learned model."""
+        return InterferenceTruth(self.config.current_field * 1e-6,
+                                 self.config.hard_iron_drift * 1e-6,
+                                 float(self.config.temperature_c), self.config.hard_iron * 1e-6)
 
 
 def board_readings(board: BoardModel, seconds: float, rate_hz: float,
@@ -141,3 +192,62 @@ def board_readings(board: BoardModel, seconds: float, rate_hz: float,
         accel.append(force)
         gyro.append(rate)
     return np.array(mag), np.array(accel), np.array(gyro)
+
+
+@dataclass(frozen=True)
+class CourseRecording:
+    """A driven course as a robot's sensors recorded it, one row per magnetometer sample.
+
+    ``times`` (s since power-on); ``mag`` (T, with distortion, the robot's own field and noise),
+    ``truth`` (T, the earth's field in the chip frame), ``accel`` (m/s^2), ``gyro`` (rad/s), all
+    (n, 3) and read at the same instant (what pairing by stamp gives); ``temperature_c`` (the
+    die), ``current_a`` (the battery current the robot draws, positive), ``speed`` (m/s) and
+    ``yaw_rate`` (rad/s), all (n,).
+    """
+
+    times: np.ndarray
+    mag: np.ndarray
+    truth: np.ndarray
+    accel: np.ndarray
+    gyro: np.ndarray
+    temperature_c: np.ndarray
+    current_a: np.ndarray
+    speed: np.ndarray
+    yaw_rate: np.ndarray
+
+    @property
+    def moving(self) -> np.ndarray:
+        """Which rows the robot was driving or turning in (not standing still)."""
+        return (np.abs(self.speed) > 1e-3) | (np.abs(self.yaw_rate) > 1e-3)
+
+
+def course_recording(board: BoardModel, course: motion.CourseDriver | None = None,
+                     rate_hz: float = 100.0, command_period_s: float = 0.1,
+                     start_s: float = 0.0) -> CourseRecording:
+    """Drive a ``cmd_vel`` board's robot over ``course`` (``motion.GROUND_COURSE`` by default)
+    from ``start_s``, its commands re-sent every ``command_period_s`` as a teleop does, and
+    record its sensors at ``rate_hz``; the inertial noise at 57 Hz bandwidth."""
+    trajectory = board.trajectory
+    if not isinstance(trajectory, motion.CmdVelTrajectory):
+        raise ValueError(f'a course needs a board whose motion is cmd_vel, got a '
+                         f'{type(trajectory).__name__}')
+    course = course or motion.CourseDriver()
+    rows: dict[str, list] = {name: [] for name in CourseRecording.__dataclass_fields__}
+    next_command = 0.0
+    for k in range(int(round(course.duration_s * rate_hz))):
+        into = k / rate_hz
+        while next_command <= into:
+            speed, yaw_rate = course.command_at(next_command)
+            trajectory.command(yaw_rate, start_s + next_command, speed=speed)
+            next_command += command_period_s
+        t = start_s + into
+        field, truth = board.magnetometer(t)
+        accel, gyro, _ = board.inertial(t, 57.0, 57.0)
+        _, rate = trajectory.yaw_and_rate(t)
+        for name, value in (('times', t), ('mag', field * 1e-6), ('truth', truth),
+                            ('accel', accel), ('gyro', gyro),
+                            ('temperature_c', board.temperature_c(t)),
+                            ('current_a', trajectory.battery_current(t)),
+                            ('speed', trajectory.speed(t)), ('yaw_rate', rate)):
+            rows[name].append(value)
+    return CourseRecording(**{name: np.array(values) for name, values in rows.items()})

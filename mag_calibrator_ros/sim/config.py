@@ -23,6 +23,10 @@ GYRO_NOISE_DENSITY = 2.62e-4  # (rad/s)/sqrt(Hz)
 MAX_ACCEL_BIAS_MPS2 = max(reg.ACCEL_RANGES_G) * reg.STANDARD_GRAVITY
 MAX_GYRO_BIAS_DPS = float(max(reg.GYRO_RANGES_DPS))
 MAX_NOISE_DENSITY = 1.0  # (m/s^2)/sqrt(Hz) and (rad/s)/sqrt(Hz)
+# The robot's own field: beyond these a sensor would sit on the wire or the magnet itself
+# (100 uT/A: a wire 2 mm away; 50 uT/degC: 2.5 mT over a 50 degC warm-up).
+MAX_CURRENT_FIELD_UT_PER_A = 100.0
+MAX_DRIFT_UT_PER_C = 50.0
 
 
 @dataclass(frozen=True)
@@ -33,7 +37,13 @@ class SimConfig:
     ``hard_iron_ut`` an offset in the chip frame; ``noise_ut`` white noise per axis (1 sigma).
     Accel/gyro: constant biases (chip frame) and white-noise densities (per sample: density x
     sqrt(DLPF noise bandwidth)); die temperature starts at ``temperature_c`` and warms by
-    ``temperature_rise_c``. ``who_am_i`` and ``ak09916_id`` let tests model a wrong chip.
+    ``temperature_rise_c``, first order with ``temperature_time_constant_s``. ``who_am_i`` and
+    ``ak09916_id`` let tests model a wrong chip.
+    The robot's own field (``board.BoardModel``): ``current_field_ut_per_a`` (µT per ampere of
+    battery current, per chip axis: wires and motors near the sensor; ``motion`` cmd_vel only,
+    the one simulated robot that draws a current) and ``hard_iron_drift_ut_per_c`` (µT per degC
+    of die temperature from ``temperature_c``, the power-on temperature the hard iron is
+    given at). Both zero by default: a board without them.
     Earth and mounting (``board.BoardModel``): ``mag_misalignment_deg``, a location, and a
     disturbance (``field_scale``, ``inclination_offset_deg``).
     """
@@ -59,6 +69,9 @@ class SimConfig:
     gyro_noise_density: float = GYRO_NOISE_DENSITY
     temperature_c: float = 25.0
     temperature_rise_c: float = 2.0
+    temperature_time_constant_s: float = 600.0
+    current_field_ut_per_a: Sequence[float] = (0.0, 0.0, 0.0)
+    hard_iron_drift_ut_per_c: Sequence[float] = (0.0, 0.0, 0.0)
     mag_misalignment_deg: Sequence[float] = (0.0, 0.0, 0.0)
     """Rotation vector (deg) of the magnetometer's axes against the accel/gyro frame."""
     latitude: float = math.nan
@@ -72,6 +85,8 @@ class SimConfig:
     # Derived, validated copies (filled in __post_init__).
     hard_iron: np.ndarray = field(init=False, repr=False, compare=False)
     soft_iron_matrix: np.ndarray = field(init=False, repr=False, compare=False)
+    current_field: np.ndarray = field(init=False, repr=False, compare=False)
+    hard_iron_drift: np.ndarray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         problems = config_problems(self)
@@ -80,6 +95,10 @@ class SimConfig:
         object.__setattr__(self, 'hard_iron', np.asarray(self.hard_iron_ut, dtype=float))
         matrix = np.asarray(self.soft_iron, dtype=float).reshape(3, 3)
         object.__setattr__(self, 'soft_iron_matrix', matrix)
+        object.__setattr__(self, 'current_field',
+                           np.asarray(self.current_field_ut_per_a, dtype=float))
+        object.__setattr__(self, 'hard_iron_drift',
+                           np.asarray(self.hard_iron_drift_ut_per_c, dtype=float))
 
 
 def config_problems(config: SimConfig) -> list[str]:
@@ -95,13 +114,14 @@ def config_problems(config: SimConfig) -> list[str]:
             problems.append(f'{name} must be a finite number, got {value!r}')
         return ok
 
-    def vector(name: str, values: object, unit: str, bound: float = math.inf) -> None:
+    def vector(name: str, values: object, unit: str, bound: float = math.inf,
+               why: str = 'the largest full scale') -> None:
         array = np.asarray(values, dtype=float) if _numeric(values) else None
         if array is None or array.shape != (3,) or not np.all(np.isfinite(array)):
             problems.append(f'{name} must be 3 finite numbers ({unit}), got {values!r}')
         elif np.any(np.abs(array) > bound):
-            problems.append(f'{name} must be within ±{bound:g} {unit} (the largest full scale), '
-                            f'got {values!r}')
+            problems.append(f'{name} must be within ±{bound:g} {unit} ({why}), got '
+                            f'{values!r}')
 
     if finite('field_ut', config.field_ut) and not 0.0 < config.field_ut <= 4900.0:
         problems.append(f'field_ut must be in (0, 4900] uT (AK09916 range), got {config.field_ut}')
@@ -162,6 +182,19 @@ def config_problems(config: SimConfig) -> list[str]:
     ):
         problems.append(f'temperature_rise_c must be within [-50, 50] degC, '
                         f'got {config.temperature_rise_c}')
+    if finite('temperature_time_constant_s', config.temperature_time_constant_s) and not (
+            0.0 < config.temperature_time_constant_s <= 86400.0):
+        problems.append(f'temperature_time_constant_s must be in (0, 86400] s, got '
+                        f'{config.temperature_time_constant_s}')
+    vector('current_field_ut_per_a', config.current_field_ut_per_a, 'uT per A',
+           MAX_CURRENT_FIELD_UT_PER_A, 'a wire 2 mm from the sensor')
+    vector('hard_iron_drift_ut_per_c', config.hard_iron_drift_ut_per_c, 'uT per degC',
+           MAX_DRIFT_UT_PER_C, 'a magnet, not a drift')
+    if (config.motion != 'cmd_vel' and _numeric(config.current_field_ut_per_a)
+            and np.any(np.asarray(config.current_field_ut_per_a, dtype=float) != 0.0)):
+        problems.append(f'current_field_ut_per_a needs motion cmd_vel (the simulated ground '
+                        f'robot, the only motion that draws a battery current), got motion '
+                        f'{config.motion!r}: set motion to cmd_vel or the field to zero')
     return problems
 
 

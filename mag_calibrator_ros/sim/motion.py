@@ -443,15 +443,57 @@ def _quat_matrix(quat) -> np.ndarray:
     ])
 
 
-class CmdVelTrajectory(Trajectory):
-    """A ground robot that turns in place only as commanded (``cmd_vel``'s angular z).
+@dataclass(frozen=True)
+class DriveCurrent:
+    """The battery current a differential-drive robot draws: ``idle_a`` with the wheels still
+    (computer, sensors, motor drivers), rising linearly with the wheels' mean absolute speed to
+    ``full_a`` with both wheels at the robot's top speed.
 
-    ``command(yaw_rate, t)`` sets the target yaw rate at simulated time ``t``; the yaw rate
-    follows it within ``max_rate`` (rad/s) and ``max_acceleration`` (rad/s^2), as a base's
-    velocity controller does, and falls back to zero when no command came for
+    A DC motor's current follows its torque; on flat ground at steady speed that torque is
+    rolling resistance and friction, which grow with speed, so current rises with wheel speed
+    (the +8-9 uT on a ground robot's |B| correlated with wheel speed in
+    manankharwar/fusioncore#93). A turn in place spins both wheels at ``yaw_rate *
+    track_width_m / 2`` in opposite directions, so it draws current too. Not modelled:
+    acceleration torque, slopes, skid-steer scrubbing and a battery's voltage sag.
+    """
+
+    idle_a: float = 0.5
+    full_a: float = 5.0
+    track_width_m: float = 0.3
+    NOMINAL_V = 12.0
+    RESISTANCE_OHM = 0.05
+    """The pack: 12 V nominal with a 0.05 ohm internal resistance (a voltage to publish; the
+    sag does not change the current)."""
+
+    def voltage(self, current: float) -> float:
+        """The pack's voltage (V) while it supplies ``current`` A."""
+        return self.NOMINAL_V - self.RESISTANCE_OHM * current
+
+    def current(self, speed: float, yaw_rate: float, top_speed: float) -> float:
+        """Amperes drawn at ``speed`` m/s (forward, either sign) and ``yaw_rate`` rad/s, the
+        wheels' top speed ``top_speed`` m/s."""
+        half_track = 0.5 * self.track_width_m * yaw_rate
+        wheels = 0.5 * (abs(speed - half_track) + abs(speed + half_track))
+        return self.idle_a + (self.full_a - self.idle_a) * wheels / top_speed
+
+
+class CmdVelTrajectory(Trajectory):
+    """A ground robot that drives and turns only as commanded (``cmd_vel``'s linear x and
+    angular z).
+
+    ``command(yaw_rate, t, speed)`` sets the target yaw rate and forward speed at simulated time
+    ``t``; each follows its target within its limits (``max_rate`` rad/s and
+    ``max_acceleration`` rad/s^2; ``max_speed`` m/s and ``max_linear_acceleration`` m/s^2), as a
+    base's velocity controller does, and falls back to zero when no command came for
     ``command_timeout`` seconds, as bases with a command timeout do (ros2_control's
     diff_drive_controller stops after 0.5 s by default): a commander that dies stops the robot
     only if it kept re-sending while alive. Nothing moves without commands.
+
+    The IMU sits on the turning axis: driving adds the forward acceleration and the centripetal
+    ``speed * yaw_rate`` (body y) to what the accelerometer measures; the earth's field is the
+    same everywhere the robot drives, so only the heading changes what the magnetometer reads.
+    The battery current (``battery_current``) follows the motion through ``drive``
+    (``DriveCurrent``).
 
     The tilt belongs to the floor under the wheels, so it is a function of the heading alone: roll
     and pitch are sums of the first three harmonics of yaw (a slope, then bumps) with seeded
@@ -477,13 +519,21 @@ class CmdVelTrajectory(Trajectory):
         max_acceleration: float = 1.0,
         wobble_deg: float = 2.0,
         command_timeout: float = 0.5,
+        max_speed: float = 0.5,
+        max_linear_acceleration: float = 1.0,
+        drive: DriveCurrent | None = None,
     ) -> None:
-        problems = cmd_vel_problems(max_rate, max_acceleration, wobble_deg, command_timeout)
+        drive = DriveCurrent() if drive is None else drive
+        problems = cmd_vel_problems(max_rate, max_acceleration, wobble_deg, command_timeout,
+                                    max_speed, max_linear_acceleration, drive)
         if problems:
             raise ValueError('invalid cmd_vel motion: ' + '; '.join(problems))
         self.max_rate = float(max_rate)
         self.max_acceleration = float(max_acceleration)
         self.command_timeout = float(command_timeout)
+        self.max_speed = float(max_speed)
+        self.max_linear_acceleration = float(max_linear_acceleration)
+        self.drive = drive
         rng = np.random.default_rng([seed, 5])
         yaw0 = float(rng.uniform(-math.pi, math.pi))
         orders = np.arange(1, self.HARMONICS + 1)
@@ -496,25 +546,25 @@ class CmdVelTrajectory(Trajectory):
         self._tilt_amplitudes = (amplitudes * math.radians(float(wobble_deg)) / peak).tolist()
         self._tilt_phases = phases.tolist()
         self._lock = threading.Lock()
-        # Knots: (time, yaw, yaw rate, target rate, time the target lapses to zero).
-        self._knots: list[tuple[float, float, float, float, float]] = [
-            (0.0, yaw0, 0.0, 0.0, math.inf)]
+        # Knots: (time, yaw, yaw rate, target rate, time the targets lapse to zero, speed,
+        # target speed).
+        self._knots: list[tuple[float, float, float, float, float, float, float]] = [
+            (0.0, yaw0, 0.0, 0.0, math.inf, 0.0, 0.0)]
         self._knot_times = [0.0]
         self._latest = 0.0  # the latest time a state was read
 
-    def command(self, yaw_rate: float, t: float) -> float:
+    def command(self, yaw_rate: float, t: float, speed: float = 0.0) -> float:
         """Turn at ``yaw_rate`` rad/s (positive: counter-clockwise seen from above, REP-103)
-        from time ``t``; a non-finite rate is a stop. Returns the target after clamping."""
+        and drive forward at ``speed`` m/s (negative: backwards) from time ``t``; a non-finite
+        value is a stop of that motion. Returns the yaw-rate target after clamping."""
         t = _checked_time(t)
-        try:
-            target = float(yaw_rate)
-        except (TypeError, ValueError):
-            target = 0.0
-        target = min(max(target, -self.max_rate), self.max_rate) if math.isfinite(target) else 0.0
+        target = _clamped(yaw_rate, self.max_rate)
+        target_speed = _clamped(speed, self.max_speed)
         with self._lock:
             start = max(t, self._latest, self._knot_times[-1])
-            yaw, rate = self._evolve(self._knots[-1], start)
-            self._knots.append((start, yaw, rate, target, start + self.command_timeout))
+            yaw, rate, now_speed, _ = self._evolve(self._knots[-1], start)
+            self._knots.append((start, yaw, rate, target, start + self.command_timeout,
+                                now_speed, target_speed))
             self._knot_times.append(start)
             old = bisect_right(self._knot_times, self._latest - self.RETAIN_S) - 1
             if old > 0:
@@ -523,20 +573,38 @@ class CmdVelTrajectory(Trajectory):
 
     def yaw_and_rate(self, t: float) -> tuple[float, float]:
         """Yaw (rad, unwrapped) and yaw rate (rad/s) at time ``t``."""
+        yaw, rate, _, _ = self._motion(t)
+        return yaw, rate
+
+    def speed(self, t: float) -> float:
+        """Forward speed (m/s) at time ``t``."""
+        return self._motion(t)[2]
+
+    def battery_current(self, t: float) -> float:
+        """The battery current (A) the robot draws at time ``t`` (``DriveCurrent``)."""
+        _, rate, speed, _ = self._motion(t)
+        return self.drive.current(speed, rate, self.max_speed)
+
+    def _motion(self, t: float) -> tuple[float, float, float, float]:
+        """(yaw, yaw rate, speed, forward acceleration) at time ``t``."""
         t = _checked_time(t)
         with self._lock:
             self._latest = max(self._latest, t)
             index = max(bisect_right(self._knot_times, t) - 1, 0)
             return self._evolve(self._knots[index], t)
 
-    def _evolve(self, knot: tuple[float, float, float, float, float], end: float
-                ) -> tuple[float, float]:
-        start, yaw, rate, target, lapse = knot
+    def _evolve(self, knot: tuple[float, float, float, float, float, float, float], end: float
+                ) -> tuple[float, float, float, float]:
+        start, yaw, rate, target, lapse, speed, target_speed = knot
         end = max(end, start)
         if lapse < end:  # no command for command_timeout: the base stops by itself
             yaw, rate = self._ramp(yaw, rate, target, lapse - start)
-            start, target = lapse, 0.0
-        return self._ramp(yaw, rate, target, end - start)
+            speed, _ = _follow(speed, target_speed, self.max_linear_acceleration, lapse - start)
+            start, target, target_speed = lapse, 0.0, 0.0
+        yaw, rate = self._ramp(yaw, rate, target, end - start)
+        speed, acceleration = _follow(speed, target_speed, self.max_linear_acceleration,
+                                      end - start)
+        return yaw, rate, speed, acceleration
 
     def _ramp(self, yaw: float, rate: float, target: float, dt: float) -> tuple[float, float]:
         """Rate towards ``target`` at the acceleration limit for ``dt`` s; exact yaw."""
@@ -560,12 +628,14 @@ class CmdVelTrajectory(Trajectory):
 
     def state(self, t: float) -> MotionState:
         """Plain float arithmetic: the simulator calls it once per sample."""
-        yaw, yaw_rate = self.yaw_and_rate(t)
+        yaw, yaw_rate, speed, forward = self._motion(t)
         roll, roll_slope, pitch, pitch_slope = self._tilt(yaw)
+        rotation = _zyx_matrix(yaw, pitch, roll)
+        moving = speed != 0.0 or forward != 0.0
         return MotionState(
-            _zyx_matrix(yaw, pitch, roll),
+            rotation,
             _zyx_body_rate(yaw_rate, pitch, yaw_rate * pitch_slope, roll, yaw_rate * roll_slope),
-            ZERO3,
+            rotation @ np.array([forward, speed * yaw_rate, 0.0]) if moving else ZERO3,
         )
 
     def orientation(self, t: float) -> np.ndarray:
@@ -578,20 +648,56 @@ class CmdVelTrajectory(Trajectory):
         return Rotation.from_matrix(np.array([self.state(t).rotation for t in times]))
 
 
+def _clamped(value: object, limit: float) -> float:
+    """A commanded velocity within ±``limit``; anything not a finite number is a stop."""
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        return 0.0
+    return min(max(value, -limit), limit) if math.isfinite(value) else 0.0
+
+
+def _follow(value: float, target: float, limit: float, dt: float) -> tuple[float, float]:
+    """(value, its rate of change) after ``dt`` s of moving towards ``target`` at ``limit``."""
+    change = target - value
+    if abs(change) <= limit * dt:
+        return target, 0.0
+    slope = math.copysign(limit, change)
+    return value + slope * dt, slope
+
+
 def cmd_vel_problems(max_rate: float, max_acceleration: float, wobble_deg: float,
-                     command_timeout: float) -> list[str]:
-    """Every problem with a ``cmd_vel`` motion's limits (empty when usable)."""
+                     command_timeout: float, max_speed: float = 0.5,
+                     max_linear_acceleration: float = 1.0,
+                     drive: DriveCurrent | None = None) -> list[str]:
+    """Every problem with a ``cmd_vel`` motion's limits and drive current (empty when usable)."""
     problems = []
+    drive = DriveCurrent() if drive is None else drive
     for name, value, low, high, unit in (
         ('max_rate', max_rate, 0.0, 10.0, 'rad/s'),
         ('max_acceleration', max_acceleration, 0.0, 100.0, 'rad/s^2'),
         ('command_timeout', command_timeout, 0.0, 60.0, 's'),
+        ('max_speed', max_speed, 0.0, 20.0, 'm/s'),
+        ('max_linear_acceleration', max_linear_acceleration, 0.0, 100.0, 'm/s^2'),
+        ('track_width', drive.track_width_m, 0.0, 10.0, 'm'),
     ):
-        if not (isinstance(value, (int, float)) and low < value <= high):
+        if not (_real(value) and low < value <= high):
             problems.append(f'{name} must be in ({low:g}, {high:g}] {unit}, got {value!r}')
-    if not (isinstance(wobble_deg, (int, float)) and 0.0 <= wobble_deg <= 20.0):
+    if not (_real(wobble_deg) and 0.0 <= wobble_deg <= 20.0):
         problems.append(f'wobble_deg must be in [0, 20] degrees, got {wobble_deg!r}')
+    idle, full = drive.idle_a, drive.full_a
+    if not (_real(idle) and 0.0 <= idle <= 1000.0):
+        problems.append(f'idle_current_a must be in [0, 1000] A, got {idle!r}')
+    elif not (_real(full) and idle <= full <= 1000.0):
+        problems.append(f'full_current_a must be in [idle_current_a, 1000] A (the current at '
+                        f'top speed includes the idle current), got {full!r} with idle '
+                        f'{idle!r}')
     return problems
+
+
+def _real(value: object) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(
+        value)
 
 
 def make_trajectory(kind: str, seed: int = 0) -> Trajectory:
@@ -628,3 +734,67 @@ def body_field_samples(
         rotations = trajectory.rotations(times[start:start + chunk])
         out[start:start + chunk] = rotations.inv().apply(field)
     return out
+
+
+@dataclass(frozen=True)
+class Leg:
+    """One leg of a driven course: ``speed`` m/s forward and ``yaw_rate`` rad/s for
+    ``duration_s`` seconds (both zero: a stop)."""
+
+    duration_s: float
+    speed: float = 0.0
+    yaw_rate: float = 0.0
+
+
+GROUND_COURSE = (
+    Leg(5.0),                    # standing, motors idle
+    Leg(14.0, yaw_rate=0.5),     # a turn in place, about a circle
+    Leg(15.0, speed=0.5),        # straight at top speed
+    Leg(3.0),
+    Leg(4.0, yaw_rate=0.8),      # turn left, about half a circle
+    Leg(14.0, speed=0.25),       # straight, half speed
+    Leg(2.0),
+    Leg(3.0, yaw_rate=-0.6),     # turn right
+    Leg(12.0, speed=0.4),
+    Leg(4.0),
+    Leg(10.0, yaw_rate=-0.7),    # a turn in place the other way, more than a circle
+    Leg(14.0, speed=0.15),       # crawling
+    Leg(3.0, yaw_rate=1.0),
+    Leg(16.0, speed=0.5),
+    Leg(5.0),
+    Leg(6.0, yaw_rate=0.4),
+    Leg(10.0, speed=0.3),
+    Leg(2.0, yaw_rate=-0.9),
+    Leg(18.0, speed=0.45),
+    Leg(5.0, yaw_rate=0.6),
+    Leg(15.0),                   # parked, motors idle, still warming
+)
+"""The benchmark's three-minute ground course: straight legs at speeds from a crawl to the top
+speed at many headings, turns in place both ways, and stops; what a calibrator must see to
+tell a current's field (it grows with speed, fixed to the robot) from the hard iron and the
+earth's field (it turns with the heading)."""
+
+
+class CourseDriver:
+    """The commands of a course of ``Leg``s: ``command_at(t)`` gives (speed, yaw rate) at
+    ``t`` seconds from its start (zero after its end), for a teleop re-sending them on cmd_vel
+    or a simulation calling ``CmdVelTrajectory.command``."""
+
+    def __init__(self, legs: tuple[Leg, ...] = GROUND_COURSE) -> None:
+        if not legs or any(not (math.isfinite(leg.duration_s) and leg.duration_s > 0.0)
+                           for leg in legs):
+            raise ValueError('a course needs at least one leg, each of a finite duration > 0 s')
+        self.legs = tuple(legs)
+        self._ends = np.cumsum([leg.duration_s for leg in legs]).tolist()
+
+    @property
+    def duration_s(self) -> float:
+        return self._ends[-1]
+
+    def command_at(self, t: float) -> tuple[float, float]:
+        """(speed m/s, yaw rate rad/s) commanded at ``t`` seconds into the course."""
+        index = bisect_right(self._ends, _checked_time(t))
+        if index >= len(self.legs):
+            return 0.0, 0.0
+        leg = self.legs[index]
+        return leg.speed, leg.yaw_rate

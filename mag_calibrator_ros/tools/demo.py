@@ -15,7 +15,13 @@ and everything was written.
 ``cmd_vel`` (``sim.motion: cmd_vel``, 2° of tilt wobble). The demo calls
 ``~/rotate_and_calibrate``; the calibrator turns the robot until the heading circle is covered
 and the fit passes, then stops it. The demo then turns the robot once more itself (as a teleop
-would) to score the heading before and after against the simulator's truth.
+would) to score the heading before and after against the simulator's truth, and drives the
+first ``--drive-seconds`` of ``motion.GROUND_COURSE`` (legs at varying speed, turns in place,
+stops), showing the heading error of the corrected stream while it drives. The robot has its own
+field (``--no-robot-field`` removes it): its battery current puts 8 uT along the chip's x axis
+at the full current, and the hard iron drifts 0.2 uT/degC along y while the die warms by 20 degC
+(time constant 60 s) from power-on, as benchmarks/bench_interference.py simulates; the heading
+error while driving is what the calibrator leaves uncompensated.
 """
 
 from __future__ import annotations
@@ -71,6 +77,13 @@ GROUND_HARD_IRON_UT = (55.0, -45.0, 25.0)
 GROUND_WOBBLE_DEG = 2.0
 CHECK_TURN_RATE = 0.6
 """rad/s of the demo's own turn that scores the calibration over a full circle."""
+ROBOT_FIELD = {  # the robot's own field (issue #26), as benchmarks/bench_interference.py
+    'current_field_ut_per_a': [8.0 / motion.DriveCurrent().full_a, 0.0, 0.0],
+    'hard_iron_drift_ut_per_c': [0.0, 0.2, 0.0],
+    'temperature_c': 20.0, 'temperature_rise_c': 20.0, 'temperature_time_constant_s': 60.0,
+}
+DRIVE_REPORT_S = 5.0
+"""Seconds of driving per line of the heading error shown."""
 LEVEL_HORIZONTAL_SHARE = math.cos(math.radians(INCLINATION_DEG))
 """Heading is scored on samples whose true field is at least as horizontal (in the chip x-y
 plane) as a level-mounted sensor sees it; near the chip z axis a heading has no meaning."""
@@ -101,6 +114,14 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument('--ground-robot', action='store_true',
                         help='a ground robot that only turns: the calibrator turns it in place '
                         'through cmd_vel (~/rotate_and_calibrate) and stops it when calibrated')
+    parser.add_argument('--robot-field', action=argparse.BooleanOptionalAction, default=True,
+                        help='--ground-robot: its battery current and warming die distort the '
+                        'field (8 uT at full current, 0.2 uT/degC over 20 degC; default: '
+                        '%(default)s)')
+    parser.add_argument('--drive-seconds', type=float, default=60.0,
+                        help='--ground-robot: seconds of the ground course driven after '
+                        'calibrating, the heading error shown (0: none; the course is '
+                        f'{motion.CourseDriver().duration_s:.0f} s; default: %(default)s)')
     parser.add_argument('--motion', choices=[kind for kind in motion.TRAJECTORY_KINDS
                                              if kind != 'cmd_vel'], default='poses',
                         help='how the simulated board moves (default: %(default)s: held still '
@@ -113,6 +134,9 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     args = parser.parse_args(argv)
     if not args.collect_timeout > 0 or not args.evaluate_seconds > 0:
         parser.error('--collect-timeout and --evaluate-seconds must be > 0')
+    if not 0.0 <= args.drive_seconds <= motion.CourseDriver().duration_s:
+        parser.error(f'--drive-seconds must be within [0, '
+                     f'{motion.CourseDriver().duration_s:.0f}] (the ground course)')
     if not 0.0 < args.min_coverage <= 1.0:
         parser.error('--min-coverage must be in (0, 1]')
     if (args.latitude is None) != (args.longitude is None):
@@ -467,11 +491,12 @@ class GroundObserver(DemoObserver):
         self.stop_rotation = self.create_client(Trigger, 'mag_calibrator/stop_rotation')
         self.teleop = None
 
-    def turn(self, rate: float) -> None:
+    def turn(self, rate: float, speed: float = 0.0) -> None:
         if self.teleop is None:
             self.teleop = self.create_publisher(Twist, 'cmd_vel', 10)
         twist = Twist()
         twist.angular.z = float(rate)
+        twist.linear.x = float(speed)
         self.teleop.publish(twist)
 
     def release(self) -> None:
@@ -548,8 +573,46 @@ def check_turn(observer: GroundObserver, driver: Icm20948DriverNode, timeout_s: 
     return len(truth), tables[0], tables[1]
 
 
+def drive_course(observer: GroundObserver, driver: Icm20948DriverNode, seconds: float
+                 ) -> ErrorStats | None:
+    """Drive the first ``seconds`` of the ground course (the demo as a teleop, re-sending every
+    0.1 s), showing every DRIVE_REPORT_S the heading error of the corrected stream against the
+    simulator's truth with the battery current and the die temperature; then stop. Returns the
+    heading error over every sample paired while it drove (None: none paired)."""
+    course, board = motion.CourseDriver(), driver.simulator.board
+    observer.take_pairs()
+    everything, window = [], []
+    start = time.monotonic()
+    next_report = DRIVE_REPORT_S
+    print(f'{"s":>5s} {"speed m/s":>9s} {"yaw rad/s":>9s} {"current A":>9s} {"die degC":>8s} '
+          f'{"heading error, last 5 s":>24s}')
+    try:
+        while (into := time.monotonic() - start) < seconds:
+            speed, rate = course.command_at(into)
+            observer.turn(rate, speed)
+            time.sleep(0.1)
+            corrected, truth = [], []
+            take_true_pairs(observer, driver, [], corrected, truth)
+            if truth:
+                errors = azimuth_errors_deg(np.array(corrected), np.array(truth)).tolist()
+                everything += errors
+                window += errors
+            if into >= next_report:
+                now = driver.simulator.sim_time_s
+                shown = (f'{ErrorStats.of(np.array(window)).rms:6.2f} deg RMS' if window
+                         else 'no samples')
+                print(f'{into:5.0f} {speed:9.2f} {rate:9.2f} '
+                      f'{board.battery_current_a(now):9.2f} {board.temperature_c(now):8.1f} '
+                      f'{shown:>24s}', flush=True)
+                window, next_report = [], next_report + DRIVE_REPORT_S
+    finally:
+        observer.release()
+    return ErrorStats.of(np.array(everything)) if everything else None
+
+
 def noise_free_heading_error(calibration, driver: Icm20948DriverNode) -> ErrorStats:
-    """The calibration alone: its heading over a full turn of the same floor, without noise."""
+    """The calibration alone: its heading over a full turn of the same floor, without noise
+    (the robot's own field as it is now, standing: idle current, the die as warm as now)."""
     config = driver.simulator.config
     trajectory = motion.CmdVelTrajectory(seed=config.seed, wobble_deg=GROUND_WOBBLE_DEG)
     earth = motion.earth_field(config.field_ut, config.inclination_deg) * 1e-6
@@ -558,7 +621,8 @@ def noise_free_heading_error(calibration, driver: Icm20948DriverNode) -> ErrorSt
         trajectory.command(CHECK_TURN_RATE, float(t))
         truth.append(trajectory.state(float(t)).rotation.T @ earth)
     truth = np.array(truth)
-    raw = truth @ config.soft_iron_matrix.T + config.hard_iron * 1e-6
+    offset = driver.simulator.board.hard_iron_ut(driver.simulator.sim_time_s)
+    raw = truth @ config.soft_iron_matrix.T + offset * 1e-6
     return ErrorStats.of(azimuth_errors_deg(calibration.apply(raw), truth))
 
 
@@ -568,9 +632,14 @@ def run_ground(args: argparse.Namespace, context: Context) -> int:
     print(f'Simulated ground robot (ICM-20948 on it): field {FIELD_UT:.0f} uT, inclination '
           f'{INCLINATION_DEG:.0f} deg, hard iron {list(GROUND_HARD_IRON_UT)} uT (3x the '
           f'horizontal field), soft iron {list(SOFT_IRON)}, tilt wobble {GROUND_WOBBLE_DEG} deg; '
-          'it turns only as commanded on cmd_vel.')
+          'it drives and turns only as commanded on cmd_vel.')
+    robot_field = ROBOT_FIELD if args.robot_field else {}
+    if robot_field:
+        print(f'Its own field: {ROBOT_FIELD["current_field_ut_per_a"][0]:.2f} uT/A of battery '
+              f'current along x (8 uT at the full {motion.DriveCurrent().full_a:.0f} A), the hard '
+              f'iron drifting 0.2 uT/degC along y while the die warms 20 -> 40 degC.')
     driver = simulated_board(context, 'cmd_vel', GROUND_HARD_IRON_UT, args.seed,
-                             tilt_wobble_deg=GROUND_WOBBLE_DEG)
+                             tilt_wobble_deg=GROUND_WOBBLE_DEG, **robot_field)
     calibrator, observer, spinning = start_pipeline(context, args, driver, GroundObserver,
                                                     calibration_file)
     try:
@@ -601,12 +670,24 @@ def run_ground(args: argparse.Namespace, context: Context) -> int:
                          title='mag_calibrator_demo --ground-robot', units='uT')
         print(f'\nCalibration file: {calibration_file}\nBefore/after plot: {plot_file}')
         own = noise_free_heading_error(calibration, driver)
-        print(f'Calibration alone (noise-free readings, a full turn on the same floor): heading '
-              f'error {own.rms:.2f} deg RMS, {own.max:.2f} deg max.')
+        die_c = driver.simulator.board.temperature_c(driver.simulator.sim_time_s)
+        now = f', standing, the die at {die_c:.1f} degC' if args.robot_field else ''
+        print(f'Calibration alone (noise-free readings, a full turn on the same floor{now}): '
+              f'heading error {own.rms:.2f} deg RMS, {own.max:.2f} deg max.')
         heading = after['heading error (deg)']
+        driving = None
+        if args.drive_seconds > 0:
+            print(f'\nDriving {args.drive_seconds:.0f} s of the ground course (the corrected '
+                  "stream against the truth; no compensation of the robot's own field):")
+            driving = drive_course(observer, driver, args.drive_seconds)
+            if driving is not None:
+                print(f'Heading error while driving (stops included): {driving.rms:.2f} deg RMS, '
+                      f'{driving.max:.2f} deg max, before compensation; after: not yet (the '
+                      "calibrator does not learn the current's and the temperature's field).")
         print(f'\nDONE: calibrated ({calibration.model}) in {took:.1f} s of turning; corrected '
               f'heading error {heading.rms:.2f} deg RMS, {heading.max:.2f} deg max on the live '
-              'stream.')
+              'stream turning' + (f', {driving.rms:.2f} deg RMS while driving.'
+                                  if driving is not None else '.'))
         return 0
     finally:
         spinning.shutdown()

@@ -1,0 +1,196 @@
+#!/usr/bin/env python3
+"""The robot's own field (issue #26): heading while a ground robot drives and warms up.
+
+The simulated ground robot of bench_ground (50 uT at 60° inclination, hard iron (55, -45, 25)
+uT, strong soft iron, 2° tilt wobble that follows the heading, noise 0.3 uT, 100 Hz, the
+accelerometer and gyroscope paired at the same instants) drives ``motion.GROUND_COURSE`` from
+power-on: three minutes of straight legs from a crawl to its top speed (0.5 m/s) at many
+headings, turns in place both ways, and stops. Its battery current (``motion.DriveCurrent``:
+0.5 A idle, 5.0 A with both wheels at top speed) puts 8 uT along the chip's x axis at the full
+current (K = 1.6 uT/A); its die warms by 20 °C (20 -> 40 °C, first order, time constant 60 s,
+so 95 % of it within the course) and the hard iron drifts 0.2 uT/°C along y (c, T0 = 20 °C).
+At a 25 uT horizontal field, 8 uT across the heading is up to 18°, and 4 uT up to 9°.
+
+Scored: the heading (azimuth about the chip z axis, the robot's yaw axis) of the corrected field
+against the simulator's true field, RMS over the samples while the robot moves (driving or
+turning; 82 % of the course), and the worst sample; and the same corrections applied to the
+readings of a noise-free twin of the robot (the same course and commands), which shows the
+error of the correction itself under the 0.7° a single sample's noise adds. Rows:
+
+(a) ``no interference``: the same course and robot without K and c, through the live calibrator
+    (``CalibrationSession`` with its defaults, as the node runs it, fits inline): the floor.
+(b) ``static, perfect, both``: the true hard and soft iron at power-on (cold, motors
+    idle: what the best static calibration done standing there holds) applied to every
+    reading: the heading error the robot's own field alone causes; also with only the
+    current's field, and only the temperature's.
+(c) ``live calibrator, today``: the live calibrator with its defaults from power-on, no
+    compensation (it calibrates itself on the first turn in place, then refines as it would);
+    scored from its first calibration on.
+(d) with compensation: to come when the calibrator learns K and c (issue #26 scope 3); it adds
+    its inputs in ``feed`` (the die temperature and the battery current of each row, both in
+    ``CourseRecording``), and its learned K and c are judged against ``interference_truth``.
+
+    python benchmarks/bench_interference.py                 # three seeds, a few minutes
+    python benchmarks/bench_interference.py --seeds 1       # quicker
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import statistics
+import sys
+import time
+
+import numpy as np
+
+from mag_calibrator_ros.calibration.live.session import CalibrationSession, Processed
+from mag_calibrator_ros.calibration.live.settings import SessionSettings
+from mag_calibrator_ros.sim import motion
+from mag_calibrator_ros.sim.board import BoardModel, CourseRecording, course_recording
+from mag_calibrator_ros.sim.config import SimConfig
+from mag_calibrator_ros.tools.demo import (
+    FIELD_UT,
+    GROUND_HARD_IRON_UT,
+    GROUND_WOBBLE_DEG,
+    INCLINATION_DEG,
+    SOFT_IRON,
+    azimuth_errors_deg,
+)
+
+RATE_HZ = 100.0
+FULL_CURRENT_FIELD_UT = 8.0
+"""Along the chip x axis, at the full current (both wheels at top speed)."""
+DRIFT_UT_PER_C = 0.2
+"""Along the chip y axis."""
+COLD_C = 20.0
+WARM_UP_C = 20.0
+WARM_UP_TIME_CONSTANT_S = 60.0
+FRAME_ID = 'imu_link'
+POLL_EVERY = 10
+"""Rows between session polls (the node polls on a timer; 10 rows: 0.1 s of stream)."""
+
+
+def robot(seed: int, interference: bool = True, current: bool = True,
+          temperature: bool = True, noise_ut: float = 0.3) -> BoardModel:
+    """The benchmark's simulated ground robot, its own field on or off (or only the current's,
+    only the temperature's)."""
+    drive = motion.DriveCurrent()
+    trajectory = motion.CmdVelTrajectory(seed=seed, wobble_deg=GROUND_WOBBLE_DEG, drive=drive)
+    per_ampere = FULL_CURRENT_FIELD_UT / drive.full_a
+    config = SimConfig(
+        field_ut=FIELD_UT, inclination_deg=INCLINATION_DEG, hard_iron_ut=GROUND_HARD_IRON_UT,
+        soft_iron=SOFT_IRON, noise_ut=noise_ut, motion='cmd_vel', seed=seed,
+        temperature_c=COLD_C, temperature_rise_c=WARM_UP_C,
+        temperature_time_constant_s=WARM_UP_TIME_CONSTANT_S,
+        current_field_ut_per_a=((per_ampere, 0.0, 0.0) if interference and current
+                                else (0.0, 0.0, 0.0)),
+        hard_iron_drift_ut_per_c=((0.0, DRIFT_UT_PER_C, 0.0) if interference and temperature
+                                  else (0.0, 0.0, 0.0)),
+    )
+    return BoardModel(config, trajectory)
+
+
+def feed(session: CalibrationSession, recording: CourseRecording, index: int) -> Processed:
+    """One row through the session as the node passes it (the IMU sample first, same stamp).
+    The compensating calibrator adds the row's die temperature and battery current here."""
+    stamp = round(recording.times[index] * 1e9)
+    session.process_imu(stamp, FRAME_ID, recording.accel[index], recording.gyro[index])
+    processed = session.process(stamp, FRAME_ID, recording.mag[index])
+    if index % POLL_EVERY == 0:
+        session.poll()
+    return processed
+
+
+def live(recording: CourseRecording, clean: CourseRecording,
+         settings: SessionSettings | None = None
+         ) -> tuple[np.ndarray, np.ndarray, float | None, CalibrationSession]:
+    """(corrected rows, NaN until calibrated; the same calibrations applied to the noise-free
+    ``clean`` twin's rows; stream seconds of the first calibration; the session) of the live
+    calibrator over the course."""
+    session = CalibrationSession(settings or SessionSettings())
+    corrected = np.full_like(recording.mag, math.nan)
+    noise_free = np.full_like(recording.mag, math.nan)
+    first = None
+    for index in range(len(recording.times)):
+        processed = feed(session, recording, index)
+        if processed.corrected is not None:
+            corrected[index] = processed.corrected
+            noise_free[index] = processed.calibration.apply(clean.mag[index])
+            if first is None:
+                first = float(recording.times[index])
+    session.close()
+    return corrected, noise_free, first, session
+
+
+def static_perfect(board: BoardModel, recording: CourseRecording) -> np.ndarray:
+    """The true power-on calibration (cold, motors idle) applied to every row."""
+    config = board.config
+    idle = board.trajectory.drive.idle_a
+    offset = (config.hard_iron + config.current_field * idle) * 1e-6
+    return np.linalg.solve(config.soft_iron_matrix, (recording.mag - offset).T).T
+
+
+def heading(corrected: np.ndarray, recording: CourseRecording) -> tuple[float, float, int]:
+    """(RMS, worst |error| in degrees, samples) over the rows moving and corrected."""
+    keep = recording.moving & np.all(np.isfinite(corrected), axis=1)
+    if not np.any(keep):
+        return math.nan, math.nan, 0
+    errors = azimuth_errors_deg(corrected[keep], recording.truth[keep])
+    return float(np.sqrt(np.mean(errors**2))), float(np.max(np.abs(errors))), int(keep.sum())
+
+
+def one_seed(seed: int) -> dict[str, tuple[float, float, int, float]]:
+    """Per row: (RMS, worst, samples, RMS of the same corrections on noise-free readings)."""
+    results = {}
+
+    def record(**kwargs) -> tuple[BoardModel, CourseRecording, CourseRecording]:
+        board = robot(seed, **kwargs)
+        return (board, course_recording(board, rate_hz=RATE_HZ),
+                course_recording(robot(seed, noise_ut=0.0, **kwargs), rate_hz=RATE_HZ))
+
+    _, quiet, clean = record(interference=False)
+    corrected, noise_free, _, _ = live(quiet, clean)
+    results['no interference, live calibrator'] = (*heading(corrected, quiet),
+                                                   heading(noise_free, clean)[0])
+    for name, kind in (('current', {'temperature': False}), ('temperature', {'current': False}),
+                       ('both', {})):
+        board, recording, clean = record(**kind)
+        results[f'static, perfect, {name}'] = (
+            *heading(static_perfect(board, recording), recording),
+            heading(static_perfect(board, clean), clean)[0])
+    corrected, noise_free, first, session = live(recording, clean)
+    results['live calibrator, today'] = (*heading(corrected, recording),
+                                         heading(noise_free, clean)[0])
+    truth = board.interference_truth()
+    print(f'seed {seed}: first calibration at {first} s of the course '
+          f'({session.calibration.model if session.calibration else "none"}, adoptions '
+          f'{session.adoptions}); current {recording.current_a.min():.2f}-'
+          f'{recording.current_a.max():.2f} A, die {recording.temperature_c[0]:.1f}-'
+          f'{recording.temperature_c[-1]:.1f} °C; truth K = {truth.current_field * 1e6} uT/A, '
+          f'c = {truth.temperature_drift * 1e6} uT/°C, T0 = {truth.reference_temperature_c} °C',
+          flush=True)
+    return results
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--seeds', type=int, nargs='+', default=[1, 2, 3])
+    args = parser.parse_args(argv)
+    started = time.monotonic()
+    runs = [one_seed(seed) for seed in args.seeds]
+    print(f'\nHeading RMS while driving (worst sample), seeds {args.seeds}, '
+          f'{time.monotonic() - started:.0f} s:')
+    for name in runs[0]:
+        rms = [run[name][0] for run in runs]
+        worst = max(run[name][1] for run in runs)
+        clean = [run[name][3] for run in runs]
+        print(f'  {name:34s} {min(rms):6.2f}-{max(rms):6.2f}° RMS (median '
+              f'{statistics.median(rms):.2f}°), worst {worst:6.2f}°, '
+              f'{runs[0][name][2]} samples; noise-free {min(clean):.2f}-{max(clean):.2f}°')
+    print('  with compensation                   not yet: the calibrator does not learn K and c')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
