@@ -30,8 +30,9 @@ import numpy as np
 from mag_calibrator_ros.calibration.fit.calibration import Calibration, Compensation
 
 DETERMINED_PCT = 1.0
-"""A term is determined once 1 sigma of its field over the range its input took (5th to 95th
-percentile) is below this share of the field strength, in percent: 0.5 uT at 50 uT, about
+"""An axis of a term is determined once 1 sigma of its field over the range its input took (5th
+to 95th percentile) is below this share of the field strength, in percent (a term is determined
+when one of its axes is; the others are left at zero): 0.5 uT at 50 uT, about
 1.4 degrees of heading at a 20 uT horizontal field at worst (the estimate is usually far better
 than this bound by the time the input has varied while the robot turned)."""
 SIGNIFICANT_SIGMA = 5.0
@@ -226,6 +227,7 @@ def fit_compensation(data: CompensationData, base: Calibration) -> CompensationF
               if span > 0 and (labels[index] != TEMPERATURE or span >= MIN_TEMPERATURE_SPAN)]
     design = np.stack([columns[i] for i in varied], axis=1) if varied else np.zeros((len(raw), 0))
     w, covariance, seen, _ = _solve(raw, design, [spans[i] for i in varied], base)
+    determined_axes: dict[int, np.ndarray] = {}
     m = design.shape[1] + 1
     kept: list[int] = []
     for index, label in enumerate(labels):
@@ -235,11 +237,13 @@ def fit_compensation(data: CompensationData, base: Calibration) -> CompensationF
             continue
         column = varied.index(index) + 1
         picks = np.array([axis * m + column for axis in range(3)])
-        axes = seen[picks]
+        axis_sigma = np.sqrt(np.maximum(np.diag(covariance)[picks], 0.0)) * spans[index]
+        axes = seen[picks] & (100.0 * axis_sigma / strength <= DETERMINED_PCT)
+        determined_axes[index] = axes  # the vertical of a robot turning level is not among them
         coefficients = w[axes, column]
         block = covariance[np.ix_(picks[axes], picks[axes])]
-        sigma = (math.sqrt(max(float(np.trace(block)), 0.0)) * spans[index] if axes.any()
-                 else math.inf)
+        sigma = (math.sqrt(float(np.sum(axis_sigma[axes] ** 2))) if axes.any()
+                 else float(np.min(axis_sigma)))
         effect = float(np.linalg.norm(coefficients)) * spans[index]
         try:
             significance = math.sqrt(max(float(coefficients @ np.linalg.solve(
@@ -247,7 +251,7 @@ def fit_compensation(data: CompensationData, base: Calibration) -> CompensationF
         except np.linalg.LinAlgError:
             significance = 0.0
         sigma_pct = 100.0 * sigma / strength
-        determined = sigma_pct <= DETERMINED_PCT
+        determined = bool(axes.any())
         significant = determined and significance >= SIGNIFICANT_SIGMA
         if significant:
             kept.append(index)
@@ -261,7 +265,7 @@ def fit_compensation(data: CompensationData, base: Calibration) -> CompensationF
     gains = np.zeros((3, len(names)))
     drift = np.zeros(3)
     for position, index in enumerate(kept):
-        values = w[:, position + 1]  # an axis the readings did not see stays near 0 (prior)
+        values = np.where(determined_axes[index], w[:, position + 1], 0.0)  # unknown: none
         if labels[index] == TEMPERATURE:
             drift = values
         else:
