@@ -26,9 +26,11 @@ error of the correction itself under the 0.7° a single sample's noise adds. Row
 (c) ``live calibrator, today``: the live calibrator with its defaults from power-on, no
     compensation (it calibrates itself on the first turn in place, then refines as it would);
     scored from its first calibration on.
-(d) with compensation: to come when the calibrator learns K and c (issue #26 scope 3); it adds
-    its inputs in ``feed`` (the die temperature and the battery current of each row, both in
-    ``CourseRecording``), and its learned K and c are judged against ``interference_truth``.
+(d) ``live calibrator, compensating``: the same with its inputs (``feed``: the die temperature
+    of each row, and its battery current as ``interference_inputs``), learning K and c live;
+    the learned K and c are judged against ``interference_truth``. ``no interference,
+    compensating``: the floor's course with the same inputs, to show nothing is learned from
+    nothing (the heading difference to the floor's row).
 
     python benchmarks/bench_interference.py                 # three seeds, a few minutes
     python benchmarks/bench_interference.py --seeds 1       # quicker
@@ -91,10 +93,19 @@ def robot(seed: int, interference: bool = True, current: bool = True,
     return BoardModel(config, trajectory)
 
 
-def feed(session: CalibrationSession, recording: CourseRecording, index: int) -> Processed:
-    """One row through the session as the node passes it (the IMU sample first, same stamp).
-    The compensating calibrator adds the row's die temperature and battery current here."""
+BATTERY = 'battery_state:sensor_msgs/msg/BatteryState:current'
+COMPENSATING = SessionSettings(interference_inputs=(BATTERY,))
+
+
+def feed(session: CalibrationSession, recording: CourseRecording, index: int,
+         inputs: bool = False) -> Processed:
+    """One row through the session as the node passes it (the IMU sample first, same stamp);
+    ``inputs``: the row's die temperature and battery current first, as the node's
+    imu/temperature and battery_state subscriptions hand them over."""
     stamp = round(recording.times[index] * 1e9)
+    if inputs:
+        session.compensation.temperature(stamp, float(recording.temperature_c[index]))
+        session.compensation.input(0, stamp, float(recording.current_a[index]))
     session.process_imu(stamp, FRAME_ID, recording.accel[index], recording.gyro[index])
     processed = session.process(stamp, FRAME_ID, recording.mag[index])
     if index % POLL_EVERY == 0:
@@ -103,7 +114,7 @@ def feed(session: CalibrationSession, recording: CourseRecording, index: int) ->
 
 
 def live(recording: CourseRecording, clean: CourseRecording,
-         settings: SessionSettings | None = None
+         settings: SessionSettings | None = None, inputs: bool = False
          ) -> tuple[np.ndarray, np.ndarray, float | None, CalibrationSession]:
     """(corrected rows, NaN until calibrated; the same calibrations applied to the noise-free
     ``clean`` twin's rows; stream seconds of the first calibration; the session) of the live
@@ -113,10 +124,11 @@ def live(recording: CourseRecording, clean: CourseRecording,
     noise_free = np.full_like(recording.mag, math.nan)
     first = None
     for index in range(len(recording.times)):
-        processed = feed(session, recording, index)
+        processed = feed(session, recording, index, inputs)
         if processed.corrected is not None:
             corrected[index] = processed.corrected
-            noise_free[index] = processed.calibration.apply(clean.mag[index])
+            noise_free[index] = processed.calibration.apply(  # its compensation's inputs too
+                clean.mag[index], [recording.current_a[index]], recording.temperature_c[index])
             if first is None:
                 first = float(recording.times[index])
     session.close()
@@ -153,6 +165,15 @@ def one_seed(seed: int) -> dict[str, tuple[float, float, int, float]]:
     corrected, noise_free, _, _ = live(quiet, clean)
     results['no interference, live calibrator'] = (*heading(corrected, quiet),
                                                    heading(noise_free, clean)[0])
+    compensating, noise_free, _, session = live(quiet, clean, COMPENSATING, inputs=True)
+    results['no interference, compensating'] = (*heading(compensating, quiet),
+                                                heading(noise_free, clean)[0])
+    both = np.all(np.isfinite(corrected) & np.isfinite(compensating), axis=1) & quiet.moving
+    difference = azimuth_errors_deg(compensating[both], corrected[both]) if both.any() else []
+    learned = session.calibration.compensation if session.calibration else None
+    print(f'seed {seed}: no interference: compensation in force {learned}; adoptions '
+          f'{session.adoptions}; heading difference to the floor '
+          f'{float(np.sqrt(np.mean(np.square(difference)))):.3f}° RMS', flush=True)
     for name, kind in (('current', {'temperature': False}), ('temperature', {'current': False}),
                        ('both', {})):
         board, recording, clean = record(**kind)
@@ -163,6 +184,17 @@ def one_seed(seed: int) -> dict[str, tuple[float, float, int, float]]:
     results['live calibrator, today'] = (*heading(corrected, recording),
                                          heading(noise_free, clean)[0])
     truth = board.interference_truth()
+    corrected, noise_free, _, learning = live(recording, clean, COMPENSATING, inputs=True)
+    results['live calibrator, compensating'] = (*heading(corrected, recording),
+                                                heading(noise_free, clean)[0])
+    learned = learning.calibration.compensation if learning.calibration else None
+    if learned is not None:
+        print(f'seed {seed}: learned K = {learned.interference[:, 0] * 1e6} uT/A, c = '
+              f'{learned.temperature_coefficient * 1e6} uT/°C around '
+              f'{learned.reference_temperature} °C; adoptions {learning.adoptions}; '
+              f'needs: {learning.compensation.needs() or "nothing"}', flush=True)
+    else:
+        print(f'seed {seed}: nothing learned: {learning.compensation.needs()}', flush=True)
     print(f'seed {seed}: first calibration at {first} s of the course '
           f'({session.calibration.model if session.calibration else "none"}, adoptions '
           f'{session.adoptions}); current {recording.current_a.min():.2f}-'
@@ -188,7 +220,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f'  {name:34s} {min(rms):6.2f}-{max(rms):6.2f}° RMS (median '
               f'{statistics.median(rms):.2f}°), worst {worst:6.2f}°, '
               f'{runs[0][name][2]} samples; noise-free {min(clean):.2f}-{max(clean):.2f}°')
-    print('  with compensation                   not yet: the calibrator does not learn K and c')
     return 0
 
 

@@ -33,8 +33,12 @@ CALIBRATION_METADATA_KEYS = (
     'residual_rms_pct', 'coverage', 'samples', 'time', 'frame_id', 'units', 'source',
     'plane_normal', 'unobserved', 'alignment_angle_deg', 'dip_deg', 'dip_std_deg',
     'static_samples', 'declination_deg',
+    # the robot's own field (K u + c (T - T0)) and when it was learned
+    'interference_inputs', 'interference', 'temperature_coefficient', 'reference_temperature',
+    'compensation_time', 'compensation_removed_pct', 'compensation_readings',
 )
-"""Metadata a saved file may carry (declared so --params-file keeps it)."""
+"""Metadata a saved file may carry (declared so --params-file keeps it), and the optional
+compensation (``calibration_file``'s COMPENSATION_KEYS)."""
 CALIBRATION_PARAMETERS: dict[str, str] = {
     'calibration.offset': 'Hard-iron offset b [3], tesla.',
     'calibration.matrix': 'Soft-iron matrix M [9], row-major.',

@@ -14,6 +14,7 @@ Subscribed topics (sensor-data QoS: best effort, depth 100):
 - ``gps/fix`` (sensor_msgs/NavSatFix): a plausible fix locates the robot for the World
   Magnetic Model when ``latitude``/``longitude`` are NaN and ``use_gps`` holds; one over
   10 km away replaces it (``nodes/location.py``).
+- ``imu/temperature`` and ``interference_inputs``: the robot's own field's inputs (inputs.py).
 
 Published topics:
 
@@ -39,8 +40,7 @@ Services (six, all std_srvs/Trigger):
 
 Timers: POLL_PERIOD_S (finished fits and file operations, waiting service answers, auto-save,
 ``calibration.*``), DIAGNOSTICS_PERIOD_S (progress log line, /diagnostics, RViz view),
-COMMAND_PERIOD_S (the turn in place's command). ``--ros-args --log-level mag_calibrator:=debug``
-(in a namespace too) logs each fit decision.
+COMMAND_PERIOD_S (the turn's command). ``--log-level mag_calibrator:=debug`` logs decisions.
 
 Parameters, ``name`` (default): meaning. The fit and its gates:
 
@@ -61,6 +61,7 @@ When to calibrate:
 - ``online_tracking`` (false): follow slow drift, by bounded steps.
 - ``tracking_improvement`` (0.8): a tracked fit's residual must be below this share.
 - ``tracking_max_change_rate`` (0.01): largest tracked change per second.
+- ``learn_compensation``, ``use_temperature`` (true), ``interference_inputs`` ([]): README.
 
 Output, file and views:
 
@@ -84,11 +85,9 @@ Alignment to the IMU and the Earth's field here:
 
 Turning in place (``~/rotate_and_calibrate``):
 
-- ``rotation_speed`` (0.3): rad/s, positive counter-clockwise (a left turn).
-- ``rotation_acceleration`` (0.5): rad/s^2 of the ramp from standstill.
+- ``rotation_speed`` (0.3): rad/s, positive left; ``rotation_acceleration`` (0.5): rad/s^2.
 - ``rotation_timeout`` (120.0): seconds of turning before it gives up.
-- ``cmd_vel_stamped`` (false): TwistStamped instead of Twist; ``cmd_vel_frame_id``
-  (base_link): its header.frame_id.
+- ``cmd_vel_stamped`` (false): TwistStamped; ``cmd_vel_frame_id`` (base_link): its frame.
 
 The calibration in force (set by the node only; given with --params-file at start-up):
 
@@ -162,6 +161,7 @@ from mag_calibrator_ros.nodes.diagnostics import (
     DiagnosticsPublisher,
     diagnostic_status,
 )
+from mag_calibrator_ros.nodes.inputs import InputSubscriptions
 from mag_calibrator_ros.nodes.location import LOCATION_PARAMETERS, Location, LocationSource
 from mag_calibrator_ros.nodes.mag_calibrator_parameters import (
     PARAMETERS,
@@ -240,6 +240,7 @@ class MagCalibratorNode(Node):
         self._sync_imu_subscription()
         self.create_subscription(NavSatFix, 'gps/fix', guarded(self, 'gps/fix', self._on_fix),
                                  INPUT_QOS)
+        self._inputs = InputSubscriptions(self, self.session, INPUT_QOS)  # imu/temperature ...
         self._relocate()
         # The services wait for the fit worker and the I/O thread without blocking the executor;
         # a waiting service must not hold the default (mutually exclusive) group, or the poll

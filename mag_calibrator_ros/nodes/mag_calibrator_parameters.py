@@ -143,13 +143,33 @@ PARAMETERS: dict[str, tuple[object, str, dict]] = {
     'earth_field_gate': (DEFAULTS.earth_field_gate,
                          'A fit off the World Magnetic Model beyond the tolerances fails (true) '
                          'or is only warned about (false).', {}),
+    # the robot's own field: corrected = R M (raw - b - K u - c (T - T0))
+    'use_temperature': (DEFAULTS.use_temperature,
+                        'Subscribe imu/temperature (sensor_msgs/Temperature) and learn and '
+                        "compensate the hard iron's drift with the sensor's temperature; "
+                        'without a publisher nothing changes.', {}),
+    'interference_inputs': (list(DEFAULTS.interference_inputs),
+                            'Inputs whose field the robot carries, each '
+                            "'topic:package/msg/Type:field' (e.g. "
+                            "'battery_state:sensor_msgs/msg/BatteryState:current', "
+                            "'cmd_vel:geometry_msgs/msg/Twist:abs(linear.x)'); learned and "
+                            'compensated live. Empty: none.', {'dynamic_typing': True}),
+    'learn_compensation': (DEFAULTS.learn_compensation,
+                           "Learn the robot's own field (K per input, c per degC) while it "
+                           'works; adopted only when better on held-out readings.', {}),
 }
 SESSION_FIELDS = {f.name for f in fields(SessionSettings)}
 
 
 def session_settings(values: Mapping[str, object]) -> SessionSettings:
     """The SessionSettings of these parameter values (the entries sharing their field names)."""
-    return SessionSettings(**{k: v for k, v in values.items() if k in SESSION_FIELDS})
+    settings = {k: v for k, v in values.items() if k in SESSION_FIELDS}
+    inputs = settings.get('interference_inputs', ())
+    if inputs is None or (isinstance(inputs, (list, tuple, bytes)) and not inputs):
+        settings['interference_inputs'] = ()  # rclpy: an empty list has no type (None, b'')
+    elif isinstance(inputs, (list, tuple)):
+        settings['interference_inputs'] = tuple(inputs)
+    return SessionSettings(**settings)
 
 
 def parameter_problems(values: Mapping[str, object], at_run_time: bool = False) -> list[str]:

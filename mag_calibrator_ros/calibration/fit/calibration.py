@@ -1,8 +1,13 @@
-"""The calibration value shared by every layer: ``corrected = R @ M @ (raw - b)``.
+"""The calibration value shared by every layer: ``corrected = R M (raw - b - K u - c (T - T0))``.
 
 ``b`` and ``M`` (hard and soft iron) make the field a sphere; ``R`` rotates the corrected field
 into the IMU's frame (identity unless aligned to an accelerometer, see ``alignment``): a sphere
 fit cannot see a rotation, so ``R`` comes from gravity, never from the magnetometer alone.
+``K u + c (T - T0)`` (a :class:`Compensation`) is the robot's own field: ``u`` the k interference
+inputs (a battery or motor current, a speed), ``K`` their 3 x k coefficients (field units per
+input unit), ``T`` the sensor's temperature and ``c`` the hard iron's drift per degree around the
+temperature ``T0`` it was learned at. Without a compensation (``K = 0``, ``c = 0``) the
+calibration is the static ``R M (raw - b)``.
 """
 
 from __future__ import annotations
@@ -77,9 +82,101 @@ def rotation_problems(rotation: ArrayLike) -> list[str]:
 
 
 @dataclass(frozen=True)
+class Compensation:
+    """The robot's own field at the sensor: ``K u + c (T - T0)``, in the calibration's units.
+
+    ``inputs`` names the k interference inputs in the order of ``K``'s columns (what the node
+    subscribes, e.g. ``battery_state:sensor_msgs/msg/BatteryState:current``); ``interference``
+    is ``K`` (3, k), ``temperature_coefficient`` is ``c`` (3,) per degree Celsius and
+    ``reference_temperature`` ``T0`` in degrees Celsius (needed when ``c`` is not zero). An
+    input or temperature that is unknown for a reading contributes nothing: the field at the
+    inputs' reference (u = 0, T = T0) is what the static part describes.
+    """
+
+    inputs: tuple[str, ...] = ()
+    interference: np.ndarray | None = None
+    temperature_coefficient: np.ndarray | None = None
+    reference_temperature: float | None = None
+
+    def __post_init__(self) -> None:
+        problems = compensation_problems(self.inputs, self.interference,
+                                         self.temperature_coefficient,
+                                         self.reference_temperature)
+        if problems:
+            raise CalibrationError('; '.join(problems))
+        k = len(self.inputs)
+        gains = (np.zeros((3, k)) if self.interference is None
+                 else np.array(self.interference, dtype=float).reshape(3, k))
+        drift = (np.zeros(3) if self.temperature_coefficient is None
+                 else np.array(self.temperature_coefficient, dtype=float).reshape(3))
+        for array in (gains, drift):
+            array.flags.writeable = False
+        object.__setattr__(self, 'inputs', tuple(str(name) for name in self.inputs))
+        object.__setattr__(self, 'interference', gains)
+        object.__setattr__(self, 'temperature_coefficient', drift)
+        if self.reference_temperature is not None:
+            object.__setattr__(self, 'reference_temperature', float(self.reference_temperature))
+
+    @property
+    def empty(self) -> bool:
+        """Whether it changes nothing (K = 0 and c = 0): today's static calibration."""
+        return not (np.any(self.interference) or np.any(self.temperature_coefficient))
+
+    def field(self, inputs: ArrayLike | None = None,
+              temperature: ArrayLike | None = None) -> np.ndarray:
+        """``K u + c (T - T0)`` for one reading (3,) or many (n, 3): ``inputs`` (k,) or (n, k),
+        ``temperature`` a number or (n,). None, or a NaN entry (not known for that reading),
+        contributes nothing."""
+        total = np.zeros(3)
+        if inputs is not None and len(self.inputs):
+            u = np.nan_to_num(np.asarray(inputs, dtype=float), nan=0.0, posinf=0.0, neginf=0.0)
+            total = total + u @ self.interference.T
+        if temperature is not None and self.reference_temperature is not None:
+            t = np.asarray(temperature, dtype=float) - self.reference_temperature
+            t = np.nan_to_num(t, nan=0.0, posinf=0.0, neginf=0.0)
+            total = total + np.multiply.outer(t, self.temperature_coefficient)
+        return total
+
+    def scaled(self, factor: float) -> Compensation:
+        """The same compensation for input in other units (``raw_new = factor * raw``)."""
+        return Compensation(self.inputs, self.interference * factor,
+                            self.temperature_coefficient * factor, self.reference_temperature)
+
+
+def compensation_problems(inputs: Sequence[str], interference: ArrayLike | None,
+                          temperature_coefficient: ArrayLike | None,
+                          reference_temperature: float | None) -> list[str]:
+    """Everything wrong with a compensation's numbers, in words a user can act on."""
+    problems = []
+    if isinstance(inputs, str) or not all(isinstance(name, str) and name for name in inputs):
+        return [f'interference_inputs must be a list of non-empty names, got {inputs!r}']
+    k = len(inputs)
+    if interference is not None:
+        gains = np.asarray(interference, dtype=float)
+        if gains.size != 3 * k:
+            problems.append(f'interference must have 3 x {k} numbers (one column per input in '
+                            f'interference_inputs, row-major), got {gains.size}')
+        elif not np.all(np.isfinite(gains)):
+            problems.append('interference has non-finite values')
+    if temperature_coefficient is not None:
+        drift = np.asarray(temperature_coefficient, dtype=float)
+        if drift.shape != (3,):
+            problems.append(f'temperature_coefficient must have 3 numbers, got {drift.size}')
+        elif not np.all(np.isfinite(drift)):
+            problems.append('temperature_coefficient has non-finite values')
+        elif np.any(drift) and reference_temperature is None:
+            problems.append('temperature_coefficient needs reference_temperature (the degrees '
+                            'Celsius it was learned around)')
+    if reference_temperature is not None and not math.isfinite(float(reference_temperature)):
+        problems.append(f'reference_temperature must be finite, got {reference_temperature}')
+    return problems
+
+
+@dataclass(frozen=True)
 class Calibration:
     """Hard-iron offset ``b``, soft-iron correction ``M`` and rotation ``R`` into the IMU frame;
-    ``|corrected|`` is about ``F``.
+    ``|corrected|`` is about ``F``; ``compensation`` (optional) removes the robot's own field
+    first (``K u + c (T - T0)``, see :class:`Compensation`).
 
     Units are those of the raw input (tesla in the nodes, input units offline). ``rotation``
     None means identity; ``correction`` is the whole linear map ``R @ M`` (what ``apply`` uses
@@ -93,6 +190,7 @@ class Calibration:
     model: str = 'full'
     metadata: Mapping[str, Any] = field(default_factory=dict)
     rotation: np.ndarray | None = None
+    compensation: Compensation | None = None
 
     def __post_init__(self) -> None:
         problems = calibration_problems(self.offset, self.matrix, self.field_strength,
@@ -115,6 +213,9 @@ class Calibration:
         object.__setattr__(self, 'field_strength', float(self.field_strength))
         object.__setattr__(self, 'metadata', dict(self.metadata))
         object.__setattr__(self, '_correction', correction)
+        if self.compensation is not None and self.compensation.empty and not (
+                self.compensation.inputs):
+            object.__setattr__(self, 'compensation', None)  # K = 0, c = 0: the static one
 
     @property
     def correction(self) -> np.ndarray:
@@ -137,20 +238,38 @@ class Calibration:
         """No correction: useful as a tracker start or a prior."""
         return cls(np.zeros(3), np.eye(3), field_strength, model='identity')
 
-    def apply(self, raw: ArrayLike) -> np.ndarray:
-        """Correct one sample (3,) or many (n, 3): ``R @ M @ (raw - b)``."""
-        raw = np.asarray(raw, dtype=float)
+    def apply(self, raw: ArrayLike, inputs: ArrayLike | None = None,
+              temperature: ArrayLike | None = None) -> np.ndarray:
+        """Correct one sample (3,) or many (n, 3): ``R M (raw - b - K u - c (T - T0))``; without
+        ``inputs`` and ``temperature`` (or a compensation) the static ``R M (raw - b)``."""
+        raw = self.compensated(raw, inputs, temperature)
         return (raw - self.offset) @ self._correction.T
+
+    def compensated(self, raw: ArrayLike, inputs: ArrayLike | None = None,
+                    temperature: ArrayLike | None = None) -> np.ndarray:
+        """``raw - K u - c (T - T0)``: the reading without the robot's own field (``raw`` as is
+        without a compensation), what the static part ``R M (x - b)`` describes."""
+        raw = np.asarray(raw, dtype=float)
+        if self.compensation is None or (inputs is None and temperature is None):
+            return raw
+        return raw - self.compensation.field(inputs, temperature)
 
     def unrotated(self, raw: ArrayLike) -> np.ndarray:
         """``M @ (raw - b)``: corrected in the magnetometer's own axes (before ``R``)."""
         raw = np.asarray(raw, dtype=float)
         return (raw - self.offset) @ self.matrix.T
 
+    def with_compensation(self, compensation: Compensation | None,
+                          offset: ArrayLike | None = None, **metadata: Any) -> Calibration:
+        """A copy with ``compensation`` (None: none), optionally a new offset, and metadata."""
+        return Calibration(self.offset if offset is None else offset, self.matrix,
+                           self.field_strength, self.model, {**self.metadata, **metadata},
+                           self.rotation, compensation)
+
     def with_rotation(self, rotation: ArrayLike | None, **metadata: Any) -> Calibration:
         """A copy with rotation ``R`` (None: identity) and metadata entries added or replaced."""
         return Calibration(self.offset, self.matrix, self.field_strength, self.model,
-                           {**self.metadata, **metadata}, rotation)
+                           {**self.metadata, **metadata}, rotation, self.compensation)
 
     def scaled(self, factor: float) -> Calibration:
         """The same calibration for input expressed in other units (``raw_new = factor * raw``)."""
@@ -161,6 +280,7 @@ class Calibration:
             self.model,
             self.metadata,
             self.rotation,
+            None if self.compensation is None else self.compensation.scaled(factor),
         )
 
     def metadata_number(self, key: str) -> float | None:
@@ -183,6 +303,7 @@ class Calibration:
             self.model,
             {**self.metadata, **metadata},
             self.rotation,
+            self.compensation,
         )
 
 

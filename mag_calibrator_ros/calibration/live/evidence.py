@@ -114,9 +114,13 @@ class HeldOutEvidence:
         self._valid[:] = False
 
 
-def relative_errors(calibration: Calibration, readings: np.ndarray) -> np.ndarray:
-    """``|corrected| / F - 1`` for each reading."""
-    return np.linalg.norm(calibration.apply(readings), axis=1) / calibration.field_strength - 1.0
+def relative_errors(calibration: Calibration, readings: np.ndarray,
+                    inputs: np.ndarray | None = None,
+                    temperatures: np.ndarray | None = None) -> np.ndarray:
+    """``|corrected| / F - 1`` for each reading (with its interference inputs and temperature,
+    when given: ``Calibration.apply``)."""
+    corrected = calibration.apply(readings, inputs, temperatures)
+    return np.linalg.norm(corrected, axis=1) / calibration.field_strength - 1.0
 
 
 def magnitude_residual_pct(calibration: Calibration, samples: np.ndarray) -> float:
@@ -161,7 +165,8 @@ class Comparison:
 
 
 def compare_on_evidence(
-    current: Calibration, candidate: Calibration, evidence: np.ndarray
+    current: Calibration, candidate: Calibration, evidence: np.ndarray,
+    inputs: np.ndarray | None = None, temperatures: np.ndarray | None = None,
 ) -> Comparison:
     """Whether ``candidate`` fits ``evidence`` better than ``current`` by a margin beyond noise.
 
@@ -172,10 +177,12 @@ def compare_on_evidence(
     is positive without the FAVOURED_STRETCHES of TIME_STRETCHES (``evidence`` in stream order,
     as ``HeldOutEvidence`` gives it) most in the candidate's favour.
     Residuals are reported as percent (square root of the mean capped loss: the RMS when nothing
-    is disturbed).
+    is disturbed). Raw readings with their ``inputs`` and ``temperatures`` judge a learned
+    compensation (``live/compensation.py``) by the same rule.
     """
     evidence = np.asarray(evidence, dtype=float).reshape(-1, 3)
-    now, new = relative_errors(current, evidence), relative_errors(candidate, evidence)
+    now, new = (relative_errors(calibration, evidence, inputs, temperatures)
+                for calibration in (current, candidate))
     keep = (np.abs(now) <= GROSS_ERROR) | (np.abs(new) <= GROSS_ERROR)
     now, new = now[keep], new[keep]
     n = len(now)

@@ -23,6 +23,12 @@ from mag_calibrator_ros.calibration.fit.alignment import (
     estimate_alignment,
 )
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.fit.compensation import (
+    LEARNED,
+    CompensationData,
+    CompensationFit,
+    fit_compensation,
+)
 from mag_calibrator_ros.calibration.fit.coverage import (
     HEADING_SECTORS,
     Coverage,
@@ -49,11 +55,13 @@ from mag_calibrator_ros.calibration.live.evidence import (
     compare_on_evidence,
 )
 
-JOB_KINDS = ('reference', 'calibrate', 'refine', 'check')
+JOB_KINDS = ('reference', 'calibrate', 'refine', 'check', 'compensate')
 """reference: the buffer's own full fit, to screen and merge by; calibrate: a fit to put in force
 (automatic or on request); refine: a fit to put in force only if better on held-out evidence;
 check: no fit, the calibration in force judged on recent evidence (does it still fit? is the
-online-tracked calibration better?) and the buffer's coverage measured for reports."""
+online-tracked calibration better?) and the buffer's coverage measured for reports; compensate:
+the robot's own field learned from the readings kept with their inputs (fit/compensation.py),
+the calibration in force its base."""
 
 REFERENCE_OPTIONS = FitOptions(model='full')
 """How the buffer is fitted for its reference: the default gates, model ``full``, the one that
@@ -100,6 +108,8 @@ class FitJob:
     where unpaired): a planar fit is levelled by it (levelled.py)."""
     paired: tuple[np.ndarray, np.ndarray] | None = None
     """SampleBuffer.paired_readings: readings with gravity's direction, preferred for levelling."""
+    compensation: CompensationData | None = None
+    """compensate: the readings with their inputs (live/compensation.py)."""
 
 
 @dataclass(frozen=True)
@@ -130,6 +140,8 @@ class JobOutcome:
     """The fit aligned to the IMU (its rotation is in the calibration when it succeeded)."""
     earth_check: EarthCheck | None = None
     """The fit against the World Magnetic Model."""
+    compensation: CompensationFit | None = None
+    """compensate: the robot's own field learned, with its evidence."""
 
     @property
     def fitted(self) -> bool:
@@ -147,6 +159,16 @@ def run_job(job: FitJob) -> JobOutcome:
 
 
 def _run(job: FitJob) -> JobOutcome:
+    if job.kind == 'compensate':
+        data = job.compensation
+        fit = fit_compensation(data, job.current)
+        if fit.calibration is None or data.held_raw is None:
+            return JobOutcome(job, compensation=fit)
+        fit = replace(fit, calibration=fit.calibration.with_metadata(  # when it was learned
+            compensation_time=time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())))
+        comparison = compare_on_evidence(job.current, fit.calibration, data.held_raw,
+                                         data.held_inputs, data.held_temperatures)
+        return JobOutcome(job, compensation=fit, comparison=comparison)
     if job.kind == 'check':
         fit_check = check_fit(job.current, job.recent, job.options.max_residual_pct)
         comparison = None
@@ -170,7 +192,7 @@ def _run(job: FitJob) -> JobOutcome:
         stamped = result.calibration.with_metadata(
             time=time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()), **job.metadata
         )
-        result = replace(result, calibration=stamped)
+        result = replace(result, calibration=kept_compensation(stamped, job.current))
     result, alignment, earth_check = align_and_check(job, result)
     comparison = None
     if (result.success and job.current is not None and job.evidence is not None
@@ -178,6 +200,15 @@ def _run(job: FitJob) -> JobOutcome:
         comparison = compare_on_evidence(job.current, result.calibration, job.evidence)
     return JobOutcome(job, result, comparison=comparison, coverage=coverage,
                       alignment=alignment, earth_check=earth_check)
+
+
+def kept_compensation(calibration: Calibration, current: Calibration | None) -> Calibration:
+    """A static fit keeps the compensation in force: its samples were compensated by it (the
+    answer to ``~/calibrate`` and the file then show it)."""
+    if current is None or current.compensation is None or calibration.compensation is not None:
+        return calibration
+    learned = {key: current.metadata[key] for key in LEARNED if key in current.metadata}
+    return calibration.with_compensation(current.compensation, **learned)
 
 
 def align_and_check(job: FitJob, result: FitResult

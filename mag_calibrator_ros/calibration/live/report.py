@@ -75,7 +75,35 @@ def calibration_summary(calibration: Calibration, units: str = 'T') -> str:
         text += ', levelled by gravity' + ('' if dip is None else f' (dip {dip:.1f} deg)')
     if calibration.aligned:
         text += f', rotated {rotation_angle_deg(calibration.rotation):.2f} deg into the IMU frame'
-    return text + unobserved_text(calibration, units)
+    return text + unobserved_text(calibration, units) + compensation_text(calibration, units)
+
+
+def compensation_text(calibration: Calibration, units: str = 'T') -> str:
+    """'; compensating the robot's own field: K ... per unit of <input>, c ... per degC around
+    T0, removing x % of the field (learned <time>)' ('' without a compensation)."""
+    compensation = calibration.compensation
+    if compensation is None:
+        return ''
+    shown = display_units(units)
+    parts = []
+    for j, name in enumerate(compensation.inputs):
+        if any(compensation.interference[:, j]):
+            values = ', '.join(format_field(v, units, unit=False)
+                               for v in compensation.interference[:, j])
+            parts.append(f'[{values}] {shown} per unit of {name}')
+    if any(compensation.temperature_coefficient):
+        values = ', '.join(format_field(v, units, unit=False)
+                           for v in compensation.temperature_coefficient)
+        parts.append(f'[{values}] {shown}/degC around {compensation.reference_temperature:g} '
+                     'degC')
+    if not parts:
+        return ''
+    text = "; compensating the robot's own field: " + ', '.join(parts)
+    removed = calibration.metadata_number('compensation_removed_pct')
+    if removed is not None:
+        text += f', {removed:.2f} % of the field'
+    learned = calibration.metadata.get('compensation_time')
+    return text + (f' (learned {learned})' if learned else '')
 
 
 UNOBSERVED_WORDS = {'offset_normal': 'the offset along the turning axis',
@@ -313,6 +341,7 @@ def diagnostic_values(session: ReportedSession, now: float, coverage: Coverage
         values['model'] = calibration.model
         values[f'offset_{unit}'] = [round(float(v) * scale, 3) for v in calibration.offset]
         values[f'field_strength_{unit}'] = round(float(calibration.field_strength) * scale, 3)
+    values.update(session.compensation.diagnostic_values(calibration, session.units))
     if session.tracker is not None:
         values['tracked_updates'] = session.tracked_updates
     if session.hold_overflows:

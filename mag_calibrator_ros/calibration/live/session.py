@@ -25,10 +25,7 @@ import numpy as np
 from mag_calibrator_ros.calibration.fit.alignment import StaticAttitudes
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
 from mag_calibrator_ros.calibration.fit.coverage import HEADING_SECTORS, Coverage
-from mag_calibrator_ros.calibration.fit.earth_field import (
-    EarthField,
-    EarthReference,
-)
+from mag_calibrator_ros.calibration.fit.earth_field import EarthField, EarthReference
 from mag_calibrator_ros.calibration.fit.heading import (
     HeadingCoverage,
     PlaneWatch,
@@ -37,6 +34,7 @@ from mag_calibrator_ros.calibration.fit.heading import (
 )
 from mag_calibrator_ros.calibration.live import report
 from mag_calibrator_ros.calibration.live.buffer import SampleBuffer
+from mag_calibrator_ros.calibration.live.compensation import CompensationLearner
 from mag_calibrator_ros.calibration.live.evidence import (
     HOLD_OUT_EVERY,
     MISFIT_WINDOW_S,
@@ -45,12 +43,7 @@ from mag_calibrator_ros.calibration.live.evidence import (
 )
 from mag_calibrator_ros.calibration.live.findings import Findings
 from mag_calibrator_ros.calibration.live.jobs import REFERENCE_OPTIONS, FitJob, JobOutcome
-from mag_calibrator_ros.calibration.live.pairing import (
-    ImuPairing,
-    Pair,
-    RateMeter,
-    up_direction,
-)
+from mag_calibrator_ros.calibration.live.pairing import ImuPairing, Pair, RateMeter, up_direction
 from mag_calibrator_ros.calibration.live.reference import BufferReference
 from mag_calibrator_ros.calibration.live.report import CalibrationAttempt
 from mag_calibrator_ros.calibration.live.scheduler import (
@@ -196,6 +189,7 @@ class CalibrationSession:
         self.pairing = ImuPairing()
         self.findings = Findings()
         """The model's field here, the latest alignment and model check (``findings.py``)."""
+        self.compensation = CompensationLearner(*self.settings.compensation)  # K u + c (T - T0)
         if calibration is not None:
             self.apply_calibration(calibration, 'given')
 
@@ -214,6 +208,7 @@ class CalibrationSession:
         self.screen.full_scale = settings.full_scale_limit
         if settings.online_tracking != old.online_tracking:
             self._restart_tracker()
+        self.compensation.configure(*settings.compensation)
 
     def close(self) -> None:
         """Stop the fit worker (the node calls this on shutdown)."""
@@ -253,7 +248,7 @@ class CalibrationSession:
         if reason is not None:
             return _REFUSED
         self.accepted += 1
-        reading = np.array((x0, x1, x2))
+        reading = self.compensation.observe(stamp_ns, np.array((x0, x1, x2)), self.calibration)
         self._latest = reading
         pair = self.pairing.pair(stamp_ns, frame_id)
         if self.pairing.has_warnings:
@@ -348,7 +343,8 @@ class CalibrationSession:
             self._next_periodic = now + PERIODIC_S
             self._update_centre()
         if self._job is None:
-            kind = self.scheduler.due(self._situation(now))
+            kind = (self.scheduler.due(self._situation(now))
+                    or self.compensation.due(now, self.calibration))  # 'compensate' or None
             if kind is not None:
                 self._submit(kind)
 
@@ -393,6 +389,8 @@ class CalibrationSession:
     def _make_job(self, kind: str, ticket: int | None) -> FitJob:
         buffer = self.buffer
         samples, weights, readings = buffer.samples, buffer.counts, buffer.readings
+        if kind == 'compensate':  # the robot's own field: live/compensation.py
+            return self.compensation.job(self.calibration)
         if kind == 'reference':
             return FitJob('reference', samples, weights, readings, REFERENCE_OPTIONS,
                           previous=self.buffer_reference.provisional)
@@ -447,6 +445,8 @@ class CalibrationSession:
             self._reference_done(outcome)
         elif job.kind == 'check':
             self._check_done(outcome)
+        elif job.kind == 'compensate':
+            self._apply(self.compensation.judged(outcome, current))
         elif job.ticket is not None:
             self._note_reference(outcome)
             verdict = request_verdict(outcome, current, self.units, self.findings.earth)
@@ -557,7 +557,8 @@ class CalibrationSession:
         restart, and it screens the buffer unless the buffer has a fit of its own. 'realign'
         rotates the one in force into the IMU frame (only the tracker restarts); 'tracking'
         steps it towards the tracker's (counted in ``tracked_updates``; the buffer's reference
-        follows when it is the calibration in force)."""
+        follows when it is the calibration in force; a static fit keeps the compensation)."""
+        calibration = self.compensation.carry(calibration, self.calibration, source)
         self.calibration = calibration
         reference = self.buffer_reference
         if source == 'tracking':
@@ -571,6 +572,9 @@ class CalibrationSession:
                 reference.calibration_plane = PlaneWatch.of(
                     calibration.metadata.get('plane_normal'), self.buffer.samples)
             self.adoptions[source] = self.adoptions.get(source, 0) + 1
+            if source == 'compensation':  # what is stored was compensated by the old one
+                self.evidence.clear()
+                self.buffer.clear()
             self.misfit.reset()
             self.scheduler.calibration_changed()
             if reference.source != 'fit':
@@ -657,6 +661,7 @@ class CalibrationSession:
         self._restart_tracker()
         self.attitudes.clear()
         self.pairing.clear()
+        self.compensation.reset()
     def feed(self, samples: np.ndarray, rate_hz: float = 100.0, start_ns: int = 0,
              frame_id: str = '', accel: np.ndarray | None = None,
              gyro: np.ndarray | None = None) -> None:
@@ -789,12 +794,5 @@ class CalibrationSession:
             alignment_warning=self.alignment_warning(), imu_warning=self.pairing.warning())
 
 
-__all__ = [
-    'REFUSAL_REASONS',
-    'SCREEN_REASONS',
-    'STATES',
-    'CalibrationAttempt',
-    'CalibrationSession',
-    'Processed',
-    'SessionEvent',
-]
+__all__ = ['REFUSAL_REASONS', 'SCREEN_REASONS', 'STATES', 'CalibrationAttempt',
+           'CalibrationSession', 'Processed', 'SessionEvent']

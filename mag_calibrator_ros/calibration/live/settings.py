@@ -18,6 +18,7 @@ from mag_calibrator_ros.calibration.fit.earth_field import (
 )
 from mag_calibrator_ros.calibration.fit.fitting import FitOptions
 from mag_calibrator_ros.calibration.live.buffer import DEFAULT_CAPACITY, DEFAULT_K
+from mag_calibrator_ros.calibration.live.inputs import input_problems
 from mag_calibrator_ros.icm20948 import registers as reg
 
 AK09916_FULL_SCALE_T = reg.MEASUREMENT_LIMIT * reg.TESLA_PER_LSB
@@ -64,11 +65,25 @@ class SessionSettings:
     """Tolerances against the World Magnetic Model (``set_earth_field``)."""
     earth_field_gate: bool = True
     """Beyond them a fit fails (True) or is only warned about (False)."""
+    use_temperature: bool = True
+    """Pair readings with the sensor's temperature (``imu/temperature``) when it is published:
+    learn the hard iron's drift with it and compensate it (``live/compensation.py``)."""
+    interference_inputs: tuple[str, ...] = ()
+    """Inputs whose field the robot carries (``topic:package/msg/Type:field``): learned and
+    compensated like the temperature. None by default."""
+    learn_compensation: bool = True
+    """Learn the robot's own field (``K``, ``c``) live; adopted only on held-out evidence."""
 
     @property
     def full_scale_limit(self) -> float | None:
         """``full_scale`` as the screen takes it: None when the check is off (0)."""
         return self.full_scale if self.full_scale > 0.0 else None
+
+    @property
+    def compensation(self) -> tuple[tuple[str, ...], bool, bool]:
+        """(interference_inputs, use_temperature, learn_compensation): what the compensation
+        learner (``live/compensation.py``) is configured with."""
+        return tuple(self.interference_inputs), self.use_temperature, self.learn_compensation
 
     @property
     def min_samples(self) -> int:
@@ -112,6 +127,7 @@ class SessionSettings:
             problems.append(f'max_field_error_pct must be > 0, got {self.max_field_error_pct}')
         if not 0.0 < self.max_dip_error_deg <= 90.0:
             problems.append(f'max_dip_error_deg must be in (0, 90], got {self.max_dip_error_deg}')
+        problems += input_problems(self.interference_inputs)
         return problems
 
     def fit_options(self) -> FitOptions:

@@ -275,9 +275,41 @@ def passed_own_gates(outcome: JobOutcome) -> bool:
     return result.success or (check is not None and result.reason == disturbance_text(check))
 
 
+def compensation_verdict(outcome: JobOutcome, current: Calibration | None) -> Verdict:
+    """A learned compensation (``K``, ``c``: the robot's own field) goes in force only when
+    all hold: the fit kept terms (each determined by its input's variation and significant,
+    ``fit/compensation.py``), the calibration it was learned on is still in force, and it is
+    better on held-out readings with their inputs by refinement's rule
+    (``evidence.compare_on_evidence``). Otherwise nothing changes and the log says (debug)
+    what kept it, with what motion would determine a term."""
+    fit = outcome.compensation
+    if outcome.error or fit is None:
+        return Verdict(level='warning',
+                       message=f'compensation fit failed: {outcome.error or "no result"}')
+    if fit.calibration is None:
+        return Verdict(level='debug', message=f'compensation not learned: {fit.reason}')
+    if current is None or current is not outcome.job.current:
+        return Verdict()  # another calibration went in force meanwhile: learn on it next
+    comparison = outcome.comparison
+    if comparison is None or not comparison.better:
+        why = 'no held-out readings' if comparison is None else comparison.reason
+        return Verdict(level='debug', message=f'compensation kept as it is: {why}')
+    compensation = fit.calibration.compensation
+    candidate = fit.calibration.with_metadata(
+        compensation_removed_pct=round(fit.removed_pct, 3), compensation_readings=fit.readings)
+    terms = ', '.join(f'{term.name} {term.effect_pct:.2f} % of the field' for term in fit.terms
+                      if term.name in fit.kept)
+    t0 = ('' if compensation.reference_temperature is None
+          else f', T0 {compensation.reference_temperature:g} degC')
+    return Verdict(candidate, 'compensation', 'info', (
+        f"compensating the robot's own field: {terms}{t0}; it removes {fit.removed_pct:.2f} % "
+        f'of the field; {comparison.reason}'))
+
+
 __all__ = [
     'COVERAGE_SLACK',
     'Verdict',
+    'compensation_verdict',
     'automatic_verdict',
     'bounded_step',
     'check_text',

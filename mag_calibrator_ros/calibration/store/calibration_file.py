@@ -10,8 +10,16 @@
           rotation: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0] # R, optional: identity
           field_strength: 5.0e-05
           model: "full"
+          interference_inputs: ["battery_state:sensor_msgs/msg/BatteryState:current"]  # optional:
+          interference: [8.0e-07, 0.0, 0.0]          # K (3 x k, row-major), tesla per unit
+          temperature_coefficient: [2.0e-07, 0.0, 0.0]  # c, tesla per degC
+          reference_temperature: 31.5                  # T0, degC
           residual_rms_pct: 0.8        # metadata: any further keys
           time: "2026-01-01T00:00:00Z"
+
+The four compensation keys (``corrected = R M (raw - b - K u - c (T - T0))``, the robot's own
+field: ``fit/calibration.py`` ``Compensation``) are optional: a file without them is the static
+calibration it always was.
 
 The same file is a ``--params-file`` for the node (the YAML is typed strictly:
 ``params_yaml``). A file may come from a user, another robot or an attacker: reading takes
@@ -48,7 +56,9 @@ from mag_calibrator_ros.calibration.fit.calibration import (
     ROTATION_TOLERANCE,
     Calibration,
     CalibrationError,
+    Compensation,
     calibration_problems,
+    compensation_problems,
     rotation_problems,
 )
 from mag_calibrator_ros.calibration.fit.earth_field import TESLA_PER_UNIT
@@ -78,15 +88,19 @@ REQUIRED_KEYS = ('offset', 'matrix', 'field_strength')
 ROTATION_KEY = 'rotation'
 UNITS_KEY = 'units'
 TESLA = 'T'
-RESERVED_KEYS = (*REQUIRED_KEYS, 'model', ROTATION_KEY)
+COMPENSATION_KEYS = ('interference_inputs', 'interference', 'temperature_coefficient',
+                     'reference_temperature')
+RESERVED_KEYS = (*REQUIRED_KEYS, 'model', ROTATION_KEY, *COMPENSATION_KEYS)
 FILE_MODELS = (*MODELS, 'identity')
 """Models a file may name: the fit models and 'identity' (:meth:`Calibration.identity`)."""
 LEGACY_DEFAULT_PATH = '~/.ros/mag_calibrator/calibration.yaml'
 """The default file before per-node defaults; still read by ``/mag_calibrator`` (see
 :func:`default_load_path`)."""
 _COMMENTS = (
-    'Magnetometer calibration: corrected = R @ M @ (raw - b); M = matrix (row-major),',
-    'b = offset, R = rotation (identity when absent), |corrected| ~ field_strength.',
+    'Magnetometer calibration: corrected = R @ M @ (raw - b - K u - c (T - T0)); M = matrix',
+    '(row-major), b = offset, R = rotation (identity when absent), |corrected| ~ field_strength;',
+    'K = interference (per interference_inputs), c = temperature_coefficient, T0 =',
+    'reference_temperature (all optional: none is the static calibration).',
     'A ROS 2 parameters file (--params-file).',
 )
 
@@ -245,6 +259,7 @@ def calibration_from_parameters(
         given = extra.pop(ROTATION_KEY)
         rotation = given if rotation is None else rotation
     rotation_values = None if rotation is None else _rotation(rotation, problems)
+    compensation = _compensation(extra, problems)
     scale = 1.0
     if UNITS_KEY in extra:
         try:
@@ -257,11 +272,41 @@ def calibration_from_parameters(
         raise CalibrationError('; '.join(problems))
     calibration = Calibration(
         np.array(offset_values), np.reshape(matrix_values, (3, 3)), strength, model, extra,
-        None if rotation_values is None else np.reshape(rotation_values, (3, 3)),
+        None if rotation_values is None else np.reshape(rotation_values, (3, 3)), compensation,
     )
     if scale == 1.0:
         return calibration
     return calibration.scaled(scale).with_metadata(**{UNITS_KEY: TESLA})
+
+
+def _compensation(extra: dict[str, Any], problems: list[str]) -> Compensation | None:
+    """The compensation keys taken out of ``extra`` (metadata), checked; None without them."""
+    given = {key: extra.pop(key) for key in COMPENSATION_KEYS if key in extra}
+    if not given:
+        return None
+    inputs = given.get('interference_inputs', [])
+    if isinstance(inputs, str) or not isinstance(inputs, (list, tuple)) or not all(
+            isinstance(name, str) and name for name in inputs):
+        problems.append(f'interference_inputs must be a list of input names, got '
+                        f'{short_repr(inputs)}')
+        return None
+    gains = given.get('interference')
+    if gains is not None or inputs:
+        gains = _numbers(gains if gains is not None else [], 'interference', 3 * len(inputs),
+                         problems)
+    drift = given.get('temperature_coefficient')
+    if drift is not None:
+        drift = _numbers(drift, 'temperature_coefficient', 3, problems)
+    t0 = given.get('reference_temperature')
+    if t0 is not None:
+        t0 = _number(t0, 'reference_temperature', problems)
+    if problems:
+        return None
+    wrong = compensation_problems(tuple(inputs), gains, drift, t0)
+    if wrong:
+        problems += wrong
+        return None
+    return Compensation(tuple(inputs), gains, drift, t0)
 
 
 def tesla_per_unit(units: Any) -> float:
@@ -393,6 +438,16 @@ def _calibration_fields(calibration: Calibration) -> dict[str, Any]:
             raise CalibrationFileError(f'metadata key {key!r} would overwrite the calibration')
     fields['field_strength'] = float(calibration.field_strength)
     fields['model'] = str(calibration.model)
+    compensation = calibration.compensation
+    if compensation is not None:
+        if compensation.inputs:
+            fields['interference_inputs'] = list(compensation.inputs)
+            fields['interference'] = [float(value)
+                                      for value in compensation.interference.reshape(-1)]
+        fields['temperature_coefficient'] = [
+            float(value) for value in compensation.temperature_coefficient]
+        if compensation.reference_temperature is not None:
+            fields['reference_temperature'] = compensation.reference_temperature
     fields.update(metadata)
     return fields
 
@@ -534,8 +589,9 @@ def _section_calibration(
         raise CalibrationFileError(
             f'{shown}: {SECTION} is missing {", ".join(f"{SECTION}.{key}" for key in missing)}'
         )
-    metadata, dropped = _savable_metadata(
-        {key: value for key, value in section.items() if key not in RESERVED_KEYS})
+    metadata, dropped = _savable_metadata(  # the compensation's keys are taken out of it
+        {key: value for key, value in section.items()
+         if key not in RESERVED_KEYS or key in COMPENSATION_KEYS})
     if dropped:
         notes.append(f'dropped {_listing(dropped, quote=False)}: not ROS parameter names '
                      f'(letters, digits, _), they could never be saved')

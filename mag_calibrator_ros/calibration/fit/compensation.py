@@ -1,0 +1,328 @@
+"""The robot's own field learned from readings: ``K u + c (T - T0)`` by least squares.
+
+Stateless maths, no memory (the live bookkeeping is ``live/compensation.py``). The readings'
+field is explained by the calibration's static part and the robot's own field::
+
+    |M (raw - b - db - K u - c (T - T0))| = F        for every reading
+
+whatever the orientation (the magnitude constraint: the Earth's field has one strength, so
+what changes ``|corrected|`` with the inputs is the robot's). ``M`` and ``b`` come from the
+calibration in force; ``db`` (the offset at u = 0, T = T0: a static fit made while a current
+flowed holds ``K u`` in its offset), ``K``, ``c`` and ``F`` are fitted by Gauss-Newton, with
+their standard errors from the residuals. A term is *determined* once its uncertainty over the
+range its input took is small against the field (``DETERMINED_PCT``), and *significant* when
+it stands out of that uncertainty (``SIGNIFICANT_SIGMA``): only significant, determined terms
+are kept, so noise never becomes a coefficient. What kept a term undetermined is said in words
+a user can act on (the input did not vary; it varied while the robot faced one way).
+
+Why the magnitude and not the gyroscope: it needs no IMU and no time alignment, and a robot
+that drives and turns moves the field's direction through the sensor, which is what makes
+every axis of ``K`` visible in ``|corrected|``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import math
+
+import numpy as np
+
+from mag_calibrator_ros.calibration.fit.calibration import Calibration, Compensation
+
+DETERMINED_PCT = 1.0
+"""An axis of a term is determined once 1 sigma of its field over the range its input took (5th
+to 95th percentile) is below this share of the field strength, in percent (a term is determined
+when one of its axes is; the others are left at zero): 0.5 uT at 50 uT, about
+1.4 degrees of heading at a 20 uT horizontal field at worst (the estimate is usually far better
+than this bound by the time the input has varied while the robot turned)."""
+SIGNIFICANT_SIGMA = 5.0
+"""A determined term is kept when its coefficients stand this many standard errors out of zero
+(Mahalanobis distance over its three axes): noise alone passes it about once in 10^4 fits."""
+MIN_READINGS = 200
+"""Fewer readings determine nothing worth adopting."""
+ITERATIONS = 8
+COEFFICIENT_PRIOR = 0.5
+"""A term's field over its input's span: 1 sigma of half the field. Broad, so anything the
+readings see is theirs; an axis they do not see (the vertical, turning in a plane) stays zero
+instead of taking any value (and is reported unobserved: OBSERVED)."""
+OBSERVED = 0.3
+"""An axis of a term is observed when its standard error is below this share of its prior's."""
+OFFSET_PRIOR = 0.1
+"""The offset change's prior: 1 sigma of a tenth of the field. A robot turning in a plane does
+not determine the offset along the plane's normal apart from the field strength; the static fit
+put it within a few percent, and the prior keeps it there instead of letting it drift."""
+MIN_TEMPERATURE_SPAN = 2.0
+"""Degrees Celsius: a narrower span is reported as 'did not vary' without a fit of c."""
+TEMPERATURE = 'temperature'
+"""The name of the temperature term in reports."""
+LEARNED = ('compensation_time', 'compensation_removed_pct', 'compensation_readings')
+"""Metadata of a learned compensation, carried with it into later static fits."""
+
+
+@dataclass(frozen=True)
+class CompensationData:
+    """Readings with their inputs, picklable: what one fit needs (``live/compensation.py``)."""
+
+    raw: np.ndarray
+    """(n, 3) raw readings, the calibration's units."""
+    inputs: np.ndarray
+    """(n, k) interference inputs (k may be 0)."""
+    temperatures: np.ndarray | None
+    """(n,) degrees Celsius, or None without a temperature."""
+    names: tuple[str, ...] = ()
+    held_raw: np.ndarray | None = None
+    held_inputs: np.ndarray | None = None
+    held_temperatures: np.ndarray | None = None
+    """Held-out readings no fit sees, to judge the fit on (same columns)."""
+    reference_temperature: float | None = None
+    """T0 in degrees Celsius (None: the readings' median, rounded to 0.1)."""
+
+
+@dataclass(frozen=True)
+class TermReport:
+    """One term (an interference input, or the temperature): how well it is known."""
+
+    name: str
+    span: float
+    """The range its input took (5th to 95th percentile), in its units."""
+    effect_pct: float
+    """Its field over that range, % of the field strength (0 when not fitted)."""
+    sigma_pct: float
+    """1 sigma of that field, % of the field strength (inf when not determined at all)."""
+    significance: float
+    """Mahalanobis distance of its coefficients from zero."""
+    determined: bool
+    significant: bool
+    need: str = ''
+    """What motion or wait would determine it ('' once determined)."""
+
+
+@dataclass(frozen=True)
+class CompensationFit:
+    """A compensation fit: the calibration it makes, how each term is known, and its evidence."""
+
+    calibration: Calibration | None
+    """The base calibration with the kept terms and the new offset; None when nothing is kept."""
+    terms: tuple[TermReport, ...] = ()
+    readings: int = 0
+    residual_pct: float = math.nan
+    """RMS of ``|corrected| - F`` over the fitted readings with the kept terms, % of F."""
+    held_current_pct: float = math.nan
+    held_candidate_pct: float = math.nan
+    """Spread of ``|corrected|`` on the held-out readings (RMS about its median, % of F): the
+    calibration in force and the candidate."""
+    held_readings: int = 0
+    removed_pct: float = 0.0
+    """RMS of the compensation's field over the readings, % of F: the share it removes."""
+    reason: str = ''
+    kept: tuple[str, ...] = field(default_factory=tuple)
+
+
+def _span(values: np.ndarray) -> float:
+    finite = values[np.isfinite(values)]
+    if len(finite) < 2:
+        return 0.0
+    low, high = np.percentile(finite, (5.0, 95.0))
+    return float(high - low)
+
+
+def _solve(raw: np.ndarray, columns: np.ndarray, spans: list[float], base: Calibration
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Gauss-Newton for ``|M (raw - b - d - W z)| = F``, ``z`` = (1, columns...): the offset
+    change ``d`` is W's first column; ``M``, ``b`` and ``F`` are the base's. Returns W (3, m),
+    its covariance (3m, 3m) in the order of ``W.reshape(-1)``, which of those the readings
+    observed (OBSERVED) and the residuals.
+
+    ``F`` and ``M`` stay fixed: with ``F`` free, a large offset along an axis the readings
+    barely move in (the vertical of a robot turning in a plane) shrinks every other variation of
+    ``|corrected|`` and fits better than the truth; with ``M`` free, each adoption could walk
+    the soft iron along what the readings do not determine (refinement refits ``M`` on the
+    compensated readings instead). Every coefficient has a broad prior around zero
+    (OFFSET_PRIOR, COEFFICIENT_PRIOR), so what the readings cannot see stays near zero."""
+    n, m = len(raw), columns.shape[1] + 1
+    z = np.hstack([np.ones((n, 1)), columns])
+    scale = np.maximum(np.abs(z).max(axis=0), 1e-12)  # column scaling for conditioning
+    zs = z / scale
+    matrix, strength = base.matrix, base.field_strength
+    y = raw - base.offset
+    w = np.zeros((3, m))  # in scaled units
+    weights = np.ones(n)
+    sigmas = np.array([OFFSET_PRIOR] + [COEFFICIENT_PRIOR * scale[j] / max(spans[j - 1], 1e-300)
+                                        for j in range(1, m)]) * strength
+    prior = np.tile(1.0 / sigmas ** 2, 3)  # precision of the prior, by w.reshape(-1)
+    for iteration in range(ITERATIONS):
+        corrected = (y - zs @ w.T) @ matrix.T
+        magnitude = np.linalg.norm(corrected, axis=1)
+        residuals = magnitude - strength
+        mad = 1.4826 * float(np.median(np.abs(residuals - np.median(residuals))))
+        noise2 = max(mad, 1e-9 * strength) ** 2
+        if iteration >= 2:  # robust after the first steps: readings far out weigh little
+            limit = 4.0 * math.sqrt(noise2)
+            weights = np.minimum(1.0, limit / np.maximum(np.abs(residuals), 1e-300))
+        g = (corrected / np.maximum(magnitude, 1e-300)[:, None]) @ matrix  # d|m| / d(raw)
+        jacobian = -(g[:, :, None] * zs[:, None, :]).reshape(n, 3 * m)
+        normal = (jacobian * weights[:, None]).T @ jacobian + noise2 * np.diag(prior)
+        gradient = (jacobian * weights[:, None]).T @ residuals + noise2 * prior * w.reshape(-1)
+        step = -np.linalg.lstsq(normal, gradient, rcond=None)[0]
+        w = w + step.reshape(3, m)
+        if np.max(np.abs(step)) < 1e-9 * strength:
+            break
+    residuals = np.linalg.norm((y - zs @ w.T) @ matrix.T, axis=1) - strength
+    dof = max(int(np.sum(weights)) - normal.shape[0], 1)
+    sigma2 = float(np.sum(weights * residuals ** 2)) / dof
+    covariance = np.linalg.pinv(normal) * sigma2
+    seen = np.sqrt(np.maximum(np.diag(covariance), 0.0) * prior) < OBSERVED  # prior narrowed
+    unscale = np.tile(1.0 / scale, 3)
+    return w / scale, covariance * np.outer(unscale, unscale), seen, residuals
+
+
+def magnitude_spread_pct(calibration: Calibration, raw: np.ndarray,
+                         inputs: np.ndarray | None, temperatures: np.ndarray | None) -> float:
+    """RMS of ``|corrected| - F``, % of F: how far from the calibration's sphere the readings
+    are with it (the held-out judgement; F is the same for the calibration in force and a
+    candidate learned on it, so no candidate wins by changing the yardstick)."""
+    if raw is None or len(raw) == 0:
+        return math.nan
+    corrected = calibration.unrotated(calibration.compensated(raw, inputs, temperatures))
+    magnitude = np.linalg.norm(corrected, axis=1)
+    strength = calibration.field_strength
+    return 100.0 * math.sqrt(float(np.mean((magnitude - strength) ** 2))) / strength
+
+
+def fit_compensation(data: CompensationData, base: Calibration) -> CompensationFit:
+    """Learn ``K``, ``c`` and the offset at u = 0, T = T0 from readings; see the module.
+
+    ``base``: the calibration in force (its static part is kept; its compensation, if any, is
+    replaced); T0 is ``data.reference_temperature``, else the readings' median. Never raises on
+    data: a fit that cannot be made says why in ``reason``.
+    """
+    raw = np.asarray(data.raw, dtype=float).reshape(-1, 3)
+    inputs = np.asarray(data.inputs, dtype=float).reshape(len(raw), -1)
+    names = list(data.names)
+    temperatures = None if data.temperatures is None else np.asarray(data.temperatures, float)
+    usable = np.all(np.isfinite(raw), axis=1) & np.all(np.isfinite(inputs), axis=1)
+    if temperatures is not None:
+        usable &= np.isfinite(temperatures)
+    raw, inputs = raw[usable], inputs[usable]
+    temperatures = None if temperatures is None else temperatures[usable]
+    if len(raw) < MIN_READINGS:
+        return CompensationFit(None, readings=len(raw),
+                               reason=f'{len(raw)} readings with their inputs, '
+                                      f'{MIN_READINGS} needed')
+    strength = base.field_strength
+    t0 = data.reference_temperature
+    if temperatures is not None and t0 is None:
+        t0 = round(float(np.median(temperatures)), 1)
+    columns, spans, labels = [], [], []
+    for j, name in enumerate(names):
+        spans.append(_span(inputs[:, j]))
+        columns.append(inputs[:, j])
+        labels.append(name)
+    if temperatures is not None:
+        spans.append(_span(temperatures))
+        columns.append(temperatures - t0)
+        labels.append(TEMPERATURE)
+    reports: list[TermReport] = []
+    varied = [index for index, span in enumerate(spans)
+              if span > 0 and (labels[index] != TEMPERATURE or span >= MIN_TEMPERATURE_SPAN)]
+    design = np.stack([columns[i] for i in varied], axis=1) if varied else np.zeros((len(raw), 0))
+    w, covariance, seen, _ = _solve(raw, design, [spans[i] for i in varied], base)
+    determined_axes: dict[int, np.ndarray] = {}
+    m = design.shape[1] + 1
+    kept: list[int] = []
+    for index, label in enumerate(labels):
+        if index not in varied:
+            reports.append(TermReport(label, spans[index], 0.0, math.inf, 0.0, False, False,
+                                      _need(label, spans[index], False)))
+            continue
+        column = varied.index(index) + 1
+        picks = np.array([axis * m + column for axis in range(3)])
+        axis_sigma = np.sqrt(np.maximum(np.diag(covariance)[picks], 0.0)) * spans[index]
+        axes = seen[picks] & (100.0 * axis_sigma / strength <= DETERMINED_PCT)
+        determined_axes[index] = axes  # the vertical of a robot turning level is not among them
+        coefficients = w[axes, column]
+        block = covariance[np.ix_(picks[axes], picks[axes])]
+        sigma = (math.sqrt(float(np.sum(axis_sigma[axes] ** 2))) if axes.any()
+                 else float(np.min(axis_sigma)))
+        effect = float(np.linalg.norm(coefficients)) * spans[index]
+        try:
+            significance = math.sqrt(max(float(coefficients @ np.linalg.solve(
+                block, coefficients)), 0.0))
+        except np.linalg.LinAlgError:
+            significance = 0.0
+        sigma_pct = 100.0 * sigma / strength
+        determined = bool(axes.any())
+        significant = determined and significance >= SIGNIFICANT_SIGMA
+        if significant:
+            kept.append(index)
+        reports.append(TermReport(label, spans[index], 100.0 * effect / strength, sigma_pct,
+                                  significance, determined, significant,
+                                  _need(label, spans[index], True) if not determined else ''))
+    # The calibration: refit with the kept terms only (the others are noise or unknown).
+    design = (np.stack([columns[i] for i in kept], axis=1) if kept
+              else np.zeros((len(raw), 0)))
+    w, _, _, residuals = _solve(raw, design, [spans[i] for i in kept], base)
+    gains = np.zeros((3, len(names)))
+    drift = np.zeros(3)
+    for position, index in enumerate(kept):
+        values = np.where(determined_axes[index], w[:, position + 1], 0.0)  # unknown: none
+        if labels[index] == TEMPERATURE:
+            drift = values
+        else:
+            gains[:, index] = values
+    residual_pct = 100.0 * math.sqrt(float(np.mean(residuals ** 2))) / strength
+    fit = CompensationFit(None, tuple(reports), len(raw), residual_pct,
+                          kept=tuple(labels[i] for i in kept))
+    if not kept:
+        return _with_reason(fit, reports)
+    compensation = Compensation(tuple(names), gains, drift,
+                                t0 if np.any(drift) else None)
+    offset = base.offset + w[:, 0]
+    candidate = base.with_compensation(compensation, offset=offset)
+    own = compensation.field(inputs, temperatures) - np.mean(
+        compensation.field(inputs, temperatures), axis=0)
+    removed = 100.0 * math.sqrt(float(np.mean(np.sum(own ** 2, axis=1)))) / strength
+    held = data.held_raw is not None and len(data.held_raw) > 0
+    current_pct = candidate_pct = math.nan
+    if held:
+        held_inputs = (None if data.held_inputs is None
+                       else np.asarray(data.held_inputs, float).reshape(len(data.held_raw), -1))
+        current_pct = magnitude_spread_pct(base, data.held_raw, held_inputs,
+                                           data.held_temperatures)
+        candidate_pct = magnitude_spread_pct(candidate, data.held_raw, held_inputs,
+                                             data.held_temperatures)
+    return CompensationFit(candidate, tuple(reports), len(raw), residual_pct, current_pct,
+                           candidate_pct, 0 if not held else len(data.held_raw), removed,
+                           kept=tuple(labels[i] for i in kept))
+
+
+def _need(label: str, span: float, varied: bool) -> str:
+    """What would determine a term, for a person."""
+    if label == TEMPERATURE:
+        if span < MIN_TEMPERATURE_SPAN:
+            return (f'the temperature varied {span:.1f} degC (at least {MIN_TEMPERATURE_SPAN:g} '
+                    'needed): it is learned while the sensor warms up or cools down, so keep '
+                    'the robot working from a cold start')
+        return ('the temperature changed while the robot faced one way: keep turning as it '
+                'warms up')
+    if not varied:
+        return (f"input '{label}' did not vary: drive at several speeds, stop and start, and "
+                'turn in place, so the current changes')
+    return (f"input '{label}' varied, but not in enough headings to tell its field from the "
+            "Earth's: drive and turn at several speeds facing several directions")
+
+
+def _with_reason(fit: CompensationFit, reports: list[TermReport]) -> CompensationFit:
+    needs = [report.need for report in reports if report.need]
+    if needs:
+        reason = '; '.join(needs)
+    elif reports:
+        reason = 'no input changes the field measurably (nothing to compensate)'
+    else:
+        reason = 'no interference input or temperature to learn from'
+    return CompensationFit(None, fit.terms, fit.readings, fit.residual_pct, reason=reason)
+
+
+__all__ = ['DETERMINED_PCT', 'LEARNED', 'MIN_READINGS', 'SIGNIFICANT_SIGMA', 'TEMPERATURE',
+           'CompensationData', 'CompensationFit', 'TermReport', 'fit_compensation',
+           'magnitude_spread_pct']

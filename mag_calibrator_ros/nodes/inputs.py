@@ -1,0 +1,92 @@
+"""``InputSubscriptions``: the calibrator's subscriptions to the robot's own field's inputs.
+
+``imu/temperature`` (sensor_msgs/Temperature, while ``use_temperature``) and each of
+``interference_inputs`` (``topic:package/msg/Type:field``, ``calibration/live/inputs.py``), each
+sample handed to the session's ``CompensationLearner`` in O(1). Follows the parameters: a
+changed list subscribes anew. A type that cannot be imported is said once, in the user's terms,
+and the other inputs still work.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from rclpy.node import Node
+from rosidl_runtime_py.utilities import get_message
+from sensor_msgs.msg import Temperature
+
+from mag_calibrator_ros.calibration.live.inputs import InputSpec, parse_input
+from mag_calibrator_ros.calibration.live.session import CalibrationSession
+from mag_calibrator_ros.nodes.runtime import guarded
+
+TEMPERATURE_TOPIC = 'imu/temperature'
+
+
+def _stamp_ns(message: object) -> int | None:
+    """The message's header stamp in ns, None without a header (Twist) or with a zero stamp."""
+    header = getattr(message, 'header', None)
+    stamp = getattr(header, 'stamp', None)
+    if stamp is None:
+        return None
+    value = stamp.sec * 1_000_000_000 + stamp.nanosec
+    return value if value > 0 else None
+
+
+class InputSubscriptions:
+    """Subscribes the temperature and the interference inputs the settings name."""
+
+    def __init__(self, node: Node, session: CalibrationSession, qos: object) -> None:
+        self._node, self._session, self._qos = node, session, qos
+        self._temperature = None
+        self._inputs: list[object] = []
+        self._wanted: tuple[tuple[str, ...], bool] | None = None
+        self.problems: list[str] = []
+        """Inputs that could not be subscribed (shown in the log)."""
+        self.sync()
+        node.add_post_set_parameters_callback(lambda _parameters: self.sync())
+
+    def sync(self) -> None:
+        """Subscribe what the session's settings name now (after a parameter change too)."""
+        settings = self._session.settings
+        wanted = (tuple(settings.interference_inputs), settings.use_temperature)
+        if wanted == self._wanted:
+            return
+        self._wanted = wanted
+        node = self._node
+        if settings.use_temperature and self._temperature is None:
+            self._temperature = node.create_subscription(
+                Temperature, TEMPERATURE_TOPIC,
+                guarded(node, TEMPERATURE_TOPIC, self._on_temperature), self._qos)
+        elif not settings.use_temperature and self._temperature is not None:
+            node.destroy_subscription(self._temperature)
+            self._temperature = None
+        for subscription in self._inputs:
+            node.destroy_subscription(subscription)
+        self._inputs, self.problems = [], []
+        for index, text in enumerate(settings.interference_inputs):
+            spec = parse_input(text)
+            if isinstance(spec, str):
+                continue  # refused by the settings' checks already
+            try:
+                message_type = get_message(spec.type)
+            except (AttributeError, ModuleNotFoundError, ValueError) as error:
+                self.problems.append(
+                    f"interference input '{text}': message type {spec.type} cannot be imported "
+                    f'({error}); install its package or fix the name (package/msg/Type)')
+                continue
+            self._inputs.append(node.create_subscription(
+                message_type, spec.topic,
+                guarded(node, spec.topic, self._on_input(index, spec)), self._qos))
+        for problem in self.problems:
+            node.get_logger().error(problem)
+
+    def _on_temperature(self, message: Temperature) -> None:
+        self._session.compensation.temperature(_stamp_ns(message), message.temperature)
+
+    def _on_input(self, index: int, spec: InputSpec) -> Callable[[object], None]:
+        def on_message(message: object) -> None:
+            self._session.compensation.input(index, _stamp_ns(message), spec.value(message))
+        return on_message
+
+
+__all__ = ['TEMPERATURE_TOPIC', 'InputSubscriptions']

@@ -1,0 +1,242 @@
+"""The robot's own field: the model, its file, its fit, and the session learning it live.
+
+``corrected = R M (raw - b - K u - c (T - T0))`` (fit/calibration.py ``Compensation``), learned
+by fit/compensation.py, kept and adopted by live/compensation.py and verdicts.py.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mag_calibrator_ros.calibration.fit.calibration import (
+    Calibration,
+    CalibrationError,
+    Compensation,
+)
+from mag_calibrator_ros.calibration.fit.compensation import (
+    CompensationData,
+    fit_compensation,
+)
+from mag_calibrator_ros.calibration.live.inputs import parse_input
+from mag_calibrator_ros.calibration.live.session import CalibrationSession
+from mag_calibrator_ros.calibration.live.settings import SessionSettings
+from mag_calibrator_ros.calibration.store.calibration_file import (
+    CalibrationFileError,
+    load_calibration,
+    save_calibration,
+)
+
+F = 50e-6
+DIP = math.radians(60.0)
+OFFSET = np.array([12e-6, -7e-6, 4e-6])
+BATTERY = 'battery_state:sensor_msgs/msg/BatteryState:current'
+
+
+def drive(seconds: float = 150.0, rate: float = 25.0, gain: float = 0.8e-6,
+          drift: float = 0.2e-6, warm: float = 20.0, seed: int = 0,
+          current: str = 'course') -> dict[str, np.ndarray]:
+    """A ground robot on a course of turns in place, straight legs at several speeds and stops:
+    its heading, a battery current drawn by its motion (amps), a die warming up (degC), and the
+    magnetometer's raw field: Earth's field rotated by the heading, hard iron, ``gain`` tesla per
+    amp along x and ``drift`` tesla per degC along x, with noise."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(int(seconds * rate)) / rate
+    legs = [(8, 0.0, 0.6), (6, 0.5, 0.0), (3, 0.0, 0.0), (5, 1.0, 0.0), (4, 0.0, -0.8),
+            (6, 0.3, 0.1), (3, 0.0, 0.0), (7, 0.8, -0.05), (5, 0.0, 0.5)]
+    speed, yaw_rate = np.zeros(len(t)), np.zeros(len(t))
+    start = 0.0
+    while start < seconds:
+        for duration, v, w in legs:
+            chosen = (t >= start) & (t < start + duration)
+            speed[chosen], yaw_rate[chosen] = v, w
+            start += duration
+    heading = np.cumsum(yaw_rate) / rate
+    amps = 1.0 + 6.0 * np.abs(speed) + 4.0 * np.abs(yaw_rate)
+    if current == 'constant':
+        amps = np.full(len(t), 3.0)
+    temperature = 25.0 + warm * (1.0 - np.exp(-t / 60.0))
+    earth = np.stack([F * math.cos(DIP) * np.cos(heading), -F * math.cos(DIP) * np.sin(heading),
+                      np.full(len(t), -F * math.sin(DIP))], axis=1)
+    raw = (earth + OFFSET + np.outer(amps, [gain, 0.0, 0.0])
+           + np.outer(temperature - 25.0, [drift, 0.0, 0.0])
+           + rng.normal(0.0, 0.15e-6, (len(t), 3)))
+    return {'t': t, 'raw': raw, 'current': amps, 'temperature': temperature,
+            'heading': heading}
+
+
+# -- the model ----------------------------------------------------------------------------------
+
+
+def test_no_compensation_is_the_static_calibration_and_a_compensation_removes_its_field():
+    static = Calibration(OFFSET, np.eye(3), F)
+    zero = static.with_compensation(Compensation((BATTERY,), np.zeros((3, 1)), np.zeros(3)))
+    raw = np.array([[30e-6, 1e-6, -40e-6], [5e-6, 20e-6, -39e-6]])
+    assert np.allclose(zero.apply(raw, [[2.0], [3.0]], [30.0, 31.0]), static.apply(raw))
+    compensated = static.with_compensation(
+        Compensation((BATTERY,), [[1e-6], [0.0], [0.0]], [0.1e-6, 0.0, 0.0], 25.0))
+    expected = static.apply(raw - np.array([[2e-6 + 0.5e-6, 0, 0], [3e-6 + 0.6e-6, 0, 0]]))
+    assert np.allclose(compensated.apply(raw, [[2.0], [3.0]], [30.0, 31.0]), expected)
+    assert np.allclose(compensated.apply(raw), static.apply(raw))  # no inputs: nothing removed
+    scaled = compensated.scaled(1e6)  # microtesla
+    assert np.allclose(scaled.apply(raw * 1e6, [[2.0], [3.0]], [30.0, 31.0]), expected * 1e6)
+
+
+def test_an_invalid_compensation_is_refused_in_words():
+    with pytest.raises(CalibrationError, match='3 x 1 numbers'):
+        Compensation((BATTERY,), [1.0, 2.0])
+    with pytest.raises(CalibrationError, match='needs reference_temperature'):
+        Compensation((), None, [1e-7, 0.0, 0.0])
+    with pytest.raises(CalibrationError, match='non-finite'):
+        Compensation((BATTERY,), [math.nan, 0.0, 0.0])
+
+
+# -- the file -----------------------------------------------------------------------------------
+
+
+def test_the_file_keeps_k_c_and_t0_and_a_file_without_them_loads_unchanged(tmp_path):
+    static = Calibration(OFFSET, np.eye(3), F, 'planar', {'time': '2026-01-01T00:00:00Z'})
+    path = save_calibration(tmp_path / 'static.yaml', static)
+    assert 'interference:' not in path.read_text()
+    assert load_calibration(path).compensation is None
+    learned = static.with_compensation(
+        Compensation((BATTERY,), [[8e-7], [1e-8], [0.0]], [2e-7, 0.0, 0.0], 31.5),
+        compensation_time='2026-01-02T00:00:00Z')
+    path = save_calibration(tmp_path / 'learned.yaml', learned)
+    loaded = load_calibration(path)
+    assert loaded.compensation.inputs == (BATTERY,)
+    assert np.allclose(loaded.compensation.interference, learned.compensation.interference)
+    assert np.allclose(loaded.compensation.temperature_coefficient, [2e-7, 0.0, 0.0])
+    assert loaded.compensation.reference_temperature == 31.5
+    assert loaded.metadata['compensation_time'] == '2026-01-02T00:00:00Z'
+
+
+def test_a_file_with_a_wrong_compensation_names_the_problem(tmp_path):
+    path = tmp_path / 'bad.yaml'
+    path.write_text('mag_calibrator:\n  ros__parameters:\n    calibration:\n'
+                    '      offset: [0.0, 0.0, 0.0]\n      matrix: [1, 0, 0, 0, 1, 0, 0, 0, 1]\n'
+                    '      field_strength: 5.0e-05\n'
+                    '      interference_inputs: ["a:std_msgs/msg/Float64:data"]\n'
+                    '      interference: [1.0e-06, 0.0]\n')
+    with pytest.raises(CalibrationFileError, match='interference must have 3 numbers'):
+        load_calibration(path)
+
+
+# -- the fit ------------------------------------------------------------------------------------
+
+
+def _data(run: dict[str, np.ndarray], names=('current',)) -> CompensationData:
+    inputs = run['current'][:, None] if names else np.zeros((len(run['t']), 0))
+    learn, held = slice(None, None, 2), slice(1, None, 2)
+    return CompensationData(run['raw'][learn], inputs[learn], run['temperature'][learn],
+                            tuple(names), run['raw'][held], inputs[held],
+                            run['temperature'][held])
+
+
+def _static(run: dict[str, np.ndarray]) -> Calibration:
+    """A static calibration made while the current flowed: its offset holds the mean K u."""
+    return Calibration(OFFSET + np.array([0.8e-6 * run['current'].mean(), 0.0, 0.0]),
+                       np.eye(3), F)
+
+
+def test_k_and_c_are_learned_within_ten_percent_of_the_truth():
+    run = drive(seconds=120.0)
+    fit = fit_compensation(_data(run), _static(run))
+    compensation = fit.calibration.compensation
+    assert fit.kept == ('current', 'temperature')
+    assert compensation.interference[0, 0] == pytest.approx(0.8e-6, rel=0.1)
+    assert np.all(np.abs(compensation.interference[1:, 0]) < 0.08e-6)
+    assert compensation.temperature_coefficient[0] == pytest.approx(0.2e-6, rel=0.1)
+    assert fit.held_candidate_pct < 0.5 * fit.held_current_pct
+
+
+def test_nothing_is_learned_from_nothing():
+    run = drive(seconds=120.0, gain=0.0, drift=0.0)
+    fit = fit_compensation(_data(run), Calibration(OFFSET, np.eye(3), F))
+    assert fit.calibration is None
+    assert fit.kept == ()
+    assert 'nothing to compensate' in fit.reason
+
+
+def test_a_constant_current_says_what_motion_it_needs():
+    run = drive(seconds=120.0, current='constant', drift=0.0, warm=0.5)
+    fit = fit_compensation(_data(run), Calibration(OFFSET, np.eye(3), F))
+    assert fit.calibration is None
+    assert "input 'current' did not vary: drive at several speeds" in fit.reason
+    assert 'the temperature varied' in fit.reason
+
+
+# -- live ---------------------------------------------------------------------------------------
+
+
+def _stream(session: CalibrationSession, run: dict[str, np.ndarray],
+            corrupt: slice | None = None) -> list[np.ndarray]:
+    out = []
+    for index, when in enumerate(run['t']):
+        stamp = int(round(when * 1e9)) + 1
+        if index % 5 == 0:
+            session.compensation.temperature(stamp, float(run['temperature'][index]))
+        session.compensation.input(0, stamp, float(run['current'][index]))
+        reading = run['raw'][index]
+        if corrupt is not None and corrupt.start <= index < corrupt.stop:
+            reading = reading + 1.0  # a tesla: refused by screening (beyond full scale)
+        processed = session.process(stamp, 'imu', reading)
+        out.append(processed.corrected if processed.corrected is not None
+                   else np.full(3, np.nan))
+    return out
+
+
+def _heading_rms_deg(corrected: np.ndarray, heading: np.ndarray) -> float:
+    error = np.degrees(np.arctan2(-corrected[:, 1], corrected[:, 0])) - np.degrees(heading)
+    error = (error + 180.0) % 360.0 - 180.0
+    error = error[np.isfinite(error)]
+    error = (error - np.median(error) + 180.0) % 360.0 - 180.0
+    return float(np.sqrt(np.mean(error ** 2)))
+
+
+def test_the_session_learns_the_current_and_temperature_live_and_adopts_them_on_evidence():
+    run = drive(seconds=150.0)
+    static = _static(run)
+    session = CalibrationSession(SessionSettings(interference_inputs=(BATTERY,)),
+                                 calibration=static)
+    corrected = np.array(_stream(session, run))
+    assert session.adoptions.get('compensation', 0) >= 1
+    compensation = session.calibration.compensation
+    assert compensation.interference[0, 0] == pytest.approx(0.8e-6, rel=0.1)
+    assert compensation.temperature_coefficient[0] == pytest.approx(0.2e-6, rel=0.1)
+    last = run['t'] >= 120.0
+    before = _heading_rms_deg(static.apply(run['raw'][last]), run['heading'][last])
+    after = _heading_rms_deg(corrected[last], run['heading'][last])
+    assert after < 0.25 * before
+    values = session.diagnostic_values(0.0)
+    assert values['interference_uT_per_unit[' + BATTERY + ']'][0] == pytest.approx(0.8, rel=0.1)
+    assert 'compensation_time' in values
+    session.reset()  # ~/reset forgets what was kept to learn from; the one in force stays
+    assert session.diagnostic_values(0.0)['compensation_readings_kept'] == 0
+
+
+def test_the_session_never_learns_from_nothing_or_from_refused_readings():
+    run = drive(seconds=120.0, gain=0.0, drift=0.0)
+    static = Calibration(OFFSET, np.eye(3), F)
+    session = CalibrationSession(SessionSettings(interference_inputs=(BATTERY,)),
+                                 calibration=static)
+    _stream(session, run, corrupt=slice(100, 400))
+    assert session.calibration.compensation is None
+    assert 'compensation' not in session.adoptions
+    assert session.rejects()['out_of_range'] + session.rejects().get('saturated', 0) >= 300
+    kept = session.compensation._kept
+    assert all(abs(row[1]) < 1e-3 for row in kept)  # no refused reading among them
+
+
+def test_a_bad_input_spec_is_refused_with_the_form_it_needs():
+    problems = SessionSettings(interference_inputs=('battery current',)).problems()
+    assert any('topic:package/msg/Type:field' in problem for problem in problems)
+    spec = parse_input('cmd_vel:geometry_msgs/Twist:abs(linear.x)')
+    assert spec.type == 'geometry_msgs/msg/Twist' and spec.absolute
+
+    class Twist:
+        class linear:  # noqa: N801 - the message's field
+            x = -0.4
+    assert spec.value(Twist()) == pytest.approx(0.4)

@@ -1,0 +1,84 @@
+"""The calibrator node learns the robot's own field over DDS: a battery current on
+``battery_state`` (sensor_msgs/BatteryState) and the die temperature on ``imu/temperature``
+(sensor_msgs/Temperature) beside ``imu/mag``, the compensation adopted on evidence and shown in
+``/diagnostics``, ``calibration.*`` and the ``~/calibrate`` answer."""
+
+from __future__ import annotations
+
+import time
+
+from node_helpers import Probe, set_parameter_over_service, wait_for
+import numpy as np
+import pytest
+from sensor_msgs.msg import BatteryState, Temperature
+from test_compensation import BATTERY, OFFSET, F, drive
+
+from mag_calibrator_ros.calibration.live.inputs import parse_input
+
+SECONDS = 100.0
+RATE_HZ = 20.0
+
+
+def _publish(probe: Probe, run: dict[str, np.ndarray], battery, temperature) -> None:
+    """The course, stamped at its own rate, sent a little faster than real time."""
+    for index, when in enumerate(run['t']):
+        sec, nanosec = int(when), int(round((when % 1.0) * 1e9))
+        current = BatteryState()
+        current.header.stamp.sec, current.header.stamp.nanosec = sec, nanosec
+        current.current = float(run['current'][index])
+        battery.publish(current)
+        if index % 4 == 0:
+            die = Temperature()
+            die.header.stamp.sec, die.header.stamp.nanosec = sec, nanosec
+            die.temperature = float(run['temperature'][index])
+            temperature.publish(die)
+        probe.send(run['raw'][index], sec, nanosec)
+        time.sleep(0.004)  # the calibrator keeps up (best-effort input, depth 100)
+
+
+@pytest.fixture
+def learning(ros):
+    namespace = 'own_field'
+    calibrator = ros.calibrator(
+        namespace, auto_calibrate=False, refine=False, use_imu=False, progress_log_period=0.0,
+        interference_inputs=[BATTERY],
+        **{'calibration.offset': [float(v) for v in OFFSET + [0.8e-6 * 3.0, 0.0, 0.0]],
+           'calibration.matrix': [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+           'calibration.field_strength': F, 'calibration.model': 'full'})
+    probe = Probe(ros, namespace)
+    battery = probe.create_publisher(BatteryState, parse_input(BATTERY).topic, 100)
+    temperature = probe.create_publisher(Temperature, 'imu/temperature', 100)
+    assert wait_for(lambda: probe.connected_to(calibrator)
+                    and battery.get_subscription_count() >= 1
+                    and temperature.get_subscription_count() >= 1)
+    yield calibrator, probe, battery, temperature
+    for node in (probe, calibrator):
+        ros.remove(node)
+
+
+def test_the_node_learns_a_battery_current_and_the_temperature_and_shows_them(learning):
+    calibrator, probe, battery, temperature = learning
+    _publish(probe, drive(seconds=SECONDS, rate=RATE_HZ), battery, temperature)
+    session = calibrator.session
+    assert wait_for(lambda: session.adoptions.get('compensation', 0) >= 1, timeout_s=60.0), (
+        f'no compensation adopted: {session.compensation.needs()}')
+    compensation = session.calibration.compensation
+    assert compensation.interference[0, 0] == pytest.approx(0.8e-6, rel=0.2)
+    assert wait_for(lambda: any(
+        value.key == f'interference_uT_per_unit[{BATTERY}]'
+        for status in probe.statuses_of(calibrator) for value in status.values))
+    assert wait_for(lambda: calibrator.get_parameter('calibration.interference').value
+                    is not None)
+    shown = list(calibrator.get_parameter('calibration.interference').value)
+    assert shown[0] == pytest.approx(0.8e-6, rel=0.2)
+    assert calibrator.get_parameter('calibration.interference_inputs').value == [BATTERY]
+    answer = probe.call('mag_calibrator/calibrate')  # a static fit keeps the compensation
+    assert answer.success and "compensating the robot's own field" in answer.message
+
+
+def test_a_bad_interference_input_is_refused_with_its_form(learning):
+    calibrator, probe, _, _ = learning
+    ok, reason = set_parameter_over_service(probe, calibrator, 'interference_inputs',
+                                            ['battery current'])
+    assert not ok
+    assert 'topic:package/msg/Type:field' in reason
