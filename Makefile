@@ -2,6 +2,7 @@
 #   make demo   - set up and run the live demo on a simulated ICM-20948
 #   make test   - set up and run lint + all tests
 #   make bench  - set up and run the benchmarks (not part of the tests)
+#   make stress - the tests RUNS times in a row with every core kept busy (RUNS=20)
 
 SHELL := /bin/bash
 VENV ?= .venv
@@ -9,7 +10,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 SHARED_DATA ?= ../shared/data
 
-.PHONY: setup demo test lint bench bench-engine bench-replay bench-node colcon-build clean
+.PHONY: setup demo test lint stress bench bench-engine bench-replay bench-node colcon-build clean
 
 setup: $(STAMP)
 
@@ -27,6 +28,10 @@ lint: setup
 
 test: setup lint
 	$(PY) -m pytest -q test
+
+RUNS ?= 20
+stress: setup lint
+	$(PY) benchmarks/stress_tests.py --runs $(RUNS) test
 
 bench: bench-engine bench-replay bench-node
 
