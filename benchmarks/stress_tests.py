@@ -21,6 +21,7 @@ import multiprocessing
 import os
 from pathlib import Path
 import re
+import signal
 import subprocess
 import sys
 import time
@@ -66,14 +67,21 @@ def run_once(cmd: list[str], timeout_s: float) -> dict:
     """One run: exit code, seconds, failed test ids and pytest's summary line."""
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get('PYTHONPATH', ''))
     start = time.monotonic()
+    # its own session, so its nodes and workers can be ended as one group, and are (a timeout,
+    # Ctrl-C or SIGTERM of this runner)
+    child = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                             stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    output = ''
     try:
-        done = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True,
-                              timeout=timeout_s, start_new_session=True)
-        code, output = done.returncode, done.stdout + done.stderr
-    except subprocess.TimeoutExpired as expired:
-        code = 'timeout'
-        output = (expired.stdout or b'').decode(errors='replace') if isinstance(
-            expired.stdout, bytes) else (expired.stdout or '')
+        output, _ = child.communicate(timeout=timeout_s)
+        code = child.returncode
+    except subprocess.TimeoutExpired:
+        code, output = 'timeout', ''
+    finally:
+        if child.poll() is None:
+            os.killpg(child.pid, signal.SIGKILL)
+            leftover, _ = child.communicate()
+            output += leftover or ''
     seconds = time.monotonic() - start
     summary = SUMMARY.findall(output)
     return {'code': code, 'seconds': round(seconds, 1), 'failed': FAILED.findall(output),
@@ -104,6 +112,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.runs < 1 or args.busy < 0:
         parser.error('--runs must be at least 1 and --busy at least 0')
     cmd = command(args)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # ends the run's group too
     print(f'# {" ".join(cmd)}  x{args.runs}, {args.busy} busy loop(s), '
           f'{os.cpu_count()} core(s)', flush=True)
     loops = start_load(args.busy)
@@ -121,6 +130,9 @@ def main(argv: list[str] | None = None) -> int:
                 args.logs.mkdir(parents=True, exist_ok=True)
                 (args.logs / f'run{run}.log').write_text(result['output'])
             results.append({key: value for key, value in result.items() if key != 'output'})
+    except (KeyboardInterrupt, SystemExit):
+        print(f'# interrupted after {len(results)} run(s)', flush=True)
+        return 130
     finally:
         stop_load(loops)
     passed = sum(result['code'] == 0 for result in results)
