@@ -3,6 +3,7 @@
 #   make test   - set up and run lint + all tests
 #   make bench  - set up and run the benchmarks (not part of the tests)
 #   make fetch-recordings - the public recordings some tests use, outside the repository
+#   make stress - the tests RUNS times in a row with every core kept busy (RUNS=20)
 
 SHELL := /bin/bash
 VENV ?= .venv
@@ -10,8 +11,8 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 SHARED_DATA ?= ../shared/data
 
-.PHONY: setup demo test lint bench bench-engine bench-replay bench-node bench-recordings \
-	fetch-recordings colcon-build clean
+.PHONY: setup demo test lint stress bench bench-engine bench-replay bench-node \
+	bench-recordings fetch-recordings colcon-build clean
 
 setup: $(STAMP)
 
@@ -30,6 +31,10 @@ lint: setup
 
 test: setup lint
 	$(PY) -m pytest -q test
+
+RUNS ?= 20
+stress: setup lint
+	$(PY) benchmarks/stress_tests.py --runs $(RUNS) test
 
 bench: bench-engine bench-replay bench-node
 

@@ -143,7 +143,9 @@ def assert_valid_stream(harness: Harness) -> None:
     harness.stop_acquisition()
     node, sim = harness.node, harness.node.simulator
     assert sim.mag_repeated_reads == 0 and sim.imu_repeated_reads == 0
-    assert node.published == sim.mag_samples_read - node.overflows
+    # less the samples no driver can tell from the previous one (equal bytes, DRDY missed)
+    assert node.published == (sim.mag_samples_read - node.overflows
+                              - sim.mag_unflagged_equal_reads)
     if node.settings.publish_imu:
         assert node.published_imu == sim.imu_samples_read
     for messages in ([m for _, m in harness.messages], harness.imu):
@@ -358,7 +360,14 @@ def test_a_hard_iron_beyond_every_double_is_an_overflow_and_never_published(harn
     h = harness_factory(sim__hard_iron_ut=[1e308, 0.0, 0.0], sim__seed=2)
     assert h.spin_until(lambda: h.node.overflows > 20 and len(h.imu) > 20)
     assert h.messages == []
-    assert_valid_stream(h)
+    h.stop_acquisition()
+    node, sim = h.node, h.node.simulator
+    # Every overflowed sample is the same bytes, so one whose copied DRDY a busy machine missed
+    # is lost unseen, as equal readings are (test_equal_readings_...).
+    assert sim.mag_repeated_reads == 0 and sim.imu_repeated_reads == 0
+    assert node.published == 0
+    assert node.overflows == sim.mag_samples_read - sim.mag_unflagged_equal_reads
+    assert np.all(np.isfinite(h.accelerations()))
 
 
 def test_equal_readings_of_different_samples_are_each_published_once(harness_factory):
@@ -375,11 +384,13 @@ def test_equal_readings_of_different_samples_are_each_published_once(harness_fac
     # magnetometer sample is known new by its copied DRDY, which lasts one accel/gyro sample: on
     # a busy machine that sample's read can be missed, and an equal reading is then
     # indistinguishable from the last (lost, never doubled; the supervisor tests, on a fake
-    # clock, hand out every one). How many a busy machine loses is the machine's (11 % with two
-    # CPU hogs and two other test runs beside this one): most are published, where the old check
-    # published the first alone.
+    # clock, hand out every one). How many a busy machine loses is the machine's: 11 % with two
+    # CPU hogs and two other test runs beside this one, 51 % at load 12 on two cores (the share
+    # once asserted here, > 50 %, was a timing). The old check published the first alone, so it
+    # never reached the 50 messages waited for above.
+    print(f'equal readings: {node.published} of {sim.mag_samples_read} samples read published')
     assert sim.mag_repeated_reads == 0 and sim.imu_repeated_reads == 0
-    assert 0.5 * sim.mag_samples_read < node.published <= sim.mag_samples_read
+    assert node.published == sim.mag_samples_read - sim.mag_unflagged_equal_reads
     assert node.published_imu == sim.imu_samples_read
 
 

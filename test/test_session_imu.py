@@ -12,7 +12,7 @@ import pytest
 from mag_calibrator_ros.calibration.fit.alignment import rotation_angle_deg
 from mag_calibrator_ros.calibration.fit.calibration import Calibration, transform_covariance
 from mag_calibrator_ros.calibration.fit.earth_field import EarthField
-from mag_calibrator_ros.calibration.live.pairing import PAIR_TOLERANCE_NS
+from mag_calibrator_ros.calibration.live.pairing import PAIR_TOLERANCE_NS, PAIR_WAIT_NS
 from mag_calibrator_ros.calibration.live.report import calibration_summary
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
@@ -320,6 +320,67 @@ def test_imu_stamps_behind_the_magnetometers_are_said_with_the_offset(misaligned
     stream_with_imu_offset(session, mag[:3000], accel, 0, start=1500)
     assert session.diagnostic_values(2.0)['imu_warning'] == ''
     assert not [w for w in warnings_of(session) if 'imu/data_raw' in w]
+
+
+def stream_with_imu_arriving_late(session, mag, accel, late, gyro=None):
+    """IMU samples stamped with the readings but delivered ``late`` readings after them (another
+    topic, another DDS reader, a busy executor); what each process() returned."""
+    outputs = []
+    for index in range(len(mag) + late):
+        if index >= late:
+            imu = index - late
+            session.process_imu(imu * 10_000_000, 'imu_link', accel[imu],
+                                None if gyro is None else gyro[imu])
+        if index < len(mag):
+            outputs.append(session.process(index * 10_000_000, 'imu_link', mag[index]))
+    return outputs
+
+
+def test_imu_samples_that_arrive_after_their_readings_still_pair(misaligned):
+    """A reading took the sample nearest its stamp at its own arrival: IMU messages a loaded
+    computer delivered 150 ms after the readings of their instant were missed, so the live
+    node paired fewer than nine readings in ten and aligned late or not at all. Now a reading's
+    pair waits (bounded) for the sample after its stamp; the correction does not wait."""
+    mag, accel, gyro, board = misaligned
+    rows = len(mag) // 2
+    session = CalibrationSession(SessionSettings(auto_calibrate=False),
+                                 calibration=Calibration(np.zeros(3), np.eye(3), 1.0))
+    outputs = stream_with_imu_arriving_late(session, mag[:rows], accel, 15, gyro)
+    assert all(output.corrected is not None for output in outputs)  # corrected at once
+    session.process_imu(rows * 10_000_000, 'imu_link', accel[rows], gyro[rows])
+    session.process(rows * 10_000_000, 'imu_link', mag[rows])  # takes in the decided ones
+    # before the first IMU sample there is no IMU to wait for: those 15 are not paired
+    assert session.pairing.paired == session.accepted - 15 == rows + 1 - 15
+    assert session.pairing.waiting == 0 and session.pairing.warning() == ''
+    # what the node learnt is what the same stream in stamp order teaches (offline replay)
+    offline = CalibrationSession(SessionSettings(auto_calibrate=False),
+                                 calibration=Calibration(np.zeros(3), np.eye(3), 1.0))
+    no_imu_yet = accel[:rows + 1].copy()
+    no_imu_yet[:15] = np.nan
+    offline.feed(mag[:rows + 1], RATE_HZ, frame_id='imu_link', accel=no_imu_yet,
+                 gyro=gyro[:rows + 1])
+    assert len(session.attitudes.snapshot()) >= 5
+    assert np.array_equal(offline.attitudes.snapshot(), session.attitudes.snapshot())
+    assert np.array_equal(offline.buffer.ups, session.buffer.ups, equal_nan=True)
+    assert np.array_equal(offline.buffer.samples, session.buffer.samples)
+
+
+def test_a_reading_waits_for_its_imu_sample_only_a_bounded_time(misaligned):
+    mag, accel, _, _ = misaligned
+    late = PAIR_WAIT_NS // 10_000_000 + 5  # later than the bound: unpaired, and said
+    session = CalibrationSession(SessionSettings(auto_calibrate=False))
+    stream_with_imu_arriving_late(session, mag[:600], accel, late)
+    assert session.pairing.waiting == 0 and session.pairing.paired < 100
+    (warning,) = [w for w in warnings_of(session) if 'imu/data_raw stamps' in w]
+    assert f'imu/data_raw stamps are {late / 100:.3f} s behind' in warning
+    assert 'deliver imu/data_raw without delay' in warning
+    # a request decides the readings still waiting: it fits every reading received before it
+    session.process_imu(600 * 10_000_000, 'imu_link', accel[0])
+    for index in range(600, 620):
+        session.process(index * 10_000_000, 'imu_link', mag[index])
+    assert session.pairing.waiting > 0
+    session.calibrate_now()
+    assert session.pairing.waiting == 0
 
 
 def test_an_imu_that_stops_or_keeps_time_is_no_starvation(misaligned):

@@ -90,6 +90,8 @@ class _Stream:
     stuck_after: float
     next_poll: float = 0.0
     last_ready: float = 0.0
+    in_vain_since: float | None = None  # the first look without data-ready since last_ready
+    in_vain: int = 0  # looks without data-ready since last_ready
     emitted: int = 0
     window_emitted: int = 0
 
@@ -286,7 +288,7 @@ class Icm20948Supervisor:
         for stream in (self._mag, self._imu):
             if stream is not None:
                 stream.next_poll = started + stream.poll_period
-                stream.last_ready = started
+                stream.last_ready, stream.in_vain_since, stream.in_vain = started, None, 0
         if self.aux_master:
             self._mag.next_poll = float('inf')  # taken with each accel/gyro read instead
         if self._episode_start is not None:
@@ -349,10 +351,12 @@ class Icm20948Supervisor:
             return
         self._consecutive_errors = 0
         if reading is None:
-            if now - stream.last_ready > stream.stuck_after:
+            if self._looked_in_vain(stream):
                 self._check_imu_stuck(now)
             return
-        stream.last_ready = now
+        # When the read ended, not when the step began: a thread descheduled inside the read
+        # saw this data-ready after the stall, and its resync may clear the next one's flag.
+        stream.last_ready, stream.in_vain_since, stream.in_vain = self._clock(), None, 0
         stamp = self._stamp()
         if reading.saturated:
             self.imu_saturated += 1
@@ -380,17 +384,31 @@ class Icm20948Supervisor:
         if not self.aux_master:  # through the master read_mag touches no bus: proves nothing
             self._consecutive_errors = 0
         if self._driver.overflows != overflows:
-            stream.last_ready = now  # a sample arrived, it was just unusable
+            # a sample arrived, it was just unusable
+            stream.last_ready, stream.in_vain_since, stream.in_vain = self._clock(), None, 0
             self._warn('overflow', 'AK09916 magnetic overflow (ST2 HOFL): sample discarded; a '
                                    'magnet or motor too close?', now)
         if reading is None:
-            if now - stream.last_ready > stream.stuck_after:
+            if self._looked_in_vain(stream):
                 self._check_mag_stuck(now)
             return
-        stream.last_ready = now
+        stream.last_ready, stream.in_vain_since, stream.in_vain = self._clock(), None, 0
         stream.emitted += 1
         stream.window_emitted += 1
         samples.append(MagSample(self._stamp(), reading))
+
+    def _looked_in_vain(self, stream: _Stream) -> bool:
+        """True once ``stream`` was looked at STUCK_PERIODS times and for ``stuck_after``
+        without a data-ready, counted from the first such look since its last sample (the read
+        ends it: its clock, not the step's). A stall of this thread on a loaded computer (no
+        look at all for a while, or a resync clearing the flag of a sample that came during
+        it) is no stuck sensor, and must not cost a re-initialisation and its back-off."""
+        looked_at = self._clock()
+        if stream.in_vain_since is None:
+            stream.in_vain_since = looked_at
+        stream.in_vain += 1
+        return (stream.in_vain >= STUCK_PERIODS
+                and looked_at - stream.in_vain_since > stream.stuck_after)
 
     def _read_error(self, error: OSError, now: float) -> None:
         if self._consecutive_errors == 0:

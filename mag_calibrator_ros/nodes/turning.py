@@ -35,6 +35,9 @@ COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 """Reliable: a stop must arrive (a best-effort subscriber still matches and gets the re-sends)."""
 SHUTDOWN_ACK_S = 0.5
 """On shutdown, wait at most this long for subscribers to acknowledge the final zero."""
+MAX_TICK_STEP_S = 2 * COMMAND_PERIOD_S
+"""The most one look at the input adds to its age: a look later than that comes after a stall
+of this node's executor, not of the magnetometer (see ``TurnInPlace._input_age``)."""
 TURN_PARAMETERS = ('rotation_speed', 'rotation_acceleration', 'rotation_timeout')
 """The node's parameters that make the TurnSettings (their public names keep 'rotation')."""
 
@@ -67,7 +70,8 @@ class TurnInPlace:
         self._publisher = None
         self._stamped = False
         self._accepted_seen = session.accepted
-        self._last_input: float | None = None  # monotonic time the accepted count last grew
+        self._input_age_s: float | None = None  # executor time since the count last grew
+        self._looked_at: float | None = None  # monotonic time of the previous look
         for name, callback in (('~/rotate_and_calibrate', self._on_rotate),
                                ('~/stop_rotation', self._on_stop_rotation)):
             node.create_service(Trigger, name, answering(name, callback))
@@ -80,11 +84,21 @@ class TurnInPlace:
     # -- every COMMAND_PERIOD_S ------------------------------------------------------------------
 
     def _input_age(self, now: float) -> float | None:
-        """Seconds since a reading was last accepted (sampled every COMMAND_PERIOD_S)."""
+        """Seconds since a reading was last accepted (looked at every COMMAND_PERIOD_S), each
+        look adding at most MAX_TICK_STEP_S. A look that comes late comes after a stall of this
+        executor (a loaded computer): the readings of that time wait in the subscription's
+        queue, and rclpy runs a ready timer before them, so wall time would call a stall of the
+        calibrator silence of the magnetometer and stop a turn for 'no input'. A magnetometer
+        that stops is still seen within INPUT_TIMEOUT_S of punctual looks."""
+        step = 0.0 if self._looked_at is None else min(max(now - self._looked_at, 0.0),
+                                                       MAX_TICK_STEP_S)
+        self._looked_at = now
         if self._session.accepted != self._accepted_seen:
             self._accepted_seen = self._session.accepted
-            self._last_input = now
-        return None if self._last_input is None else now - self._last_input
+            self._input_age_s = 0.0
+        elif self._input_age_s is not None:
+            self._input_age_s += step
+        return self._input_age_s
 
     def _other_commanders(self) -> int:
         publishers = self._node.count_publishers(self._node.resolve_topic_name(COMMAND_TOPIC))

@@ -32,7 +32,9 @@ data reads of new samples and second deliveries of samples already read, so a te
 sample read twice from two samples that happen to be equal (an inertial read is repeated only if
 every byte it covers was read before from that sample: accel and gyro of one sample read in two
 transactions is one delivery; through the master a copy of an already read magnetometer sample
-counts as repeated only if its copied ST1 claims DRDY).
+counts as repeated only if its copied ST1 claims DRDY); ``mag_unflagged_equal_reads`` counts the
+new samples read through the master without DRDY whose data equal the previous sample's: no
+driver can tell those from the previous one.
 
 Thread-safe: a test may inject faults while a driver thread polls.
 """
@@ -185,6 +187,8 @@ class _ReadCounter:
     last_read: int | None = None
     fresh: int = 0
     repeated: int = 0
+    unflagged_equal: int = 0  # new samples read without DRDY, data equal to the previous one's
+    last_data: bytes | None = None
     delivered: deque = field(default_factory=lambda: deque(maxlen=IMU_TRUTH_LOG_SIZE))
     bytes_read: int = 0  # bit mask of the latched sample's bytes read so far
 
@@ -192,7 +196,7 @@ class _ReadCounter:
         self.latched, self.latched_truth = sample_id, truth
 
     def forget(self) -> None:  # power-on: no sample latched; the counts stay
-        self.latched = self.last_read = self.latched_truth = None
+        self.latched = self.last_read = self.latched_truth = self.last_data = None
         self.bytes_read = 0
 
     def bytes_of(self, mask: int) -> None:
@@ -213,17 +217,23 @@ class _ReadCounter:
     def data_read(self) -> None:
         self.read_of(self.latched, self.latched_truth, claims_new=True)
 
-    def read_of(self, sample_id: int | None, truth: object, claims_new: bool) -> None:
-        """A data read of ``sample_id`` (a copy of it, through the I2C master); reading one
-        already read counts as repeated only if the read ``claims_new`` (DRDY said so)."""
+    def read_of(self, sample_id: int | None, truth: object, claims_new: bool,
+                data: bytes | None = None) -> None:
+        """A data read of ``sample_id`` (a copy of it, through the I2C master, with its
+        ``data`` bytes); reading one already read counts as repeated only if the read
+        ``claims_new`` (DRDY said so)."""
         if sample_id is None:
             return
         if sample_id == self.last_read:
             self.repeated += claims_new
         else:
             self.fresh += 1
+            self.unflagged_equal += (not claims_new and data is not None
+                                     and data == self.last_data)
             self.last_read = sample_id
             self.delivered.append(truth)
+        if data is not None:
+            self.last_data = data
 
 
 def _nack(what: str) -> OSError:
@@ -731,8 +741,9 @@ class SimulatedIcm20948Bus:
                 self._imu_reads.bytes_of(mask)
             if self._ext_mag is not None and register <= self._ext_mag[3] \
                     and last >= self._ext_mag[4]:
-                sample_id, truth, drdy, _, _ = self._ext_mag
-                self._mag_reads.read_of(sample_id, truth, claims_new=drdy)
+                sample_id, truth, drdy, start, end = self._ext_mag
+                self._mag_reads.read_of(sample_id, truth, claims_new=drdy,
+                                        data=bytes(self._banks[0][start:end + 1]))
         elif i2c_addr == reg.AK09916_ADDRESS and register <= reg.TMPS and last >= reg.HXL:
             self._mag_reads.data_read()
 
@@ -743,6 +754,12 @@ class SimulatedIcm20948Bus:
     @property
     def mag_repeated_reads(self) -> int:
         return self._mag_reads.repeated
+
+    @property
+    def mag_unflagged_equal_reads(self) -> int:
+        """New samples read through the master without DRDY whose data equal the previous
+        sample's (a late look): indistinguishable from it, so a driver loses them."""
+        return self._mag_reads.unflagged_equal
 
     @property
     def imu_samples_read(self) -> int:

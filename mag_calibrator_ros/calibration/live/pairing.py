@@ -1,7 +1,12 @@
 """Magnetometer readings paired with the accelerometer sample taken with them.
 
 The IMU's samples (``CalibrationSession.process_imu``) wait in a short ring; each accepted
-magnetometer reading takes the one nearest its stamp. A pair tells the alignment which way is
+magnetometer reading takes the one nearest its stamp. IMU messages come on another topic through
+another DDS reader, so a busy computer can deliver them after the magnetometer readings of their
+instant: a reading's pair is decided only once an IMU sample at or after its stamp has arrived,
+or a bound has passed (``settle``). Both are counted in message stamps and arrival order, so a
+recording replayed offline decides the same; only what the reading teaches waits, not its
+correction. A pair tells the alignment which way is
 up while the sensor is held still (``alignment.StaticAttitudes``) and the buffer the gravity
 direction behind a sample (``levelled.py``).
 
@@ -53,6 +58,13 @@ IMU_ABSENT_READINGS = 25
 """Readings without a new accelerometer sample after which the IMU counts as gone, not late
 (its stream stopped: nothing to pair with, nothing to say about its stamps). Half of
 STARVATION_MIN, so the readings after an IMU stops never make half a window unpaired alone."""
+PAIR_WAIT_NS = 500_000_000
+"""The longest a reading waits for the IMU sample after its stamp, in stream time: readings
+are decided unpaired once a reading 0.5 s newer has arrived. Longer than an IMU topic lags
+behind the magnetometer's on a loaded computer (a queue of sensor-data depth at 225 Hz is
+0.44 s); short next to the seconds a fit waits for its samples."""
+PAIR_WAIT_READINGS = 1024
+"""The most readings waiting for their IMU sample (a memory bound when stamps stand still)."""
 FRAME_WARNING_MESSAGES = IMU_RING
 """A frame refusal is shown in /diagnostics until this many IMU messages passed without one."""
 MAX_WARNED_FRAMES = 16
@@ -122,6 +134,11 @@ class ImuPairing:
         self._since_sample = IMU_ABSENT_READINGS  # readings since the latest kept sample
         self._starving = False
         self._warnings: list[str] = []
+        # (stamp, frame, item, the latest sample's stamp when the reading arrived)
+        self._waiting: deque[tuple[int, str | None, object, int | None]] = deque()
+        self._decided: list[tuple[object, Pair | None]] = []
+        self._latest_sample: int | None = None  # the stamp of the latest kept sample
+        self._readings_since_sample = IMU_ABSENT_READINGS
 
     @property
     def refused(self) -> int:
@@ -149,8 +166,57 @@ class ImuPairing:
         self._ring.append((int(stamp_ns), *force, None if gyro is None else _vector(gyro),
                            frame_id))
         self.accepted += 1
-        self._since_sample = 0
+        self._since_sample = self._readings_since_sample = 0
+        self._latest_sample = int(stamp_ns)
+        waiting = self._waiting
+        while waiting and waiting[0][0] <= stamp_ns:  # decided while the samples are in the ring
+            self._decide()
         return True
+
+    def settle(self, stamp_ns: int, frame_id: str | None, item: object
+               ) -> list[tuple[object, Pair | None]]:
+        """Take one reading (``item``: whatever the caller learns from) and give back, in
+        arrival order, the readings whose pair is now decided, each with its pair or None.
+
+        A reading waits while an IMU is there and no sample at or after its stamp has arrived
+        yet; it is decided once one does (then no later one can be nearer), once a reading
+        PAIR_WAIT_NS newer arrives, or beyond PAIR_WAIT_READINGS. Without an IMU (none kept, or
+        none for IMU_ABSENT_READINGS readings) nothing waits; a stamp going back (a new clock)
+        decides every waiting reading first."""
+        waiting = self._waiting
+        if waiting and stamp_ns < waiting[-1][0]:
+            self._decide_all()
+        waiting.append((int(stamp_ns), frame_id, item, self._latest_sample))
+        self._readings_since_sample += 1
+        if (self._latest_sample is None or self._readings_since_sample > IMU_ABSENT_READINGS):
+            self._decide_all()
+        else:
+            while waiting and (waiting[0][0] <= self._latest_sample
+                               or waiting[0][0] + PAIR_WAIT_NS <= stamp_ns
+                               or len(waiting) > PAIR_WAIT_READINGS):
+                self._decide()
+        decided, self._decided = self._decided, []
+        return decided
+
+    def flush(self) -> list[tuple[object, Pair | None]]:
+        """Decide every waiting reading now, with the samples there are (a request fits every
+        reading received before it), and give back every decided one, as ``settle``."""
+        self._decide_all()
+        decided, self._decided = self._decided, []
+        return decided
+
+    @property
+    def waiting(self) -> int:
+        """Readings whose pair is not decided yet."""
+        return len(self._waiting)
+
+    def _decide(self) -> None:
+        stamp_ns, frame_id, item, latest = self._waiting.popleft()
+        self._decided.append((item, self.pair(stamp_ns, frame_id, latest)))
+
+    def _decide_all(self) -> None:
+        while self._waiting:
+            self._decide()
 
     def _refuse_frame(self, frame_id: str, stream_frame: str) -> None:
         self.other_frame, self._since_other_frame = (frame_id, stream_frame), 0
@@ -164,10 +230,14 @@ class ImuPairing:
                 "corrected field out of the frame its header names); publish the IMU in the "
                 "magnetometer's frame (the driver's frame_id), or set use_imu false")
 
-    def pair(self, stamp_ns: int, frame_id: str | None = None) -> Pair | None:
-        """The accelerometer sample of ``frame_id`` (None: any) nearest ``stamp_ns`` within
-        PAIR_TOLERANCE_NS, searched from the newest back (samples arrive in stamp order: a few
-        steps). How near the nearest one was, paired or not, feeds the starvation measure."""
+    def pair(self, stamp_ns: int, frame_id: str | None = None,
+             arrival_ns: int | None = None) -> Pair | None:
+        """Decide now (``settle`` decides when): the accelerometer sample of ``frame_id``
+        (None: any) nearest ``stamp_ns`` within PAIR_TOLERANCE_NS, searched from the newest
+        back (samples arrive in stamp order: a few steps). How near the nearest one was,
+        paired or not, feeds the starvation measure; for a reading left unpaired with every
+        sample older, how far behind the latest sample was when it arrived (``arrival_ns``:
+        waiting moved newer samples in, not the clocks)."""
         best, best_gap = None, math.inf
         ring = self._ring
         if ring and ring[0][0] > stamp_ns and (frame_id is None or ring[0][5] == frame_id):
@@ -181,9 +251,11 @@ class ImuPairing:
                     best, best_gap = sample, gap
                 elif gap < 0:
                     break  # older still: only further away
-        self._judge(best_gap)
         if best is None or abs(best_gap) > PAIR_TOLERANCE_NS:
+            late = best is not None and best_gap < 0 and arrival_ns is not None
+            self._judge(min(best_gap, arrival_ns - stamp_ns) if late else best_gap)
             return None
+        self._judge(best_gap)
         self.paired += 1
         return (best[1], best[2], best[3]), best[4]
 
@@ -245,8 +317,12 @@ class ImuPairing:
         return bool(self._warnings)
 
     def clear(self) -> None:
-        """Forget the samples (a reset: a new sensor may follow); the counters stay."""
+        """Forget the samples and the readings waiting for one (a reset: a new sensor may
+        follow; the session drops what it held too); the counters stay."""
         self._ring.clear()
+        self._waiting.clear()
+        self._decided.clear()
+        self._latest_sample, self._readings_since_sample = None, IMU_ABSENT_READINGS
         self._gaps.clear()
         self._unpaired, self._starving = 0, False
         self._since_sample = IMU_ABSENT_READINGS
@@ -264,6 +340,8 @@ __all__ = [
     'IMU_REASONS',
     'IMU_RING',
     'PAIR_TOLERANCE_NS',
+    'PAIR_WAIT_NS',
+    'PAIR_WAIT_READINGS',
     'SPECIFIC_FORCE_RANGE',
     'ImuPairing',
     'Pair',

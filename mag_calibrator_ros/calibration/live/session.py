@@ -250,14 +250,12 @@ class CalibrationSession:
         self.accepted += 1
         reading = self.compensation.observe(stamp_ns, np.array((x0, x1, x2)), self.calibration)
         self._latest = reading
-        pair = self.pairing.pair(stamp_ns, frame_id)
+        decided = self.pairing.settle(stamp_ns, frame_id, (reading, stamp_ns))
         if self.pairing.has_warnings:
             self._imu_warnings()
         self._advance()
-        if self._job is None and not self._held:
-            self._ingest(reading, stamp_ns, pair)
-        else:
-            self._hold(reading, stamp_ns, pair)
+        for item, pair in decided:  # arrival order, each once its IMU sample could be there
+            (self._hold if self._job is not None or self._held else self._ingest)(*item, pair)
         calibration = self.calibration
         if calibration is None:
             return Processed(True, None, None)
@@ -527,6 +525,8 @@ class CalibrationSession:
         ticket = self._next_ticket
         self._next_ticket += 1
         self._requests.append((ticket, self.accepted))  # after every reading received so far
+        for item, pair in self.pairing.flush():  # those waiting for an IMU sample decided now
+            self._hold(*item, pair)
         self._advance()
         return ticket
 
