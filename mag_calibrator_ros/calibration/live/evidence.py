@@ -90,6 +90,7 @@ class HeldOutEvidence:
 
     def add(self, reading: np.ndarray, direction: np.ndarray, time_s: float) -> None:
         """Keep ``reading`` in the cell of ``direction`` (any non-zero vector)."""
+        direction = direction / np.max(np.abs(direction))  # a norm of tiny values underflows
         cell = int(cell_index(direction.reshape(1, 3) / np.linalg.norm(direction))[0])
         slot = cell * self._per_cell + int(self._next[cell])
         self._next[cell] = (self._next[cell] + 1) % self._per_cell
@@ -120,15 +121,14 @@ def relative_errors(calibration: Calibration, readings: np.ndarray,
     """``|corrected| / F - 1`` for each reading (with its interference inputs and temperature,
     when given: ``Calibration.apply``)."""
     corrected = calibration.apply(readings, inputs, temperatures)
-    return np.linalg.norm(corrected, axis=1) / calibration.field_strength - 1.0
+    return np.linalg.norm(corrected / calibration.field_strength, axis=1) - 1.0  # no underflow
 
 
 def magnitude_residual_pct(calibration: Calibration, samples: np.ndarray) -> float:
     """RMS of ``|corrected| - F`` as a percentage of F: the engine's residual measure."""
     if len(samples) == 0:
         return math.inf
-    magnitudes = np.linalg.norm(calibration.apply(samples), axis=1)
-    return float(100.0 * np.sqrt(np.mean((magnitudes / calibration.field_strength - 1.0) ** 2)))
+    return float(100.0 * np.sqrt(np.mean(relative_errors(calibration, samples) ** 2)))
 
 
 def evidence_span(readings: np.ndarray, minimum: int = MIN_EVIDENCE) -> float:
@@ -271,7 +271,7 @@ def check_fit(calibration: Calibration, recent: np.ndarray, gate_pct: float) -> 
     if span < MISFIT_MIN_SPAN:
         return FitCheck(False, False, math.nan, math.nan, expected, span)
     corrected = calibration.apply(recent)
-    magnitudes = np.linalg.norm(corrected, axis=1)
+    magnitudes = expected * np.linalg.norm(corrected / expected, axis=1)  # no underflow
     median_error = float(np.median(np.abs(magnitudes / expected - 1.0)))
     own = (calibration.metadata_number('residual_rms_pct') or 0.0) / 100.0
     threshold = max(MISFIT_FLOOR * gate_pct / 100.0, MISFIT_FACTOR * 0.67 * own)

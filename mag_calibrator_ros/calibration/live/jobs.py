@@ -285,7 +285,7 @@ def reference_fit(
         return None
     if not len(shell_directions(job.samples, calibration, job.readings)[0]):
         return None
-    relative = np.linalg.norm(calibration.apply(job.samples), axis=1) / calibration.field_strength
+    relative = np.linalg.norm(calibration.apply(job.samples) / calibration.field_strength, axis=1)
     sigma = robust_sigma((relative - 1.0) * np.sqrt(job.weights))  # of one reading
     spread = math.hypot(sigma, prediction_sigma(result))
     tolerance = min(options.outlier_threshold * spread, DEFAULT_MAGNITUDE_TOLERANCE)
