@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from mag_calibrator_ros.calibration.fit.alignment import rotation_angle_deg
-from mag_calibrator_ros.calibration.live.alignment_wait import ALIGNMENT_WAIT_S
+from mag_calibrator_ros.calibration.live.alignment_wait import NO_STILL_WAIT_S
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.sim.board import BoardModel, board_readings
 from mag_calibrator_ros.sim.config import SimConfig
@@ -72,10 +72,10 @@ def test_the_first_calibration_waits_for_still_tilts_and_goes_in_force_aligned(
 
 
 def test_a_sensor_never_held_still_is_calibrated_unaligned_after_the_bound():
-    mag, accel, gyro, _ = tumble_then_poses(12.0 + ALIGNMENT_WAIT_S, 0.0)
+    mag, accel, gyro, _ = tumble_then_poses(12.0 + NO_STILL_WAIT_S, 0.0)
     session, first_s, first, events, _ = run(mag, accel, gyro)
     assert first is not None and not first.aligned
-    assert first_s >= ALIGNMENT_WAIT_S
+    assert first_s >= NO_STILL_WAIT_S
     said = [e.message for e in events if e.adopted]
     assert 'NOT aligned to the IMU' in said[0] and e_level(events, said[0]) == 'warning'
 

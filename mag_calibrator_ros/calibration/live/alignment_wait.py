@@ -7,11 +7,12 @@ heading step. So the first automatic calibration that passes every gate but whos
 not yet determined for want of still tilts (``report.NEEDS_TILTS``) is not put in force; the
 progress line says it waits and for what, and the next automatic fit (``auto_calibrate_period``
 later) tries again with the attitudes held still meanwhile. The wait is bounded by
-ALIGNMENT_WAIT_S of stream time: a sensor that is never held still (a robot driving, a tumble)
-is calibrated unaligned after it, said in a warning, and realigned by refinement once still
-tilts come. Waiting cannot help (and so does not happen) without paired IMU readings, with
-``align`` off, for a yaw-only (``planar``) calibration, a ground robot that cannot tilt, or when
-the alignment failed for another reason (a gross mounting error is named, not applied).
+ALIGNMENT_WAIT_S of stream time (NO_STILL_WAIT_S while no still tilt was seen at all): a sensor
+that is never held still (a robot driving, a tumble) is calibrated unaligned after it, said in
+a warning, and realigned by refinement once still tilts come. Waiting cannot help (and so does
+not happen) without paired IMU readings, with ``align`` off, for a yaw-only (``planar``)
+calibration, a ground robot that cannot tilt, or when the alignment failed for another reason
+(a gross mounting error is named, not applied).
 
 The other choice, to go in force at once with an inflated covariance and a flag, was not taken:
 a filter that ignores covariances (many do) would still take the unaligned heading.
@@ -26,8 +27,13 @@ from mag_calibrator_ros.calibration.live.report import NEEDS_TILTS
 from mag_calibrator_ros.calibration.live.verdicts import Verdict
 
 ALIGNMENT_WAIT_S = 30.0
-"""Longest wait, in stream seconds from the first calibration ready but unaligned: enough for a
-hand to hold the sensor still at six tilts (a second each, a few seconds to turn between)."""
+"""Longest wait, in stream seconds from the first calibration ready but unaligned, once some
+still tilts were seen: enough for a hand to hold the sensor still at six tilts (a second each, a
+few seconds to turn between)."""
+
+NO_STILL_WAIT_S = 10.0
+"""...while none was seen at all (a tumble, a robot driving): long enough to start holding still
+after the progress line asks, short enough not to keep a moving robot uncalibrated."""
 
 
 class AlignmentWait:
@@ -39,6 +45,7 @@ class AlignmentWait:
         self.reason = ''
         """Why the latest ready calibration was not aligned."""
         self.now = 0.0
+        self.bound = ALIGNMENT_WAIT_S
 
     def judge(self, verdict: Verdict, outcome: JobOutcome, now: float, paired: bool,
               align: bool) -> Verdict:
@@ -57,7 +64,8 @@ class AlignmentWait:
         if first:
             self.since = now
         self.now, self.reason = now, alignment.reason
-        if now - self.since >= ALIGNMENT_WAIT_S:
+        self.bound = ALIGNMENT_WAIT_S if alignment.attitudes else NO_STILL_WAIT_S
+        if now - self.since >= self.bound:
             waited = now - self.since
             self.since, self.reason = None, ''
             why = f' ({alignment.reason})' if alignment.attitudes else ''
@@ -75,7 +83,7 @@ class AlignmentWait:
         """The progress line while waiting ('' when not)."""
         if self.since is None:
             return ''
-        left = max(0.0, ALIGNMENT_WAIT_S - (self.now - self.since))
+        left = max(0.0, self.bound - (self.now - self.since))
         return (f'calibration ready, waiting for still tilts to align it to the IMU before it '
                 f'goes in force (at most {left:.0f} s more): {self.reason}')
 
@@ -87,4 +95,4 @@ class AlignmentWait:
         self.since, self.reason = None, ''
 
 
-__all__ = ['ALIGNMENT_WAIT_S', 'AlignmentWait']
+__all__ = ['ALIGNMENT_WAIT_S', 'NO_STILL_WAIT_S', 'AlignmentWait']
