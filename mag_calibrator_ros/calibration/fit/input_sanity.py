@@ -121,9 +121,11 @@ def magnitude_spread(readings: ArrayLike) -> float:
 
 def normalised_problem(readings: ArrayLike) -> str | None:
     """Why a field cannot be calibrated because it already is (its |B| constant to far below
-    any sensor's noise over varied directions: normalised or calibrated upstream), or None."""
+    any sensor's noise over varied directions: normalised or calibrated upstream), or None.
+    Distinct readings only: one message repeated would make any magnitude look constant."""
     points = np.asarray(readings, dtype=float).reshape(-1, 3)
     with np.errstate(all='ignore'):
+        points = np.unique(points, axis=0)  # a message repeated tells nothing more
         norms = np.linalg.norm(points, axis=1)
         usable = np.isfinite(norms) & (norms > 0.0)
         points, norms = points[usable], norms[usable]
