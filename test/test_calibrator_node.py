@@ -411,13 +411,17 @@ def test_the_subscription_callback_never_runs_a_fit(ros, monkeypatch):
         ros.remove(n)
 
 
-def test_node_and_mag_calibrator_fit_agree_on_the_same_stream(ros, shared_data, capsys):
+def test_node_and_mag_calibrator_fit_agree_on_the_same_stream(ros, shared_data, capsys,
+                                                              tmp_path):
     """A recording sent message by message (stamped at 100 Hz) to the node, then ~/calibrate,
-    gives exactly what mag_calibrator_fit gives on the file."""
+    gives exactly what mag_calibrator_fit gives on the file (in tesla: the node refuses a
+    field in µT published as tesla)."""
     from mag_calibrator_ros.tools import fit
     from mag_calibrator_ros.tools.recordings import read_recording
 
-    path = shared_data / 'fxos8700-mwrona' / 'mag-readings.txt'
+    rows = read_recording(shared_data / 'fxos8700-mwrona' / 'mag-readings.txt').samples * 1e-6
+    path = tmp_path / 'mag-readings-tesla.csv'
+    np.savetxt(path, rows, fmt='%.17g', delimiter=',')
     rows = read_recording(path).samples
     node = ros.calibrator('agree', full_scale=0.0, publish_uncalibrated=True,
                           progress_log_period=0.0)
@@ -441,7 +445,7 @@ def test_node_and_mag_calibrator_fit_agree_on_the_same_stream(ros, shared_data, 
     assert node.session.accepted == len(rows)
     response = probe.call('mag_calibrator/calibrate')
     assert response.success, response.message
-    assert fit.main([str(path), '--json', '--rate', '100']) == 0
+    assert fit.main([str(path), '--json', '--rate', '100', '--units', 'T']) == 0
     summary = json.loads(capsys.readouterr().out)
     np.testing.assert_array_equal(node.session.calibration.offset, summary['offset'])
     np.testing.assert_array_equal(node.session.calibration.matrix.reshape(-1),

@@ -69,8 +69,9 @@ def test_every_shared_recording_calibrates_and_the_file_matches_the_summary(
         shared_data, tmp_path, capsys, name, extra, gates, mode):
     output = tmp_path / 'cal' / 'mag.yaml'
     gate = gates[mode]
-    argv = [str(shared_data / name), *extra, *mode_args(mode), '--units', 'uT', '--output',
-            str(output)]
+    # the BNO055's are raw counts, 16 per uT (its PROVENANCE.md): given as uT they are no field
+    units = ['--scale', '6.25e-8'] if name.startswith('bno055') else ['--units', 'uT']
+    argv = [str(shared_data / name), *extra, *mode_args(mode), *units, '--output', str(output)]
     if gate is not None:
         argv += ['--max-residual', str(gate)]
     code, summary, err = run_json(capsys, argv)
@@ -86,11 +87,13 @@ def test_every_shared_recording_calibrates_and_the_file_matches_the_summary(
                                                           columns=extra[1] if extra else None
                                                           ).samples)
     loaded = load_calibration(output)  # in tesla, the node's unit: b and F scale, M does not
-    np.testing.assert_array_equal(loaded.offset, np.array(summary['offset']) * 1e-6)
+    per_unit = 1.0 if '--scale' in units else 1e-6  # counts scaled to tesla as they are read
+    np.testing.assert_array_equal(loaded.offset, np.array(summary['offset']) * per_unit)
     np.testing.assert_array_equal(loaded.matrix, summary['matrix'])
-    assert loaded.field_strength == summary['field_strength'] * 1e-6
+    assert loaded.field_strength == summary['field_strength'] * per_unit
     assert loaded.model == summary['model']
-    assert summary['units'] == 'uT' and loaded.metadata['units'] == 'T'
+    assert summary['units'] == ('T' if '--scale' in units else 'uT')
+    assert loaded.metadata['units'] == 'T'
     assert loaded.metadata['source'] == str((shared_data / name).resolve())
     assert loaded.metadata['samples'] == summary['metrics']['n_inliers']
     assert loaded.metadata['residual_rms_pct'] == summary['metrics']['residual_rms_pct']
@@ -120,7 +123,8 @@ def test_buffer_mode_streams_through_the_live_session_as_the_node_does(shared_da
     path = shared_data / 'fxos8700-mwrona' / 'mag-readings.txt'
     code, summary, _ = run_json(capsys, [str(path), '--buffer', '60', '--k', '5',
                                          '--rate', str(rate)])
-    session = CalibrationSession(SessionSettings(buffer_size=60, k=5, full_scale=0.0))
+    session = CalibrationSession(SessionSettings(buffer_size=60, k=5, full_scale=0.0),
+                                 metadata={'units': 'input'})  # as the CLI: unit not stated
     session.feed(read_recording(path).samples, rate_hz=rate)
     expected = session.calibrate_now()
     assert code == 0

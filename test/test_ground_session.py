@@ -231,7 +231,7 @@ def test_a_robot_that_starts_turning_is_reported_on_the_heading_circle_at_once()
     hard_iron = np.array([55e-6, -45e-6, 25e-6])
     session = CalibrationSession(SessionSettings())
     turned_at = None
-    for index in range(600):
+    for index in range(1200):  # a ring held for hints.RING_CONFIRM_S: no tumble's first arc
         t = index / 100.0
         yaw = 0.0 if t < 1.5 else -0.4 * (t - 1.5)  # stands, then turns right
         c, s = math.cos(yaw), math.sin(yaw)

@@ -53,6 +53,7 @@ from mag_calibrator_ros.calibration.fit.earth_field import (
     earth_field,
 )
 from mag_calibrator_ros.calibration.fit.fitting import FitOptions, FitResult
+from mag_calibrator_ros.calibration.fit.input_sanity import field_unit_problem, normalised_problem
 from mag_calibrator_ros.calibration.live.buffer import DEFAULT_CAPACITY, DEFAULT_K
 from mag_calibrator_ros.calibration.live.jobs import FitJob, JobOutcome, run_job
 from mag_calibrator_ros.calibration.live.screening import VALUE_REASONS, reading_problem
@@ -127,7 +128,9 @@ exit status:
      the reason (e.g. which rotation is missing); --output is NOT written (an existing file is
      left untouched) because a robot must never load a failed calibration; --plot is written
   2  usage or input error (missing/unreadable file, too few rows, bad --columns, --output
-     without the input's unit, an unwritable --output or --plot ...)
+     without the input's unit, an unwritable --output or --plot ...), or input no
+     calibration can fix: readings that cannot be in their unit (0.5 "T" is gauss), or a field
+     already normalised or calibrated upstream (|B| constant over every direction)
 """
 
 
@@ -305,6 +308,9 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     if args.scale is not None:
         recording = scaled_recording(recording, args.scale)
         units = TESLA
+    problem = input_problem(recording, units, args.scale is not None)
+    if problem is not None:
+        raise UsageError(f'{recording.source}: {problem}')
     if args.output is not None and units not in TESLA_PER_UNIT:
         raise UsageError(
             f"--output writes the calibration in tesla, the node's unit, but {recording.source} "
@@ -570,6 +576,25 @@ def input_units(args: argparse.Namespace, recording: Recording) -> str:
                              f"({recording.layout}), not '{args.units}' (drop --units)")
         return recording.units
     return args.units if args.units is not None else 'input'
+
+
+SANITY_ROWS = 20_000
+"""Rows (evenly spread over the recording) judged for a wrong unit or a normalised field."""
+
+
+def input_problem(recording: Recording, units: str, scaled: bool = False) -> str | None:
+    """Why the recording cannot be calibrated (``fit/input_sanity.py``), or None: readings
+    that cannot be in their stated unit (``input_units``; with ``scaled``, the tesla that
+    --scale made of counts), or a field already normalised or calibrated upstream."""
+    rows = recording.samples[::max(1, len(recording.samples) // SANITY_ROWS)]
+    if scaled:
+        fix = 'check --scale (the tesla per count: 0.15e-6 for the AK09916)'
+    elif recording.units is not None:
+        fix = (f'the recording says {units} ({recording.layout}), but the driver that '
+               'published it used another unit: fix it there')
+    else:
+        fix = 'give the unit the numbers are in with --units (uT, nT, G, mG, T)'
+    return field_unit_problem(rows, units, fix) or normalised_problem(rows)
 
 
 def stream(session: CalibrationSession, samples: np.ndarray, stamps_ns: np.ndarray,

@@ -29,6 +29,7 @@ from mag_calibrator_ros.calibration.fit.coverage import (
     MIN_LEVELS,
     RING_THICKNESS,
     SHELL_TOLERANCE,
+    STILL_SPREAD,
     Coverage,
     distinct_rows,
     finite_rows,
@@ -69,6 +70,10 @@ ARC_LINE = 0.35
 along one short arc, as every motion begins (a robot's first seconds of turning, noise still as
 wide as the arc's sagitta). Nothing yet says the motion is not a turn, so hints speak of turning
 rather than ask a robot that may be on the ground to roll."""
+
+RING_LINE = 0.25
+"""A flat trace whose second spread is at least this share of the largest is round a ring
+(about 100 degrees of it or more), not one short arc: ``motion_shape``."""
 
 COMPLETE_HEADING_COVERAGE = (HEADING_SECTORS - 1) / HEADING_SECTORS
 """The heading circle counts as complete with at most one 10° sector missing: what a full turn
@@ -121,20 +126,30 @@ class Ring:
 def yaw_only(samples: ArrayLike) -> bool:
     """Whether the readings lie near one plane, as turning about one axis leaves them, or along
     one short arc so far (see YAW_ONLY_THICKNESS, ARC_FLATNESS and ARC_LINE)."""
+    return motion_shape(samples, still_is_few=False) in ('arc', 'ring')
+
+
+def motion_shape(samples: ArrayLike, still_is_few: bool = True) -> str:
+    """What the readings trace: 'ring' (near one plane and round it: turning about one axis),
+    'arc' (one short arc so far: any motion begins so, a turn or a tumble), '3d' (off any
+    plane) or 'few' (fewer than MIN_RING_POINTS distinct, or a still sensor's noise). Only a
+    'ring' can say the motion is yaw-only: a tumble's first arc is as flat as a turn's."""
     points = distinct_rows(finite_rows(samples))
     if len(points) < MIN_RING_POINTS:
-        return False
+        return 'few'
     norm = normalise(points)
-    if norm is None:
-        return False
+    if norm is None or (still_is_few and norm.scale < STILL_SPREAD * float(
+            np.linalg.norm(norm.centre))):
+        return 'few'  # a still sensor's noise: no motion yet (``yaw_only`` takes an arc in it)
     y = norm.forward(points)
-    if thickness(y)[0] < YAW_ONLY_THICKNESS:
-        return True
     spreads = np.linalg.eigvalsh(np.cov(y, rowvar=False))
     if not spreads[-1] > 0:
-        return False
+        return 'few'
     smallest, second = (math.sqrt(max(spread, 0.0) / spreads[-1]) for spread in spreads[:2])
-    return bool(smallest < ARC_FLATNESS or second < ARC_LINE)
+    arc = bool(smallest < ARC_FLATNESS or second < ARC_LINE)
+    if thickness(y)[0] < YAW_ONLY_THICKNESS:
+        return 'arc' if second < RING_LINE else 'ring'
+    return 'arc' if arc else '3d'
 
 
 def fit_ring(samples: ArrayLike, readings: ArrayLike | None = None) -> tuple[Ring | None, str]:
@@ -296,6 +311,7 @@ __all__ = [
     'Ring',
     'fit_ring',
     'heading_coverage_of',
+    'motion_shape',
     'sector_of',
     'turn_hint',
     'turn_needed',

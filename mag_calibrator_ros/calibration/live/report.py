@@ -241,13 +241,16 @@ def progress_text(state: str, calibration: Calibration | None, coverage: Coverag
 def diagnostics_level(state: str, progress: str, input_rate_hz: float, no_input: str, *,
                       problem: str | None = None, refused: Mapping[str, int] | None = None,
                       misfit: str = '', earth_warning: str = '', alignment_warning: str = '',
-                      imu_warning: str = '') -> tuple[Level, str]:
+                      imu_warning: str = '', input_problem: str = '') -> tuple[Level, str]:
     """The level and message of the calibrator's /diagnostics status: the first that applies of
-    a problem of the node or its fit worker (ERROR), messages refused since the last report, a
-    misfit, a disturbed field, a mounting error, an IMU that cannot be paired (WARN), calibrated
-    (OK), no input, still calibrating (WARN)."""
+    a problem of the node or its fit worker (ERROR), input no calibration can fix (wrong unit,
+    normalised: ``sanity.py``), messages refused since the last report, a misfit, a disturbed
+    field, a mounting error, an IMU that cannot be paired (WARN), calibrated (OK), no input,
+    still calibrating (WARN)."""
     if problem is not None:
         return 'ERROR', problem
+    if input_problem:
+        return 'WARN', f'{state}: {input_problem}'
     if refused:
         counts = ', '.join(f'{reason} {count}' for reason, count in refused.items())
         return 'WARN', f'{state}: input messages refused since last report: {counts}'

@@ -26,6 +26,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 import math
 
+from mag_calibrator_ros.calibration.live.settings import SessionSettings
+
 CHECK_PERIOD_S = 0.25
 """Stream seconds between readiness checks while uncalibrated (a coverage check, no fit)."""
 
@@ -75,6 +77,16 @@ class Situation:
     refine_period: float
     min_samples: int
     request_waiting: bool
+
+    @classmethod
+    def of(cls, now: float, settings: SessionSettings, fill: int, capacity: int,
+           calibrated: bool, misfit: bool, request_waiting: bool) -> Situation:
+        """The situation at one reading, from the session's settings and state."""
+        return cls(now=now, buffer_full=fill == capacity, buffer_fill=fill,
+                   calibrated=calibrated, misfit=misfit, auto_calibrate=settings.auto_calibrate,
+                   auto_calibrate_period=settings.auto_calibrate_period, refine=settings.refine,
+                   refine_period=settings.refine_period, min_samples=settings.min_samples,
+                   request_waiting=request_waiting)
 
 
 class FitScheduler:

@@ -26,13 +26,9 @@ from mag_calibrator_ros.calibration.fit.alignment import StaticAttitudes
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
 from mag_calibrator_ros.calibration.fit.coverage import HEADING_SECTORS, Coverage
 from mag_calibrator_ros.calibration.fit.earth_field import EarthField, EarthReference
-from mag_calibrator_ros.calibration.fit.heading import (
-    HeadingCoverage,
-    PlaneWatch,
-    heading_coverage_of,
-    yaw_only,
-)
+from mag_calibrator_ros.calibration.fit.heading import HeadingCoverage, PlaneWatch
 from mag_calibrator_ros.calibration.live import report
+from mag_calibrator_ros.calibration.live.alignment_wait import AlignmentWait
 from mag_calibrator_ros.calibration.live.buffer import SampleBuffer
 from mag_calibrator_ros.calibration.live.compensation import CompensationLearner
 from mag_calibrator_ros.calibration.live.evidence import (
@@ -42,10 +38,12 @@ from mag_calibrator_ros.calibration.live.evidence import (
     MisfitMonitor,
 )
 from mag_calibrator_ros.calibration.live.findings import Findings
+from mag_calibrator_ros.calibration.live.hints import MotionHints
 from mag_calibrator_ros.calibration.live.jobs import REFERENCE_OPTIONS, FitJob, JobOutcome
 from mag_calibrator_ros.calibration.live.pairing import ImuPairing, Pair, RateMeter, up_direction
 from mag_calibrator_ros.calibration.live.reference import BufferReference
 from mag_calibrator_ros.calibration.live.report import CalibrationAttempt
+from mag_calibrator_ros.calibration.live.sanity import InputWatch
 from mag_calibrator_ros.calibration.live.scheduler import (
     CHECK_FIT_PERIOD_S,
     FitScheduler,
@@ -181,9 +179,9 @@ class CalibrationSession:
         self._next_periodic = 0.0
         self._events: deque[SessionEvent] = deque(maxlen=MAX_EVENTS)
         self._reported_rejects = dict(self.screen.counts)
-        self._latest: np.ndarray | None = None  # the latest accepted reading (heading hints)
-        self._looked_at: np.ndarray | None = None  # the latest reading at the previous look
-        self._turning = 0  # the way the heading last moved between two looks (+1 / -1)
+        self.hints = MotionHints()  # the kind of hint, judged at stream points (hints.py)
+        self.input_watch = InputWatch(self.units == 'T')  # wrong units, normalised input
+        self.alignment_wait = AlignmentWait()  # the first calibration waits to be aligned
         self.attitudes = StaticAttitudes()
         """Quasi-static (field, accel) attitudes paired from the IMU, for the alignment."""
         self.pairing = ImuPairing()
@@ -241,6 +239,8 @@ class CalibrationSession:
             x0, x1, x2 = (float(value) for value in field)
         except (TypeError, ValueError):
             x0 = x1 = x2 = math.nan
+        for problem in self.input_watch.offer(stamp_ns, (x0, x1, x2)):  # each said once
+            self._event('warning', problem)
         reason = self.screen.screen(stamp_ns, frame_id, x0, x1, x2)
         if self.screen.changes:
             for change in self.screen.take_changes():
@@ -249,7 +249,6 @@ class CalibrationSession:
             return _REFUSED
         self.accepted += 1
         reading = self.compensation.observe(stamp_ns, np.array((x0, x1, x2)), self.calibration)
-        self._latest = reading
         decided = self.pairing.settle(stamp_ns, frame_id, (reading, stamp_ns))
         if self.pairing.has_warnings:
             self._imu_warnings()
@@ -266,6 +265,7 @@ class CalibrationSession:
         """Keep one accelerometer (m/s^2) and gyroscope (rad/s) sample to pair magnetometer
         readings with (``ImuPairing.add``); False when refused, counted by reason: no plausible
         specific force, or ``frame_id`` not the magnetometer stream's (said once a frame)."""
+        self.input_watch.offer_imu(accel)
         kept = self.pairing.add(stamp_ns, accel, gyro, frame_id, self.screen.frame_id)
         if self.pairing.has_warnings:
             self._imu_warnings()
@@ -340,6 +340,7 @@ class CalibrationSession:
         if now >= self._next_periodic:
             self._next_periodic = now + PERIODIC_S
             self._update_centre()
+        self.hints.learnt(now, self.buffer, reading)  # the kind of hint (hints.py)
         if self._job is None:
             kind = (self.scheduler.due(self._situation(now))
                     or self.compensation.due(now, self.calibration))  # 'compensate' or None
@@ -356,25 +357,16 @@ class CalibrationSession:
         self.buffer_reference.update_centre()
 
     def _situation(self, now: float) -> Situation:
-        settings = self.settings
-        return Situation(
-            now=now,
-            buffer_full=self.buffer.fill == self.buffer.capacity,
-            buffer_fill=self.buffer.fill,
-            calibrated=self.calibration is not None,
-            misfit=self.misfit.misfit,
-            auto_calibrate=settings.auto_calibrate,
-            auto_calibrate_period=settings.auto_calibrate_period,
-            refine=settings.refine,
-            refine_period=settings.refine_period,
-            min_samples=settings.min_samples,
-            request_waiting=bool(self._requests) and self._requests[0][1] <= self._ingested,
-        )
+        return Situation.of(now, self.settings, self.buffer.fill, self.buffer.capacity,
+                            self.calibration is not None, self.misfit.misfit,
+                            bool(self._requests) and self._requests[0][1] <= self._ingested)
 
     # -- fits ----------------------------------------------------------------------------------
 
     def _submit(self, kind: str) -> None:
         ticket = self._requests.popleft()[0] if kind == 'request' else None
+        if self.input_watch.refusal(kind):  # wrong units or normalised: nothing to put in force
+            return self._refuse_fit(kind, ticket, self.input_watch.problem)
         job = self._make_job(kind, ticket)
         self.jobs_run[job.kind] = self.jobs_run.get(job.kind, 0) + 1
         self._job, self._job_epoch = job, self._epoch
@@ -383,6 +375,14 @@ class CalibrationSession:
         if outcome is not None:
             self._job = None
             self._complete(outcome)
+
+    def _refuse_fit(self, kind: str, ticket: int | None, problem: str) -> None:
+        now, period = self.clock.now, self.settings.auto_calibrate_period
+        if kind == 'calibrate':  # tried again a period later: the input may be fixed by then
+            self.scheduler.calibrate_done(now, True, period)
+        if ticket is not None:
+            attempt = CalibrationAttempt(False, f'calibration refused: {problem}')
+            self._event('warning', attempt.message, ticket=ticket, attempt=attempt)
 
     def _make_job(self, kind: str, ticket: int | None) -> FitJob:
         buffer = self.buffer
@@ -454,8 +454,10 @@ class CalibrationSession:
                                           self.settings.auto_calibrate_period)
             if outcome.result is not None and not outcome.error:
                 self._note_reference(outcome)
-            self._apply(automatic_verdict(outcome, current, self.misfit.misfit, self.units,
-                                          self.findings.earth))
+            self._apply(self.alignment_wait.judge(
+                automatic_verdict(outcome, current, self.misfit.misfit, self.units,
+                                  self.findings.earth),
+                outcome, self.clock.now, self.pairing.paired > 0, self.settings.align))
         else:
             verdict = refinement_verdict(outcome, current)
             self._apply(verdict)
@@ -662,6 +664,8 @@ class CalibrationSession:
         self.attitudes.clear()
         self.pairing.clear()
         self.compensation.reset()
+        for part in (self.hints, self.input_watch, self.alignment_wait):
+            part.clear()
     def feed(self, samples: np.ndarray, rate_hz: float = 100.0, start_ns: int = 0,
              frame_id: str = '', accel: np.ndarray | None = None,
              gyro: np.ndarray | None = None) -> None:
@@ -700,7 +704,7 @@ class CalibrationSession:
         """The buffer's coverage now: of the heading circle if ``yaw_only``, else of the sphere."""
         if self.yaw_only():
             return self.heading_coverage().coverage
-        return self.buffer.coverage()
+        return self.hints.dress(self.buffer.coverage())
 
     @property
     def held(self) -> int:
@@ -719,25 +723,17 @@ class CalibrationSession:
             return self.coverage()
         if measured[1].cells == HEADING_SECTORS:
             return self.heading_coverage().coverage
-        return measured[1]
+        return self.hints.dress(measured[1])
 
     def yaw_only(self) -> bool:
-        """Whether coverage, hints and the automatic gate are about the heading circle: model
-        ``planar``, or ``auto`` with the buffer's samples near one plane (a robot turning)."""
-        if self.settings.model == 'planar':
-            return True
-        return self.settings.model == 'auto' and yaw_only(self.buffer.samples)
+        """Whether coverage and hints are about the heading circle: model ``planar``, or
+        ``auto`` with the buffer's samples round a ring when last judged (``hints.py``)."""
+        return self.settings.model == 'planar' or (
+            self.settings.model == 'auto' and self.hints.yaw_only)
 
     def heading_coverage(self) -> HeadingCoverage:
-        """The buffer's heading coverage and the turn still needed, which way (milliseconds).
-
-        Each call is a look: the direction of turning is how the heading moved since the
-        previous look's latest reading."""
-        buffer = self.buffer
-        progress = heading_coverage_of(buffer.samples, buffer.readings, self._latest,
-                                       self._looked_at, self._turning)
-        self._looked_at, self._turning = self._latest, progress.turning
-        return progress
+        """The buffer's heading coverage and the turn still needed, which way (milliseconds)."""
+        return self.hints.heading(self.buffer.samples, self.buffer.readings)
 
     @property
     def frame_id(self) -> str:
@@ -760,6 +756,8 @@ class CalibrationSession:
 
     def progress_text(self, coverage: Coverage | None = None) -> str:
         """What to do next, e.g. 'coverage 63 % - keep rotating about the pitch axis (y)'."""
+        if self.calibration is None and (self.input_watch.problem or self.alignment_wait.waiting):
+            return self.input_watch.problem or self.alignment_wait.progress()
         return report.progress_text(self.state, self.calibration, coverage or self.coverage(),
                                     self.buffer, self.settings)
 
@@ -779,7 +777,8 @@ class CalibrationSession:
                           ) -> dict[str, object]:
         """Key/values for /diagnostics (report.diagnostic_values); read once per diagnostics
         period (updates the input rate)."""
-        return report.diagnostic_values(self, now, coverage or self.coverage())
+        return {**report.diagnostic_values(self, now, coverage or self.coverage()),
+                **self.input_watch.values(), **self.alignment_wait.values()}
 
     def diagnostics_level(self, coverage: Coverage, input_rate_hz: float,
                           problem: str | None = None, no_input: str = ''
@@ -791,7 +790,8 @@ class CalibrationSession:
             self.state, self.progress_text(coverage), input_rate_hz, no_input, problem=problem,
             refused=self.new_screen_rejects() if problem is None else None,
             misfit=self.misfit_text(), earth_warning=self.earth_warning(),
-            alignment_warning=self.alignment_warning(), imu_warning=self.pairing.warning())
+            alignment_warning=self.alignment_warning(), imu_warning=self.pairing.warning(),
+            input_problem=self.input_watch.problem or self.input_watch.imu_problem)
 
 
 __all__ = ['REFUSAL_REASONS', 'SCREEN_REASONS', 'STATES', 'CalibrationAttempt',

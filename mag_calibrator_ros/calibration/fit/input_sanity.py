@@ -1,0 +1,188 @@
+"""Input that no calibration can fix: a field in the wrong unit, or one already normalised.
+
+Pure judgements on a handful of readings, each returning None (nothing wrong) or the reason in a
+user's words, naming the likely cause and the fix. The live session (``live/sanity.py``) and
+``mag_calibrator_fit`` call them; neither fits a field these refuse, because a fit would only
+learn the mistake (a calibration of gauss read as tesla is off by 1e4 once the driver is fixed;
+a fit of a normalised field learns nothing and may move it).
+
+The bounds are the Earth's: its field is 22-67 µT everywhere on the surface (the World Magnetic
+Model), and a magnetometer beside a robot's iron reads at most a few mT (the AK09916's full
+scale is 4.9 mT). Gravity is 9.78-9.83 m/s^2; a moving robot's accelerometer reads around it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from mag_calibrator_ros.calibration.fit.earth_field import TESLA_PER_UNIT
+
+MAX_TESLA = 1e-3
+"""A median |B| above this is no field a magnetometer reads on Earth in tesla (the Earth's is
+at most 67 µT; hard iron beside it a few hundred µT; chips saturate at a few mT)."""
+
+MIN_TESLA = 1e-7
+"""...nor below this: 0.1 µT, a few hundred times weaker than the Earth's weakest field (only
+inside magnetic shielding)."""
+
+EARTH_UT = (22.0, 67.0)
+"""The Earth's field strength on its surface, µT (WMM2025: 22 µT off Brazil, 67 µT near the
+south magnetic pole)."""
+
+TESLA_PER = {'gauss': 1e-4, 'µT': 1e-6, 'mG': 1e-7, 'nT': 1e-9}
+"""The units a field published as tesla is most often really in (sensor_msgs/MagneticField
+requires tesla, REP-103; drivers publishing gauss or µT in it are a recurring bug)."""
+
+NORMALISED_SPREAD = 1e-4
+"""Largest relative spread (robust std over median) of |B| a field can have to count as
+normalised or calibrated upstream. Raw magnetometers move |B| by several % as they turn (hard
+and soft iron) and by their noise and quantisation when calibrated: the AK09916's step of
+0.15 µT is 3e-3 of 50 µT, the finest MEMS parts' noise ~1e-3. A magnitude constant to 1e-4
+over varied directions is no sensor's reading but a computed one."""
+
+MIN_DIRECTION_SPREAD_DEG = 30.0
+"""The readings' directions must spread this far (RMS angle from their mean) for a constant
+magnitude to mean anything: a still sensor's magnitude is constant too."""
+
+MIN_READINGS = 5
+"""Fewer readings than this are not judged (one outlier would decide)."""
+
+G = 9.80665
+"""Standard gravity, m/s^2."""
+
+ACCEL_RANGE_MPS2 = (4.0, 40.0)
+"""Median |specific force| in m/s^2 of a robot's or a hand's accelerometer: g, give or take
+what its motion adds. The g-units case reads 1, the milli-g 1000, raw counts thousands."""
+
+
+def _magnitudes(rows: ArrayLike) -> np.ndarray:
+    points = np.asarray(rows, dtype=float).reshape(-1, 3)
+    with np.errstate(all='ignore'):
+        norms = np.linalg.norm(points, axis=1)
+    return norms[np.isfinite(norms) & (norms > 0.0)]
+
+
+PUBLISH_TESLA = ("publish tesla (sensor_msgs/MagneticField, REP-103; 1 gauss = 1e-4 T, 1 µT = "
+                 "1e-6 T, 1 mG = 1e-7 T) by fixing the driver's unit")
+"""The fix for a ROS stream; ``mag_calibrator_fit`` names its own (``--units``, ``--scale``)."""
+
+
+def field_unit_problem(readings: ArrayLike, claimed: str = 'T',
+                       fix: str = PUBLISH_TESLA) -> str | None:
+    """Why readings said to be in ``claimed`` (tesla on a ROS topic; a unit of TESLA_PER_UNIT)
+    cannot be (their median |B| names the likely unit), or None. Needs MIN_READINGS usable rows;
+    fewer are not judged, nor an unknown ``claimed``."""
+    norms = _magnitudes(readings)
+    per_unit = TESLA_PER_UNIT.get(claimed)
+    if len(norms) < MIN_READINGS or per_unit is None:
+        return None
+    median = float(np.median(norms))
+    if MIN_TESLA <= median * per_unit <= MAX_TESLA:
+        return None
+    points = np.asarray(readings, dtype=float).reshape(-1, 3)
+    finite = points[np.all(np.isfinite(points), axis=1)]
+    integral = bool(len(finite) and np.all(finite == np.round(finite)))
+    likely = likely_field_unit(median, integral)
+    where = 'beyond' if median * per_unit > MAX_TESLA else 'far below'
+    what = 'the magnetometer input' if claimed == 'T' else 'the readings'
+    return (f'{what} cannot be {"tesla" if claimed == "T" else claimed}: |B| {median:.4g} '
+            f'"{claimed}" is {where} any field on Earth ({EARTH_UT[0]:.0f}-{EARTH_UT[1]:.0f} '
+            f'µT); it looks like {likely}: {fix}; not calibrating it')
+
+
+def likely_field_unit(median: float, integral: bool = False) -> str:
+    """The units a median |B| published as tesla is likely in: those that put it within the
+    Earth's field and ten times it (hard iron beside the sensor), joined by 'or'; raw counts
+    too when the readings are whole numbers (``integral``) or no unit fits."""
+    if not math.isfinite(median) or median <= 0.0:
+        return 'an unknown unit'
+    if median < MIN_TESLA:
+        return 'tesla scaled twice (e.g. µT converted to T twice)'
+    low, high = EARTH_UT[0] * 1e-6, EARTH_UT[1] * 1e-6 * 10.0
+    names = {'gauss': 'gauss', 'µT': 'µT', 'mG': 'milligauss', 'nT': 'nT'}
+    likely = [names[unit] for unit, tesla in TESLA_PER.items()
+              if low <= median * tesla <= high]
+    if integral or not likely:
+        likely.append("raw counts (scale them by the sensor's tesla per count)")
+    return ' or '.join(likely)
+
+
+def magnitude_spread(readings: ArrayLike) -> float:
+    """The relative spread of |B| (robust std over median; NaN for fewer than MIN_READINGS)."""
+    norms = _magnitudes(readings)
+    if len(norms) < MIN_READINGS:
+        return math.nan
+    median = float(np.median(norms))
+    return 1.4826 * float(np.median(np.abs(norms - median))) / median
+
+
+def normalised_problem(readings: ArrayLike) -> str | None:
+    """Why a field cannot be calibrated because it already is (its |B| constant to far below
+    any sensor's noise over varied directions: normalised or calibrated upstream), or None.
+    Distinct readings only: one message repeated would make any magnitude look constant."""
+    points = np.asarray(readings, dtype=float).reshape(-1, 3)
+    with np.errstate(all='ignore'):
+        points = np.unique(points, axis=0)  # a message repeated tells nothing more
+        norms = np.linalg.norm(points, axis=1)
+        usable = np.isfinite(norms) & (norms > 0.0)
+        points, norms = points[usable], norms[usable]
+        if len(norms) < MIN_READINGS:
+            return None
+        median = float(np.median(norms))
+        spread = 1.4826 * float(np.median(np.abs(norms - median))) / median
+        units = points / norms[:, None]
+        mean = units.mean(axis=0)
+        mean /= np.linalg.norm(mean) or 1.0
+        angles = np.degrees(np.arccos(np.clip(units @ mean, -1.0, 1.0)))
+    directions = float(np.sqrt(np.mean(angles ** 2)))
+    if not (spread <= NORMALISED_SPREAD and directions >= MIN_DIRECTION_SPREAD_DEG):
+        return None
+    return (f'the magnetometer input is already normalised or calibrated upstream: |B| stays '
+            f'{median:.6g} to a relative {spread:.1g} while its direction turns {directions:.0f} '
+            "deg (RMS), far steadier than any sensor's noise: there is nothing to learn, and "
+            "nothing is fitted; calibrate the raw field instead (turn off the driver's or "
+            "filter's normalisation/calibration), or use it as it is (publish_uncalibrated)")
+
+
+def accel_unit_problem(samples: ArrayLike) -> str | None:
+    """Why accelerometer samples published as m/s^2 are in another unit (g, milli-g, counts),
+    from their median |a|, or None. Needs MIN_READINGS usable rows."""
+    norms = _magnitudes(samples)
+    if len(norms) < MIN_READINGS:
+        return None
+    median = float(np.median(norms))
+    low, high = ACCEL_RANGE_MPS2
+    if low <= median <= high:
+        return None
+    if 0.4 <= median <= 4.0:
+        likely = f'g (multiply by {G})'
+    elif 400.0 <= median <= 4000.0:
+        likely = f'milli-g (multiply by {G / 1000.0:g})'
+    elif median > 4000.0:
+        likely = ('raw counts (multiply by g over the counts per g of the full scale, e.g. '
+                  f'{G}/16384 at ±2 g)')
+    else:
+        likely = 'an unknown unit'
+    return (f"imu/data_raw's accelerometer cannot be m/s^2: |a| {median:.4g} where gravity "
+            f'alone is {G:.2f} m/s^2; it looks like {likely}: publish m/s^2 (sensor_msgs/Imu, '
+            'REP-103); its samples are not used (no alignment to the IMU)')
+
+
+__all__ = [
+    'ACCEL_RANGE_MPS2',
+    'EARTH_UT',
+    'MAX_TESLA',
+    'MIN_DIRECTION_SPREAD_DEG',
+    'MIN_READINGS',
+    'MIN_TESLA',
+    'NORMALISED_SPREAD',
+    'PUBLISH_TESLA',
+    'accel_unit_problem',
+    'field_unit_problem',
+    'likely_field_unit',
+    'magnitude_spread',
+    'normalised_problem',
+]

@@ -1,0 +1,162 @@
+"""Input no calibration can fix (issue #24): a field in the wrong unit is named and not fitted,
+a field already normalised or calibrated upstream is said and nothing is adopted that moves it;
+the same for an accelerometer in g. In the session (the node's engine) and the CLI."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mag_calibrator_ros.calibration.fit.input_sanity import (
+    accel_unit_problem,
+    field_unit_problem,
+    normalised_problem,
+)
+from mag_calibrator_ros.calibration.live.session import CalibrationSession
+from mag_calibrator_ros.calibration.live.settings import SessionSettings
+from mag_calibrator_ros.sim.board import BoardModel, board_readings
+from mag_calibrator_ros.sim.config import SimConfig
+from mag_calibrator_ros.tools.fit import EXIT_USAGE, main
+
+RATE_HZ = 100.0
+
+
+def directions(n: int = 50, seed: int = 0) -> np.ndarray:
+    rows = np.random.default_rng(seed).normal(size=(n, 3))
+    return rows / np.linalg.norm(rows, axis=1, keepdims=True)
+
+
+def raw_tumble(seconds: float, seed: int = 0):
+    """(mag T, accel m/s^2, gyro) of a tumbled board with hard iron and noise."""
+    board = BoardModel(SimConfig(hard_iron_ut=(40.0, -25.0, 10.0), noise_ut=0.3,
+                                 motion='tumble', seed=seed))
+    return board_readings(board, seconds, RATE_HZ)
+
+
+@pytest.mark.parametrize(('scale', 'likely'), [
+    (0.5, 'gauss'), (48.0, 'µT'), (480.0, 'µT or milligauss'), (1e-9, 'tesla scaled twice')])
+def test_magnitudes_that_cannot_be_tesla_name_the_likely_unit(scale, likely):
+    problem = field_unit_problem(directions() * scale)
+    assert problem is not None and f'looks like {likely}' in problem
+    assert 'publish tesla' in problem and 'not calibrating it' in problem
+
+
+def test_whole_numbers_add_raw_counts_and_earth_fields_pass():
+    assert 'raw counts' in field_unit_problem(np.round(directions() * 330.0))
+    for field_t in (22e-6, 50e-6, 900e-6, 2e-7):  # with hard iron beside the sensor too
+        assert field_unit_problem(directions() * field_t) is None
+    assert field_unit_problem(directions(4) * 0.5) is None  # too few to judge
+
+
+def test_a_normalised_field_is_told_from_raw_and_calibrated_noisy_ones():
+    unit = directions(200)
+    assert 'already normalised' in normalised_problem(unit * 1e-4)
+    rng = np.random.default_rng(1)
+    noisy = unit * 50e-6 + rng.normal(0.0, 0.3e-6, unit.shape)  # calibrated by a fit: noise
+    assert normalised_problem(noisy) is None
+    assert normalised_problem(unit * 50e-6 + (20e-6, 0.0, 0.0)) is None  # raw: hard iron
+    still = np.tile((1e-4, 0.0, 0.0), (200, 1))
+    assert normalised_problem(still) is None  # one direction says nothing
+
+
+@pytest.mark.parametrize(('force', 'likely'), [
+    (1.0, 'g (multiply'), (1000.0, 'milli-g'), (16384.0, 'raw counts')])
+def test_an_accelerometer_not_in_metres_per_second_squared_is_named(force, likely):
+    problem = accel_unit_problem(directions() * force)
+    assert problem is not None and f'looks like {likely}' in problem
+    assert accel_unit_problem(directions() * 9.81) is None
+
+
+def stream(session: CalibrationSession, mag, accel=None, gyro=None) -> list:
+    """Feed rows one message at a time; every event with the stream second it came at."""
+    said = []
+    for index, row in enumerate(mag):
+        stamp = round(index * 1e9 / RATE_HZ)
+        if accel is not None:
+            session.process_imu(stamp, 'imu_link', accel[index], gyro[index])
+        session.process(stamp, 'imu_link', row)
+        said += [(index / RATE_HZ, event) for event in session.take_events()]
+    return said
+
+
+@pytest.mark.parametrize('factor', [1e4, 1e6])  # gauss, µT published in a tesla field
+def test_a_wrong_unit_is_said_within_a_second_and_never_fitted(factor):
+    mag, _, _ = raw_tumble(12.0)
+    session = CalibrationSession()
+    said = stream(session, mag * factor)
+    warnings = [(t, e.message) for t, e in said if 'cannot be tesla' in e.message]
+    assert len(warnings) == 1 and warnings[0][0] < 1.0
+    assert session.calibration is None and not session.jobs_run.get('calibrate')
+    values = session.diagnostic_values(12.0)
+    assert 'cannot be tesla' in values['input_problem']
+    level, message = session.diagnostics_level(session.coverage(), 100.0)
+    assert level == 'WARN' and 'cannot be tesla' in message
+    assert 'cannot be tesla' in session.progress_text()
+    ticket = session.request_calibration()
+    answer = next(e for e in session.take_events() if e.ticket == ticket)
+    assert not answer.attempt.success and 'cannot be tesla' in answer.attempt.message
+
+
+def test_a_normalised_field_is_said_within_ten_seconds_and_nothing_moves_it():
+    mag, _, _ = raw_tumble(30.0)
+    normalised = mag / np.linalg.norm(mag, axis=1, keepdims=True) * 1e-4
+    session = CalibrationSession()
+    said = stream(session, normalised)
+    warnings = [t for t, e in said if 'already normalised' in e.message]
+    assert len(warnings) == 1 and warnings[0] < 10.0
+    calibration = session.calibration
+    if calibration is not None:  # nothing adopted that moves a reading by more than 1 % of |B|
+        moved = np.linalg.norm(calibration.apply(normalised) - normalised, axis=1)
+        assert np.max(moved) <= 0.01 * 1e-4
+    assert 'already normalised' in session.diagnostic_values(30.0)['input_problem']
+
+
+def test_the_normalised_verdict_survives_a_still_spell():
+    mag, _, _ = raw_tumble(8.0)
+    normalised = mag / np.linalg.norm(mag, axis=1, keepdims=True) * 1e-4
+    still = np.tile(normalised[-1], (500, 1))
+    session = CalibrationSession()
+    stream(session, np.concatenate([normalised, still]))
+    assert 'already normalised' in session.input_watch.problem
+
+
+def test_an_accelerometer_in_g_is_said_once():
+    mag, accel, gyro = raw_tumble(3.0)
+    session = CalibrationSession()
+    said = stream(session, mag, accel / 9.80665, gyro)
+    warnings = [(t, e.message) for t, e in said if 'accelerometer cannot be m/s^2' in e.message]
+    assert len(warnings) == 1 and warnings[0][0] < 1.0 and 'looks like g' in warnings[0][1]
+    assert session.diagnostics_level(session.coverage(), 100.0)[0] == 'WARN'
+
+
+def test_a_recording_in_its_own_unit_is_not_judged_as_tesla():
+    mag, _, _ = raw_tumble(3.0)
+    session = CalibrationSession(SessionSettings(), metadata={'units': 'uT'})
+    said = stream(session, mag * 1e6)
+    assert not [e for _, e in said if 'cannot be' in e.message]
+
+
+# --- mag_calibrator_fit ---------------------------------------------------------------------
+
+
+def write(path, rows):
+    np.savetxt(path, rows, fmt='%.9g', delimiter=',')
+    return str(path)
+
+
+def test_the_cli_refuses_a_unit_the_numbers_cannot_be_in(tmp_path, capsys):
+    mag, _, _ = raw_tumble(10.0)
+    path = write(tmp_path / 'gauss.csv', mag * 1e4)
+    assert main([path, '--units', 'T', '-o', str(tmp_path / 'c.yaml')]) == EXIT_USAGE
+    error = capsys.readouterr().err
+    assert 'cannot be tesla' in error and 'looks like gauss' in error and '--units' in error
+    assert not (tmp_path / 'c.yaml').exists()
+    assert main([path, '--units', 'G', '--json']) in (0, 1)  # the right unit fits
+
+
+def test_the_cli_refuses_a_normalised_recording(tmp_path, capsys):
+    mag, _, _ = raw_tumble(10.0)
+    path = write(tmp_path / 'normalised.csv', mag / np.linalg.norm(mag, axis=1, keepdims=True))
+    for extra in ([], ['--all']):
+        assert main([path, *extra]) == EXIT_USAGE
+        assert 'already normalised or calibrated upstream' in capsys.readouterr().err
