@@ -12,6 +12,8 @@ from rosbags.convert import convert
 from rosbags.rosbag1 import Writer
 from rosbags.typesys import Stores, get_typestore
 
+from mag_calibrator_ros.sim.board import BoardModel, board_readings
+from mag_calibrator_ros.sim.config import SimConfig
 from mag_calibrator_ros.tools import fit
 from mag_calibrator_ros.tools.recordings import (
     IMU,
@@ -158,18 +160,19 @@ def test_a_damaged_ros1_bag_is_one_clear_line(tmp_path):
         read_recording(broken)
 
 
-def test_the_committed_real_ros1_bag_reads_with_its_imu(capsys):
-    """SparkFun Razor's sample bag from imu_tools (test/data/imu_tools/PROVENANCE.md)."""
+def test_the_committed_real_ros1_bag_reads_and_is_named_normalised(capsys):
+    """SparkFun Razor's sample bag from imu_tools (test/data/imu_tools/PROVENANCE.md): its
+    driver normalised the field to exactly 1e-4 T, so the CLI reads it, stamps and pairs it,
+    then refuses it with the reason (issue 24: nothing can be learned from such a field)."""
     recording = read_recording(RAZOR, accel_topic='')
     assert recording.rows == 2144 and recording.kind == 'ROS 1 bag'
     assert recording.layout == 'topic /imu/mag; accelerometer topic /imu/data_raw'
     assert np.isfinite(recording.accel).all()  # one Imu per reading, the same stamp
     np.testing.assert_allclose(np.linalg.norm(recording.samples, axis=1), 1e-4, rtol=1e-6)
     assert 30.0 < recording.stamps[-1] - recording.stamps[0] < 32.0
-    assert fit.main([str(RAZOR), '--accel', '--json']) in (0, 1)
-    summary = json.loads(capsys.readouterr().out)
-    assert summary['time'] == {'stamped': True, 'source': 'header stamps of /imu/mag'}
-    assert 60.0 < summary['rate_hz'] < 80.0
+    assert fit.main([str(RAZOR), '--accel', '--json']) == 2
+    err = capsys.readouterr().err
+    assert 'already normalised or calibrated upstream' in err and len(err.splitlines()) == 1
     assert fit.main([str(RAZOR), '--rate', '100']) == 2
     assert '--rate is for logs without time stamps' in capsys.readouterr().err
 
@@ -226,17 +229,41 @@ def test_one_calibration_from_a_ros1_bag_its_rosbag2_and_its_csv(tmp_path, capsy
     compare(runs)
 
 
-def test_the_committed_bag_and_its_rosbag2_and_csv_agree(tmp_path, capsys):
-    """The same with the committed bag, so CI runs the comparison without a download."""
-    recording = read_recording(RAZOR, accel_topic='')
-    inputs = {'ros1': [RAZOR, '--accel'],
-              'sqlite3': [as_rosbag2(RAZOR, tmp_path / 'b2', 'sqlite3'), '--accel'],
-              'csv': [as_csv(recording, tmp_path / 'razor.csv'), '--accel-columns', 'ax,ay,az',
-                      '--units', 'T']}
+def simulated_bag(tmp_path: Path) -> Path:
+    """A ROS 1 bag of a simulated ICM-20948 tumbling then held at still tilts (issue 24's
+    committed real bag is normalised upstream, so nothing can be calibrated from it): 100 Hz
+    MagneticField, the Imu at 200 Hz offset by 2 ms, stamped as a driver would."""
+    config = {'hard_iron_ut': (30.0, -20.0, 45.0), 'noise_ut': 0.3,
+              'mag_misalignment_deg': (1.8, -1.9, 1.4)}
+    parts = [board_readings(BoardModel(SimConfig(motion=motion, seed=3, **config)), seconds,
+                            200.0) for motion, seconds in (('tumble', 20.0), ('poses', 20.0))]
+    mag, accel, gyro = (np.concatenate(rows) for rows in zip(*parts, strict=True))
+    messages = []
+    for i in range(len(mag)):
+        stamp = START_NS + i * 5_000_000
+        messages.append(('/imu/data_raw', IMU, imu(accel[i], gyro[i], stamp + 2_000_000),
+                         stamp + 2_000_000))
+        if i % 2 == 0:
+            messages.append(('/imu/mag', MAGNETIC_FIELD, magnetic_field(mag[i], stamp), stamp))
+    messages.sort(key=lambda message: message[3])
+    tmp_path.mkdir(exist_ok=True)
+    return write_ros1(tmp_path / 'simulated.bag', messages)
+
+
+def test_a_simulated_ros1_bag_and_its_rosbag2_and_csv_agree(tmp_path, capsys):
+    """The same comparison as the fetched Phidgets bag's, on a bag made here, so CI runs it
+    without a download."""
+    bag = simulated_bag(tmp_path / 'ros1')
+    recording = read_recording(bag, accel_topic='')
+    inputs = {'ros1': [bag, '--accel'],
+              'sqlite3': [as_rosbag2(bag, tmp_path / 'b2', 'sqlite3'), '--accel'],
+              'csv': [as_csv(recording, tmp_path / 'simulated.csv'), '--accel-columns',
+                      'ax,ay,az', '--units', 'T']}
     runs = {}
     for name, argv in inputs.items():
         status = fit.main([str(a) for a in argv] + ['--json'])
         summary = json.loads(capsys.readouterr().out)
-        assert summary['time']['stamped'] and summary['input']['rows'] == 2144
+        assert summary['time']['stamped'] and summary['input']['rows'] == recording.rows
         runs[name] = (status, summary)
+    assert runs['ros1'][0] == 0, runs['ros1'][1]['reason']
     compare(runs)
