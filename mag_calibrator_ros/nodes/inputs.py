@@ -10,9 +10,9 @@ and the other inputs still work.
 from __future__ import annotations
 
 from collections.abc import Callable
+import importlib
 
 from rclpy.node import Node
-from rosidl_runtime_py.utilities import get_message
 from sensor_msgs.msg import Temperature
 
 from mag_calibrator_ros.calibration.live.inputs import InputSpec, parse_input
@@ -31,6 +31,16 @@ def _stamp_ns(message: object) -> int | None:
     value = stamp.sec * 1_000_000_000 + stamp.nanosec
     return value if value > 0 else None
 
+
+
+def message_class(type_name: str) -> type:
+    """The Python class of a ROS message type 'package/msg/Type' (or 'package/Type'), as
+    rosidl_runtime_py's get_message finds it (that package has no PyPI wheel for the venv)."""
+    package, _, name = type_name.replace('/msg/', '/').partition('/')
+    message = getattr(importlib.import_module(f'{package}.msg'), name)
+    if not hasattr(message, 'get_fields_and_field_types'):
+        raise ValueError(f'{type_name} is not a message type')
+    return message
 
 class InputSubscriptions:
     """Subscribes the temperature and the interference inputs the settings name."""
@@ -68,8 +78,8 @@ class InputSubscriptions:
             if isinstance(spec, str):
                 continue  # refused by the settings' checks already
             try:
-                message_type = get_message(spec.type)
-            except (AttributeError, ModuleNotFoundError, ValueError) as error:
+                message_type = message_class(spec.type)
+            except (AttributeError, ImportError, ValueError) as error:
                 self.problems.append(
                     f"interference input '{text}': message type {spec.type} cannot be imported "
                     f'({error}); install its package or fix the name (package/msg/Type)')
