@@ -29,7 +29,8 @@ HELP = (
     '(inputs) or temperature, temp, T (C) (the sensor temperature in degrees Celsius; a header '
     'in K or F is converted); a bag: its only sensor_msgs/BatteryState topic (current) and its '
     'only sensor_msgs/Temperature topic, each paired with the reading nearest its stamp. Only '
-    'with the buffer (not --all).')
+    "with the buffer (not --all). K is applied to the node's interference_inputs in the "
+    'order the file names them: list the topics carrying these inputs in that order.')
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -160,6 +161,9 @@ def lines(found: dict[str, Any] | None, units: str) -> list[str]:
         if removed is not None:
             out.append(f'          removes {removed:.2f} % of the field (RMS over the readings '
                        'it was learned from)')
+        if any(':' not in name for name in found['interference']):
+            out.append("          on the robot: the node's interference_inputs name the topics "
+                       'carrying these inputs, in this order (topic:package/msg/Type:field)')
     else:
         out.append('          not learned: ' + (found['needs'] or 'nothing determined'))
     if found['learned'] and found['needs']:
