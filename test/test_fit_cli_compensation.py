@@ -25,11 +25,10 @@ from bench_interference import robot  # noqa: E402 - the benchmark's simulated g
 RATE_HZ = 50.0
 TOLERANCE = 0.25
 """The node's own CompensationLearner (the CLI learns what the node learns) on this course
-without an IMU: K's current axis within about 10 %, c's warm-up axis 9 to 21 % off (0.217 and
-0.242 uT/degC against 0.2 from the CSV and the bag), and a little of the warm-up leaks into the
-current's axis (the robot warms while it drives); BENCHMARKS.md has the live run at 12 %. The
-issue's 10 % is the learner's to reach (live/compensation.py); judged here within 25 % on the
-simulated axes and on the field the model removes over the course."""
+without an IMU finds K's current axis closely, c's warm-up axis less so, and leaks a little of
+the warm-up into the current's axis (the robot warms while it drives). The issue's 10 % is the
+learner's to reach (``live/compensation.py``); judged here within 25 % on the simulated axes
+and on the field the model removes over the course."""
 ROS2 = get_typestore(Stores.ROS2_JAZZY)
 
 
