@@ -13,7 +13,9 @@ read).
 With ``--accel-columns`` (a text log with the accelerometer on each line) or ``--accel`` (a
 bag's Imu topic, paired by stamp) the calibration is aligned to the accelerometer from the
 readings held still, as the node does with imu/data_raw; with ``--latitude``/``--longitude`` it
-is checked against the World Magnetic Model there.
+is checked against the World Magnetic Model there. A recording that logs the current or the
+sensor temperature (columns by header name, or a bag's BatteryState / Temperature topics) also
+teaches the robot's own field, K and c, as the node learns them (``fit_compensation.py``).
 
 Time: a bag's header stamps or a log's time column time the live session and tell still
 readings; the summary says which. A log without time has no rate anyone knows: its rows are
@@ -65,10 +67,12 @@ from mag_calibrator_ros.calibration.store.calibration_file import (
     CalibrationFileError,
     save_calibration,
 )
+from mag_calibrator_ros.tools import fit_compensation as own_field
 from mag_calibrator_ros.tools.recordings import (
     Recording,
     RecordingError,
     describe_skips,
+    is_rosbag,
     read_paired_recording,
     read_recording,
 )
@@ -107,6 +111,8 @@ examples:
   {PROG} counts.csv --scale 0.15e-6 -o cal.yaml    raw counts of 0.15 uT (AK09916)
   {PROG} ~/bags/run1 --topic /imu/mag --output cal.yaml    rosbag2 (sqlite3 or mcap), tesla
   ros2 topic echo /imu/mag | {PROG} - --json    messages on stdin (tesla), JSON summary
+  {PROG} drive.csv --units uT -o cal.yaml    with current and temperature columns: K and c too
+  {PROG} drive_bag --battery-topic /battery    a bag's BatteryState current (and Temperature)
   ros2 topic echo --csv /imu/mag | {PROG} -    the same as CSV (the field is found by itself)
   {PROG} cal_output_2.log --accel-columns 0,1,2 --rate 3 --latitude 45.5 --longitude -122.7
                                            align to the accelerometer logged beside the
@@ -251,6 +257,7 @@ def build_parser() -> argparse.ArgumentParser:
                      f'{MAX_DIP_ERROR_DEG:g}; needs --accel-columns)')
     imu.add_argument('--no-earth-gate', action='store_true',
                      help='only warn when the fit is off the model, never fail')
+    own_field.add_arguments(parser)
     parser.add_argument('--json', action='store_true',
                         help='print a machine-readable summary on stdout instead of the text')
     parser.add_argument('--quiet', '-q', action='store_true',
@@ -291,17 +298,26 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     progress = ProgressBar(sys.stderr, args.input)
 
     earth = location(args)  # usage errors before reading anything
+    bag = args.input != '-' and is_rosbag(Path(args.input))
+    if own_field.text_options(args) if bag else own_field.bag_options(args):
+        given = (own_field.text_options if bag else own_field.bag_options)(args)
+        raise UsageError(f"{', '.join(given)} applies to {'text input' if bag else 'a bag'}, "
+                         f"not to {'a bag' if bag else 'text'} ({args.input})")
     if args.accel_columns is not None:
         if args.topic is not None or args.accel is not None:
             raise UsageError('--accel-columns applies to text input, not to a bag (use --accel '
                              'for its Imu topic)')
+        if own_field.text_options(args):
+            raise UsageError('--input-columns and --temperature-column are not read with '
+                             '--accel-columns; drop one of them')
         recording = read_paired_recording(args.input, accel_columns=args.accel_columns,
                                           columns=args.columns, min_rows=options.min_samples,
                                           progress=progress.reading)
     else:
         recording = read_recording(args.input, columns=args.columns, topic=args.topic,
                                    accel_topic=args.accel, min_rows=options.min_samples,
-                                   progress=progress.reading)
+                                   progress=progress.reading,
+                                   compensation=own_field.reader_option(args, bag))
     progress.finish()
     clock = Clock.of(recording, args.rate)
     units = input_units(args, recording)
@@ -331,8 +347,9 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
             session.pairing.force_range = None  # a log's accelerometer may be in g or counts
         session.attitudes = StaticAttitudes(clock=clock.stamped)
         session.set_earth_field(earth)
+        own_field.configure(session, recording)
         stream(session, recording.samples, clock.stamps_ns, progress, recording.accel,
-               recording.gyro)
+               recording.gyro, recording)
         session.attitudes.finish()  # the recording ends: its last still stretch too
         attempt = session.calibrate_now()
         if attempt.outcome is None or attempt.outcome.result is None:
@@ -358,7 +375,7 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     result = outcome.result
     progress.finish()
 
-    calibration = result.calibration
+    calibration = own_field.with_learned(result.calibration, session)
     written = None
     if result.success and calibration is not None and args.output is not None:
         save_calibration(args.output, in_tesla(calibration, units), node_name=OUTPUT_SECTION)
@@ -369,6 +386,7 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
 
     summary = build_summary(args, recording, units, result, calibration, session, screening,
                             written, plotted)
+    summary['compensation'] = _finite(own_field.summary(recording, calibration, session))
     add_reference(summary, outcome, earth, clock)
     status = EXIT_CALIBRATED if result.success else EXIT_FAILED_GATES
     try:
@@ -599,9 +617,12 @@ def input_problem(recording: Recording, units: str, scaled: bool = False) -> str
 
 def stream(session: CalibrationSession, samples: np.ndarray, stamps_ns: np.ndarray,
            progress: ProgressBar, accel: np.ndarray | None = None,
-           gyro: np.ndarray | None = None) -> None:
+           gyro: np.ndarray | None = None, recording: Recording | None = None) -> None:
     """Offer every sample in order with its stamp, as the node receives messages (with its
-    accelerometer row first, as imu/data_raw, when given)."""
+    accelerometer row first, as imu/data_raw, when given; the ``recording``'s temperature and
+    interference inputs first too, as the node's subscriptions hand them over)."""
+    own = recording is not None and (recording.inputs is not None
+                                     or recording.temperature is not None)
     total = len(samples)
     for start in range(0, total, PROGRESS_CHUNK):
         end = min(start + PROGRESS_CHUNK, total)
@@ -610,6 +631,8 @@ def stream(session: CalibrationSession, samples: np.ndarray, stamps_ns: np.ndarr
         forces = None if accel is None else accel[start:end].tolist()
         rates = None if gyro is None else gyro[start:end].tolist()
         for index, (stamp, row) in enumerate(zip(stamps, rows, strict=True)):
+            if own:
+                own_field.feed(session, recording, start + index, stamp)  # type: ignore[arg-type]
             if forces is not None:
                 session.process_imu(stamp, '', forces[index],
                                     None if rates is None else rates[index])
@@ -813,6 +836,7 @@ def human_summary(summary: dict[str, Any]) -> str:
     lines.append('rejects   ' + (', '.join(f'{count} {REJECT_WORDS.get(reason, reason)}'
                                           for reason, count in rejects.items()) or 'none'))
     lines.extend(reference_lines(summary))
+    lines.extend(own_field.lines(summary.get('compensation'), units))
     outputs = summary['outputs']
     if outputs['calibration']:
         lines.append(f"output    calibration written to {outputs['calibration']}")

