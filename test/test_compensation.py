@@ -240,3 +240,26 @@ def test_a_bad_input_spec_is_refused_with_the_form_it_needs():
         class linear:  # noqa: N801 - the message's field
             x = -0.4
     assert spec.value(Twist()) == pytest.approx(0.4)
+
+
+ODOMETRY = 'odom:nav_msgs/msg/Odometry:twist.twist.linear.x'
+
+
+@pytest.mark.parametrize('inputs', [(), (BATTERY, ODOMETRY), (ODOMETRY,)])
+def test_a_calibration_naming_inputs_this_node_lacks_is_applied_without_them(inputs):
+    """A file learnt with other interference inputs (another count, or names this node does not
+    subscribe): the reading is still corrected (those terms left out) and /diagnostics says so,
+    where a shape error in the message path would stop the output."""
+    run = drive(seconds=5.0)
+    static = _static(run).with_compensation(
+        Compensation(('current', 'wheel_speed', 'fan'), np.full((3, 3), 1e-7), np.zeros(3)))
+    session = CalibrationSession(
+        SessionSettings(interference_inputs=inputs, use_temperature=False), calibration=static)
+    for index, when in enumerate(run['t'][:50]):
+        stamp = int(round(when * 1e9)) + 1
+        for j in range(len(inputs)):
+            session.compensation.input(j, stamp, float(run['current'][index]))
+        processed = session.process(stamp, 'imu', run['raw'][index])
+        np.testing.assert_allclose(processed.corrected, static.apply(run['raw'][index]))
+    assert 'interference_inputs does not list' in session.diagnostic_values(0.0)[
+        'interference_unmatched']

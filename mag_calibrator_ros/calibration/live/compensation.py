@@ -79,6 +79,7 @@ class CompensationLearner:
     def __init__(self, inputs: tuple[str, ...] = (), use_temperature: bool = True,
                  learn: bool = True) -> None:
         self.specs: tuple[InputSpec, ...] = ()
+        self.unmatched: tuple[str, ...] = ()  # a compensation's inputs this node lacks
         self.series: list[_Series] = []
         self.temperature_series = _Series()
         self.learn = learn
@@ -162,12 +163,28 @@ class CompensationLearner:
         compensation = None if calibration is None else calibration.compensation
         if compensation is None:
             return reading
-        held = [value if math.isfinite(value) else series.latest
-                for value, series in zip(inputs, self.series, strict=True)]
+        held = self.in_order_of(compensation.inputs, [
+            value if math.isfinite(value) else series.latest
+            for value, series in zip(inputs, self.series, strict=True)])
         if not math.isfinite(temperature) and self.use_temperature:
             temperature = self.temperature_series.latest
         return calibration.compensated(reading, held if held else None,
                                        temperature if self.use_temperature else None)
+
+    def in_order_of(self, names: tuple[str, ...], values: list[float]) -> list[float]:
+        """This node's input values in the order of a compensation's ``names``: by name when it
+        subscribes them all, else by position when the counts agree (a file learnt offline
+        names its columns); a term with no input here contributes nothing (NaN), said in
+        ``diagnostic_values`` as ``interference_unmatched``."""
+        own = self.names
+        if tuple(names) == own:
+            return values
+        if all(name in own for name in names):
+            return [values[own.index(name)] for name in names]
+        if len(names) == len(own):
+            return values
+        self.unmatched = names
+        return [math.nan] * len(names)
 
     # -- fits ----------------------------------------------------------------------------------
 
@@ -231,6 +248,12 @@ class CompensationLearner:
         values: dict[str, object] = {}
         if self.specs:
             values['interference_inputs'] = ', '.join(self.names)
+        if self.unmatched and calibration is not None and calibration.compensation is not None \
+                and calibration.compensation.inputs == self.unmatched:
+            values['interference_unmatched'] = (
+                f"the calibration compensates {', '.join(self.unmatched)}, which "
+                'interference_inputs does not list: those terms are not applied (list them in '
+                'the same order)')
         if self.temperature_series.received:
             values['temperature_degC'] = round(self.temperature_series.latest, 2)
         compensation = None if calibration is None else calibration.compensation
