@@ -29,7 +29,8 @@ on the same stamps, minutes faster, no DDS); section (b) needs the node and is s
 
 Stream time comes from the message stamps, so --speed (publishing faster than the stamps say)
 changes no decision of the node: only how long the benchmark takes. Recordings in µT or counts
-are replayed with the node's saturation check off (full_scale 0): the engine is unit-free.
+are scaled to an Earth-like field in tesla (the node names any other unit as wrong; the engine's
+decisions do not depend on a common scale) and replayed with the saturation check off.
 """
 
 from __future__ import annotations
@@ -73,6 +74,12 @@ TARGET_OVER_CALIBRATE = 0.02
 """Issue #25: the live ratio at most the ~/calibrate-at-the-end ratio + 0.02."""
 WARN_TARGET_S = 10.0
 RECALIBRATED_TARGET_S = 30.0
+
+
+def as_tesla(rows: np.ndarray) -> np.ndarray:
+    """The rows scaled so their median |raw| is 50 µT, as tesla: what a driver in µT or counts
+    would publish once converted (every spread and ratio here is relative, so unchanged)."""
+    return rows * (50e-6 / float(np.median(np.linalg.norm(rows, axis=1))))
 
 
 @dataclass(frozen=True)
@@ -288,7 +295,7 @@ def recordings_section(threads, context, directory, args) -> tuple[list[list[str
         if spec.path is None:
             rows = synthetic_rows()
         else:
-            rows = read_recording(args.data / spec.path, columns=spec.columns).samples
+            rows = as_tesla(read_recording(args.data / spec.path, columns=spec.columns).samples)
         passes = passes_of(rows, args.passes, args.fresh_noise, seed=number)
         reference, robust_reference, gates_passed = all_rows_fit(passes[-1])
         if args.offline:

@@ -68,7 +68,8 @@ def stream(name: str, rows: np.ndarray, passes: int = 3, calibration: Calibratio
            **settings: object) -> None:
     """Rows through a session with the saturation check off (the recordings are in µT or
     counts: the engine is unit-free)."""
-    session = CalibrationSession(SessionSettings(full_scale=0.0, **settings), calibration)
+    session = CalibrationSession(SessionSettings(full_scale=0.0, **settings), calibration,
+                                 metadata={'units': 'input'})  # not tesla: as the CLI says
     print(f'== {name} ({len(rows)} rows x {passes}, {settings})')
     index = 0
     for _ in range(passes):
