@@ -20,7 +20,7 @@ import math
 
 import numpy as np
 
-from mag_calibrator_ros.calibration.fit.coverage import HEADING_SECTORS, Coverage
+from mag_calibrator_ros.calibration.fit.coverage import HEADING_SECTORS, STILL_HINT, Coverage
 from mag_calibrator_ros.calibration.fit.heading import (
     HeadingCoverage,
     heading_coverage_of,
@@ -31,6 +31,9 @@ from mag_calibrator_ros.calibration.live.buffer import SampleBuffer
 UNDECIDED_HINT = ('keep turning (a robot: in place; a sensor in the hand: through every '
                   'orientation)')
 """The hint while the readings trace one arc: nothing yet says which motion it is."""
+
+UNDECIDED_STILL_HINT = f'the readings barely change: {UNDECIDED_HINT}'
+"""...and while they barely move: said, without naming a rotation a robot could not make."""
 
 
 UNDECIDED_PERIOD_S = 0.25
@@ -96,11 +99,12 @@ class MotionHints:
         robot on the ground could not make."""
         if self.kind or coverage.cells == HEADING_SECTORS or not coverage.hint:
             return coverage
-        return replace(coverage, hint=UNDECIDED_HINT)
+        still = coverage.hint == STILL_HINT
+        return replace(coverage, hint=UNDECIDED_STILL_HINT if still else UNDECIDED_HINT)
 
     def clear(self) -> None:
         """The buffer was emptied: judge afresh."""
         self.__init__()
 
 
-__all__ = ['UNDECIDED_HINT', 'MotionHints']
+__all__ = ['UNDECIDED_HINT', 'UNDECIDED_STILL_HINT', 'MotionHints']
