@@ -7,6 +7,7 @@ from rcl_interfaces.msg import ParameterDescriptor
 from rclpy import logging
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 
 
 class ConfigurationError(ValueError):
@@ -19,7 +20,11 @@ def declare_checked(node: Node, name: str, default: object, descriptor: Paramete
     ``problems`` (and the default declared, so the node stays introspectable while it reports).
     """
     try:
-        return node.declare_parameter(name, default, descriptor).value
+        value = node.declare_parameter(name, default, descriptor).value
+        if default == [] and not value:  # rcl gives an empty list no type (NOT_SET, or bytes)
+            node.set_parameters([Parameter(name, Parameter.Type.STRING_ARRAY, [])])
+            return []  # so `ros2 param get` says a list of strings, empty, as the YAML does
+        return value
     except (InvalidParameterValueException, InvalidParameterTypeException) as error:
         expected = type(default).__name__
         if isinstance(default, list):
