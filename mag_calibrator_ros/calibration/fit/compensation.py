@@ -15,9 +15,12 @@ it stands out of that uncertainty (``SIGNIFICANT_SIGMA``): only significant, det
 are kept, so noise never becomes a coefficient. What kept a term undetermined is said in words
 a user can act on (the input did not vary; it varied while the robot faced one way).
 
-Why the magnitude and not the gyroscope: it needs no IMU and no time alignment, and a robot
-that drives and turns moves the field's direction through the sensor, which is what makes
-every axis of ``K`` visible in ``|corrected|``.
+The magnitude needs no IMU, but sees a term only where the field's direction moves through the
+sensor while the input changes. With the gyroscope (``attitudes``) the readings' changes that
+orientation does not explain say it directly: two readings ``PAIR_LAGS_S`` apart between which
+the robot turned little (driving straight, standing with its motors running, ArduPilot's
+compassmot) differ by the gyroscope's rotation of the field plus ``K du + c dT``, so one speed
+change determines all three axes of ``K`` whichever way the robot faces.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from dataclasses import dataclass, field
 import math
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from mag_calibrator_ros.calibration.fit.calibration import Calibration, Compensation
 
@@ -48,13 +52,34 @@ instead of taking any value (and is reported unobserved: OBSERVED)."""
 OBSERVED = 0.3
 """An axis of a term is observed when its standard error is below this share of its prior's."""
 OFFSET_PRIOR = 0.1
-"""The offset change's prior: 1 sigma of a tenth of the field. A robot turning in a plane does
-not determine the offset along the plane's normal apart from the field strength; the static fit
-put it within a few percent, and the prior keeps it there instead of letting it drift."""
+"""The offset change's prior, at the readings' mean inputs: 1 sigma of a tenth of the field. A
+robot turning in a plane does not determine the offset along the plane's normal apart from the
+field strength; the static fit put it within a few percent, and the prior keeps it there
+instead of letting it drift."""
+OFFSET_SEEN_DEG = 0.5
+"""The offset changes only along directions the field's direction spread over by this much (root
+mean square of its component over the readings) beyond twice what the noise scatters it by:
+along the others (every direction but the field's, for a robot standing still) the offset
+would slide around the sphere |corrected| = F to wherever the noise's sample happens to scatter
+least (tens of uT, measured)."""
 MIN_TEMPERATURE_SPAN = 2.0
 """Degrees Celsius: a narrower span is reported as 'did not vary' without a fit of c."""
 TEMPERATURE = 'temperature'
 """The name of the temperature term in reports."""
+PAIR_LAGS_S = (1.0, 3.0)
+"""Readings compared through the gyroscope are this far apart (up to PAIR_SLACK times): long
+enough for a speed change to reach the current, short enough that a gyroscope bias of 0.2 deg/s
+turns a 50 uT field by under 0.5 uT between them."""
+PAIR_SLACK = 1.5
+PAIR_MAX_TURN_DEG = 2.0
+"""Only readings between which the robot turned at most this much are compared: a wrong frame
+of the gyroscope against the magnetometer, its scale error and the stamps' offset all scale
+with the turn (2 degrees of a 50 uT field: 1.7 uT at the very worst)."""
+MIN_TURN_DEG = 20.0
+"""Without gyroscope pairs, the magnitude determines a term only once the field's direction in
+the sensor turned this far (95th percentile from its mean) over the readings: held one way, a
+current's field across the Earth's changes |corrected| only in second order, which a fit
+can match by any of a circle of coefficients."""
 LEARNED = ('compensation_time', 'compensation_removed_pct', 'compensation_readings')
 """Metadata of a learned compensation, carried with it into later static fits."""
 
@@ -76,6 +101,12 @@ class CompensationData:
     """Held-out readings no fit sees, to judge the fit on (same columns)."""
     reference_temperature: float | None = None
     """T0 in degrees Celsius (None: the readings' median, rounded to 0.1)."""
+    times: np.ndarray | None = None
+    attitudes: np.ndarray | None = None
+    held_times: np.ndarray | None = None
+    held_attitudes: np.ndarray | None = None
+    """Stream seconds (n,) and (n, 5) gyroscope attitudes: a stretch number and the quaternion
+    (x, y, z, w) integrated within it (NaN: no gyroscope then); None without an IMU."""
 
 
 @dataclass(frozen=True)
@@ -116,6 +147,90 @@ class CompensationFit:
     """RMS of the compensation's field over the readings, % of F: the share it removes."""
     reason: str = ''
     kept: tuple[str, ...] = field(default_factory=tuple)
+    pairs: int = 0
+    """Pairs of readings compared through the gyroscope (turned at most PAIR_MAX_TURN_DEG)."""
+    held_pair_errors: tuple[np.ndarray, np.ndarray] | None = None
+    """The held-out pairs' ``|difference not explained by the rotation|/F``: the calibration
+    in force and the candidate (``evidence.compare_residuals`` judges them)."""
+
+
+@dataclass(frozen=True)
+class GyroPairs:
+    """Readings compared through the gyroscope: ``first``/``second`` index them, ``maps``
+    (p, 3, 3) carries a world-fixed vector in the IMU frame at ``first`` to the frame at
+    ``second``."""
+
+    first: np.ndarray
+    second: np.ndarray
+    maps: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.first)
+
+
+NO_PAIRS = GyroPairs(np.zeros(0, int), np.zeros(0, int), np.zeros((0, 3, 3)))
+
+
+def gyro_pairs(times: np.ndarray | None, attitudes: np.ndarray | None) -> GyroPairs:
+    """Each reading with the first one each of PAIR_LAGS_S later (at most PAIR_SLACK times
+    that) in the same stretch of gyroscope attitude, when the robot turned at most
+    PAIR_MAX_TURN_DEG between them."""
+    if times is None or attitudes is None or len(times) < 2:
+        return NO_PAIRS
+    times = np.asarray(times, dtype=float)
+    attitudes = np.asarray(attitudes, dtype=float).reshape(len(times), 5)
+    known = np.all(np.isfinite(attitudes), axis=1)
+    firsts, seconds = [], []
+    for lag in PAIR_LAGS_S:
+        second = np.searchsorted(times, times + lag)
+        first = np.arange(len(times))
+        inside = second < len(times)
+        first, second = first[inside], second[inside]
+        keep = ((times[second] - times[first] <= lag * PAIR_SLACK) & known[first]
+                & known[second] & (attitudes[first, 0] == attitudes[second, 0]))
+        firsts.append(first[keep])
+        seconds.append(second[keep])
+    first, second = np.concatenate(firsts), np.concatenate(seconds)
+    if not len(first):
+        return NO_PAIRS
+    start, end = (Rotation.from_quat(attitudes[index, 1:]) for index in (first, second))
+    turn = start.inv() * end
+    small = turn.magnitude() <= math.radians(PAIR_MAX_TURN_DEG)
+    if not np.any(small):
+        return NO_PAIRS
+    maps = turn[small].inv().as_matrix()  # e_second = R_end^T R_start e_first
+    return GyroPairs(first[small], second[small], maps)
+
+
+def pair_evidence(current: Calibration, candidate: Calibration, raw: np.ndarray,
+                  inputs: np.ndarray | None, temperatures: np.ndarray | None, pairs: GyroPairs
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """``pair_errors`` under both calibrations, on the pairs where they predict the change
+    between the two readings differently by at least the candidate's typical error: a pair
+    between which no input changed says nothing of K and would only dilute the judgement. The
+    choice depends on the inputs only (the static part is shared), never on which one fits."""
+    errors = []
+    vectors = []
+    for calibration in (current, candidate):
+        corrected = calibration.apply(raw, inputs, temperatures)
+        vector = corrected[pairs.second] - np.einsum('pab,pb->pa', pairs.maps,
+                                                      corrected[pairs.first])
+        vectors.append(vector)
+        errors.append(np.linalg.norm(vector, axis=1) / calibration.field_strength)
+    apart = np.linalg.norm(vectors[0] - vectors[1], axis=1) / candidate.field_strength
+    telling = apart >= float(np.median(errors[1]))
+    return errors[0][telling], errors[1][telling]
+
+
+def pair_errors(calibration: Calibration, raw: np.ndarray, inputs: np.ndarray | None,
+                temperatures: np.ndarray | None, pairs: GyroPairs) -> np.ndarray:
+    """``|corrected_second - map corrected_first| / F`` per pair: what the rotation does not
+    explain (zero for a perfect calibration and gyroscope)."""
+    if not len(pairs):
+        return np.zeros(0)
+    corrected = calibration.apply(raw, inputs, temperatures)
+    moved = np.einsum('pab,pb->pa', pairs.maps, corrected[pairs.first])
+    return np.linalg.norm(corrected[pairs.second] - moved, axis=1) / calibration.field_strength
 
 
 def _span(values: np.ndarray) -> float:
@@ -126,12 +241,16 @@ def _span(values: np.ndarray) -> float:
     return float(high - low)
 
 
-def _solve(raw: np.ndarray, columns: np.ndarray, spans: list[float], base: Calibration
+def _solve(raw: np.ndarray, columns: np.ndarray, spans: list[float], base: Calibration,
+           pairs: GyroPairs = NO_PAIRS
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Gauss-Newton for ``|M (raw - b - d - W z)| = F``, ``z`` = (1, columns...): the offset
-    change ``d`` is W's first column; ``M``, ``b`` and ``F`` are the base's. Returns W (3, m),
-    its covariance (3m, 3m) in the order of ``W.reshape(-1)``, which of those the readings
-    observed (OBSERVED) and the residuals.
+    change ``d`` (at zero input; fitted at the mean input) is W's first column; ``M``, ``b``
+    and ``F`` are the base's. With gyroscope ``pairs``, also ``A (y2 - W z2) = map A (y1 -
+    W z1)`` (``A = R M``, ``y = raw - b``: the field the gyroscope says turned), weighted by
+    its own noise. Returns W (3, m), its covariance
+    (3m, 3m) in the order of ``W.reshape(-1)``, which of those the readings observed (OBSERVED)
+    and the magnitude residuals.
 
     ``F`` and ``M`` stay fixed: with ``F`` free, a large offset along an axis the readings
     barely move in (the vertical of a robot turning in a plane) shrinks every other variation of
@@ -140,7 +259,10 @@ def _solve(raw: np.ndarray, columns: np.ndarray, spans: list[float], base: Calib
     compensated readings instead). Every coefficient has a broad prior around zero
     (OFFSET_PRIOR, COEFFICIENT_PRIOR), so what the readings cannot see stays near zero."""
     n, m = len(raw), columns.shape[1] + 1
-    z = np.hstack([np.ones((n, 1)), columns])
+    centre = columns.mean(axis=0) if len(columns) else np.zeros(m - 1)
+    # centred: the offset's prior says the calibration in force is right at the readings' mean
+    # inputs (where it was made), not at zero current, which it may never have seen
+    z = np.hstack([np.ones((n, 1)), columns - centre])
     scale = np.maximum(np.abs(z).max(axis=0), 1e-12)  # column scaling for conditioning
     zs = z / scale
     matrix, strength = base.matrix, base.field_strength
@@ -150,8 +272,20 @@ def _solve(raw: np.ndarray, columns: np.ndarray, spans: list[float], base: Calib
     sigmas = np.array([OFFSET_PRIOR] + [COEFFICIENT_PRIOR * scale[j] / max(spans[j - 1], 1e-300)
                                         for j in range(1, m)]) * strength
     prior = np.tile(1.0 / sigmas ** 2, 3)  # precision of the prior, by w.reshape(-1)
-    for iteration in range(ITERATIONS):
+    precision = np.diag(prior)
+    offset_axes = np.arange(3) * m  # d's entries in w.reshape(-1)
+    correction = base.rotation @ matrix
+    mapped = pairs.maps @ correction  # (p, 3, 3)
+    zi, zj = zs[pairs.first], zs[pairs.second]
+    # d(pair residual)/dW[a, c] = -A[k, a] zj[c] + (map A)[k, a] zi[c]: linear, fixed
+    pair_jacobian = (-correction[None, :, :, None] * zj[:, None, None, :]
+                     + mapped[:, :, :, None] * zi[:, None, None, :]).reshape(-1, 3 * m)
+    pair_weights = np.ones(len(pairs))
+    for iteration in range(2 * ITERATIONS):
         corrected = (y - zs @ w.T) @ matrix.T
+        if iteration == ITERATIONS:  # the directions with the robot's own field fitted out
+            precision[np.ix_(offset_axes, offset_axes)] = _offset_precision(corrected,
+                                                                            sigmas[0])
         magnitude = np.linalg.norm(corrected, axis=1)
         residuals = magnitude - strength
         mad = 1.4826 * float(np.median(np.abs(residuals - np.median(residuals))))
@@ -161,11 +295,26 @@ def _solve(raw: np.ndarray, columns: np.ndarray, spans: list[float], base: Calib
             weights = np.minimum(1.0, limit / np.maximum(np.abs(residuals), 1e-300))
         g = (corrected / np.maximum(magnitude, 1e-300)[:, None]) @ matrix  # d|m| / d(raw)
         jacobian = -(g[:, :, None] * zs[:, None, :]).reshape(n, 3 * m)
-        normal = (jacobian * weights[:, None]).T @ jacobian + noise2 * np.diag(prior)
-        gradient = (jacobian * weights[:, None]).T @ residuals + noise2 * prior * w.reshape(-1)
+        normal = (jacobian * weights[:, None]).T @ jacobian + noise2 * precision
+        gradient = (jacobian * weights[:, None]).T @ residuals + noise2 * (
+            precision @ w.reshape(-1))
+        if len(pairs):
+            ci, cj = y[pairs.first] - zi @ w.T, y[pairs.second] - zj @ w.T
+            differences = cj @ correction.T - np.einsum('pab,pb->pa', mapped, ci)
+            spread = 1.4826 * float(np.median(np.abs(differences)))
+            pair_noise2 = max(spread, 1e-9 * strength) ** 2
+            if iteration >= 2:
+                limit = 4.0 * math.sqrt(3.0 * pair_noise2)
+                pair_weights = np.minimum(1.0, limit / np.maximum(
+                    np.linalg.norm(differences, axis=1), 1e-300))
+            # each reading is in up to two pairs a lag: counted once, not more
+            row_weights = np.repeat(pair_weights, 3) * (
+                noise2 / (2.0 * len(PAIR_LAGS_S) * pair_noise2))
+            normal += (pair_jacobian * row_weights[:, None]).T @ pair_jacobian
+            gradient += (pair_jacobian * row_weights[:, None]).T @ differences.reshape(-1)
         step = -np.linalg.lstsq(normal, gradient, rcond=None)[0]
         w = w + step.reshape(3, m)
-        if np.max(np.abs(step)) < 1e-9 * strength:
+        if np.max(np.abs(step)) < 1e-9 * strength and iteration > ITERATIONS:
             break
     residuals = np.linalg.norm((y - zs @ w.T) @ matrix.T, axis=1) - strength
     dof = max(int(np.sum(weights)) - normal.shape[0], 1)
@@ -173,7 +322,23 @@ def _solve(raw: np.ndarray, columns: np.ndarray, spans: list[float], base: Calib
     covariance = np.linalg.pinv(normal) * sigma2
     seen = np.sqrt(np.maximum(np.diag(covariance), 0.0) * prior) < OBSERVED  # prior narrowed
     unscale = np.tile(1.0 / scale, 3)
-    return w / scale, covariance * np.outer(unscale, unscale), seen, residuals
+    w = w / scale
+    w[:, 0] -= w[:, 1:] @ centre  # the offset change at zero input
+    return w, covariance * np.outer(unscale, unscale), seen, residuals
+
+
+def _offset_precision(corrected: np.ndarray, sigma: float) -> np.ndarray:
+    """The offset change's prior precision (3, 3): ``1/sigma^2`` along the directions the
+    readings' field direction spread over (OFFSET_SEEN_DEG), a million times that along the
+    others (held where the calibration in force puts it)."""
+    magnitude = np.linalg.norm(corrected, axis=1)
+    directions = corrected / np.maximum(magnitude, 1e-300)[:, None]
+    noise = 1.4826 * float(np.median(np.abs(magnitude - np.median(magnitude))))
+    noise /= max(float(np.median(magnitude)), 1e-300)
+    spread, axes = np.linalg.eigh(np.cov(directions.T, bias=True).reshape(3, 3))
+    seen = spread >= math.sin(math.radians(OFFSET_SEEN_DEG)) ** 2 + 4.0 * noise ** 2
+    weights = np.where(seen, 1.0, 1e6) / sigma ** 2
+    return (axes * weights) @ axes.T
 
 
 def magnitude_spread_pct(calibration: Calibration, raw: np.ndarray,
@@ -205,6 +370,9 @@ def fit_compensation(data: CompensationData, base: Calibration) -> CompensationF
         usable &= np.isfinite(temperatures)
     raw, inputs = raw[usable], inputs[usable]
     temperatures = None if temperatures is None else temperatures[usable]
+    pairs = (NO_PAIRS if data.times is None or data.attitudes is None else
+             gyro_pairs(np.asarray(data.times, float)[usable],
+                        np.asarray(data.attitudes, float).reshape(-1, 5)[usable]))
     if len(raw) < MIN_READINGS:
         return CompensationFit(None, readings=len(raw),
                                reason=f'{len(raw)} readings with their inputs, '
@@ -223,10 +391,16 @@ def fit_compensation(data: CompensationData, base: Calibration) -> CompensationF
         columns.append(temperatures - t0)
         labels.append(TEMPERATURE)
     reports: list[TermReport] = []
+    directions = base.unrotated(raw)
+    directions /= np.maximum(np.linalg.norm(directions, axis=1), 1e-300)[:, None]
+    mean = directions.mean(axis=0)
+    mean /= max(float(np.linalg.norm(mean)), 1e-300)
+    turned_deg = float(np.degrees(np.arccos(np.clip(np.percentile(directions @ mean, 5.0),
+                                                     -1.0, 1.0))))
     varied = [index for index, span in enumerate(spans)
               if span > 0 and (labels[index] != TEMPERATURE or span >= MIN_TEMPERATURE_SPAN)]
     design = np.stack([columns[i] for i in varied], axis=1) if varied else np.zeros((len(raw), 0))
-    w, covariance, seen, _ = _solve(raw, design, [spans[i] for i in varied], base)
+    w, covariance, seen, _ = _solve(raw, design, [spans[i] for i in varied], base, pairs)
     determined_axes: dict[int, np.ndarray] = {}
     m = design.shape[1] + 1
     kept: list[int] = []
@@ -238,7 +412,8 @@ def fit_compensation(data: CompensationData, base: Calibration) -> CompensationF
         column = varied.index(index) + 1
         picks = np.array([axis * m + column for axis in range(3)])
         axis_sigma = np.sqrt(np.maximum(np.diag(covariance)[picks], 0.0)) * spans[index]
-        axes = seen[picks] & (100.0 * axis_sigma / strength <= DETERMINED_PCT)
+        axes = seen[picks] & (100.0 * axis_sigma / strength <= DETERMINED_PCT) & (
+            bool(len(pairs)) or turned_deg >= MIN_TURN_DEG)
         determined_axes[index] = axes  # the vertical of a robot turning level is not among them
         coefficients = w[axes, column]
         block = covariance[np.ix_(picks[axes], picks[axes])]
@@ -261,7 +436,7 @@ def fit_compensation(data: CompensationData, base: Calibration) -> CompensationF
     # The calibration: refit with the kept terms only (the others are noise or unknown).
     design = (np.stack([columns[i] for i in kept], axis=1) if kept
               else np.zeros((len(raw), 0)))
-    w, _, _, residuals = _solve(raw, design, [spans[i] for i in kept], base)
+    w, _, _, residuals = _solve(raw, design, [spans[i] for i in kept], base, pairs)
     gains = np.zeros((3, len(names)))
     drift = np.zeros(3)
     for position, index in enumerate(kept):
@@ -272,9 +447,9 @@ def fit_compensation(data: CompensationData, base: Calibration) -> CompensationF
             gains[:, index] = values
     residual_pct = 100.0 * math.sqrt(float(np.mean(residuals ** 2))) / strength
     fit = CompensationFit(None, tuple(reports), len(raw), residual_pct,
-                          kept=tuple(labels[i] for i in kept))
+                          kept=tuple(labels[i] for i in kept), pairs=len(pairs))
     if not kept:
-        return _with_reason(fit, reports)
+        return _with_reason(fit, reports, bool(len(pairs)))
     compensation = Compensation(tuple(names), gains, drift,
                                 t0 if np.any(drift) else None)
     offset = base.offset + w[:, 0]
@@ -284,6 +459,7 @@ def fit_compensation(data: CompensationData, base: Calibration) -> CompensationF
     removed = 100.0 * math.sqrt(float(np.mean(np.sum(own ** 2, axis=1)))) / strength
     held = data.held_raw is not None and len(data.held_raw) > 0
     current_pct = candidate_pct = math.nan
+    held_pair_errors = None
     if held:
         held_inputs = (None if data.held_inputs is None
                        else np.asarray(data.held_inputs, float).reshape(len(data.held_raw), -1))
@@ -291,9 +467,14 @@ def fit_compensation(data: CompensationData, base: Calibration) -> CompensationF
                                            data.held_temperatures)
         candidate_pct = magnitude_spread_pct(candidate, data.held_raw, held_inputs,
                                              data.held_temperatures)
+        held_pairs = gyro_pairs(data.held_times, data.held_attitudes)
+        if len(held_pairs):
+            held_pair_errors = pair_evidence(base, candidate, data.held_raw, held_inputs,
+                                             data.held_temperatures, held_pairs)
     return CompensationFit(candidate, tuple(reports), len(raw), residual_pct, current_pct,
                            candidate_pct, 0 if not held else len(data.held_raw), removed,
-                           kept=tuple(labels[i] for i in kept))
+                           kept=tuple(labels[i] for i in kept), pairs=len(pairs),
+                           held_pair_errors=held_pair_errors)
 
 
 def _need(label: str, span: float, varied: bool) -> str:
@@ -309,20 +490,30 @@ def _need(label: str, span: float, varied: bool) -> str:
         return (f"input '{label}' did not vary: drive at several speeds, stop and start, and "
                 'turn in place, so the current changes')
     return (f"input '{label}' varied, but not in enough headings to tell its field from the "
-            "Earth's: drive and turn at several speeds facing several directions")
+            f"Earth's: {HEADINGS_NEED}")
 
 
-def _with_reason(fit: CompensationFit, reports: list[TermReport]) -> CompensationFit:
+HEADINGS_NEED = 'drive and turn at several speeds facing several directions'
+GYRO_NEED = (', or pair an IMU with a gyroscope (imu/data_raw): then a change of the input while '
+             'the robot drives straight or stands still tells its field directly')
+
+
+def _with_reason(fit: CompensationFit, reports: list[TermReport],
+                 gyroscope: bool = False) -> CompensationFit:
     needs = [report.need for report in reports if report.need]
+    if not gyroscope:
+        needs = [need.replace(HEADINGS_NEED, HEADINGS_NEED + GYRO_NEED) for need in needs]
     if needs:
         reason = '; '.join(needs)
     elif reports:
         reason = 'no input changes the field measurably (nothing to compensate)'
     else:
         reason = 'no interference input or temperature to learn from'
-    return CompensationFit(None, fit.terms, fit.readings, fit.residual_pct, reason=reason)
+    return CompensationFit(None, fit.terms, fit.readings, fit.residual_pct, reason=reason,
+                           pairs=fit.pairs)
 
 
-__all__ = ['DETERMINED_PCT', 'LEARNED', 'MIN_READINGS', 'SIGNIFICANT_SIGMA', 'TEMPERATURE',
-           'CompensationData', 'CompensationFit', 'TermReport', 'fit_compensation',
-           'magnitude_spread_pct']
+__all__ = ['DETERMINED_PCT', 'LEARNED', 'MIN_READINGS', 'MIN_TURN_DEG', 'NO_PAIRS', 'PAIR_LAGS_S',
+           'PAIR_MAX_TURN_DEG', 'SIGNIFICANT_SIGMA', 'TEMPERATURE', 'CompensationData',
+           'CompensationFit', 'GyroPairs', 'TermReport', 'fit_compensation', 'gyro_pairs',
+           'magnitude_spread_pct', 'pair_errors']

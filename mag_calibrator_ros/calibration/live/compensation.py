@@ -9,7 +9,9 @@ next compensation fit. The fit itself runs in the fit worker (a ``compensate`` F
 it goes in force is ``verdicts.compensation_verdict``: only on held-out readings it improves,
 and only with terms the inputs' variation determined. Readings screening refused never reach it.
 
-The inputs are named by parameter (``live/inputs.py``).
+The inputs are named by parameter (``live/inputs.py``). With an IMU, each kept reading also
+carries the attitude integrated from the gyroscope (O(1) per IMU sample), so the fit can compare
+readings between which the robot barely turned (``fit/compensation.py`` gyro_pairs).
 """
 
 from __future__ import annotations
@@ -45,6 +47,10 @@ HELD = 1000
 HOLD_OUT_EVERY = 5
 LEARN_PERIOD_S = 10.0
 """Stream seconds between compensation fits while there is something to learn."""
+GYRO_GAP_NS = 100_000_000
+"""A longer gap between gyroscope samples (or a non-finite one) ends a stretch of integrated
+attitude: the rotation across it is not known, so no readings across it are compared."""
+NO_ATTITUDE = (math.nan,) * 5
 
 
 class _Series:
@@ -123,6 +129,9 @@ class CompensationLearner:
         for series in (*self.series, self.temperature_series):
             series.samples.clear()
         self.last_fit = None
+        self._stretch = getattr(self, '_stretch', 0) + 1
+        self._attitude: list[float] | None = None  # quaternion (x, y, z, w), this stretch
+        self._gyro_stamp: int | None = None
 
     # -- per message (O(k)) --------------------------------------------------------------------
 
@@ -130,6 +139,44 @@ class CompensationLearner:
         """One ``sensor_msgs/Temperature`` sample (degrees Celsius); implausible ones dropped."""
         if math.isfinite(celsius) and -60.0 <= celsius <= 200.0:
             self.temperature_series.add(self._stamp(stamp_ns), float(celsius))
+
+    def gyro(self, stamp_ns: int, rate: np.ndarray | tuple[float, float, float]) -> None:
+        """One gyroscope sample (rad/s, the IMU's frame), integrated into the attitude kept
+        readings carry; a gap over GYRO_GAP_NS or a non-finite rate starts a new stretch."""
+        x, y, z = (float(value) for value in rate)
+        gap = None if self._gyro_stamp is None else stamp_ns - self._gyro_stamp
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+            self._stretch += 1
+            self._attitude, self._gyro_stamp = None, None
+            return
+        if gap is not None and gap <= 0:
+            return  # a repeated or older stamp
+        self._gyro_stamp = stamp_ns
+        if self._attitude is None or gap is None or gap > GYRO_GAP_NS:
+            self._stretch += 1
+            self._attitude = [0.0, 0.0, 0.0, 1.0]
+            return
+        dt = gap * 1e-9
+        angle = math.sqrt(x * x + y * y + z * z) * dt
+        if angle == 0.0:
+            return
+        half = 0.5 * angle
+        k = math.sin(half) / (angle / dt)
+        bx, by, bz, bw = x * k, y * k, z * k, math.cos(half)
+        ax, ay, az, aw = self._attitude  # the body-frame increment on the right
+        qx = aw * bx + ax * bw + ay * bz - az * by
+        qy = aw * by - ax * bz + ay * bw + az * bx
+        qz = aw * bz + ax * by - ay * bx + az * bw
+        qw = aw * bw - ax * bx - ay * by - az * bz
+        norm = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
+        self._attitude = [qx / norm, qy / norm, qz / norm, qw / norm]
+
+    def _attitude_at(self, stamp_ns: int) -> tuple[float, ...]:
+        """(stretch, quaternion) for a reading now, NaN when the gyroscope is not current."""
+        if self._attitude is None or self._gyro_stamp is None or abs(
+                stamp_ns - self._gyro_stamp) > GYRO_GAP_NS:
+            return NO_ATTITUDE
+        return (float(self._stretch), *self._attitude)
 
     def input(self, index: int, stamp_ns: int | None, value: float) -> None:
         """One sample of input ``index``; ``stamp_ns`` None (a message without a header, such as
@@ -158,7 +205,7 @@ class CompensationLearner:
                 or not self.use_temperature):
             self._next_keep = now + KEEP_EVERY_S
             self._count += 1
-            row = (now, *reading, temperature, *inputs)
+            row = (now, *reading, temperature, *self._attitude_at(stamp_ns), *inputs)
             (self._held if self._count % HOLD_OUT_EVERY == 0 else self._kept).append(row)
         compensation = None if calibration is None else calibration.compensation
         if compensation is None:
@@ -207,9 +254,12 @@ class CompensationLearner:
             with_temperature = bool(np.all(np.isfinite(kept[:, 4])))
         compensation = calibration.compensation
         t0 = None if compensation is None else compensation.reference_temperature
+        gyroscope = bool(np.any(np.isfinite(kept[:, 5])))
         return CompensationData(
-            kept[:, 1:4], kept[:, 5:], kept[:, 4] if with_temperature else None, self.names,
-            held[:, 1:4], held[:, 5:], held[:, 4] if with_temperature else None, t0)
+            kept[:, 1:4], kept[:, 10:], kept[:, 4] if with_temperature else None, self.names,
+            held[:, 1:4], held[:, 10:], held[:, 4] if with_temperature else None, t0,
+            kept[:, 0], kept[:, 5:10] if gyroscope else None,
+            held[:, 0], held[:, 5:10] if gyroscope else None)
 
     def job(self, calibration: Calibration) -> FitJob:
         """The next compensation fit, on the calibration in force."""

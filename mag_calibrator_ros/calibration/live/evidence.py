@@ -190,15 +190,41 @@ def compare_on_evidence(
     if n < MIN_EVIDENCE:
         return Comparison(False, math.nan, math.nan, n, span,
                           f'{n} held-out readings, need {MIN_EVIDENCE}')
-    sigma_now, sigma_new = (robust_sigma(r, about_median=True, floor=None) for r in (now, new))
-    cap = (CAP_SIGMAS * max(min(sigma_now, sigma_new), 1e-9)) ** 2
-    loss_now, loss_new = np.minimum(now**2, cap), np.minimum(new**2, cap)
-    current_pct = 100.0 * math.sqrt(float(loss_now.mean()))
-    candidate_pct = 100.0 * math.sqrt(float(loss_new.mean()))
+    loss_now, loss_new, current_pct, candidate_pct = _capped_losses(now, new)
     if span < MIN_EVIDENCE_SPAN:
         return Comparison(False, current_pct, candidate_pct, n, span,
                           f'held-out readings span {100 * span:.0f} % of the directions, need '
                           f'{100 * MIN_EVIDENCE_SPAN:.0f} %')
+    return _judged(loss_now, loss_new, current_pct, candidate_pct, span, 'held-out readings')
+
+
+def compare_residuals(now: np.ndarray, new: np.ndarray, what: str) -> Comparison:
+    """``compare_on_evidence``'s rule on residuals (relative to F) computed elsewhere, in stream
+    order, without its span of directions: the held-out pairs of readings a learned
+    compensation is judged on through the gyroscope (``fit/compensation.py`` pair_errors)."""
+    now, new = np.asarray(now, dtype=float), np.asarray(new, dtype=float)
+    keep = (np.abs(now) <= GROSS_ERROR) | (np.abs(new) <= GROSS_ERROR)
+    now, new = now[keep], new[keep]
+    if len(now) < MIN_EVIDENCE:
+        return Comparison(False, math.nan, math.nan, len(now), math.nan,
+                          f'{len(now)} {what}, need {MIN_EVIDENCE}')
+    return _judged(*_capped_losses(now, new), math.nan, what)
+
+
+def _capped_losses(now: np.ndarray, new: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """Squared residuals capped at CAP_SIGMAS of the better one's robust noise, and their RMS
+    in percent."""
+    sigma_now, sigma_new = (robust_sigma(r, about_median=True, floor=None) for r in (now, new))
+    cap = (CAP_SIGMAS * max(min(sigma_now, sigma_new), 1e-9)) ** 2
+    loss_now, loss_new = np.minimum(now**2, cap), np.minimum(new**2, cap)
+    return (loss_now, loss_new, 100.0 * math.sqrt(float(loss_now.mean())),
+            100.0 * math.sqrt(float(loss_new.mean())))
+
+
+def _judged(loss_now: np.ndarray, loss_new: np.ndarray, current_pct: float,
+            candidate_pct: float, span: float, what: str) -> Comparison:
+    n = len(loss_now)
     difference = loss_now - loss_new
     margin = SIGNIFICANCE * float(difference.std(ddof=1)) / math.sqrt(n)
     significant = float(difference.mean()) > margin
@@ -215,7 +241,7 @@ def compare_on_evidence(
     else:
         verdict = 'not better beyond noise'
     return Comparison(better, current_pct, candidate_pct, n, span,
-                      f'{verdict} on {n} held-out readings: residual {current_pct:.2f} % -> '
+                      f'{verdict} on {n} {what}: residual {current_pct:.2f} % -> '
                       f'{candidate_pct:.2f} %')
 
 
@@ -345,6 +371,7 @@ __all__ = [
     'MisfitMonitor',
     'check_fit',
     'compare_on_evidence',
+    'compare_residuals',
     'evidence_span',
     'magnitude_residual_pct',
     'relative_errors',

@@ -49,10 +49,12 @@ from mag_calibrator_ros.calibration.fit.heading import (
 )
 from mag_calibrator_ros.calibration.live.buffer import DEFAULT_MAGNITUDE_TOLERANCE
 from mag_calibrator_ros.calibration.live.evidence import (
+    MIN_GAIN,
     Comparison,
     FitCheck,
     check_fit,
     compare_on_evidence,
+    compare_residuals,
 )
 
 JOB_KINDS = ('reference', 'calibrate', 'refine', 'check', 'compensate')
@@ -168,7 +170,8 @@ def _run(job: FitJob) -> JobOutcome:
             compensation_time=time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())))
         comparison = compare_on_evidence(job.current, fit.calibration, data.held_raw,
                                          data.held_inputs, data.held_temperatures)
-        return JobOutcome(job, compensation=fit, comparison=comparison)
+        return JobOutcome(job, compensation=fit,
+                          comparison=through_gyroscope(comparison, fit.held_pair_errors))
     if job.kind == 'check':
         fit_check = check_fit(job.current, job.recent, job.options.max_residual_pct)
         comparison = None
@@ -200,6 +203,20 @@ def _run(job: FitJob) -> JobOutcome:
         comparison = compare_on_evidence(job.current, result.calibration, job.evidence)
     return JobOutcome(job, result, comparison=comparison, coverage=coverage,
                       alignment=alignment, earth_check=earth_check)
+
+
+def through_gyroscope(comparison: Comparison, pair_errors: tuple | None) -> Comparison:
+    """A compensation the held-out magnitudes cannot judge yet (the robot faced few ways) is
+    judged on the held-out pairs of readings compared through the gyroscope, by the same rule,
+    as long as the magnitudes do not say it is worse."""
+    if comparison.better or pair_errors is None:
+        return comparison
+    turned = compare_residuals(*pair_errors, 'held-out pairs compared through the gyroscope')
+    worse = (math.isfinite(comparison.candidate_pct) and comparison.candidate_pct
+             > (1.0 + MIN_GAIN) * comparison.current_pct)
+    if not turned.better or worse:
+        return replace(comparison, reason=f'{comparison.reason}; {turned.reason}')
+    return replace(turned, reason=f'{turned.reason} ({comparison.reason})')
 
 
 def kept_compensation(calibration: Calibration, current: Calibration | None) -> Calibration:

@@ -267,6 +267,8 @@ class CalibrationSession:
         specific force, or ``frame_id`` not the magnetometer stream's (said once a frame)."""
         self.input_watch.offer_imu(accel)
         kept = self.pairing.add(stamp_ns, accel, gyro, frame_id, self.screen.frame_id)
+        if kept and gyro is not None and self.compensation.learn:
+            self.compensation.gyro(stamp_ns, gyro)
         if self.pairing.has_warnings:
             self._imu_warnings()
         return kept
