@@ -263,3 +263,25 @@ def test_a_calibration_naming_inputs_this_node_lacks_is_applied_without_them(inp
         np.testing.assert_allclose(processed.corrected, static.apply(run['raw'][index]))
     assert 'interference_inputs does not list' in session.diagnostic_values(0.0)[
         'interference_unmatched']
+
+
+def test_inputs_whose_callbacks_run_after_the_readings_are_paired_by_stamp():
+    """Under load a battery_state callback may run after the imu/mag messages stamped with it:
+    the kept reading waits for its input's sample instead of taking an older one (which, at a
+    current step, teaches a fraction of K)."""
+    run = drive(seconds=150.0)
+    session = CalibrationSession(SessionSettings(interference_inputs=(BATTERY,)),
+                                 calibration=_static(run))
+    late = 6  # each current sample handed over six readings (0.24 s) after its own reading
+    stamps = [int(round(when * 1e9)) + 1 for when in run['t']]
+    for index, stamp in enumerate(stamps):
+        if index % 5 == 0:
+            session.compensation.temperature(stamp, float(run['temperature'][index]))
+        if index >= late:
+            session.compensation.input(0, stamps[index - late],
+                                       float(run['current'][index - late]))
+        session.process(stamp, 'imu', run['raw'][index])
+    kept = np.array(session.compensation._kept)
+    truth = np.interp(kept[:, 0], run['t'] + 1e-9, run['current'])
+    assert np.abs(kept[:, -1] - truth).max() < 1e-9  # every kept reading with its own sample
+    assert session.calibration.compensation.interference[0, 0] == pytest.approx(0.8e-6, rel=0.1)

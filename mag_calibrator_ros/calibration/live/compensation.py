@@ -129,6 +129,7 @@ class CompensationLearner:
         for series in (*self.series, self.temperature_series):
             series.samples.clear()
         self.last_fit = None
+        self._pending: deque[tuple] = deque()
         self._stretch = getattr(self, '_stretch', 0) + 1
         self._attitude: list[float] | None = None  # quaternion (x, y, z, w), this stretch
         self._gyro_stamp: int | None = None
@@ -192,21 +193,16 @@ class CompensationLearner:
     def observe(self, stamp_ns: int, reading: np.ndarray, calibration: Calibration | None
                 ) -> np.ndarray:
         """The reading without the robot's own field in force (``Calibration.compensated``);
-        kept to learn from (every KEEP_EVERY_S of stream, one in HOLD_OUT_EVERY held out) when
-        all its inputs are fresh."""
+        one every KEEP_EVERY_S of stream waits (``_settle``) to be kept to learn from."""
         self._last_stamp = stamp_ns
-        now = stamp_ns / 1e9
         temperature = (self.temperature_series.at(stamp_ns, TEMPERATURE_TOLERANCE_NS)
                        if self.use_temperature else math.nan)
         inputs = [series.at(stamp_ns, INPUT_TOLERANCE_NS) for series in self.series]
-        if self.learn and calibration is not None and now >= self._next_keep and all(
-                math.isfinite(value) for value in inputs) and (
-                math.isfinite(temperature) or not self.temperature_series.received
-                or not self.use_temperature):
-            self._next_keep = now + KEEP_EVERY_S
-            self._count += 1
-            row = (now, *reading, temperature, *self._attitude_at(stamp_ns), *inputs)
-            (self._held if self._count % HOLD_OUT_EVERY == 0 else self._kept).append(row)
+        if self.learn and calibration is not None and stamp_ns / 1e9 >= self._next_keep:
+            self._next_keep = stamp_ns / 1e9 + KEEP_EVERY_S
+            self._pending.append((stamp_ns, *reading, *self._attitude_at(stamp_ns)))
+        if self._pending:
+            self._settle(stamp_ns)
         compensation = None if calibration is None else calibration.compensation
         if compensation is None:
             return reading
@@ -217,6 +213,28 @@ class CompensationLearner:
             temperature = self.temperature_series.latest
         return calibration.compensated(reading, held if held else None,
                                        temperature if self.use_temperature else None)
+
+    def _settle(self, now_ns: int) -> None:
+        """Keep the waiting readings whose inputs' samples are there (one stamped at or after
+        the reading: a callback may run after the reading's under load, and a reading paired
+        with the sample before a current step would teach a fraction of K), or waited
+        INPUT_TOLERANCE_NS of stream for; all inputs fresh, one in HOLD_OUT_EVERY held out."""
+        while self._pending:
+            stamp_ns = self._pending[0][0]
+            if now_ns - stamp_ns < INPUT_TOLERANCE_NS and len(self._pending) < SAMPLE_RING and any(
+                    not series.samples or series.samples[-1][0] < stamp_ns
+                    for series in self.series):
+                return
+            stamp_ns, x, y, z, *attitude = self._pending.popleft()
+            temperature = (self.temperature_series.at(stamp_ns, TEMPERATURE_TOLERANCE_NS)
+                           if self.use_temperature else math.nan)
+            inputs = [series.at(stamp_ns, INPUT_TOLERANCE_NS) for series in self.series]
+            if all(math.isfinite(value) for value in inputs) and (
+                    math.isfinite(temperature) or not self.temperature_series.received
+                    or not self.use_temperature):
+                self._count += 1
+                row = (stamp_ns / 1e9, x, y, z, temperature, *attitude, *inputs)
+                (self._held if self._count % HOLD_OUT_EVERY == 0 else self._kept).append(row)
 
     def in_order_of(self, names: tuple[str, ...], values: list[float]) -> list[float]:
         """This node's input values in the order of a compensation's ``names``: by name when it
