@@ -52,16 +52,17 @@ instead of taking any value (and is reported unobserved: OBSERVED)."""
 OBSERVED = 0.3
 """An axis of a term is observed when its standard error is below this share of its prior's."""
 OFFSET_PRIOR = 0.1
-"""The offset change's prior, at the readings' mean inputs: 1 sigma of a tenth of the field. A
-robot turning in a plane does not determine the offset along the plane's normal apart from the
-field strength; the static fit put it within a few percent, and the prior keeps it there
-instead of letting it drift."""
+"""The offset change's prior (at the readings' mean inputs with pairs): 1 sigma of a tenth of
+the field. A robot turning in a plane does not determine the offset along the plane's normal
+apart from the field strength; the static fit put it within a few percent, and the prior keeps
+it there instead of letting it drift."""
 OFFSET_SEEN_DEG = 0.5
-"""The offset changes only along directions the field's direction spread over by this much (root
-mean square of its component over the readings) beyond twice what the noise scatters it by:
-along the others (every direction but the field's, for a robot standing still) the offset
-would slide around the sphere |corrected| = F to wherever the noise's sample happens to scatter
-least (tens of uT, measured)."""
+"""With gyroscope pairs, the offset changes only along directions the field's direction spread
+over by this much (root mean square of its component over the readings) beyond twice what the
+noise scatters it by: along the others (every direction but the field's, for a robot standing
+still, whose K the pairs determine) the offset would slide around the sphere |corrected| = F
+to wherever the noise's sample happens to scatter least (tens of uT, measured). Without pairs
+no term is determined unless the field turned (MIN_TURN_DEG), and the offset stays free."""
 MIN_TEMPERATURE_SPAN = 2.0
 """Degrees Celsius: a narrower span is reported as 'did not vary' without a fit of c."""
 TEMPERATURE = 'temperature'
@@ -245,7 +246,7 @@ def _solve(raw: np.ndarray, columns: np.ndarray, spans: list[float], base: Calib
            pairs: GyroPairs = NO_PAIRS
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Gauss-Newton for ``|M (raw - b - d - W z)| = F``, ``z`` = (1, columns...): the offset
-    change ``d`` (at zero input; fitted at the mean input) is W's first column; ``M``, ``b``
+    change ``d`` (at zero input) is W's first column; ``M``, ``b``
     and ``F`` are the base's. With gyroscope ``pairs``, also ``A (y2 - W z2) = map A (y1 -
     W z1)`` (``A = R M``, ``y = raw - b``: the field the gyroscope says turned), weighted by
     its own noise. Returns W (3, m), its covariance
@@ -259,9 +260,9 @@ def _solve(raw: np.ndarray, columns: np.ndarray, spans: list[float], base: Calib
     compensated readings instead). Every coefficient has a broad prior around zero
     (OFFSET_PRIOR, COEFFICIENT_PRIOR), so what the readings cannot see stays near zero."""
     n, m = len(raw), columns.shape[1] + 1
-    centre = columns.mean(axis=0) if len(columns) else np.zeros(m - 1)
-    # centred: the offset's prior says the calibration in force is right at the readings' mean
-    # inputs (where it was made), not at zero current, which it may never have seen
+    # with pairs, centred: the offset is held (OFFSET_SEEN_DEG) where the calibration in force
+    # is right, at the readings' mean inputs, not at zero current, which it may never have seen
+    centre = columns.mean(axis=0) if len(pairs) and len(columns) else np.zeros(m - 1)
     z = np.hstack([np.ones((n, 1)), columns - centre])
     scale = np.maximum(np.abs(z).max(axis=0), 1e-12)  # column scaling for conditioning
     zs = z / scale
@@ -283,7 +284,7 @@ def _solve(raw: np.ndarray, columns: np.ndarray, spans: list[float], base: Calib
     pair_weights = np.ones(len(pairs))
     for iteration in range(2 * ITERATIONS):
         corrected = (y - zs @ w.T) @ matrix.T
-        if iteration == ITERATIONS:  # the directions with the robot's own field fitted out
+        if iteration == ITERATIONS and len(pairs):  # the robot's own field fitted out
             precision[np.ix_(offset_axes, offset_axes)] = _offset_precision(corrected,
                                                                             sigmas[0])
         magnitude = np.linalg.norm(corrected, axis=1)
