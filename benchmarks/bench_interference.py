@@ -28,9 +28,10 @@ error of the correction itself under the 0.7° a single sample's noise adds. Row
     scored from its first calibration on.
 (d) ``live calibrator, compensating``: the same with its inputs (``feed``: the die temperature
     of each row, and its battery current as ``interference_inputs``), learning K and c live;
-    the learned K and c are judged against ``interference_truth``. ``no interference,
-    compensating``: the floor's course with the same inputs, to show nothing is learned from
-    nothing (the heading difference to the floor's row).
+    the learned K and c are judged against ``interference_truth``; scored also from the first
+    compensation in force on, and with its final calibration over the whole course. ``no
+    interference, compensating``: the floor's course with the same inputs, to show nothing is
+    learned from nothing (the heading difference to the floor's row).
 
     python benchmarks/bench_interference.py                 # three seeds, a few minutes
     python benchmarks/bench_interference.py --seeds 1       # quicker
@@ -118,8 +119,10 @@ def live(recording: CourseRecording, clean: CourseRecording,
          ) -> tuple[np.ndarray, np.ndarray, float | None, CalibrationSession]:
     """(corrected rows, NaN until calibrated; the same calibrations applied to the noise-free
     ``clean`` twin's rows; stream seconds of the first calibration; the session) of the live
-    calibrator over the course."""
+    calibrator over the course. ``session.compensated_from``: stream seconds from which a
+    learned compensation was in force (None: never)."""
     session = CalibrationSession(settings or SessionSettings())
+    session.compensated_from = None
     corrected = np.full_like(recording.mag, math.nan)
     noise_free = np.full_like(recording.mag, math.nan)
     first = None
@@ -131,6 +134,8 @@ def live(recording: CourseRecording, clean: CourseRecording,
                 clean.mag[index], [recording.current_a[index]], recording.temperature_c[index])
             if first is None:
                 first = float(recording.times[index])
+            if session.compensated_from is None and processed.calibration.compensation:
+                session.compensated_from = float(recording.times[index])
     session.close()
     return corrected, noise_free, first, session
 
@@ -143,9 +148,12 @@ def static_perfect(board: BoardModel, recording: CourseRecording) -> np.ndarray:
     return np.linalg.solve(config.soft_iron_matrix, (recording.mag - offset).T).T
 
 
-def heading(corrected: np.ndarray, recording: CourseRecording) -> tuple[float, float, int]:
-    """(RMS, worst |error| in degrees, samples) over the rows moving and corrected."""
-    keep = recording.moving & np.all(np.isfinite(corrected), axis=1)
+def heading(corrected: np.ndarray, recording: CourseRecording, since: float = -math.inf
+            ) -> tuple[float, float, int]:
+    """(RMS, worst |error| in degrees, samples) over the rows moving and corrected (from
+    ``since`` seconds on)."""
+    keep = (recording.moving & np.all(np.isfinite(corrected), axis=1)
+            & (recording.times >= since))
     if not np.any(keep):
         return math.nan, math.nan, 0
     errors = azimuth_errors_deg(corrected[keep], recording.truth[keep])
@@ -187,12 +195,22 @@ def one_seed(seed: int) -> dict[str, tuple[float, float, int, float]]:
     corrected, noise_free, _, learning = live(recording, clean, COMPENSATING, inputs=True)
     results['live calibrator, compensating'] = (*heading(corrected, recording),
                                                 heading(noise_free, clean)[0])
+    since = learning.compensated_from
+    if since is not None:
+        results['  the same, once compensating'] = (*heading(corrected, recording, since),
+                                                   heading(noise_free, clean, since)[0])
+        final = learning.calibration  # learned by the end, applied to the whole course
+        inputs = recording.current_a[:, None]
+        results['  its final calibration, whole course'] = (
+            *heading(final.apply(recording.mag, inputs, recording.temperature_c), recording),
+            heading(final.apply(clean.mag, inputs, clean.temperature_c), clean)[0])
     learned = learning.calibration.compensation if learning.calibration else None
     if learned is not None:
         print(f'seed {seed}: learned K = {learned.interference[:, 0] * 1e6} uT/A, c = '
               f'{learned.temperature_coefficient * 1e6} uT/°C around '
-              f'{learned.reference_temperature} °C; adoptions {learning.adoptions}; '
-              f'needs: {learning.compensation.needs() or "nothing"}', flush=True)
+              f'{learned.reference_temperature} °C; adoptions {learning.adoptions}, the '
+              f'first at {since} s; needs: {learning.compensation.needs() or "nothing"}',
+              flush=True)
     else:
         print(f'seed {seed}: nothing learned: {learning.compensation.needs()}', flush=True)
     print(f'seed {seed}: first calibration at {first} s of the course '
@@ -213,13 +231,14 @@ def main(argv: list[str] | None = None) -> int:
     runs = [one_seed(seed) for seed in args.seeds]
     print(f'\nHeading RMS while driving (worst sample), seeds {args.seeds}, '
           f'{time.monotonic() - started:.0f} s:')
-    for name in runs[0]:
-        rms = [run[name][0] for run in runs]
-        worst = max(run[name][1] for run in runs)
-        clean = [run[name][3] for run in runs]
-        print(f'  {name:34s} {min(rms):6.2f}-{max(rms):6.2f}° RMS (median '
+    names = list(dict.fromkeys(name for run in runs for name in run))
+    for name in names:
+        rows = [run[name] for run in runs if name in run]
+        rms, clean = [row[0] for row in rows], [row[3] for row in rows]
+        worst = max(row[1] for row in rows)
+        print(f'  {name:38s} {min(rms):6.2f}-{max(rms):6.2f}° RMS (median '
               f'{statistics.median(rms):.2f}°), worst {worst:6.2f}°, '
-              f'{runs[0][name][2]} samples; noise-free {min(clean):.2f}-{max(clean):.2f}°')
+              f'{rows[0][2]} samples; noise-free {min(clean):.2f}-{max(clean):.2f}°')
     return 0
 
 
