@@ -47,6 +47,9 @@ HELD = 1000
 HOLD_OUT_EVERY = 5
 LEARN_PERIOD_S = 10.0
 """Stream seconds between compensation fits while there is something to learn."""
+PENDING = 40
+"""Readings waiting for their inputs' samples, at most (one every KEEP_EVERY_S: 2 s of stream);
+the oldest is then paired with the sample nearest it within INPUT_TOLERANCE_NS, or dropped."""
 GYRO_GAP_NS = 100_000_000
 """A longer gap between gyroscope samples (or a non-finite one) ends a stretch of integrated
 attitude: the rotation across it is not known, so no readings across it are compared."""
@@ -202,7 +205,7 @@ class CompensationLearner:
             self._next_keep = stamp_ns / 1e9 + KEEP_EVERY_S
             self._pending.append((stamp_ns, *reading, *self._attitude_at(stamp_ns)))
         if self._pending:
-            self._settle(stamp_ns)
+            self._settle()
         compensation = None if calibration is None else calibration.compensation
         if compensation is None:
             return reading
@@ -214,14 +217,14 @@ class CompensationLearner:
         return calibration.compensated(reading, held if held else None,
                                        temperature if self.use_temperature else None)
 
-    def _settle(self, now_ns: int) -> None:
+    def _settle(self) -> None:
         """Keep the waiting readings whose inputs' samples are there (one stamped at or after
         the reading: a callback may run after the reading's under load, and a reading paired
-        with the sample before a current step would teach a fraction of K), or waited
-        INPUT_TOLERANCE_NS of stream for; all inputs fresh, one in HOLD_OUT_EVERY held out."""
+        with the sample before a current step would teach a fraction of K), or that waited
+        while PENDING others came; all inputs fresh, one in HOLD_OUT_EVERY held out."""
         while self._pending:
             stamp_ns = self._pending[0][0]
-            if now_ns - stamp_ns < INPUT_TOLERANCE_NS and len(self._pending) < SAMPLE_RING and any(
+            if len(self._pending) <= PENDING and any(
                     not series.samples or series.samples[-1][0] < stamp_ns
                     for series in self.series):
                 return
