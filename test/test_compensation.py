@@ -285,3 +285,20 @@ def test_inputs_whose_callbacks_run_after_the_readings_are_paired_by_stamp():
     truth = np.interp(kept[:, 0], run['t'] + 1e-9, run['current'])
     assert np.abs(kept[:, -1] - truth).max() < 1e-9  # every kept reading with its own sample
     assert session.calibration.compensation.interference[0, 0] == pytest.approx(0.8e-6, rel=0.1)
+
+
+def test_readings_kept_before_the_first_temperature_never_drop_the_temperature_term():
+    """Under load the first imu/temperature message may come after readings were kept: those go,
+    not the temperature term of every later fit (which left the warm-up's drift in K)."""
+    run = drive(seconds=150.0)
+    session = CalibrationSession(SessionSettings(interference_inputs=(BATTERY,)),
+                                 calibration=_static(run))
+    for index, when in enumerate(run['t']):
+        stamp = int(round(when * 1e9)) + 1
+        if index >= 100 and index % 5 == 0:  # the first temperature 4 s into the stream
+            session.compensation.temperature(stamp, float(run['temperature'][index]))
+        session.compensation.input(0, stamp, float(run['current'][index]))
+        session.process(stamp, 'imu', run['raw'][index])
+    compensation = session.calibration.compensation
+    assert compensation.temperature_coefficient[0] == pytest.approx(0.2e-6, rel=0.1)
+    assert compensation.interference[0, 0] == pytest.approx(0.8e-6, rel=0.1)

@@ -29,7 +29,6 @@ from dataclasses import dataclass, field
 import math
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from mag_calibrator_ros.calibration.fit.calibration import Calibration, Compensation
 
@@ -194,6 +193,8 @@ def gyro_pairs(times: np.ndarray | None, attitudes: np.ndarray | None) -> GyroPa
     first, second = np.concatenate(firsts), np.concatenate(seconds)
     if not len(first):
         return NO_PAIRS
+    from scipy.spatial.transform import Rotation  # here: a node starts without scipy.spatial
+
     start, end = (Rotation.from_quat(attitudes[index, 1:]) for index in (first, second))
     turn = start.inv() * end
     small = turn.magnitude() <= math.radians(PAIR_MAX_TURN_DEG)

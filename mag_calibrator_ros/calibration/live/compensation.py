@@ -271,8 +271,11 @@ class CompensationLearner:
         """The kept readings as one fit's input; T0 is the one in force, when there is one."""
         kept, held = np.array(self._kept), np.array(self._held)
         with_temperature = self.use_temperature and self.temperature_series.received > 0
-        if with_temperature:
-            with_temperature = bool(np.all(np.isfinite(kept[:, 4])))
+        if with_temperature:  # readings kept before the first temperature came go (not it)
+            warm = np.isfinite(kept[:, 4])
+            with_temperature = 2 * int(warm.sum()) >= len(kept)
+            if with_temperature:
+                kept, held = kept[warm], held[np.isfinite(held[:, 4])]
         compensation = calibration.compensation
         t0 = None if compensation is None else compensation.reference_temperature
         gyroscope = bool(np.any(np.isfinite(kept[:, 5])))
