@@ -232,6 +232,26 @@ def test_the_session_never_learns_from_nothing_or_from_refused_readings():
 
 
 
+
+def test_a_reading_before_the_first_temperature_sample_does_not_keep_the_temperature_out():
+    """Issue #22: the temperature comes on its own topic, and a loaded computer can deliver
+    the first one after the first magnetometer reading. That reading was kept without a
+    temperature, and one such reading kept the temperature term out of every later fit (and
+    biased K with the drift it left)."""
+    run = drive(seconds=60.0, rate=20.0)
+    session = CalibrationSession(SessionSettings(interference_inputs=(BATTERY,)),
+                                 calibration=_static(run))
+    for index, when in enumerate(run['t']):
+        stamp = int(round(when * 1e9)) + 1
+        session.compensation.input(0, stamp, float(run['current'][index]))
+        if index % 4 == 1:  # the first temperature sample after the first reading
+            session.compensation.temperature(stamp, float(run['temperature'][index]))
+        session.process(stamp, 'imu', run['raw'][index])
+    compensation = session.calibration.compensation
+    assert compensation.temperature_coefficient[0] == pytest.approx(0.2e-6, rel=0.1)
+    assert compensation.interference[0, 0] == pytest.approx(0.8e-6, rel=0.1)
+
+
 class _SlowRunner:
     """A fit worker on a loaded computer: each outcome comes back ``delay`` polls (messages)
     after its job was submitted, so readings are held meanwhile."""

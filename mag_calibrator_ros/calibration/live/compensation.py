@@ -204,7 +204,15 @@ class CompensationLearner:
         kept, held = np.array(self._kept), np.array(self._held)
         with_temperature = self.use_temperature and self.temperature_series.received > 0
         if with_temperature:
-            with_temperature = bool(np.all(np.isfinite(kept[:, 4])))
+            # Readings kept before the first temperature sample came have none (it comes on
+            # another topic, and a loaded computer can deliver it after the first readings):
+            # the fit leaves those readings out, not the temperature, which one such reading
+            # used to keep out of every fit (and bias K with its drift, issue #22).
+            known_kept, known_held = np.isfinite(kept[:, 4]), np.isfinite(held[:, 4])
+            with_temperature = (int(known_kept.sum()) >= MIN_READINGS
+                                and bool(known_held.any()))
+            if with_temperature:
+                kept, held = kept[known_kept], held[known_held]
         compensation = calibration.compensation
         t0 = None if compensation is None else compensation.reference_temperature
         return CompensationData(
