@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import signal
+import threading
 import time
 
 import numpy as np
@@ -164,14 +165,25 @@ def test_the_worker_yields_the_cpu_to_the_node():
         runner.close()
 
 
-def test_a_worker_that_stops_answering_is_killed_restarted_and_said():
+def test_a_worker_that_stops_answering_is_killed_restarted_and_said(monkeypatch):
     """A stopped (SIGSTOP) worker never answered: ~/calibrate waited for ever. The watchdog kills
     it after the deadline, the job comes back as an error naming why, a new worker takes over."""
     runner = ProcessRunner(deadline_s=15.0)
+    ready = threading.Event()  # the new worker's 'ready' is read only once this is set
     try:
         runner.submit(job())
         assert wait(runner).result.success and runner.problem is None  # up and ready
-        stopped = runner.pid
+        stopped, first_output = runner.pid, runner._worker.process.stdout
+        real_receive = fit_worker.receive
+
+        def receive(stream):
+            # the new worker still starting, whatever the load: stopping it with SIGSTOP
+            # "while it imports" lost that race on a loaded computer (it was up already)
+            if stream is not first_output:
+                ready.wait()
+            return real_receive(stream)
+
+        monkeypatch.setattr(fit_worker, 'receive', receive)
         os.kill(stopped, signal.SIGSTOP)
         runner.submit(job())
         outcome = wait(runner)
@@ -180,15 +192,33 @@ def test_a_worker_that_stops_answering_is_killed_restarted_and_said():
         assert runner.restarts == 1 and runner.pid != stopped
         with pytest.raises(ProcessLookupError):  # killed and reaped
             os.kill(stopped, 0)
-        os.kill(runner.pid, signal.SIGSTOP)  # caught while it imports: still restarting
         assert runner.problem == ('the fit worker is restarting (restart 1: the fit worker did '
                                   'not answer within 15 s); fits wait until it is up')
-        os.kill(runner.pid, signal.SIGCONT)
+        ready.set()
         runner.submit(job())
         assert wait(runner).result.success and runner.problem is None and runner.restarts == 1
     finally:
+        ready.set()
         runner.close()
 
+
+
+def test_closing_the_runner_of_a_stopped_worker_ends_in_bounded_time():
+    """Closing closed the worker's output before the worker had ended: that waited for the
+    reader thread's read, which a stopped (SIGSTOP) worker never ends, and hung for ever (the
+    test above failing on a loaded computer hung the whole suite so, issue #22)."""
+    runner = ProcessRunner()
+    try:
+        runner.submit(job())
+        assert wait(runner).result.success
+        stopped = runner.pid
+        os.kill(stopped, signal.SIGSTOP)
+        started = time.monotonic()
+    finally:
+        runner.close()
+    assert time.monotonic() - started < 30.0  # two seconds to end on end of input, then killed
+    with pytest.raises(ProcessLookupError):  # killed and reaped
+        os.kill(stopped, 0)
 
 def test_a_worker_that_dies_between_fits_is_said_and_replaced_at_once():
     runner = ProcessRunner()

@@ -271,11 +271,16 @@ class CompensationLearner:
         """The kept readings as one fit's input; T0 is the one in force, when there is one."""
         kept, held = np.array(self._kept), np.array(self._held)
         with_temperature = self.use_temperature and self.temperature_series.received > 0
-        if with_temperature:  # readings kept before the first temperature came go (not it)
-            warm = np.isfinite(kept[:, 4])
-            with_temperature = 2 * int(warm.sum()) >= len(kept)
+        if with_temperature:
+            # Readings kept before the first temperature sample came have none (it comes on
+            # another topic, and a loaded computer can deliver it after the first readings):
+            # the fit leaves those readings out, not the temperature, which one such reading
+            # used to keep out of every fit (and bias K with its drift, issue #22).
+            known_kept, known_held = np.isfinite(kept[:, 4]), np.isfinite(held[:, 4])
+            with_temperature = (int(known_kept.sum()) >= MIN_READINGS
+                                and bool(known_held.any()))
             if with_temperature:
-                kept, held = kept[warm], held[np.isfinite(held[:, 4])]
+                kept, held = kept[known_kept], held[known_held]
         compensation = calibration.compensation
         t0 = None if compensation is None else compensation.reference_temperature
         gyroscope = bool(np.any(np.isfinite(kept[:, 5])))

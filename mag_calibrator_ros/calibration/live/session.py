@@ -162,12 +162,16 @@ class CalibrationSession:
         """How often a calibration went in force, by source (auto, refine, request, file ...)."""
         self.jobs_run: dict[str, int] = {}
         self.hold_overflows = 0
+        self.stale_dropped = 0
+        """Readings dropped unlearnt: compensated by a compensation no longer in force."""
         self.tracker: OnlineTracker | None = None
         self.tracked_updates = 0
         self._last_taught: np.ndarray | None = None  # corrected direction last fed to the tracker
         self._last_tracking_check: float | None = None
         self.buffer_reference = BufferReference(self.buffer)
-        self._held: deque[tuple[np.ndarray, int, Pair | None]] = deque()
+        # (reading, stamp, compensation epoch, pair) of readings received while a fit ran
+        self._held: deque[tuple[np.ndarray, int, int, Pair | None]] = deque()
+        self._compensation_epoch = 0  # bumped by each learned compensation put in force
         self._job: FitJob | None = None
         self._job_epoch = 0
         self._measured_coverage: tuple[float, Coverage] | None = None  # (stream s, coverage)
@@ -249,7 +253,8 @@ class CalibrationSession:
             return _REFUSED
         self.accepted += 1
         reading = self.compensation.observe(stamp_ns, np.array((x0, x1, x2)), self.calibration)
-        decided = self.pairing.settle(stamp_ns, frame_id, (reading, stamp_ns))
+        decided = self.pairing.settle(stamp_ns, frame_id,
+                                      (reading, stamp_ns, self._compensation_epoch))
         if self.pairing.has_warnings:
             self._imu_warnings()
         self._advance()
@@ -308,16 +313,28 @@ class CalibrationSession:
         if self._job is None and not self._held and self._requests:
             self._submit('request')
 
-    def _hold(self, reading: np.ndarray, stamp_ns: int, pair: Pair | None = None) -> None:
+    def _hold(self, reading: np.ndarray, stamp_ns: int, epoch: int,
+              pair: Pair | None = None) -> None:
         if len(self._held) >= HOLD_LIMIT:
             self.hold_overflows += 1
             self._ingest(*self._held.popleft())
-        self._held.append((reading, stamp_ns, pair))
+        self._held.append((reading, stamp_ns, epoch, pair))
 
-    def _ingest(self, reading: np.ndarray, stamp_ns: int, pair: Pair | None = None) -> None:
-        """Everything a reading teaches, in stream order (the held ones after the fit)."""
+    def _ingest(self, reading: np.ndarray, stamp_ns: int, epoch: int,
+                pair: Pair | None = None) -> None:
+        """Everything a reading teaches, in stream order (the held ones after the fit).
+
+        ``epoch``: the learned compensation the reading was compensated by on arrival. One put
+        in force since empties the buffer and evidence (``_put_in_force``); a reading that was
+        held (a fit ran) or waited for its IMU sample then still carries the old one's
+        correction and teaches nothing: how many there are depends on how long the fit took,
+        and on a loaded computer a backlog of them, some not compensated at all, refilled the
+        emptied buffer and failed the next fit (a residual of 5.9 %, issue #22)."""
         now = self.clock.advance(stamp_ns)
         self._ingested += 1
+        if epoch != self._compensation_epoch:
+            self.stale_dropped += 1
+            return
         if pair is not None and self.settings.align:
             self.attitudes.add(now, reading, pair[0], pair[1])
         # Evidence judges a calibration: none yet, none needed. The draw is pseudo-random (and
@@ -579,6 +596,7 @@ class CalibrationSession:
             if source == 'compensation':  # what is stored was compensated by the old one
                 self.evidence.clear()
                 self.buffer.clear()
+                self._compensation_epoch += 1  # and so was what is held: _ingest drops it
             self.misfit.reset()
             self.scheduler.calibration_changed()
             if reference.source != 'fit':

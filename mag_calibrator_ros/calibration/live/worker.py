@@ -169,18 +169,25 @@ class _Worker:
         return self.process.poll() is None
 
     def stop(self, kill: bool, timeout_s: float = 2.0) -> int | None:
-        """End the process: killed at once, or given ``timeout_s`` to exit on end of input."""
+        """End the process: killed at once, or given ``timeout_s`` to exit on end of input.
+
+        Its output is closed only once it has ended: the reader thread holds that stream's
+        lock while it waits in a read, so closing it before blocked until the worker wrote or
+        exited, and a stopped (SIGSTOP) or wedged worker never does: the stop hung for ever,
+        its timeout never reached (issue #22)."""
         process = self.process
         if kill:
             process.kill()  # SIGKILL ends a stopped (SIGSTOP) process too
-        for stream in (process.stdin, process.stdout):
-            with contextlib.suppress(OSError):
-                stream.close()
+        with contextlib.suppress(OSError):
+            process.stdin.close()
         try:
-            return process.wait(timeout=timeout_s)
+            code = process.wait(timeout=timeout_s)
         except subprocess.TimeoutExpired:
             process.kill()
-            return process.wait()
+            code = process.wait()
+        with contextlib.suppress(OSError):
+            process.stdout.close()  # the reader has seen end of input: its lock is free
+        return code
 
 
 class ProcessRunner:
