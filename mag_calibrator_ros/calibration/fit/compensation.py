@@ -207,32 +207,25 @@ def gyro_pairs(times: np.ndarray | None, attitudes: np.ndarray | None) -> GyroPa
 def pair_evidence(current: Calibration, candidate: Calibration, raw: np.ndarray,
                   inputs: np.ndarray | None, temperatures: np.ndarray | None, pairs: GyroPairs
                   ) -> tuple[np.ndarray, np.ndarray]:
-    """``pair_errors`` under both calibrations, on the pairs where they predict the change
+    """``|unexplained| / F`` under both calibrations, on the pairs where they predict the change
     between the two readings differently by at least the candidate's typical error: a pair
     between which no input changed says nothing of K and would only dilute the judgement. The
     choice depends on the inputs only (the static part is shared), never on which one fits."""
-    errors = []
-    vectors = []
-    for calibration in (current, candidate):
-        corrected = calibration.apply(raw, inputs, temperatures)
-        vector = corrected[pairs.second] - np.einsum('pab,pb->pa', pairs.maps,
-                                                      corrected[pairs.first])
-        vectors.append(vector)
-        errors.append(np.linalg.norm(vector, axis=1) / calibration.field_strength)
-    apart = np.linalg.norm(vectors[0] - vectors[1], axis=1) / candidate.field_strength
+    now, new = (_unexplained(calibration, raw, inputs, temperatures, pairs)
+                for calibration in (current, candidate))
+    errors = [np.linalg.norm(now, axis=1) / current.field_strength,
+              np.linalg.norm(new, axis=1) / candidate.field_strength]
+    apart = np.linalg.norm(now - new, axis=1) / candidate.field_strength
     telling = apart >= float(np.median(errors[1]))
     return errors[0][telling], errors[1][telling]
 
 
-def pair_errors(calibration: Calibration, raw: np.ndarray, inputs: np.ndarray | None,
-                temperatures: np.ndarray | None, pairs: GyroPairs) -> np.ndarray:
-    """``|corrected_second - map corrected_first| / F`` per pair: what the rotation does not
+def _unexplained(calibration: Calibration, raw: np.ndarray, inputs: np.ndarray | None,
+                 temperatures: np.ndarray | None, pairs: GyroPairs) -> np.ndarray:
+    """``corrected_second - map corrected_first`` per pair (p, 3): what the rotation does not
     explain (zero for a perfect calibration and gyroscope)."""
-    if not len(pairs):
-        return np.zeros(0)
     corrected = calibration.apply(raw, inputs, temperatures)
-    moved = np.einsum('pab,pb->pa', pairs.maps, corrected[pairs.first])
-    return np.linalg.norm(corrected[pairs.second] - moved, axis=1) / calibration.field_strength
+    return corrected[pairs.second] - np.einsum('pab,pb->pa', pairs.maps, corrected[pairs.first])
 
 
 def _span(values: np.ndarray) -> float:
@@ -518,4 +511,4 @@ def _with_reason(fit: CompensationFit, reports: list[TermReport],
 __all__ = ['DETERMINED_PCT', 'LEARNED', 'MIN_READINGS', 'MIN_TURN_DEG', 'NO_PAIRS', 'PAIR_LAGS_S',
            'PAIR_MAX_TURN_DEG', 'SIGNIFICANT_SIGMA', 'TEMPERATURE', 'CompensationData',
            'CompensationFit', 'GyroPairs', 'TermReport', 'fit_compensation', 'gyro_pairs',
-           'magnitude_spread_pct', 'pair_errors']
+           'magnitude_spread_pct', 'pair_evidence']
