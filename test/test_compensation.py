@@ -20,6 +20,7 @@ from mag_calibrator_ros.calibration.fit.compensation import (
     CompensationData,
     fit_compensation,
 )
+from mag_calibrator_ros.calibration.live.evidence import compare_on_evidence
 from mag_calibrator_ros.calibration.live.inputs import parse_input
 from mag_calibrator_ros.calibration.live.jobs import run_job
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
@@ -231,8 +232,6 @@ def test_the_session_never_learns_from_nothing_or_from_refused_readings():
     assert all(abs(row[1]) < 1e-3 for row in kept)  # no refused reading among them
 
 
-
-
 def test_a_reading_before_the_first_temperature_sample_does_not_keep_the_temperature_out():
     """Issue #22: the temperature comes on its own topic, and a loaded computer can deliver
     the first one after the first magnetometer reading. That reading was kept without a
@@ -358,3 +357,24 @@ def test_inputs_whose_callbacks_run_after_the_readings_are_paired_by_stamp():
     assert np.abs(kept[:, -1] - truth).max() < 1e-9  # every kept reading with its own sample
     assert session.calibration.compensation.interference[0, 0] == pytest.approx(0.8e-6, rel=0.1)
 
+
+def test_held_out_readings_at_several_currents_span_their_headings_as_corrected():
+    """A turn in place at one current, then a straight leg at several: the current's field moves
+    the raw readings of the leg off the turn's ring, so their own shape spans nothing; as the
+    calibrations correct them they span the turn's headings, and the learned compensation is
+    judged on them (issue #26: after a quick procedure nothing more was judged for a minute)."""
+    rng = np.random.default_rng(3)
+    gain = np.array([1.6e-6, 0.0, 0.0])  # tesla per amp
+    turn = np.linspace(0.0, 2.0 * math.pi, 50, endpoint=False)
+    legs = np.full(90, 0.4)  # most held-out readings: one leg, the current stepping
+    heading = np.concatenate([turn, legs])
+    amps = np.concatenate([np.full(50, 1.0), np.tile(np.linspace(0.5, 5.0, 15), 6)])
+    earth = np.stack([F * math.cos(DIP) * np.cos(heading), -F * math.cos(DIP) * np.sin(heading),
+                      np.full(len(heading), -F * math.sin(DIP))], axis=1)
+    raw = earth + OFFSET + np.outer(amps, gain) + rng.normal(0.0, 0.1e-6, (len(amps), 3))
+    current = Calibration(OFFSET + gain, np.eye(3), F)  # the turn's static fit: right at 1 A
+    candidate = Calibration(OFFSET, np.eye(3), F).with_compensation(
+        Compensation(('current',), gain[:, None], np.zeros(3), None))
+    comparison = compare_on_evidence(current, candidate, raw, amps[:, None], None)
+    assert comparison.span >= 0.9, comparison.reason
+    assert comparison.better, comparison.reason

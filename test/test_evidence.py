@@ -17,6 +17,7 @@ from mag_calibrator_ros.calibration.live.evidence import (
     MisfitMonitor,
     check_fit,
     compare_on_evidence,
+    evidence_span,
 )
 from mag_calibrator_ros.sim import motion
 
@@ -247,3 +248,16 @@ def test_the_monitor_confirms_after_a_sustained_misfit_and_clears_when_it_fits_a
 def test_a_noisy_sensor_is_judged_against_its_own_residual(gate):
     raw, good = tumble(500, noise=0.03)  # 3 % noise: median |e| about 2 %
     assert not check_fit(good, raw, gate_pct=gate).off
+
+
+def test_a_turn_spans_the_heading_circle_though_most_readings_faced_one_way():
+    """A ground robot that turned once and then drove one way for longer: the readings piled up
+    at one heading outweighed the turn in the ring fit of their own shape, and the span came out
+    0 % (issue #26); where readings pile up says nothing of the directions they span."""
+    rng = np.random.default_rng(5)
+    heading = np.concatenate([np.linspace(0.0, 2 * np.pi, 50, endpoint=False), np.full(200, 1.0)])
+    field = np.stack([25e-6 * np.cos(heading), 25e-6 * np.sin(heading),
+                      np.full(len(heading), -43e-6)], axis=1)
+    readings = field + np.array([30e-6, -20e-6, 10e-6]) + rng.normal(0.0, 0.1e-6, field.shape)
+    assert evidence_span(readings) >= 0.9
+    assert evidence_span(readings[50:]) == 0.0  # the leg alone spans nothing

@@ -46,6 +46,9 @@ MIN_EVIDENCE_SPAN = 0.25
 """Share of direction cells the evidence must span (judged by its own shape, not through the
 calibration under test) before a candidate may replace the calibration in force: better in one
 corner of the sphere is not better."""
+THIN_CELLS = 64
+"""A heading circle's span is judged on one reading per 1/64 of their extent (about 1 uT of a
+50 uT field): where readings piled up says nothing of the headings they span (``_thinned``)."""
 
 SIGNIFICANCE = 3.0
 """A candidate must beat the calibration in force by three standard errors of the paired
@@ -139,8 +142,21 @@ def evidence_span(readings: np.ndarray, minimum: int = MIN_EVIDENCE) -> float:
     if len(readings) < minimum:
         return 0.0
     if yaw_only(readings):
-        return float(heading_coverage_of(readings).coverage.fraction)
+        return float(heading_coverage_of(_thinned(readings)).coverage.fraction)
     return float(direction_coverage(readings, None, readings).fraction)
+
+
+def _thinned(readings: np.ndarray) -> np.ndarray:
+    """One reading per cell of a grid THIN_CELLS to their extent: a robot that stood, or drove
+    one way, most of the time leaves a cluster that outweighs its turns in any fit of their own
+    shape (``fit_ring`` centres and scales by medians), though it adds no direction."""
+    readings = np.asarray(readings, dtype=float).reshape(-1, 3)
+    readings = readings[np.all(np.isfinite(readings), axis=1)]
+    extent = float(np.max(np.ptp(readings, axis=0))) if len(readings) else 0.0
+    if not extent > 0.0:
+        return readings
+    _, first = np.unique(np.floor(readings * (THIN_CELLS / extent)), axis=0, return_index=True)
+    return readings[np.sort(first)]
 
 
 @dataclass(frozen=True)
@@ -175,7 +191,10 @@ def compare_on_evidence(
     better calibration's robust noise, under both, and the candidate wins when the mean paired
     difference exceeds SIGNIFICANCE standard errors and MIN_GAIN of the current residual, and
     is positive without the FAVOURED_STRETCHES of TIME_STRETCHES (``evidence`` in stream order,
-    as ``HeldOutEvidence`` gives it) most in the candidate's favour.
+    as ``HeldOutEvidence`` gives it) most in the candidate's favour. Raw readings with inputs
+    span what they span as either calibration corrects them: the own field moves raw readings
+    off their ring by ``K u``, and their own shape (``evidence_span``) then tells nothing; a
+    compensation moves readings along its inputs' field only, so it adds no headings.
     Residuals are reported as percent (square root of the mean capped loss: the RMS when nothing
     is disturbed). Raw readings with their ``inputs`` and ``temperatures`` judge a learned
     compensation (``live/compensation.py``) by the same rule.
@@ -186,7 +205,11 @@ def compare_on_evidence(
     keep = (np.abs(now) <= GROSS_ERROR) | (np.abs(new) <= GROSS_ERROR)
     now, new = now[keep], new[keep]
     n = len(now)
-    span = evidence_span(evidence[keep])
+    if inputs is None and temperatures is None:
+        span = evidence_span(evidence[keep])
+    else:  # raw readings the robot's own field moved off their ring: their span as corrected
+        span = max(evidence_span(calibration.apply(evidence, inputs, temperatures)[keep])
+                   for calibration in (current, candidate))
     if n < MIN_EVIDENCE:
         return Comparison(False, math.nan, math.nan, n, span,
                           f'{n} held-out readings, need {MIN_EVIDENCE}')
