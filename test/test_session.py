@@ -11,14 +11,10 @@ import numpy as np
 import pytest
 
 from mag_calibrator_ros.calibration.fit.calibration import Calibration, transform_covariance
+from mag_calibrator_ros.calibration.live.backlog import DRAIN_FOR_REQUEST, DRAIN_PER_MESSAGE
 from mag_calibrator_ros.calibration.live.evidence import HOLD_OUT_EVERY, magnitude_residual_pct
 from mag_calibrator_ros.calibration.live.jobs import FitJob, JobOutcome, run_job
-from mag_calibrator_ros.calibration.live.session import (
-    DRAIN_FOR_REQUEST,
-    DRAIN_PER_MESSAGE,
-    REFUSAL_REASONS,
-    CalibrationSession,
-)
+from mag_calibrator_ros.calibration.live.session import REFUSAL_REASONS, CalibrationSession
 from mag_calibrator_ros.calibration.live.settings import AK09916_FULL_SCALE_T, SessionSettings
 from mag_calibrator_ros.calibration.live.verdicts import bounded_step, coverage_kept
 from mag_calibrator_ros.sim import motion

@@ -29,6 +29,7 @@ from mag_calibrator_ros.calibration.fit.earth_field import EarthField, EarthRefe
 from mag_calibrator_ros.calibration.fit.heading import HeadingCoverage, PlaneWatch
 from mag_calibrator_ros.calibration.live import report
 from mag_calibrator_ros.calibration.live.alignment_wait import AlignmentWait
+from mag_calibrator_ros.calibration.live.backlog import DRAIN_PER_MESSAGE, Backlog
 from mag_calibrator_ros.calibration.live.buffer import SampleBuffer
 from mag_calibrator_ros.calibration.live.compensation import CompensationLearner
 from mag_calibrator_ros.calibration.live.evidence import (
@@ -71,19 +72,6 @@ REFUSAL_REASONS = (*SCREEN_REASONS, 'duplicate', 'magnitude_outlier')
 
 STATES = ('uncalibrated', 'collecting', 'calibrated', 'calibrated-refining',
           'calibrated-converged', 'calibrated-misfit')
-
-HOLD_LIMIT = 5000
-"""Readings held while a fit runs; beyond this (a worker far too slow for the rate) the oldest
-are fed to the buffer at once and the run is no longer exactly reproducible (counted)."""
-
-DRAIN_PER_MESSAGE = 2
-"""Held readings fed per incoming message once a fit is done: bounded work per callback. Each
-costs about as much as the message itself, so the callback's worst case stays a few times its
-median and the backlog of a fit still shrinks by two readings a message."""
-
-DRAIN_FOR_REQUEST = 64
-"""Held readings a poll feeds while a ~/calibrate waits for them (its fit includes every reading
-received before the call): a user waits, so the backlog of a slow worker goes first."""
 
 REPORTED_COVERAGE_AGE_S = 2.0 * CHECK_FIT_PERIOD_S
 """Stream seconds a coverage measured by the fit worker stands for the buffer's in reports: a
@@ -161,7 +149,6 @@ class CalibrationSession:
         self.adoptions: dict[str, int] = {}
         """How often a calibration went in force, by source (auto, refine, request, file ...)."""
         self.jobs_run: dict[str, int] = {}
-        self.hold_overflows = 0
         self.stale_dropped = 0
         """Readings dropped unlearnt: compensated by a compensation no longer in force."""
         self.tracker: OnlineTracker | None = None
@@ -169,15 +156,12 @@ class CalibrationSession:
         self._last_taught: np.ndarray | None = None  # corrected direction last fed to the tracker
         self._last_tracking_check: float | None = None
         self.buffer_reference = BufferReference(self.buffer)
-        # (reading, stamp, compensation epoch, pair) of readings received while a fit ran
-        self._held: deque[tuple[np.ndarray, int, int, Pair | None]] = deque()
+        self.backlog = Backlog()  # (reading, stamp, compensation epoch, pair) while a fit runs
         self._compensation_epoch = 0  # bumped by each learned compensation put in force
         self._job: FitJob | None = None
         self._job_epoch = 0
         self._measured_coverage: tuple[float, Coverage] | None = None  # (stream s, coverage)
         self._epoch = 0  # bumped by reset(): outcomes of older jobs are stale
-        self._requests: deque[tuple[int, int]] = deque()  # (ticket, readings accepted before)
-        self._ingested = 0  # accepted readings fed to the buffer or the evidence so far
         self._next_ticket = 1
         self._hold_out = random.Random(0)
         self._next_periodic = 0.0
@@ -259,7 +243,8 @@ class CalibrationSession:
             self._imu_warnings()
         self._advance()
         for item, pair in decided:  # arrival order, each once its IMU sample could be there
-            (self._hold if self._job is not None or self._held else self._ingest)(*item, pair)
+            (self._hold if self._job is not None or len(self.backlog) else self._ingest)(
+                *item, pair)
         calibration = self.calibration
         if calibration is None:
             return Processed(True, None, None)
@@ -287,18 +272,13 @@ class CalibrationSession:
         self.findings.earth = field
 
     def poll(self) -> None:
-        """Take a finished fit's outcome and feed held readings; the node calls this on a timer
-        (messages call it too), so answers arrive even when no message does. While messages
-        flow, each feeds DRAIN_PER_MESSAGE and so does a poll (a long drain here would delay the
-        messages queued behind it), DRAIN_FOR_REQUEST while a request waits; once none came
-        since the last poll, all that is held."""
+        """Take a finished fit's outcome and feed held readings (``Backlog.budget``: a few while
+        messages flow, more while a request waits, all once none came since the last poll);
+        the node calls this on a timer (messages call it too), so answers arrive even when no
+        message does."""
         flowing = self.accepted != self._accepted_at_poll
         self._accepted_at_poll = self.accepted
-        if not flowing:
-            budget = HOLD_LIMIT
-        else:
-            budget = DRAIN_FOR_REQUEST if self._requests else DRAIN_PER_MESSAGE
-        self._advance(budget=budget)
+        self._advance(budget=self.backlog.budget(flowing))
 
     def _advance(self, budget: int = DRAIN_PER_MESSAGE) -> None:
         if self._job is not None:
@@ -307,18 +287,17 @@ class CalibrationSession:
                 return
             self._job = None
             self._complete(outcome)
-        while self._held and self._job is None and budget > 0:
-            self._ingest(*self._held.popleft())
+        while len(self.backlog) and self._job is None and budget > 0:
+            self._ingest(*self.backlog.next())
             budget -= 1
-        if self._job is None and not self._held and self._requests:
+        if self._job is None and not len(self.backlog) and self.backlog.waiting:
             self._submit('request')
 
     def _hold(self, reading: np.ndarray, stamp_ns: int, epoch: int,
               pair: Pair | None = None) -> None:
-        if len(self._held) >= HOLD_LIMIT:
-            self.hold_overflows += 1
-            self._ingest(*self._held.popleft())
-        self._held.append((reading, stamp_ns, epoch, pair))
+        overflow = self.backlog.hold((reading, stamp_ns, epoch, pair))
+        if overflow is not None:  # the backlog is full: its oldest is fed now
+            self._ingest(*overflow)
 
     def _ingest(self, reading: np.ndarray, stamp_ns: int, epoch: int,
                 pair: Pair | None = None) -> None:
@@ -331,7 +310,7 @@ class CalibrationSession:
         and on a loaded computer a backlog of them, some not compensated at all, refilled the
         emptied buffer and failed the next fit (a residual of 5.9 %, issue #22)."""
         now = self.clock.advance(stamp_ns)
-        self._ingested += 1
+        self.backlog.ingested += 1
         if epoch != self._compensation_epoch:
             self.stale_dropped += 1
             return
@@ -378,12 +357,12 @@ class CalibrationSession:
     def _situation(self, now: float) -> Situation:
         return Situation.of(now, self.settings, self.buffer.fill, self.buffer.capacity,
                             self.calibration is not None, self.misfit.misfit,
-                            bool(self._requests) and self._requests[0][1] <= self._ingested)
+                            self.backlog.request_ready)
 
     # -- fits ----------------------------------------------------------------------------------
 
     def _submit(self, kind: str) -> None:
-        ticket = self._requests.popleft()[0] if kind == 'request' else None
+        ticket = self.backlog.take_request() if kind == 'request' else None
         if self.input_watch.refusal(kind):  # wrong units or normalised: nothing to put in force
             return self._refuse_fit(kind, ticket, self.input_watch.problem)
         job = self._make_job(kind, ticket)
@@ -545,7 +524,7 @@ class CalibrationSession:
         ticket. A fit that passes the gates goes in force."""
         ticket = self._next_ticket
         self._next_ticket += 1
-        self._requests.append((ticket, self.accepted))  # after every reading received so far
+        self.backlog.request(ticket, self.accepted)  # after every reading received so far
         for item, pair in self.pairing.flush():  # those waiting for an IMU sample decided now
             self._hold(*item, pair)
         self._advance()
@@ -674,8 +653,7 @@ class CalibrationSession:
         self.screen.reset()
         self.scheduler.reset()
         self.misfit.reset()
-        self._held.clear()
-        self._ingested = self.accepted  # what was held is dropped: requests need not wait for it
+        self.backlog.drop_held(self.accepted)
         self._epoch += 1
         self.buffer_reference.provisional = None
         self.buffer_reference.set(self.calibration, None,
@@ -729,7 +707,12 @@ class CalibrationSession:
     @property
     def held(self) -> int:
         """Readings received while a fit ran, not yet fed to the buffer (in order, later)."""
-        return len(self._held)
+        return len(self.backlog)
+
+    @property
+    def hold_overflows(self) -> int:
+        """Held readings fed at once because the backlog was full (``backlog.HOLD_LIMIT``)."""
+        return self.backlog.overflows
 
     def reported_coverage(self) -> Coverage:
         """``coverage()`` for reports (diagnostics, the progress log), without its milliseconds

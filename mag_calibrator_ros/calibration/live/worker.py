@@ -44,7 +44,7 @@ killed and restarted. Generous by design, as only a worker that no longer runs a
 it: the largest job (a buffer of 5000 samples, the node's ``buffer_size`` limit, with its
 evidence; ``benchmarks/bench_engine.py --speed`` measures the fits) must still answer in a small
 fraction of it on a computer many times slower than a desktop that gives the nice worker only a
-tenth of a core (WORKER_NICENESS). Meanwhile readings wait (HOLD_LIMIT in the session)."""
+tenth of a core (WORKER_NICENESS). Meanwhile readings wait (``backlog.py``)."""
 STARTUP_DEADLINE_S = 300.0
 """How long a starting worker may take to import the fitting stack and say it is ready (as
 generous, for the same reasons)."""
