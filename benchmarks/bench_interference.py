@@ -32,6 +32,10 @@ error of the correction itself under the 0.7° a single sample's noise adds. Row
     compensation in force on, and with its final calibration over the whole course. ``no
     interference, compensating``: the floor's course with the same inputs, to show nothing is
     learned from nothing (the heading difference to the floor's row).
+(e) ``quick procedure first``: the course with ``motion.QUICK_PROCEDURE`` (32 s straight ahead
+    and back at three speeds) after its first turn in place, ``~/learn_compensation``
+    (``CalibrationSession.request_compensation``) called as it starts; scored over the rest of
+    the course (the same legs as (d) after its first turn); its answer's time and K, c.
 
     python benchmarks/bench_interference.py                 # three seeds, a few minutes
     python benchmarks/bench_interference.py --seeds 1       # quicker
@@ -140,6 +144,37 @@ def live(recording: CourseRecording, clean: CourseRecording,
     return corrected, noise_free, first, session
 
 
+def quick(seed: int) -> tuple[CourseRecording, CourseRecording, np.ndarray, np.ndarray,
+                               CalibrationSession, float, float | None, str]:
+    """The course with the quick procedure after its first turn: (recording, noise-free twin,
+    corrected, the same corrections noise-free, session, stream seconds the course resumes,
+    seconds from the request to its answer, the answer)."""
+    legs = (*motion.GROUND_COURSE[:2], *motion.QUICK_PROCEDURE, *motion.GROUND_COURSE[2:])
+    starts = float(sum(leg.duration_s for leg in motion.GROUND_COURSE[:2]))
+    resumes = starts + sum(leg.duration_s for leg in motion.QUICK_PROCEDURE)
+    recording, clean = (course_recording(robot(seed, noise_ut=noise), motion.CourseDriver(legs),
+                                         rate_hz=RATE_HZ) for noise in (0.3, 0.0))
+    session = CalibrationSession(COMPENSATING)
+    corrected = np.full_like(recording.mag, math.nan)
+    noise_free = np.full_like(recording.mag, math.nan)
+    ticket, asked, took, answer = None, None, None, 'not asked: no calibration before the course'
+    for index in range(len(recording.times)):
+        now = float(recording.times[index])
+        if ticket is None and now >= starts and session.calibration is not None \
+                and now < resumes:
+            ticket, asked = session.request_compensation(60.0), now
+        processed = feed(session, recording, index, inputs=True)
+        for event in session.take_events():
+            if ticket is not None and event.ticket == ticket and event.attempt is not None:
+                took, answer = now - asked, event.attempt.message
+        if processed.corrected is not None:
+            corrected[index] = processed.corrected
+            noise_free[index] = processed.calibration.apply(
+                clean.mag[index], [recording.current_a[index]], recording.temperature_c[index])
+    session.close()
+    return recording, clean, corrected, noise_free, session, resumes, took, answer
+
+
 def static_perfect(board: BoardModel, recording: CourseRecording) -> np.ndarray:
     """The true power-on calibration (cold, motors idle) applied to every row."""
     config = board.config
@@ -204,6 +239,17 @@ def one_seed(seed: int) -> dict[str, tuple[float, float, int, float]]:
         results['  its final calibration, whole course'] = (
             *heading(final.apply(recording.mag, inputs, recording.temperature_c), recording),
             heading(final.apply(clean.mag, inputs, clean.temperature_c), clean)[0])
+    first_turn = sum(leg.duration_s for leg in motion.GROUND_COURSE[:2])
+    results['  the same, after the first turn'] = (
+        *heading(corrected, recording, first_turn), heading(noise_free, clean, first_turn)[0])
+    record_q, clean_q, corrected_q, noise_free_q, session_q, resumes, took, answer = quick(seed)
+    results['quick procedure first, then the course'] = (
+        *heading(corrected_q, record_q, resumes), heading(noise_free_q, clean_q, resumes)[0])
+    learned_q = session_q.calibration.compensation if session_q.calibration else None
+    print(f'seed {seed}: quick procedure answered after {took} s: {answer}; K = '
+          f'{None if learned_q is None else learned_q.interference[:, 0] * 1e6} uT/A, c = '
+          f'{None if learned_q is None else learned_q.temperature_coefficient * 1e6} uT/°C '
+          f'at the end; adoptions {session_q.adoptions}', flush=True)
     learned = learning.calibration.compensation if learning.calibration else None
     if learned is not None:
         print(f'seed {seed}: learned K = {learned.interference[:, 0] * 1e6} uT/A, c = '

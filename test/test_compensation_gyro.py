@@ -5,13 +5,14 @@ every axis of ``K``; live/compensation.py integrates the attitude the readings c
 
 from __future__ import annotations
 
+from dataclasses import replace
 import math
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.fit.calibration import Calibration, Compensation
 from mag_calibrator_ros.calibration.fit.compensation import (
     PAIR_MAX_TURN_DEG,
     CompensationData,
@@ -146,3 +147,141 @@ def test_the_learner_integrates_the_gyroscope_and_restarts_after_a_gap():
     assert before[0, 1] != after[0, 1]  # the gap started a new stretch
     turned = (Rotation.from_quat(before[0, 2:]).inv() * Rotation.from_quat(before[-1, 2:]))
     assert turned.magnitude() == pytest.approx(rate * (before[-1, 0] - before[0, 0]), rel=0.02)
+
+
+def _answers(session: CalibrationSession, ticket: int) -> list:
+    return [event.attempt for event in session.take_events() if event.ticket == ticket]
+
+
+def _stand(session: CalibrationSession, run: dict[str, np.ndarray], ticket: int,
+           start: float = 0.0) -> list:
+    """Feed the standing robot's run from ``start`` s of stream; the answers to ``ticket``."""
+    answers = []
+    for index, when in enumerate(run['t']):
+        stamp = int(round((start + when) * 1e9)) + 1
+        session.compensation.input(0, stamp, float(run['current'][index]))
+        session.process_imu(stamp, 'imu', (0.0, 0.0, 9.81), run['gyro'][index])
+        session.process(stamp, 'imu', run['raw'][index])
+        session.poll()
+        answers += _answers(session, ticket)
+    return answers
+
+
+def test_learn_compensation_answers_once_what_the_motors_currents_tell_is_in_force():
+    """~/learn_compensation with learn_compensation off: nothing is kept before the call, and
+    the window learns K from a robot held still while its motors step through currents."""
+    run = standing(seconds=60.0)
+    static = Calibration(OFFSET + GAIN * run['current'].mean(), np.eye(3), F)
+    session = CalibrationSession(SessionSettings(interference_inputs=(BATTERY,),
+                                                 learn_compensation=False), calibration=static)
+    before = _stand(session, standing(seconds=20.0, seed=1), -1)
+    assert not before and 'compensation_readings_kept' not in \
+        session.compensation.diagnostic_values(session.calibration)
+    ticket = session.request_compensation(60.0)
+    assert 'compensation_learning' in session.compensation.diagnostic_values(
+        session.calibration, now=session.clock.now)
+    answers = _stand(session, run, ticket, start=20.0)
+    assert len(answers) == 1 and answers[0].success, answers
+    assert answers[0].message.startswith('learned in ')
+    assert "compensating the robot's own field" in answers[0].message
+    compensation = session.calibration.compensation
+    assert compensation.interference[:, 0] == pytest.approx(GAIN, abs=0.08e-6)
+    assert not session.compensation.learning  # the window closed with its answer
+
+
+def test_learn_compensation_at_a_constant_current_says_what_it_needs_at_its_end():
+    run = standing(seconds=40.0, steps=False)
+    session = CalibrationSession(SessionSettings(interference_inputs=(BATTERY,)),
+                                 calibration=Calibration(OFFSET, np.eye(3), F))
+    ticket = session.request_compensation(30.0)
+    answers = _stand(session, run, ticket)
+    assert len(answers) == 1 and not answers[0].success
+    assert answers[0].message.startswith('nothing learned in 30 s of readings')
+    assert "BatteryState:current' did not vary" in answers[0].message
+    assert session.calibration.compensation is None
+
+
+def test_learn_compensation_refuses_without_a_calibration_twice_at_once_and_ends_on_reset():
+    session = CalibrationSession(SessionSettings(interference_inputs=(BATTERY,)))
+    ticket = session.request_compensation(30.0)
+    [answer] = _answers(session, ticket)
+    assert not answer.success and 'no calibration in force' in answer.message
+    session.apply_calibration(Calibration(OFFSET, np.eye(3), F))
+    first, second = session.request_compensation(30.0), session.request_compensation(30.0)
+    [answer] = _answers(session, second)
+    assert not answer.success and 'already learning' in answer.message
+    session.reset()
+    [answer] = _answers(session, first)
+    assert not answer.success and '~/reset' in answer.message
+    for timeout in (0.0, math.nan, 1e9):
+        ticket = session.request_compensation(timeout)
+        [answer] = _answers(session, ticket)
+        assert not answer.success and 'compensation_timeout' in answer.message
+
+
+def test_the_offset_is_held_where_the_calibration_in_force_is_right_not_at_the_readings_mean():
+    """A static fit made at 1 A (a turn in place) is right at 1 A; K learned standing at
+    several currents must keep it right there, not at the standing readings' mean current,
+    across the directions the still field cannot tell (``CompensationData.anchor``)."""
+    run = standing()
+    base = Calibration(OFFSET + GAIN * 1.0, np.eye(3), F)
+    anchored = fit_compensation(replace(_data(run), anchor=np.array([1.0, math.nan])), base)
+    unanchored = fit_compensation(_data(run), base)
+    across = np.eye(3) - np.outer(EARTH, EARTH) / F**2  # what standing still cannot see
+    error = across @ (anchored.calibration.offset - OFFSET)
+    assert np.linalg.norm(error) < 0.1e-6
+    moved = across @ (unanchored.calibration.offset - OFFSET)  # held at the mean current
+    assert np.linalg.norm(moved) > 1e-6
+
+
+def test_the_learner_anchors_a_static_fit_at_the_mean_inputs_since_the_buffer_was_emptied():
+    session = CalibrationSession(SessionSettings(interference_inputs=(BATTERY,)))
+    learner = session.compensation
+    for index in range(200):
+        stamp = index * 10_000_000 + 1
+        learner.input(0, stamp, 2.0 if index < 100 else 4.0)
+        learner.temperature(stamp, 30.0)
+        session.process(stamp, 'imu', EARTH + OFFSET)
+    session.apply_calibration(Calibration(OFFSET, np.eye(3), F), 'refine')
+    assert learner.anchor == pytest.approx([3.0, 30.0], abs=0.05)
+    session.apply_calibration(Calibration(OFFSET, np.eye(3), F), 'file')
+    assert learner.anchor is None  # a file does not say where it was right
+
+
+def test_learn_compensation_learns_k_and_keeps_the_drift_in_force():
+    """The quick procedure learns the inputs' K only: the few degrees a die warms meanwhile
+    tell no c, and a c learned before (here from a file) stays as it is."""
+    run = standing(seconds=60.0)
+    drift = np.array([0.0, 0.2e-6, 0.0])
+    warming = 25.0 + 5.0 * run['t'] / run['t'][-1]
+    run['raw'] = run['raw'] + np.outer(warming - 25.0, drift)
+    given = Calibration(OFFSET + GAIN * run['current'].mean(), np.eye(3), F).with_compensation(
+        Compensation(('current',), np.zeros((3, 1)), drift, 25.0))
+    session = CalibrationSession(SessionSettings(interference_inputs=(BATTERY,)),
+                                 calibration=given)
+    ticket = session.request_compensation(60.0)
+    answers = []
+    for index, when in enumerate(run['t']):
+        stamp = int(round(when * 1e9)) + 1
+        session.compensation.input(0, stamp, float(run['current'][index]))
+        session.compensation.temperature(stamp, float(warming[index]))
+        session.process_imu(stamp, 'imu', (0.0, 0.0, 9.81), run['gyro'][index])
+        session.process(stamp, 'imu', run['raw'][index])
+        session.poll()
+        answers += _answers(session, ticket)
+    assert len(answers) == 1 and answers[0].success, answers
+    compensation = session.calibration.compensation
+    assert compensation.temperature_coefficient == pytest.approx(drift, abs=1e-15)
+    assert compensation.reference_temperature == 25.0
+    assert compensation.interference[:, 0] == pytest.approx(GAIN, abs=0.08e-6)
+
+
+def test_a_window_too_short_to_keep_a_fits_readings_says_to_make_it_longer():
+    run = standing(seconds=20.0)
+    session = CalibrationSession(SessionSettings(interference_inputs=(BATTERY,),
+                                                 learn_compensation=False),
+                                 calibration=Calibration(OFFSET, np.eye(3), F))
+    ticket = session.request_compensation(10.0)
+    [answer] = _stand(session, run, ticket)
+    assert not answer.success
+    assert 'make compensation_timeout longer' in answer.message, answer.message

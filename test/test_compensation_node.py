@@ -1,7 +1,8 @@
 """The calibrator node learns the robot's own field over DDS: a battery current on
 ``battery_state`` (sensor_msgs/BatteryState) and the die temperature on ``imu/temperature``
 (sensor_msgs/Temperature) beside ``imu/mag``, the compensation adopted on evidence and shown in
-``/diagnostics``, ``calibration.*`` and the ``~/calibrate`` answer."""
+``/diagnostics``, ``calibration.*`` and the ``~/calibrate`` answer; ``~/learn_compensation``
+learns it on request."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from node_helpers import Probe, set_parameter_over_service, wait_for
 import numpy as np
 import pytest
 from sensor_msgs.msg import BatteryState, Temperature
+from std_srvs.srv import Trigger
 from test_compensation import BATTERY, OFFSET, F, drive
 
 from mag_calibrator_ros.calibration.live.inputs import parse_input
@@ -92,3 +94,41 @@ def test_a_bad_interference_input_is_refused_with_its_form(learning):
                                             ['battery current'])
     assert not ok
     assert 'topic:package/msg/Type:field' in reason
+
+
+def _ask(probe: Probe, service: str):
+    """Call a Trigger service without waiting (the answer comes once readings taught it)."""
+    client = probe.create_client(Trigger, service)
+    assert client.wait_for_service(timeout_sec=20.0), f'{service} not available'
+    return client.call_async(Trigger.Request())
+
+
+def test_learn_compensation_learns_on_request_with_live_learning_off(learning):
+    calibrator, probe, battery, temperature = learning
+    for name, value in (('learn_compensation', False), ('compensation_timeout', 120.0)):
+        assert set_parameter_over_service(probe, calibrator, name, value)[0]
+    _publish(probe, drive(seconds=30.0, rate=RATE_HZ), battery, temperature)
+    assert wait_for(lambda: calibrator.session.accepted >= 0.9 * 30.0 * RATE_HZ)
+    assert calibrator.session.adoptions.get('compensation', 0) == 0  # nothing learnt unasked
+    answer = _ask(probe, 'mag_calibrator/learn_compensation')
+    run = drive(seconds=SECONDS, rate=RATE_HZ)
+    run['t'] = run['t'] + 31.0  # the robot drives on
+    _publish(probe, run, battery, temperature)
+    assert wait_for(answer.done, timeout_s=60.0), 'no answer'
+    response = answer.result()
+    assert response.success, response.message
+    assert response.message.startswith('learned in ')
+    assert calibrator.session.calibration.compensation is not None
+
+
+def test_learn_compensation_without_readings_answers_by_the_nodes_own_clock(learning):
+    calibrator, probe, _, _ = learning
+    assert set_parameter_over_service(probe, calibrator, 'compensation_timeout', 5.0)[0]
+    answer = _ask(probe, 'mag_calibrator/learn_compensation')
+    assert wait_for(answer.done, timeout_s=40.0), 'no answer'
+    response = answer.result()
+    assert not response.success
+    assert 'too few magnetometer readings arrived' in response.message
+    again = _ask(probe, 'mag_calibrator/learn_compensation')  # the window closed
+    assert wait_for(again.done, timeout_s=40.0)
+    assert 'already learning' not in again.result().message

@@ -29,7 +29,7 @@ Published topics:
 - ``cmd_vel`` (geometry_msgs/Twist, or TwistStamped with ``cmd_vel_stamped``; reliable): only
   while ``~/rotate_and_calibrate`` turns the robot, and its zero after a stop.
 
-Services (six, all std_srvs/Trigger):
+Services (seven, all std_srvs/Trigger):
 
 - ``~/calibrate``: fit the buffer now; answers once the fit is in force, or why it is not.
 - ``~/save``: write the calibration in force to ``calibration_file``.
@@ -37,6 +37,10 @@ Services (six, all std_srvs/Trigger):
 - ``~/reset``: empty the buffer, forget a location from gps/fix; the calibration stays.
 - ``~/rotate_and_calibrate``: turn in place on ``cmd_vel`` until calibrated (ground robots).
 - ``~/stop_rotation``: stop that turn (zero at once).
+- ``~/learn_compensation``: learn the robot's own field now, while its motors run through
+  several currents (on a stand, or driving straight at several speeds: ArduPilot's compassmot);
+  answers once it is in force and stops improving, or after ``compensation_timeout`` with what
+  it still needs.
 
 Timers: POLL_PERIOD_S (finished fits and file operations, waiting service answers, auto-save,
 ``calibration.*``), DIAGNOSTICS_PERIOD_S (progress log line, /diagnostics, RViz view),
@@ -61,7 +65,8 @@ When to calibrate:
 - ``online_tracking`` (false): follow slow drift, by bounded steps.
 - ``tracking_improvement`` (0.8): a tracked fit's residual must be below this share.
 - ``tracking_max_change_rate`` (0.01): largest tracked change per second.
-- ``learn_compensation``, ``use_temperature`` (true), ``interference_inputs`` ([]): README.
+- ``learn_compensation``, ``use_temperature`` (true), ``interference_inputs`` ([]): README;
+  ``compensation_timeout`` (60.0): seconds ``~/learn_compensation`` learns for at most.
 
 Output, file and views:
 
@@ -183,6 +188,9 @@ DIAGNOSTICS_PERIOD_S = 1.0
 POLL_PERIOD_S = 0.05
 """How often finished fits and file operations are collected (service answers wait at most
 about this long once the work is done)."""
+WINDOW_GRACE, WINDOW_SLACK_S = 1.5, 5.0
+"""~/learn_compensation ends by the readings' stamps (``compensation_timeout`` of them); when
+they stall, the node ends it itself after 1.5 times as long plus 5 s of its own clock."""
 INPUT_QOS = QoSProfile(
     history=qos_profile_sensor_data.history,
     depth=100,  # sensor-data QoS (best effort, REP-2003) with room for bursts at 1 kHz
@@ -216,7 +224,8 @@ class MagCalibratorNode(Node):
                                           runner=runner)
         self._io = ThreadPoolExecutor(max_workers=1, thread_name_prefix='mag_calibrator_io')
         self._io_results: SimpleQueue = SimpleQueue()  # (rclpy Future, result) from the I/O thread
-        self._requests: dict[int, Future] = {}  # ~/calibrate tickets waiting for their answer
+        self._requests: dict[int, Future] = {}  # session tickets waiting for their answer
+        self._learning: dict[int, float] = {}  # ~/learn_compensation tickets: wall deadline
         self._problem: str | None = None  # a calibration file/parameter error, shown as ERROR
         self._last_progress_log = -math.inf
         self._received_at_log = 0  # input messages counted at the last progress line
@@ -247,7 +256,8 @@ class MagCalibratorNode(Node):
         # timer that completes it could never run.
         waiting = ReentrantCallbackGroup()
         for name, callback in (('~/calibrate', self._on_calibrate), ('~/save', self._on_save),
-                               ('~/reset', self._on_reset), ('~/load', self._on_load)):
+                               ('~/reset', self._on_reset), ('~/load', self._on_load),
+                               ('~/learn_compensation', self._on_learn_compensation)):
             self.create_service(Trigger, name, self._answering(name, callback),
                                 callback_group=waiting)
         self._diagnostics = DiagnosticsPublisher(self)
@@ -444,6 +454,9 @@ class MagCalibratorNode(Node):
         """Collect finished fits and file operations; answer waiting services; auto-save;
         show a new calibration in force as calibration.* parameters."""
         self.session.poll()
+        if any(time.monotonic() > deadline for deadline in self._learning.values()):
+            self.session.end_compensation_window(  # stream time stands still without readings
+                'too few magnetometer readings arrived to learn from (is imu/mag published?)')
         while not self._io_results.empty():
             future, result = self._io_results.get()
             future.set_result(result)
@@ -468,6 +481,7 @@ class MagCalibratorNode(Node):
             if event.adopted:
                 self._problem = None
                 self._auto_save.adopted(bool(self.get_parameter('auto_save').value))
+            self._learning.pop(event.ticket, None)
             request = self._requests.pop(event.ticket, None)
             if request is not None:
                 request.set_result(event.attempt)
@@ -517,6 +531,18 @@ class MagCalibratorNode(Node):
 
     async def _on_calibrate(self, request: Trigger.Request, response: Trigger.Response):
         attempt = await self._request_calibration()
+        response.success, response.message = attempt.success, attempt.message
+        return response
+
+    async def _on_learn_compensation(self, request: Trigger.Request,
+                                     response: Trigger.Response):
+        timeout = float(self.get_parameter('compensation_timeout').value)
+        waiting = Future()
+        ticket = self.session.request_compensation(timeout)
+        self._requests[ticket] = waiting
+        self._learning[ticket] = time.monotonic() + WINDOW_GRACE * timeout + WINDOW_SLACK_S
+        self._handle_events()  # a refusal answers at once
+        attempt = await waiting
         response.success, response.message = attempt.success, attempt.message
         return response
 

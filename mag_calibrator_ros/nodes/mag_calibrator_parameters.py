@@ -17,6 +17,7 @@ import math
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange
 
+from mag_calibrator_ros.calibration.live.compensation import MAX_WINDOW_S
 from mag_calibrator_ros.calibration.live.settings import FITTABLE_MODELS, SessionSettings
 from mag_calibrator_ros.calibration.live.turning import MAX_SPEED, TurnSettings
 from mag_calibrator_ros.calibration.store.calibration_file import (
@@ -157,6 +158,9 @@ PARAMETERS: dict[str, tuple[object, str, dict]] = {
     'learn_compensation': (DEFAULTS.learn_compensation,
                            "Learn the robot's own field (K per input, c per degC) while it "
                            'works; adopted only when better on held-out readings.', {}),
+    'compensation_timeout': (60.0, 'Seconds of readings ~/learn_compensation learns for at '
+                                   'most before it answers with what it still needs.',
+                             {'floating_point_range': _float_range(5.0, MAX_WINDOW_S)}),
 }
 SESSION_FIELDS = {f.name for f in fields(SessionSettings)}
 

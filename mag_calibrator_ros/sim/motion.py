@@ -775,6 +775,17 @@ tell a current's field (it grows with speed, fixed to the robot) from the hard i
 earth's field (it turns with the heading)."""
 
 
+QUICK_PROCEDURE = (
+    Leg(2.0),
+    Leg(3.0, speed=0.2), Leg(2.0), Leg(3.0, speed=-0.2), Leg(2.0),
+    Leg(3.0, speed=0.5), Leg(2.0), Leg(3.0, speed=-0.5), Leg(2.0),
+    Leg(3.0, speed=0.35), Leg(2.0), Leg(3.0, speed=-0.35), Leg(2.0),
+)
+"""``~/learn_compensation`` on the floor: straight ahead and back at three speeds, stopping
+between (it ends where it started, facing the same way): the current steps while the heading
+holds, which the gyroscope tells the magnetometer (``fit/compensation.py`` gyro_pairs)."""
+
+
 class CourseDriver:
     """The commands of a course of ``Leg``s: ``command_at(t)`` gives (speed, yaw rate) at
     ``t`` seconds from its start (zero after its end), for a teleop re-sending them on cmd_vel

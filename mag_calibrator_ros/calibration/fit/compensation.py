@@ -107,6 +107,15 @@ class CompensationData:
     held_attitudes: np.ndarray | None = None
     """Stream seconds (n,) and (n, 5) gyroscope attitudes: a stretch number and the quaternion
     (x, y, z, w) integrated within it (NaN: no gyroscope then); None without an IMU."""
+    anchor: np.ndarray | None = None
+    """(k + 1,): the inputs and the temperature at which the calibration in force is right (the
+    mean of those of the readings its static fit saw; NaN: unknown). With gyroscope pairs the
+    offset is held there along what the readings do not tell (default: at the readings' mean
+    inputs). Held at the wrong inputs, a K learned standing or driving straight would move
+    the offset by K times their difference."""
+    temperature_term: tuple[tuple[float, float, float], float] | None = None
+    """(c, T0) kept as they are: the fit learns the inputs' K only, and the readings come
+    without that drift (``~/learn_compensation``: a few degrees of warm-up tell no c)."""
 
 
 @dataclass(frozen=True)
@@ -237,13 +246,14 @@ def _span(values: np.ndarray) -> float:
 
 
 def _solve(raw: np.ndarray, columns: np.ndarray, spans: list[float], base: Calibration,
-           pairs: GyroPairs = NO_PAIRS
+           pairs: GyroPairs = NO_PAIRS, anchor: np.ndarray | None = None
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Gauss-Newton for ``|M (raw - b - d - W z)| = F``, ``z`` = (1, columns...): the offset
     change ``d`` (at zero input) is W's first column; ``M``, ``b``
     and ``F`` are the base's. With gyroscope ``pairs``, also ``A (y2 - W z2) = map A (y1 -
     W z1)`` (``A = R M``, ``y = raw - b``: the field the gyroscope says turned), weighted by
-    its own noise. Returns W (3, m), its covariance
+    its own noise; then the columns are centred at ``anchor`` (NaN: their mean), where the
+    base is right (``CompensationData.anchor``). Returns W (3, m), its covariance
     (3m, 3m) in the order of ``W.reshape(-1)``, which of those the readings observed (OBSERVED)
     and the magnitude residuals.
 
@@ -256,7 +266,11 @@ def _solve(raw: np.ndarray, columns: np.ndarray, spans: list[float], base: Calib
     n, m = len(raw), columns.shape[1] + 1
     # with pairs, centred: the offset is held (OFFSET_SEEN_DEG) where the calibration in force
     # is right, at the readings' mean inputs, not at zero current, which it may never have seen
-    centre = columns.mean(axis=0) if len(pairs) and len(columns) else np.zeros(m - 1)
+    centre = np.zeros(m - 1)
+    if len(pairs) and len(columns):
+        centre = columns.mean(axis=0)
+        if anchor is not None:
+            centre = np.where(np.isfinite(anchor), anchor, centre)
     z = np.hstack([np.ones((n, 1)), columns - centre])
     scale = np.maximum(np.abs(z).max(axis=0), 1e-12)  # column scaling for conditioning
     zs = z / scale
@@ -395,7 +409,13 @@ def fit_compensation(data: CompensationData, base: Calibration) -> CompensationF
     varied = [index for index, span in enumerate(spans)
               if span > 0 and (labels[index] != TEMPERATURE or span >= MIN_TEMPERATURE_SPAN)]
     design = np.stack([columns[i] for i in varied], axis=1) if varied else np.zeros((len(raw), 0))
-    w, covariance, seen, _ = _solve(raw, design, [spans[i] for i in varied], base, pairs)
+    anchors = np.full(len(labels), math.nan)
+    if data.anchor is not None and len(data.anchor) == len(names) + 1:
+        anchors[:len(names)] = np.asarray(data.anchor, float)[:len(names)]
+        if temperatures is not None:
+            anchors[-1] = float(data.anchor[-1]) - t0
+    w, covariance, seen, _ = _solve(raw, design, [spans[i] for i in varied], base, pairs,
+                                    anchors[varied])
     determined_axes: dict[int, np.ndarray] = {}
     m = design.shape[1] + 1
     kept: list[int] = []
@@ -431,7 +451,8 @@ def fit_compensation(data: CompensationData, base: Calibration) -> CompensationF
     # The calibration: refit with the kept terms only (the others are noise or unknown).
     design = (np.stack([columns[i] for i in kept], axis=1) if kept
               else np.zeros((len(raw), 0)))
-    w, _, _, residuals = _solve(raw, design, [spans[i] for i in kept], base, pairs)
+    w, _, _, residuals = _solve(raw, design, [spans[i] for i in kept], base, pairs,
+                                anchors[kept])
     gains = np.zeros((3, len(names)))
     drift = np.zeros(3)
     for position, index in enumerate(kept):
@@ -445,6 +466,8 @@ def fit_compensation(data: CompensationData, base: Calibration) -> CompensationF
                           kept=tuple(labels[i] for i in kept), pairs=len(pairs))
     if not kept:
         return _with_reason(fit, reports, bool(len(pairs)))
+    if temperatures is None and data.temperature_term is not None:
+        drift, t0 = np.asarray(data.temperature_term[0], float), data.temperature_term[1]
     compensation = Compensation(tuple(names), gains, drift,
                                 t0 if np.any(drift) else None)
     offset = base.offset + w[:, 0]

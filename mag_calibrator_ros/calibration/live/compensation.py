@@ -17,6 +17,7 @@ readings between which the robot barely turned (``fit/compensation.py`` gyro_pai
 from __future__ import annotations
 
 from collections import deque
+from dataclasses import dataclass
 import math
 
 import numpy as np
@@ -30,6 +31,7 @@ from mag_calibrator_ros.calibration.fit.compensation import (
 )
 from mag_calibrator_ros.calibration.live.inputs import InputSpec, parse_input
 from mag_calibrator_ros.calibration.live.jobs import REFERENCE_OPTIONS, FitJob, JobOutcome
+from mag_calibrator_ros.calibration.live.report import CalibrationAttempt
 from mag_calibrator_ros.calibration.live.verdicts import Verdict, compensation_verdict
 
 SAMPLE_RING = 32
@@ -47,6 +49,10 @@ HELD = 1000
 HOLD_OUT_EVERY = 5
 LEARN_PERIOD_S = 10.0
 """Stream seconds between compensation fits while there is something to learn."""
+QUICK_PERIOD_S = 2.0
+"""The same while ``~/learn_compensation`` waits for an answer (a person is waiting)."""
+MAX_WINDOW_S = 600.0
+"""The longest ``~/learn_compensation`` waits (``compensation_timeout``'s upper bound)."""
 PENDING = 40
 """Readings waiting for their inputs' samples, at most (one every KEEP_EVERY_S: 2 s of stream);
 the oldest is then paired with the sample nearest it within INPUT_TOLERANCE_NS, or dropped."""
@@ -54,6 +60,21 @@ GYRO_GAP_NS = 100_000_000
 """A longer gap between gyroscope samples (or a non-finite one) ends a stretch of integrated
 attitude: the rotation across it is not known, so no readings across it are compared."""
 NO_ATTITUDE = (math.nan,) * 5
+
+
+@dataclass
+class _Window:
+    """An open ``~/learn_compensation``: its ticket and its span in stream seconds."""
+
+    ticket: int
+    opened: float
+    deadline: float
+    units: str = 'T'
+    learned: str = ''
+    """What the latest compensation put in force in the window learned (the answer's text)."""
+    learned_at: float = 0.0
+    latest: str = ''
+    """Why the latest fit in the window put nothing in force."""
 
 
 class _Series:
@@ -82,6 +103,14 @@ class _Series:
         return best if gap <= tolerance_ns else math.nan
 
 
+def _without_drift(rows: np.ndarray, drift: tuple[float, float, float], t0: float
+                   ) -> np.ndarray:
+    """Kept rows with ``c (T - T0)`` taken from their reading (none where T is unknown)."""
+    rows = rows.copy()
+    rows[:, 1:4] -= np.outer(np.nan_to_num(rows[:, 4] - t0), drift)
+    return rows
+
+
 class CompensationLearner:
     """The inputs, the readings kept with them, and when the next compensation fit is due."""
 
@@ -93,6 +122,13 @@ class CompensationLearner:
         self.temperature_series = _Series()
         self.learn = learn
         self.use_temperature = use_temperature
+        self._window: _Window | None = None  # an open ~/learn_compensation
+        self.anchor: np.ndarray | None = None
+        """The inputs and temperature where the calibration in force is right (``carry``):
+        ``~/learn_compensation``'s fits hold the offset there (a robot on a stand or driving
+        straight shows the field one way only). Live fits hold it at their own readings' mean
+        inputs: those span headings and the warm-up, and holding it at a cold start's
+        temperature pulled c 11-14 % off (bench_interference, seeds 2 and 3)."""
         self.reset()
         self.configure(inputs, use_temperature, learn)
         self.last_fit = None
@@ -136,6 +172,12 @@ class CompensationLearner:
         self._stretch = getattr(self, '_stretch', 0) + 1
         self._attitude: list[float] | None = None  # quaternion (x, y, z, w), this stretch
         self._gyro_stamp: int | None = None
+        self.restart_mean()
+
+    def restart_mean(self) -> None:
+        """The buffer was emptied: the mean inputs of its readings start again."""
+        self._sums = [0.0] * (len(self.series) + 1)  # the inputs', then the temperature's
+        self._counts = [0] * (len(self.series) + 1)
 
     # -- per message (O(k)) --------------------------------------------------------------------
 
@@ -196,12 +238,19 @@ class CompensationLearner:
     def observe(self, stamp_ns: int, reading: np.ndarray, calibration: Calibration | None
                 ) -> np.ndarray:
         """The reading without the robot's own field in force (``Calibration.compensated``);
-        one every KEEP_EVERY_S of stream waits (``_settle``) to be kept to learn from."""
+        one every KEEP_EVERY_S of stream waits (``_settle``) to be kept to learn from once a
+        calibration is in force (before it, a robot that stood, then turned to calibrate,
+        changed its current with its motion only once, and a K fitted to that step was
+        wrong on every axis but one: measured, issue #26)."""
         self._last_stamp = stamp_ns
         temperature = (self.temperature_series.at(stamp_ns, TEMPERATURE_TOLERANCE_NS)
                        if self.use_temperature else math.nan)
         inputs = [series.at(stamp_ns, INPUT_TOLERANCE_NS) for series in self.series]
-        if self.learn and calibration is not None and stamp_ns / 1e9 >= self._next_keep:
+        for index, value in enumerate((*inputs, temperature)):
+            if math.isfinite(value):  # the mean the buffer's readings saw (``carry``)
+                self._sums[index] += value
+                self._counts[index] += 1
+        if self.learning and calibration is not None and stamp_ns / 1e9 >= self._next_keep:
             self._next_keep = stamp_ns / 1e9 + KEEP_EVERY_S
             self._pending.append((stamp_ns, *reading, *self._attitude_at(stamp_ns)))
         if self._pending:
@@ -259,18 +308,26 @@ class CompensationLearner:
     def due(self, now: float, calibration: Calibration | None) -> str | None:
         """'compensate' when a compensation fit should run now (something to learn, enough
         kept), else None."""
-        if (not self.learn or calibration is None or now < self._next_fit
+        if (not self.learning or calibration is None or now < self._next_fit
                 or len(self._kept) < MIN_READINGS or not self._held):
             return None
         if not self.specs and not (self.use_temperature and self.temperature_series.received):
             return None
-        self._next_fit = now + LEARN_PERIOD_S
+        self._next_fit = now + (LEARN_PERIOD_S if self._window is None else QUICK_PERIOD_S)
         return 'compensate'
 
     def data(self, calibration: Calibration) -> CompensationData:
         """The kept readings as one fit's input; T0 is the one in force, when there is one."""
         kept, held = np.array(self._kept), np.array(self._held)
+        compensation = calibration.compensation
         with_temperature = self.use_temperature and self.temperature_series.received > 0
+        term = None
+        if self._window is not None and self.specs:  # K only; the drift in force stays
+            with_temperature = False
+            if compensation is not None and compensation.reference_temperature is not None:
+                term = (tuple(compensation.temperature_coefficient),
+                        compensation.reference_temperature)
+                kept, held = (_without_drift(rows, *term) for rows in (kept, held))
         if with_temperature:
             # Readings kept before the first temperature sample came have none (it comes on
             # another topic, and a loaded computer can deliver it after the first readings):
@@ -281,14 +338,14 @@ class CompensationLearner:
                                 and bool(known_held.any()))
             if with_temperature:
                 kept, held = kept[known_kept], held[known_held]
-        compensation = calibration.compensation
         t0 = None if compensation is None else compensation.reference_temperature
         gyroscope = bool(np.any(np.isfinite(kept[:, 5])))
         return CompensationData(
             kept[:, 1:4], kept[:, 10:], kept[:, 4] if with_temperature else None, self.names,
             held[:, 1:4], held[:, 10:], held[:, 4] if with_temperature else None, t0,
             kept[:, 0], kept[:, 5:10] if gyroscope else None,
-            held[:, 0], held[:, 5:10] if gyroscope else None)
+            held[:, 0], held[:, 5:10] if gyroscope else None,
+            self.anchor if self._window is not None else None, term)
 
     def job(self, calibration: Calibration) -> FitJob:
         """The next compensation fit, on the calibration in force."""
@@ -304,12 +361,109 @@ class CompensationLearner:
     def carry(self, calibration: Calibration, previous: Calibration | None,
               source: str) -> Calibration:
         """A static fit put in force keeps the compensation in force (its readings were
-        compensated by it); a file, parameters or a learned compensation bring their own."""
+        compensated by it); a file, parameters or a learned compensation bring their own.
+        Notes where the new calibration is right (``anchor``): a static fit, at the mean inputs
+        of the readings since the buffer was last emptied; a learned compensation, where the
+        one before it was (its offset was held there); a file or parameters, unknown."""
+        if source in ('file', 'parameters', 'given'):
+            self.anchor = None
+        elif source not in ('compensation', 'realign', 'tracking'):
+            self.anchor = np.array([total / count if count else math.nan
+                                    for total, count in zip(self._sums, self._counts,
+                                                            strict=True)])
         if (source in ('file', 'parameters', 'given', 'compensation') or previous is None
                 or previous.compensation is None or calibration.compensation is not None):
             return calibration
         learned = {key: previous.metadata[key] for key in LEARNED if key in previous.metadata}
         return calibration.with_compensation(previous.compensation, **learned)
+
+    # -- the quick procedure: ~/learn_compensation ----------------------------------------------
+
+    @property
+    def learning(self) -> bool:
+        """Whether readings are kept and fits run: ``learn_compensation``, or a window open."""
+        return self.learn or self._window is not None
+
+    def open_window(self, ticket: int, now: float, timeout_s: float,
+                    calibration: Calibration | None, units: str = 'T') -> str:
+        """Learn now, a fit every QUICK_PERIOD_S of stream, until one goes in force or
+        ``timeout_s`` of stream pass (ArduPilot's compassmot, but live: the motors run through
+        several currents, on a stand or driving straight); '' or why it cannot start."""
+        if calibration is None:
+            return ("no calibration in force: the robot's own field is learned on one "
+                    '(calibrate first: ~/calibrate, ~/rotate_and_calibrate or ~/load)')
+        if not self.specs and not self.use_temperature:
+            return ('nothing to learn: interference_inputs is empty and use_temperature is '
+                    "false (list the robot's currents or speeds in interference_inputs)")
+        if not (math.isfinite(timeout_s) and 0.0 < timeout_s <= MAX_WINDOW_S):
+            return f'compensation_timeout must be in (0, {MAX_WINDOW_S:g}] s, got {timeout_s}'
+        if self._window is not None:
+            return 'already learning: another ~/learn_compensation is waiting for its answer'
+        self._window = _Window(ticket, now, now + timeout_s, units)
+        self._next_fit = now
+        return ''
+
+    def window_answer(self, now: float, calibration: Calibration | None,
+                      verdict: Verdict | None = None) -> tuple[int, CalibrationAttempt] | None:
+        """The open window's answer once there is one (None: not yet). A compensation put in
+        force (``verdict``) is fitted again on more readings, QUICK_PERIOD_S later, until a fit
+        that determines its terms is no better (converged: the answer) or the window ends (the
+        latest learned, else what the latest fit needed). A first one learned from the first
+        current step would otherwise answer with a K that the next steps still move."""
+        window = self._window
+        if window is None:
+            return None
+        fit = self.last_fit
+        if verdict is not None:
+            if verdict.adopt is not None and verdict.source == 'compensation':
+                coefficients = '; '.join(
+                    f'{key} {value}' for key, value in self.diagnostic_values(
+                        verdict.adopt, window.units).items() if '_per_' in key)
+                window.learned = (f'learned in {now - window.opened:.1f} s of readings: '
+                                  f'{coefficients}. {verdict.message}')
+                window.learned_at = now
+                return None
+            if window.learned and verdict.message and fit is not None \
+                    and fit.calibration is not None and fit.kept:
+                return self._close(True, f'{window.learned}; converged: a fit with '
+                                         f'{now - window.learned_at:.0f} s more of readings is '
+                                         'no better')
+            window.latest = verdict.message or window.latest
+        if now < window.deadline:
+            return None
+        if window.learned:
+            return self._close(True, window.learned)
+        span = f'{window.deadline - window.opened:g} s of readings'
+        if window.latest and fit is not None and fit.calibration is not None and fit.kept \
+                and calibration is not None and calibration.compensation is not None:
+            return self._close(True, f'the compensation in force stays: what {span} determined '
+                                     f'is no better ({window.latest})')
+        if not window.latest:
+            kept = len(self._kept) + len(self._held)
+            if not self.learn and (window.deadline - window.opened) / KEEP_EVERY_S < 1.2 * (
+                    MIN_READINGS + MIN_READINGS // HOLD_OUT_EVERY):
+                return self._close(False, (
+                    f'nothing learned in {span}: it keeps {1 / KEEP_EVERY_S:g} readings a '
+                    f'second ({kept} here) and a fit needs {MIN_READINGS} besides those held '
+                    f'out: make compensation_timeout longer (15 s at least)'))
+            inputs = ', '.join(self.names) or 'imu/temperature'
+            return self._close(False, f'nothing learned in {span}: {kept} readings were kept '
+                                      f'with their inputs and a fit needs {MIN_READINGS}; is '
+                                      f'every input published ({inputs})?')
+        why = fit.reason if fit is not None and fit.calibration is None else ''
+        return self._close(False, f'nothing learned in {span}: {why or window.latest}')
+
+    def close_window(self, reason: str) -> tuple[int, CalibrationAttempt] | None:
+        """End an open window now, unanswered until here (a reset, the node giving up)."""
+        return None if self._window is None else self._close(False, reason)
+
+    def _close(self, success: bool, message: str) -> tuple[int, CalibrationAttempt]:
+        ticket, self._window = self._window.ticket, None
+        if not self.learn:  # kept for the window only
+            self._kept.clear()
+            self._held.clear()
+            self._pending.clear()
+        return ticket, CalibrationAttempt(success, message)
 
     # -- reports -------------------------------------------------------------------------------
 
@@ -320,8 +474,8 @@ class CompensationLearner:
             return ''
         return '; '.join(term.need for term in fit.terms if term.need)
 
-    def diagnostic_values(self, calibration: Calibration | None, units: str = 'T'
-                          ) -> dict[str, object]:
+    def diagnostic_values(self, calibration: Calibration | None, units: str = 'T',
+                          now: float = 0.0) -> dict[str, object]:
         """K, c, T0, the share removed and when it was learned; what is still needed."""
         scale, unit = (1e6, 'uT') if units == 'T' else (1.0, units)
         values: dict[str, object] = {}
@@ -347,7 +501,10 @@ class CompensationLearner:
             for key in LEARNED:
                 if key in calibration.metadata:
                     values[key] = calibration.metadata[key]
-        if self.learn and (self.specs or self.temperature_series.received):
+        if self._window is not None:
+            values['compensation_learning'] = (
+                f'~/learn_compensation: {max(self._window.deadline - now, 0.0):.0f} s left')
+        if self.learning and (self.specs or self.temperature_series.received):
             values['compensation_readings_kept'] = len(self._kept) + len(self._held)
             need = self.needs()
             if need:

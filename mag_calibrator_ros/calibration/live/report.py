@@ -344,7 +344,8 @@ def diagnostic_values(session: ReportedSession, now: float, coverage: Coverage
         values['model'] = calibration.model
         values[f'offset_{unit}'] = [round(float(v) * scale, 3) for v in calibration.offset]
         values[f'field_strength_{unit}'] = round(float(calibration.field_strength) * scale, 3)
-    values.update(session.compensation.diagnostic_values(calibration, session.units))
+    values.update(session.compensation.diagnostic_values(calibration, session.units,
+                                                           session.clock.now))
     if session.tracker is not None:
         values['tracked_updates'] = session.tracked_updates
     if session.hold_overflows:

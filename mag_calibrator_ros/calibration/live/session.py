@@ -257,7 +257,7 @@ class CalibrationSession:
         specific force, or ``frame_id`` not the magnetometer stream's (said once a frame)."""
         self.input_watch.offer_imu(accel)
         kept = self.pairing.add(stamp_ns, accel, gyro, frame_id, self.screen.frame_id)
-        if kept and gyro is not None and self.compensation.learn:
+        if kept and gyro is not None and self.compensation.learning:
             self.compensation.gyro(stamp_ns, gyro)
         if self.pairing.has_warnings:
             self._imu_warnings()
@@ -338,6 +338,7 @@ class CalibrationSession:
         if now >= self._next_periodic:
             self._next_periodic = now + PERIODIC_S
             self._update_centre()
+            self._answer(self.compensation.window_answer(now, self.calibration))
         self.hints.learnt(now, self.buffer, reading)  # the kind of hint (hints.py)
         if self._job is None:
             kind = (self.scheduler.due(self._situation(now))
@@ -442,7 +443,10 @@ class CalibrationSession:
         elif job.kind == 'check':
             self._check_done(outcome)
         elif job.kind == 'compensate':
-            self._apply(self.compensation.judged(outcome, current))
+            verdict = self.compensation.judged(outcome, current)
+            self._apply(verdict)
+            self._answer(self.compensation.window_answer(self.clock.now, self.calibration,
+                                                         verdict))
         elif job.ticket is not None:
             self._note_reference(outcome)
             verdict = request_verdict(outcome, current, self.units, self.findings.earth)
@@ -543,6 +547,30 @@ class CalibrationSession:
             time.sleep(0.001)
             self.poll()
 
+    def request_compensation(self, timeout_s: float) -> int:
+        """Learn the robot's own field now (``~/learn_compensation``): fits every few seconds
+        of stream while its motors run through several currents, until one goes in force or
+        ``timeout_s`` of stream pass (``CompensationLearner.open_window``); the answer comes
+        as an event with this ticket."""
+        ticket = self._next_ticket
+        self._next_ticket += 1
+        problem = self.compensation.open_window(ticket, self.clock.now, timeout_s,
+                                                self.calibration, self.units)
+        if problem:
+            self._answer((ticket, CalibrationAttempt(False, problem)))
+        return ticket
+
+    def end_compensation_window(self, reason: str) -> None:
+        """Answer an open ``request_compensation`` now with ``reason`` (the node's own deadline:
+        stream time stands still while no reading comes)."""
+        self._answer(self.compensation.close_window(reason))
+
+    def _answer(self, answer: tuple[int, CalibrationAttempt] | None) -> None:
+        if answer is not None:  # a success was logged when its compensation went in force
+            ticket, attempt = answer
+            self._event('debug' if attempt.success else 'warning', attempt.message,
+                        ticket=ticket, attempt=attempt)
+
     # -- the calibration in force and the buffer's reference -----------------------------------
 
     def apply_calibration(self, calibration: Calibration, source: str = 'file') -> None:
@@ -575,6 +603,7 @@ class CalibrationSession:
             if source == 'compensation':  # what is stored was compensated by the old one
                 self.evidence.clear()
                 self.buffer.clear()
+                self.compensation.restart_mean()
                 self._compensation_epoch += 1  # and so was what is held: _ingest drops it
             self.misfit.reset()
             self.scheduler.calibration_changed()
@@ -609,6 +638,7 @@ class CalibrationSession:
     def _collect_anew(self, now: float) -> None:
         """After a misfit: forget samples and evidence from before it, keep the calibration."""
         self.buffer.clear()
+        self.compensation.restart_mean()
         self._measured_coverage = None
         self.evidence.forget_before(now - MISFIT_WINDOW_S)
         self.scheduler.reset()
@@ -661,6 +691,7 @@ class CalibrationSession:
         self._restart_tracker()
         self.attitudes.clear()
         self.pairing.clear()
+        self.end_compensation_window('~/reset emptied what it was learning from')
         self.compensation.reset()
         for part in (self.hints, self.input_watch, self.alignment_wait):
             part.clear()
