@@ -194,7 +194,12 @@ def compare_on_evidence(
     as ``HeldOutEvidence`` gives it) most in the candidate's favour. Raw readings with inputs
     span what they span as either calibration corrects them: the own field moves raw readings
     off their ring by ``K u``, and their own shape (``evidence_span``) then tells nothing; a
-    compensation moves readings along its inputs' field only, so it adds no headings.
+    compensation moves readings along its inputs' field only, so it adds no headings. They
+    judge it only where the two calibrations' magnitudes differ by at least the candidate's
+    typical error (as held-out gyroscope pairs do): a drift learned as the die warmed leaves
+    the earlier readings as they were, and stretches of time in which both agree read as
+    'better only in some stretches' for a minute and more. That choice depends on the inputs
+    and headings, never on which one fits.
     Residuals are reported as percent (square root of the mean capped loss: the RMS when nothing
     is disturbed). Raw readings with their ``inputs`` and ``temperatures`` judge a learned
     compensation (``live/compensation.py``) by the same rule.
@@ -204,21 +209,26 @@ def compare_on_evidence(
                 for calibration in (current, candidate))
     keep = (np.abs(now) <= GROSS_ERROR) | (np.abs(new) <= GROSS_ERROR)
     now, new = now[keep], new[keep]
-    n = len(now)
+    what = 'held-out readings'
     if inputs is None and temperatures is None:
         span = evidence_span(evidence[keep])
     else:  # raw readings the robot's own field moved off their ring: their span as corrected
         span = max(evidence_span(calibration.apply(evidence, inputs, temperatures)[keep])
                    for calibration in (current, candidate))
+        telling = np.abs(now - new) >= float(np.median(np.abs(new)))  # see above
+        now, new = now[telling], new[telling]
+        what = 'held-out readings that tell them apart'
+    n = len(now)
     if n < MIN_EVIDENCE:
         return Comparison(False, math.nan, math.nan, n, span,
-                          f'{n} held-out readings, need {MIN_EVIDENCE}')
+                          f'{n} {what}, need {MIN_EVIDENCE}')
     loss_now, loss_new, current_pct, candidate_pct = _capped_losses(now, new)
     if span < MIN_EVIDENCE_SPAN:
         return Comparison(False, current_pct, candidate_pct, n, span,
                           f'held-out readings span {100 * span:.0f} % of the directions, need '
                           f'{100 * MIN_EVIDENCE_SPAN:.0f} %')
-    return _judged(loss_now, loss_new, current_pct, candidate_pct, span, 'held-out readings')
+    return _judged(loss_now, loss_new, current_pct, candidate_pct, span, what)
+
 
 
 def compare_residuals(now: np.ndarray, new: np.ndarray, what: str) -> Comparison:
