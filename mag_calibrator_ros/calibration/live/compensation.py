@@ -22,7 +22,7 @@ import math
 
 import numpy as np
 
-from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.fit.calibration import Calibration, Compensation
 from mag_calibrator_ros.calibration.fit.compensation import (
     LEARNED,
     MIN_READINGS,
@@ -417,8 +417,8 @@ class CompensationLearner:
         if verdict is not None:
             if verdict.adopt is not None and verdict.source == 'compensation':
                 coefficients = '; '.join(
-                    f'{key} {value}' for key, value in self.diagnostic_values(
-                        verdict.adopt, window.units).items() if '_per_' in key)
+                    f'{key} {value}' for key, value in coefficient_values(
+                        verdict.adopt.compensation, window.units).items())
                 window.learned = (f'learned in {now - window.opened:.1f} s of readings: '
                                   f'{coefficients}. {verdict.message}')
                 window.learned_at = now
@@ -477,7 +477,6 @@ class CompensationLearner:
     def diagnostic_values(self, calibration: Calibration | None, units: str = 'T',
                           now: float = 0.0) -> dict[str, object]:
         """K, c, T0, the share removed and when it was learned; what is still needed."""
-        scale, unit = (1e6, 'uT') if units == 'T' else (1.0, units)
         values: dict[str, object] = {}
         if self.specs:
             values['interference_inputs'] = ', '.join(self.names)
@@ -491,11 +490,7 @@ class CompensationLearner:
             values['temperature_degC'] = round(self.temperature_series.latest, 2)
         compensation = None if calibration is None else calibration.compensation
         if compensation is not None:
-            for j, name in enumerate(compensation.inputs):
-                values[f'interference_{unit}_per_unit[{name}]'] = [
-                    round(float(value) * scale, 4) for value in compensation.interference[:, j]]
-            values[f'temperature_coefficient_{unit}_per_degC'] = [
-                round(float(value) * scale, 4) for value in compensation.temperature_coefficient]
+            values.update(coefficient_values(compensation, units))
             if compensation.reference_temperature is not None:
                 values['reference_temperature_degC'] = compensation.reference_temperature
             for key in LEARNED:
@@ -512,4 +507,19 @@ class CompensationLearner:
         return values
 
 
-__all__ = ['LEARNED', 'TEMPERATURE', 'CompensationLearner']
+def coefficient_values(compensation: Compensation | None, units: str = 'T'
+                       ) -> dict[str, list[float]]:
+    """K per input and c, named with their units (microtesla in the nodes, whose readings are
+    in tesla; a recording's own units offline), for /diagnostics and the answers."""
+    if compensation is None:
+        return {}
+    scale, unit = (1e6, 'uT') if units == 'T' else (1.0, units)
+    values = {f'interference_{unit}_per_unit[{name}]': [
+        round(float(value) * scale, 4) for value in compensation.interference[:, j]]
+        for j, name in enumerate(compensation.inputs)}
+    values[f'temperature_coefficient_{unit}_per_degC'] = [
+        round(float(value) * scale, 4) for value in compensation.temperature_coefficient]
+    return values
+
+
+__all__ = ['LEARNED', 'TEMPERATURE', 'CompensationLearner', 'coefficient_values']
