@@ -90,3 +90,53 @@ def test_a_node_ends_cleanly_on_launch_style_signals(tmp_path, name, signals, mo
     when = f'{signals} {gap} s apart at {moment}'
     assert code == 0, f'{when}: {output}'
     assert 'Traceback' not in output and 'KeyboardInterrupt' not in output, f'{when}: {output}'
+
+
+PARENT = '''#!{python}
+"""Stands in for the ros2 command line: starts the node as its child and waits, as ros2 run
+and ros2 launch do."""
+import subprocess, sys, time
+child = subprocess.Popen(sys.argv[1:], stdin=subprocess.DEVNULL)
+print(child.pid, flush=True)
+time.sleep(3600)
+'''
+
+
+@pytest.mark.skipif(not sys.platform.startswith('linux'), reason='reads /proc/<pid>/cmdline')
+@pytest.mark.parametrize('parent_name, ends', [('ros2', True), ('supervisor', False)])
+def test_a_node_started_by_the_ros2_command_ends_when_that_process_is_killed(
+        tmp_path, parent_name, ends):
+    """A SIGTERM to ``ros2 launch`` ends launch and leaves its nodes running (launch's own
+    'using SIGTERM can result in orphaned processes'); a calibrator left so could keep turning
+    the robot. A node the ros2 command started stops when that process ends, however it ended
+    (here SIGKILL); one started by anything else is not tied to its parent."""
+    module, arguments, running_line = NODES['mag_calibrator']
+    parent = tmp_path / parent_name
+    parent.write_text(PARENT.format(python=sys.executable))
+    parent.chmod(0o755)
+    log_path = tmp_path / 'output.log'
+    namespace = f'/orphan_{parent_name}_{int(time.monotonic() * 1000) % 100000}'
+    command = [str(parent), sys.executable, '-m', module, '--ros-args', '-r',
+               f'__ns:={namespace}', *arguments,
+               '-p', f'calibration_file:={tmp_path / "calibration.yaml"}']
+    with log_path.open('wb') as log:
+        starter = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                                   stderr=log, start_new_session=True)
+        node = int(starter.stdout.readline())
+        try:
+            assert wait_until(lambda: running_line in log_path.read_text(errors='replace'),
+                              START_TIMEOUT_S), log_path.read_text(errors='replace')
+            starter.kill()
+            starter.wait()
+            ended = wait_until(lambda: not Path(f'/proc/{node}').exists()
+                               or 'State:\tZ' in Path(f'/proc/{node}/status').read_text(),
+                               EXIT_TIMEOUT_S if ends else 3.0)
+        finally:
+            try:
+                os.killpg(starter.pid, signal.SIGKILL)  # the node is in the starter's group
+            except ProcessLookupError:
+                pass
+    output = log_path.read_text(errors='replace')
+    assert ended == ends, output
+    if ends:
+        assert 'ended without stopping it' in output and 'Traceback' not in output, output

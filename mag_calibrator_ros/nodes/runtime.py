@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+import os
+from pathlib import Path
 import signal
 import threading
 import time
@@ -45,16 +47,18 @@ def spin_node(node_factory: Callable[[], Node], args: Sequence[str] | None = Non
     ``publish_on_shutdown``: the context stays up until the node is destroyed, so
     ``destroy_node`` can still publish (a final zero on cmd_vel); without it the context is shut
     down first, so publishing threads of the node stop at their next publish.
+    A node started by the ros2 command line also stops when that process ends (``ros2_parent``).
     Returns a process exit code (0 on a normal stop) so console scripts can ``sys.exit`` it.
     """
     stop = _StopOnSignal()  # one for both: the first of either signal counts
+    parent = ros2_parent()
     for number in STOP_SIGNALS:  # before init: a signal during start-up is a stop, not a crash
         signal.signal(number, stop)
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     try:
         node = node_factory()
-        _spin_until(node, stop)
+        _spin_until(node, stop, parent)
     except (ExternalShutdownException, ShutdownException):
         pass
     finally:
@@ -85,13 +89,34 @@ class _StopOnSignal:
             self.received = number
 
 
-def _spin_until(node: Node, stop: _StopOnSignal) -> None:
-    """Spin ``node`` until ``stop`` has seen a signal. Python runs the handler once the wait
-    returns (the node's timers wake it at least every SPIN_TIMEOUT_S)."""
+def ros2_parent() -> int | None:
+    """The parent's pid when it is the ros2 command line (``ros2 run``, ``ros2 launch``), else
+    None. A SIGTERM (``kill``, ``systemctl stop``) ends either without stopping the node it
+    started: launch 3.4's own handler says 'using SIGTERM can result in orphaned processes', and
+    ros2run does not forward it. A node left running that way could keep turning a robot for
+    ``rotation_timeout``; it stops with its parent instead, as after Ctrl-C. A node started
+    otherwise (systemd, a shell) is not tied to its parent."""
+    parent = os.getppid()
+    try:
+        command = Path(f'/proc/{parent}/cmdline').read_bytes().split(b'\0')
+    except OSError:  # not Linux, or the parent is gone already
+        return None
+    return parent if any(os.path.basename(word) == b'ros2' for word in command[:2]) else None
+
+
+def _spin_until(node: Node, stop: _StopOnSignal, parent: int | None = None) -> None:
+    """Spin ``node`` until ``stop`` has seen a signal, or the ``parent`` process has ended.
+    Python runs the handler once the wait returns (the node's timers wake it at least every
+    SPIN_TIMEOUT_S)."""
     executor = SingleThreadedExecutor(context=node.context)
     executor.add_node(node)
     try:
         while stop.received is None and node.context.ok():
+            if parent is not None and os.getppid() != parent:
+                node.get_logger().warning(
+                    f'the ros2 command that started this node (pid {parent}) ended without '
+                    'stopping it (a SIGTERM to ros2 launch or ros2 run does that): stopping')
+                break
             executor.spin_once(timeout_sec=SPIN_TIMEOUT_S)
     finally:
         executor.remove_node(node)
