@@ -20,6 +20,7 @@ from mag_calibrator_ros.calibration.fit.compensation import (
     CompensationData,
     fit_compensation,
 )
+from mag_calibrator_ros.calibration.live.compensation import _Rows
 from mag_calibrator_ros.calibration.live.evidence import compare_on_evidence
 from mag_calibrator_ros.calibration.live.inputs import parse_input
 from mag_calibrator_ros.calibration.live.jobs import run_job
@@ -228,8 +229,8 @@ def test_the_session_never_learns_from_nothing_or_from_refused_readings():
     assert session.calibration.compensation is None
     assert 'compensation' not in session.adoptions
     assert session.rejects()['out_of_range'] + session.rejects().get('saturated', 0) >= 300
-    kept = session.compensation._kept
-    assert all(abs(row[1]) < 1e-3 for row in kept)  # no refused reading among them
+    kept = session.compensation._kept.copy()
+    assert len(kept) and np.all(np.abs(kept[:, 1]) < 1e-3)  # no refused reading among them
 
 
 def test_a_reading_before_the_first_temperature_sample_does_not_keep_the_temperature_out():
@@ -352,7 +353,7 @@ def test_inputs_whose_callbacks_run_after_the_readings_are_paired_by_stamp():
             session.compensation.input(0, stamps[index - late],
                                        float(run['current'][index - late]))
         session.process(stamp, 'imu', run['raw'][index])
-    kept = np.array(session.compensation._kept)
+    kept = session.compensation._kept.copy()
     truth = np.interp(kept[:, 0], run['t'] + 1e-9, run['current'])
     assert np.abs(kept[:, -1] - truth).max() < 1e-9  # every kept reading with its own sample
     assert session.calibration.compensation.interference[0, 0] == pytest.approx(0.8e-6, rel=0.1)
@@ -378,3 +379,17 @@ def test_held_out_readings_at_several_currents_span_their_headings_as_corrected(
     comparison = compare_on_evidence(current, candidate, raw, amps[:, None], None)
     assert comparison.span >= 0.9, comparison.reason
     assert comparison.better, comparison.reason
+
+
+def test_kept_rows_are_the_latest_in_arrival_order_past_their_limit():
+    """Gyroscope pairs search the kept rows by time: the copy a fit gets is oldest first."""
+    rows = _Rows(5, 2)
+    for index in range(3):
+        rows.append((float(index), -float(index)))
+    assert rows.copy()[:, 0].tolist() == [0.0, 1.0, 2.0]
+    for index in range(3, 12):
+        rows.append((float(index), -float(index)))
+    assert len(rows) == 5 and rows.copy()[:, 0].tolist() == [7.0, 8.0, 9.0, 10.0, 11.0]
+    assert rows.copy()[:, 1].tolist() == [-7.0, -8.0, -9.0, -10.0, -11.0]
+    rows.clear()
+    assert len(rows) == 0 and rows.copy().shape == (0, 2)
