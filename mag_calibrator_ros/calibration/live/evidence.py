@@ -230,7 +230,6 @@ def compare_on_evidence(
     return _judged(loss_now, loss_new, current_pct, candidate_pct, span, what)
 
 
-
 def compare_residuals(now: np.ndarray, new: np.ndarray, what: str) -> Comparison:
     """``compare_on_evidence``'s rule on residuals (relative to F) computed elsewhere, in stream
     order, without its span of directions: the held-out pairs of readings a learned
