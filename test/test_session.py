@@ -561,6 +561,32 @@ def test_online_tracking_ignores_a_still_sensor_next_to_a_disturbance():
 # -- reporting, settings --------------------------------------------------------------------------
 
 
+class WatchedSession(CalibrationSession):
+    """Notes what another thread would see at the moment the calibration in force changes."""
+
+    def __init__(self, *args, **kwargs):
+        self.counted_when_seen = []
+        super().__init__(*args, **kwargs)
+
+    def __setattr__(self, name, value):
+        if name == 'calibration' and value is not None:
+            self.counted_when_seen.append(sum(self.adoptions.values()) + self.tracked_updates)
+        super().__setattr__(name, value)
+
+
+@pytest.mark.parametrize('settings', [SessionSettings(), TRACKING], ids=['refine', 'tracking'])
+def test_a_calibration_is_in_force_only_once_it_is_counted(settings):
+    """A thread polling the session (a test, a status page) must never see a calibration in
+    force whose adoption is not yet counted or whose screening is not yet set up."""
+    rough = Calibration(HARD_IRON_T + [4e-6, -2e-6, 0.0], 1.02 * EXACT.matrix, FIELD_T, 'full',
+                        {'residual_rms_pct': 1.5, 'coverage': 0.5})
+    session = WatchedSession(settings, calibration=rough)
+    stream(session, distorted('tumble', 3000, seed=40))
+    seen = session.counted_when_seen
+    assert len(seen) >= 2, seen  # given, then refined or tracked
+    assert seen == list(range(1, len(seen) + 1))
+
+
 def test_transform_covariance():
     matrix = np.array([[1.1, 0.1, 0.0], [0.1, 0.9, 0.0], [0.0, 0.0, 1.0]])
     assert not np.any(transform_covariance(matrix, np.zeros(9)))

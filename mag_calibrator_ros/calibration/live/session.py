@@ -587,12 +587,12 @@ class CalibrationSession:
         steps it towards the tracker's (counted in ``tracked_updates``; the buffer's reference
         follows when it is the calibration in force; a static fit keeps the compensation)."""
         calibration = self.compensation.carry(calibration, self.calibration, source)
-        self.calibration = calibration
         reference = self.buffer_reference
         if source == 'tracking':
             self.tracked_updates += 1
             if reference.source == 'calibration':
                 reference.set(calibration, None, 'calibration')
+            self.calibration = calibration
             return
         if source != 'realign':
             reference.calibration_plane = None
@@ -609,6 +609,7 @@ class CalibrationSession:
             self.scheduler.calibration_changed()
             if reference.source != 'fit':
                 reference.set(calibration, None, 'calibration')
+        self.calibration = calibration  # last: whoever sees it in force sees it counted
         self._restart_tracker()
 
     def _leave_plane(self) -> None:
