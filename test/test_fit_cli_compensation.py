@@ -17,7 +17,11 @@ from rosbags.typesys import Stores, get_typestore
 from mag_calibrator_ros.calibration.store.calibration_file import load_calibration
 from mag_calibrator_ros.sim.board import course_recording
 from mag_calibrator_ros.tools import fit
-from mag_calibrator_ros.tools.recordings import compensation_columns, read_recording
+from mag_calibrator_ros.tools.recordings import (
+    RecordingError,
+    compensation_columns,
+    read_recording,
+)
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'benchmarks'))
 from bench_interference import robot  # noqa: E402 - the benchmark's simulated ground robot
@@ -191,6 +195,25 @@ def test_columns_are_chosen_by_header_name_or_by_option():
     assert chosen.temperature is None
     kelvin = compensation_columns(['mx,my,mz,temperature (K)', '1,2,3,300'], (0, 1, 2), 'log')
     assert kelvin.temperature == (3, 'temperature (K)') and kelvin.celsius == (-273.15, 1.0)
+
+
+def test_a_column_is_named_with_or_without_the_unit_its_header_gives():
+    """A flight log converted to 'current (A)' and 'temperature (C)' is asked for as
+    ``--input-columns current``: the unit is not part of the name. Two columns of that name
+    in different units are for the user to choose between, by index."""
+    lines = ['time (s),mx (uT),my (uT),mz (uT),current (A),temperature (C)',
+             '0.0,1,2,3,0.5,25.0', '0.1,1,2,3,0.6,25.1']
+    chosen = compensation_columns(lines, (1, 2, 3, 0), 'log', 'current', 'temperature')
+    assert chosen.inputs == ((4, 'current (A)'),)
+    assert chosen.temperature == (5, 'temperature (C)')
+    exact = compensation_columns(lines, (1, 2, 3, 0), 'log', 'Current (A)', 'TEMPERATURE (C)')
+    assert exact.inputs == chosen.inputs and exact.temperature == chosen.temperature
+    twice = ['mx,my,mz,current (A),current (mA)', '1,2,3,0.5,500', '1,2,3,0.6,600']
+    with pytest.raises(RecordingError, match=r"'current' names several columns \(current \(A\) "
+                                             r'\(field 3\), current \(mA\) \(field 4\)\)'):
+        compensation_columns(twice, (0, 1, 2), 'log', 'current', '')
+    assert compensation_columns(twice, (0, 1, 2), 'log', 'current (mA)', '').inputs == (
+        (4, 'current (mA)'),)
 
 
 def test_a_ros1_bag_pairs_its_battery_and_temperature_and_names_bad_values(tmp_path):

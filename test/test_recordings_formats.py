@@ -155,6 +155,27 @@ def test_header_units_are_the_recordings_units(tmp_path, header, units):
     assert any(f'units {units} from the header' in note for note in recording.notes) == bool(units)
 
 
+@pytest.mark.parametrize('reader', ['magnetometer', 'paired'])
+def test_columns_named_without_their_units_are_the_header_fields(tmp_path, reader):
+    """``--columns mx,my,mz`` on 'time (s),mx (uT),...': the names are matched to the header's
+    fields, not to its words ('time', '(s)', 'mx', '(uT)' ...), which once read fields 2, 4
+    and 6 (my, ax, az here) without a word."""
+    rows = field_rows(50) * 1e6
+    accel = np.tile([0.5, -0.25, 9.75], (50, 1))
+    path = tmp_path / 'log.csv'
+    lines = ['time (s),mx (uT),my (uT),mz (uT),ax,ay,az'] + [
+        ','.join(map(str, [0.1 * i, *m, *a])) for i, (m, a) in enumerate(
+            zip(rows, accel, strict=True))]
+    path.write_text('\n'.join(lines) + '\n')
+    if reader == 'paired':
+        recording = read_paired_recording(path, accel_columns='ax,ay,az', columns='MX,my,mz')
+        np.testing.assert_array_equal(recording.accel, accel)
+    else:
+        recording = read_recording(path, columns='MX,my,mz')
+    np.testing.assert_array_equal(recording.samples, rows)
+    assert recording.units == 'uT'
+
+
 def test_paired_reader_reports_header_units(tmp_path):
     rows = field_rows(50) * 1e6
     accel = np.tile([0.0, 0.0, 9.81], (50, 1))

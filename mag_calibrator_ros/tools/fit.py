@@ -205,8 +205,8 @@ def build_parser() -> argparse.ArgumentParser:
                         f'{DEFAULT_OPTIONS.max_residual_pct})')
     parser.add_argument('--columns', metavar='COLS', default=None,
                         help='text input: three zero-based field indices (e.g. 3,4,5 or 1,3,5 '
-                        'for "Mx 144 My -270 Mz 415") or three header names (mx,my,mz); '
-                        'default: detected')
+                        'for "Mx 144 My -270 Mz 415") or three header names (mx,my,mz; a '
+                        'name matches "mx (uT)" too); default: detected')
     parser.add_argument('--topic', default=None,
                         help='bag input (rosbag2 or ROS 1 .bag): the MagneticField topic '
                         '(default: the only one)')

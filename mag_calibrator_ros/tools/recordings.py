@@ -7,14 +7,15 @@ first lines: the most common pattern of numeric fields is the data; a header (or
 the lines) naming the magnetometer's x, y, z picks those fields (``mx``, ``mag_x``, ``magX``,
 ``Bx``, ``Magnetic field x (µT)``, ``field.magnetic_field.x`` ..., see :func:`column_roles`), and
 without names the three numeric fields are x, y, z (``Mx 144 My -270 Mz 415`` -> fields 1, 3, 5).
-A file that does not say which fields are the magnetometer's (more numeric fields than three and
-no names, several magnetometer sets, only accelerometer or gyroscope names) raises
-``RecordingError`` naming the candidates: choose with ``columns``, three **zero-based** field
-indices (``'1,3,5'`` picks 144, -270, 415 from that line) or three header names
-(``'mx,my,mz'``). Without names, numeric fields that stay constant (a message's covariance) or
-count time (stamps, sequence numbers) are not candidates, so ``ros2 topic echo --csv /imu/mag``
-gives the field (fields 3, 4, 5). A header's units (``Magnetometer X (uT)``) are the recording's
-units. ``;``-separated numbers with decimal commas (``12,5;-3,2;40,1``) are read as such.
+A file that does not say which fields are the magnetometer's (more numeric fields than three and no
+names, several magnetometer sets, only accelerometer or gyroscope names) raises ``RecordingError``
+naming the candidates: choose with ``columns``, three **zero-based** field indices (``'1,3,5'``
+picks 144, -270, 415 from that line) or three header names (``'mx,my,mz'``; a name matches a header
+cell with or without its unit, ``mx (uT)``, as the compensation's column options do). Without
+names, numeric fields that stay constant (a message's covariance) or count time (stamps, sequence
+numbers) are not candidates, so ``ros2 topic echo --csv /imu/mag`` gives the field (fields 3, 4,
+5). A header's units (``Magnetometer X (uT)``) are the recording's units. ``;``-separated numbers
+with decimal commas (``12,5;-3,2;40,1``) are read as such.
 ``ros2 topic echo /imu/mag`` (YAML documents separated by ``---``) is read message by message,
 in tesla. Lines are converted a block at a time (numpy for plain numbers) into one growing
 float array, so memory holds the samples (8 bytes a value), not the text; a line longer than
@@ -737,19 +738,43 @@ def _explicit_layout(spec: str, lines: list[str], source: str) -> TextLayout:
         return TextLayout(indices, None, f'fields {",".join(map(str, indices))}', (),  # type: ignore[arg-type]
                        delimiter, numpy_fields)
     for line in lines:
-        candidates = [[token.lower() for token in _split(line)]]
-        candidates += [[cell.strip().strip('"\'').lower() for cell in line.split(delimiter)]
-                       for delimiter in (',', '\t', ';') if delimiter in line]
-        if found is not None:  # names that align with the data fields first ('Time (s),ax')
-            candidates.sort(key=lambda tokens: len(tokens) != found[0])
-        for tokens in candidates:
-            if all(name in tokens for name in columns):
-                indices = tuple(tokens.index(str(name)) for name in columns)
+        if found is not None:  # names only where they align with the data fields: the words of
+            aligned = _header_cells(line, found[0])  # 'Time (s),mx (uT)' are not its fields
+            candidates = [] if aligned is None else [aligned]
+        else:
+            candidates = [_split(line)]
+            candidates += [[cell.strip().strip('"\'') for cell in line.split(delimiter)]
+                           for delimiter in (',', '\t', ';') if delimiter in line]
+        for cells in candidates:
+            named = [field_named(str(name), cells, f"--columns '{spec}'", source)
+                     for name in columns]
+            if None not in named:
+                indices = tuple(named)
                 return TextLayout(indices, None, f'columns {",".join(map(str, columns))} '  # type: ignore[arg-type]
                                f'(fields {",".join(map(str, indices))})', (), delimiter,
-                               numpy_fields)
+                               numpy_fields, header_units(','.join(cells[i] for i in indices)))
     raise RecordingError(f"{source}: no header line names all of --columns '{spec}' "
                          f'in the first {len(lines)} lines')
+
+
+def field_named(name: str, cells: Sequence[str], option: str, source: str) -> int | None:
+    """The field a header ``cells`` (aligned with the data fields) names ``name``, any case: the
+    cell that is the name, else the one whose name is it without its unit (``current`` names
+    ``current (A)``, as a header's unit never is part of a name); None when no cell does.
+    Raises RecordingError when several do."""
+    def plain(text: str) -> str:
+        return ' '.join(_UNITS.sub(' ', text).split()).lower()
+
+    lowered = [cell.strip().strip('"\'').lower() for cell in cells]
+    for matches in ([i for i, cell in enumerate(lowered) if cell == name.strip().lower()],
+                    [i for i, cell in enumerate(lowered) if plain(cell) == plain(name)]):
+        if len(matches) == 1:
+            return matches[0]
+        if matches:
+            raise RecordingError(f"{source}: {option}: '{name.strip()}' names several columns ("
+                                 + ', '.join(f'{cells[i].strip()} (field {i})' for i in matches)
+                                 + '): give a zero-based field index')
+    return None
 
 
 def _read_lines(
@@ -944,12 +969,12 @@ def _named_column(spec: str, cells: list[str] | None, field_count: int | None, t
                                  f'{field_count} fields (zero-based indices)')
         name = cells[index].strip() if cells is not None else f'field {index}'
     else:
-        lowered = [cell.strip().lower() for cell in cells or ()]
-        if spec.lower() not in lowered:
+        found = field_named(spec, cells or (), option, source)
+        if found is None:
             names = ', '.join(cell.strip() for cell in cells or ()) or 'no header line'
             raise RecordingError(f"{source}: {option}: no column named '{spec}' (columns: "
                                  f'{names}); give a header name or a zero-based field index')
-        index = lowered.index(spec.lower())
+        index = found
         name = cells[index].strip()  # type: ignore[index]
     if index in taken:
         raise RecordingError(f'{source}: {option} {spec} names a field already read as the '
