@@ -145,6 +145,9 @@ def test_comma_csv_is_not_taken_for_decimal_commas(tmp_path):
     ('mx (counts),my (counts),mz (counts)', None),
     ('mx (uT),my (nT),mz (uT)', None),
     ('mx,my,mz', None),
+    ('magnetometer_ga[0],magnetometer_ga[1],magnetometer_ga[2]', 'G'),  # PX4's ulog2csv
+    ('mag_x_uT,mag_y_uT,mag_z_uT', 'uT'),
+    ('mag_x_uT,mag_y_uT,mag_z', None),
 ])
 def test_header_units_are_the_recordings_units(tmp_path, header, units):
     path = tmp_path / 'log.csv'

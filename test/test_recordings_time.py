@@ -86,6 +86,11 @@ def test_a_whitespace_log_read_line_by_line_keeps_its_time(tmp_path):
     (1.7e12 + np.arange(10) * 10, None, 1e-3),
     (np.arange(10) * 7.5, None, 1e-3),
     (np.arange(10) * 7.5, 's', 1.0),  # the header wins
+    (1.1e8 + np.arange(10) * 4000, None, 1e-6),  # PX4 sensor_combined: us since boot, 250 Hz
+    (2e7 + np.arange(10) * 20000, None, 1e-6),  # PX4 vehicle_magnetometer at 50 Hz
+    (3e12 + np.arange(10) * 10**7, None, 1e-9),  # nanoseconds since boot at 100 Hz
+    (1.7e9 + np.arange(10) * 50, None, 1e-3),  # milliseconds since boot, 20 Hz: not 1970
+    (1.7e12 + np.arange(10) * 10, None, 1e-3),  # ... and since 1970
 ])
 def test_time_units_from_values_or_header(values, header, scale):
     assert time_unit(values, header)[0] == scale
@@ -121,3 +126,27 @@ def test_the_cli_says_which_time_column_it_took(tmp_path, capsys):
     assert summary['rate_hz'] == pytest.approx(100.0)
     assert fit.main([str(path)]) in (0, 1)
     assert "time      column 'millis' (field 0), milliseconds" in capsys.readouterr().out
+
+
+def test_a_px4_log_as_ulog2csv_writes_it_calibrates_in_its_time_and_unit(tmp_path, capsys):
+    """``ulog2csv -m vehicle_magnetometer`` (pyulog): 'timestamp' in microseconds since boot,
+    'magnetometer_ga[0..2]' in gauss. Read as milliseconds, its 50 Hz were a reading every
+    20 s, and the same stamps past 10^8 (28 h since boot) read as seconds of 1973 made every
+    reading a stamp jump: nothing was calibrated."""
+    rng = np.random.default_rng(4)
+    directions = rng.normal(size=(1500, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    gauss = 0.5 * directions @ np.diag([1.1, 0.95, 1.0]) + [0.12, -0.05, 0.3]
+    for start in (20_310_847, 112_614_307):  # seconds and 28 h after boot
+        path = tmp_path / f'log_{start}_vehicle_magnetometer_0.csv'
+        lines = ['timestamp,magnetometer_ga[0],magnetometer_ga[1],magnetometer_ga[2]']
+        lines += [f'{start + 20_000 * i},' + ','.join(f'{v:.8f}' for v in row)
+                  for i, row in enumerate(gauss)]
+        path.write_text('\n'.join(lines) + '\n')
+        assert fit.main([str(path), '--json']) == 0
+        summary = json.loads(capsys.readouterr().out)
+        assert summary['units'] == 'G'
+        assert summary['time']['source'].startswith("column 'timestamp' (field 0), microseconds")
+        assert summary['rate_hz'] == pytest.approx(50.0)
+        assert sum(summary['rejects'].values()) < 150  # duplicates at most, no stamp jump
+        assert summary['rejects'].get('stamp_jump', 0) == 0

@@ -629,15 +629,23 @@ _UNIT_WORDS = {
 """A header's unit words (any case) -> the unit's name in TESLA_PER_UNIT."""
 
 
+_UNIT_SUFFIX = re.compile(r'_(ga|gauss|ut|nt|mgauss)(?:\[[012]\])?\s*$', re.IGNORECASE)
+"""A field unit as the name's last word: PX4's ``magnetometer_ga[0]`` (gauss, its uORB
+convention, as ``accelerometer_m_s2``), ``mag_x_uT``."""
+
+
 def header_units(labels: str) -> str | None:
     """The unit that every one of the three comma-joined column names gives in brackets
-    (``Magnetometer X (uT)``, ``mag_x [nT]``), when it is a unit of magnetic field; else None."""
+    (``Magnetometer X (uT)``, ``mag_x [nT]``) or as its last word (``magnetometer_ga[0]``),
+    when it is a unit of magnetic field; else None."""
     found = set()
     for name in labels.split(','):
-        bracketed = _UNITS.findall(name)
-        if len(bracketed) != 1:
+        bracketed = [unit for unit in _UNITS.findall(name) if not _INDEX_AXIS.fullmatch(unit)]
+        suffix = _UNIT_SUFFIX.search(name)
+        if len(bracketed) + (suffix is not None) != 1:
             return None
-        found.add(_UNIT_WORDS.get(bracketed[0][1:-1].strip().lower()))
+        word = bracketed[0][1:-1] if bracketed else suffix.group(1)  # type: ignore[union-attr]
+        found.add(_UNIT_WORDS.get(word.strip().lower()))
     if len(found) != 1:
         return None
     return found.pop()
@@ -1048,26 +1056,37 @@ def input_values(values: np.ndarray, name: str, kind: str) -> tuple[np.ndarray, 
     return values, problems
 
 
+MAX_STEP_S = 1.0
+"""No calibration log has less than a reading a second: a unit that would make the median step
+longer is not the log's. Epoch-sized stamps so read are time since boot (PX4's microseconds
+past 10^8 are not seconds of 1973), and integer steps too long for milliseconds are
+microseconds (PX4's ``ulog2csv`` timestamps, an Arduino's micros()), or nanoseconds."""
+
+
 def time_unit(values: np.ndarray, header_unit: str | None = None) -> tuple[float, str]:
     """(seconds per unit, why) of a time column: the header's unit when it gives one; else
-    from the values: epoch-sized numbers by their size (s, ms, us, ns since 1970), and
-    elapsed time by its steps: integer steps of a millisecond or more are milliseconds (an
-    Arduino's millis()), as are steps of 5 or more (no log has 5 s between readings and calls
-    it a calibration); anything else is seconds."""
+    from the values: epoch-sized numbers by their size (s, ms, us, ns since 1970), and elapsed
+    time by its steps: integer steps of a millisecond or more are milliseconds (an Arduino's
+    millis()), as are steps of 5 or more (no log has 5 s between readings and calls it a
+    calibration); anything else is seconds. Either way within MAX_STEP_S."""
     if header_unit is not None and header_unit in TIME_UNITS:
         scale = TIME_UNITS[header_unit]
         return scale, f'{_TIME_UNIT_WORDS[scale]} (from the header)'
     finite = values[np.isfinite(values)]
     if len(finite) < 2:
         return 1.0, 'seconds (too few values to tell)'
-    size = float(np.median(np.abs(finite)))
-    for threshold, scale in ((1e17, 1e-9), (1e14, 1e-6), (1e11, 1e-3), (1e8, 1.0)):
-        if size >= threshold:
-            return scale, f'{_TIME_UNIT_WORDS[scale]} since 1970 (from their size)'
     steps = np.diff(finite)
     steps = steps[steps > 0]
     step = float(np.median(steps)) if len(steps) else 0.0
+    size = float(np.median(np.abs(finite)))
+    for threshold, scale in ((1e17, 1e-9), (1e14, 1e-6), (1e11, 1e-3), (1e8, 1.0)):
+        if size >= threshold and step * scale <= MAX_STEP_S:
+            return scale, f'{_TIME_UNIT_WORDS[scale]} since 1970 (from their size)'
     integers = bool(np.all(finite == np.round(finite)))
+    if step * 1e-3 > MAX_STEP_S:
+        scale = 1e-6 if step * 1e-6 <= MAX_STEP_S else 1e-9
+        return scale, (f'{_TIME_UNIT_WORDS[scale]} (from steps of {step:g}: a '
+                       f'{1.0 / (step * scale):.3g} Hz log)')
     if step >= 5.0 or (integers and step >= 1.0):
         return 1e-3, f'milliseconds (from steps of {step:g}: a {1000.0 / step:.3g} Hz log)'
     rate = f': a {1.0 / step:.3g} Hz log' if step > 0 else ''
