@@ -571,12 +571,14 @@ def _inline_labels(tokens: list[str]) -> list[str]:
 
 
 def detect_layout(lines: list[str], source: str, role: str = 'magnetometer',
-                  guess: bool = True) -> TextLayout:
+                  guess: bool = True, read_beside: tuple[int, ...] = ()) -> TextLayout:
     """Which fields hold ``role``'s x, y, z: named by a header or labels when there are any,
     else the only three numeric fields of the most common data line, or (``guess``) the only
     three that are neither constant nor time stamps (:func:`_axis_candidates`). Raises
     RecordingError, naming the candidates, when nothing decides (more numeric fields than three
-    and no names, several candidate sets, or names for other sensors only)."""
+    and no names, several candidate sets, or names for other sensors only). The note names the
+    other sensors' columns as ignored, but for ``read_beside`` (the accelerometer's, when the
+    reader takes it too)."""
     found = _data_pattern(lines)
     if found is None:
         raise RecordingError(f'{source}: no line with three numeric fields in the first '
@@ -590,8 +592,9 @@ def detect_layout(lines: list[str], source: str, role: str = 'magnetometer',
         if isinstance(chosen, str):
             raise RecordingError(f'{source}: {chosen}: choose the {role} columns with --columns '
                                  '(three header names or zero-based field indices)')
-        others = [f'{name} {roles.describe(found)}' for name, found in roles.sensors.items()
-                  if name != role and found]
+        others = [f'{name} {roles.describe(unread)}' for name, found in roles.sensors.items()
+                  if name != role and (unread := [triplet for triplet in found
+                                                  if triplet != read_beside])]
         units = header_units(roles.labels[chosen])
         notes = (f'{role} columns {roles.labels[chosen]} (fields '
                  f'{",".join(map(str, chosen))}) chosen by their names'
@@ -1647,7 +1650,8 @@ def _read_paired(stream: Iterable[str], source: str, accel_columns: str, columns
         mag = _explicit_layout(columns, first, source)
     else:
         try:  # a header naming the magnetometer's columns
-            mag = detect_layout(first, source, 'magnetometer', guess=False)
+            mag = detect_layout(first, source, 'magnetometer', guess=False,
+                                read_beside=accel.indices)
             notes += mag.notes
         except RecordingError:
             mag = _other_numeric_fields(first, accel.indices, source)
