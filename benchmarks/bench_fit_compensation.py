@@ -7,7 +7,8 @@ battery current and die temperature are written as a CSV (``time,mx,my,mz,curren
 tesla, the course's rate) and fitted by the CLI as a user would: ``mag_calibrator_fit log.csv
 --units T --json``. Prints the learned K, c and T0 per seed against the simulated truth, and
 the share of the robot's field the model misses over the course (RMS of the modelled minus the
-true field's variation, % of the true field's variation).
+true field's variation, % of the true field's variation), and the heading RMS of the calibration
+it writes (``--output``, K and c applied) over the course.
 
     PYTHONPATH=$PWD python benchmarks/bench_fit_compensation.py --seeds 1 2 3 --rate 50
 """
@@ -27,6 +28,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_interference import robot  # noqa: E402
 
+from mag_calibrator_ros.calibration.store.calibration_file import load_calibration  # noqa: E402
 from mag_calibrator_ros.sim.board import course_recording  # noqa: E402
 from mag_calibrator_ros.tools import fit  # noqa: E402
 
@@ -43,9 +45,12 @@ def one_seed(seed: int, rate_hz: float, directory: Path) -> str:
                                f'{recording.temperature_c[i]:.3f}']))
     path.write_text('\n'.join(lines) + '\n')
     out = io.StringIO()
+    written = directory / f'calibration_{seed}.yaml'
     with contextlib.redirect_stdout(out):
-        status = fit.main([str(path), '--units', 'T', '--json'])
+        status = fit.main([str(path), '--units', 'T', '--json', '--output', str(written)])
     found = json.loads(out.getvalue())['compensation']
+    heading = (f'; the calibration written: heading RMS {heading_rms_deg(written, recording):.2f}'
+               ' deg over the course' if written.exists() else '; no calibration written')
     if not found['learned']:
         return f'seed {seed}: exit {status}, nothing learned: {found["needs"]}'
     k = np.array(found['interference']['current'])
@@ -61,7 +66,19 @@ def one_seed(seed: int, rate_hz: float, directory: Path) -> str:
             f' c = {np.round(c * 1e6, 3)} uT/degC (truth {truth.temperature_drift * 1e6}; y '
             f'{100 * (c[1] / truth.temperature_drift[1] - 1):+.1f} %) around T0 '
             f'{found["reference_temperature_degC"]} degC; removes {found["removed_pct"]:.2f} % '
-            f"of the field; misses {missed:.1f} % of the robot field's variation")
+            f"of the field; misses {missed:.1f} % of the robot field's variation{heading}")
+
+
+def heading_rms_deg(written: Path, recording) -> float:
+    """RMS heading error of the written calibration (K and c applied) against the simulated
+    Earth field over the course, its mean (a mounting yaw) aside."""
+    calibration = load_calibration(written)
+    corrected = calibration.apply(recording.mag, recording.current_a[:, None],
+                                  recording.temperature_c)
+    error = np.angle(np.exp(1j * (np.arctan2(corrected[:, 1], corrected[:, 0])
+                                  - np.arctan2(recording.truth[:, 1], recording.truth[:, 0]))))
+    error -= np.angle(np.mean(np.exp(1j * error)))
+    return float(np.degrees(np.sqrt(np.mean(error ** 2))))
 
 
 def main() -> None:

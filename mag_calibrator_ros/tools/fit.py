@@ -15,7 +15,8 @@ bag's Imu topic, paired by stamp) the calibration is aligned to the acceleromete
 readings held still, as the node does with imu/data_raw; with ``--latitude``/``--longitude`` it
 is checked against the World Magnetic Model there. A recording that logs the current or the
 sensor temperature (columns by header name, or a bag's BatteryState / Temperature topics) also
-teaches the robot's own field, K and c, as the node learns them (``fit_compensation.py``).
+teaches the robot's own field, K and c, as the node learns them (``fit_compensation.py``); the
+buffer fitted is then that of a second pass over the readings without them.
 
 Time: a bag's header stamps or a log's time column time the live session and tell still
 readings; the summary says which. A log without time has no rate anyone knows: its rows are
@@ -340,17 +341,15 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
         else 'stdin',
         'mode': 'all' if settings is None else f'buffer {settings.buffer_size}',
     }
-    session = None
+    session = learner = None
     if settings is not None:
-        session = CalibrationSession(settings, metadata=metadata)
-        if recording.kind == 'text':
-            session.pairing.force_range = None  # a log's accelerometer may be in g or counts
-        session.attitudes = StaticAttitudes(clock=clock.stamped)
-        session.set_earth_field(earth)
-        own_field.configure(session, recording)
-        stream(session, recording.samples, clock.stamps_ns, progress, recording.accel,
-               recording.gyro, recording)
-        session.attitudes.finish()  # the recording ends: its last still stretch too
+        session = learner = streamed(settings, metadata, recording, recording.samples, clock,
+                                     earth, progress, own=True)
+        learned = own_field.learned(learner)
+        if learned is not None:  # the static part from every reading without K and c
+            session = streamed(settings, metadata, recording,
+                               own_field.without_own_field(recording, learned), clock, earth,
+                               progress)
         attempt = session.calibrate_now()
         if attempt.outcome is None or attempt.outcome.result is None:
             raise UsageError(attempt.message)
@@ -375,7 +374,7 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     result = outcome.result
     progress.finish()
 
-    calibration = own_field.with_learned(result.calibration, session)
+    calibration = own_field.with_learned(result.calibration, learner)
     written = None
     if result.success and calibration is not None and args.output is not None:
         save_calibration(args.output, in_tesla(calibration, units), node_name=OUTPUT_SECTION)
@@ -386,7 +385,7 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
 
     summary = build_summary(args, recording, units, result, calibration, session, screening,
                             written, plotted)
-    summary['compensation'] = _finite(own_field.summary(recording, calibration, session))
+    summary['compensation'] = _finite(own_field.summary(recording, calibration, learner))
     add_reference(summary, outcome, earth, clock)
     status = EXIT_CALIBRATED if result.success else EXIT_FAILED_GATES
     try:
@@ -613,6 +612,24 @@ def input_problem(recording: Recording, units: str, scaled: bool = False) -> str
     else:
         fix = 'give the unit the numbers are in with --units (uT, nT, G, mG, T)'
     return field_unit_problem(rows, units, fix) or normalised_problem(rows)
+
+
+def streamed(settings: SessionSettings, metadata: dict[str, Any], recording: Recording,
+             samples: np.ndarray, clock: Clock, earth: EarthField | None,
+             progress: ProgressBar, own: bool = False) -> CalibrationSession:
+    """A live session that has seen ``samples`` (the recording's, or them without the robot's
+    own field) with the recording's clock and IMU, and with its own-field inputs when ``own``."""
+    session = CalibrationSession(settings, metadata=metadata)
+    if recording.kind == 'text':
+        session.pairing.force_range = None  # a log's accelerometer may be in g or counts
+    session.attitudes = StaticAttitudes(clock=clock.stamped)
+    session.set_earth_field(earth)
+    if own:
+        own_field.configure(session, recording)
+    stream(session, samples, clock.stamps_ns, progress, recording.accel, recording.gyro,
+           recording if own else None)
+    session.attitudes.finish()  # the recording ends: its last still stretch too
+    return session
 
 
 def stream(session: CalibrationSession, samples: np.ndarray, stamps_ns: np.ndarray,

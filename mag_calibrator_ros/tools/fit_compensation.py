@@ -6,7 +6,11 @@ magnetometer (text columns named by the header or by option; a bag's ``sensor_ms
 and ``sensor_msgs/Temperature`` topics, paired by stamp) is streamed with them, each row's
 values handed to the session as the node's ``imu/temperature`` and ``interference_inputs``
 subscriptions hand theirs over (``nodes/inputs.py``): the same learner, the same evidence rule,
-so the offline K, c and T0 are what the robot would learn from the same drive.
+so the offline K, c and T0 are what the robot would learn from the same drive. Once K and c
+are learned, the static calibration is fitted on every reading without them
+(:func:`without_own_field`): a learned compensation empties the node's buffer (what it held was
+compensated by the one before), so the buffer at the recording's end may hold its last seconds
+only, a drive straight ahead that calibrates nothing.
 """
 
 from __future__ import annotations
@@ -17,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.fit.calibration import Calibration, Compensation
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.tools.recordings import Recording
 
@@ -103,6 +107,34 @@ def with_learned(calibration: Calibration | None, session: CalibrationSession | 
     return session.compensation.carry(calibration, session.calibration, 'calibrate')
 
 
+def learned(session: CalibrationSession) -> Compensation | None:
+    """The compensation the session learned and holds in force at the recording's end."""
+    return None if session.calibration is None else session.calibration.compensation
+
+
+def without_own_field(recording: Recording, compensation: Compensation) -> np.ndarray:
+    """The recording's readings without the robot's own field ``compensation`` models: each
+    row's inputs and temperature, or the latest before it where the row has none (as the node
+    holds the latest sample); none before the first."""
+    inputs = temperature = None
+    if recording.inputs is not None and len(compensation.inputs):
+        columns = [recording.input_names.index(name) for name in compensation.inputs]
+        inputs = _latest(recording.inputs[:, columns])
+    if recording.temperature is not None:
+        temperature = _latest(recording.temperature[:, None])[:, 0]
+    return recording.samples - compensation.field(inputs, temperature)
+
+
+def _latest(values: np.ndarray) -> np.ndarray:
+    """(n, k): each NaN replaced by the latest finite value above it in its column."""
+    known = np.isfinite(values)
+    rows = np.where(known, np.arange(len(values))[:, None], -1)
+    np.maximum.accumulate(rows, axis=0, out=rows)
+    filled = np.take_along_axis(values, np.maximum(rows, 0), axis=0)
+    filled[rows < 0] = math.nan
+    return filled
+
+
 def summary(recording: Recording, calibration: Calibration | None,
             session: CalibrationSession | None) -> dict[str, Any] | None:
     """The --json 'compensation' object: the inputs, K, c, T0, the share removed, or what the
@@ -171,5 +203,5 @@ def lines(found: dict[str, Any] | None, units: str) -> list[str]:
     return out
 
 
-__all__ = ['add_arguments', 'bag_options', 'configure', 'feed', 'lines', 'reader_option',
-           'summary', 'text_options', 'with_learned']
+__all__ = ['add_arguments', 'bag_options', 'configure', 'feed', 'learned', 'lines',
+           'reader_option', 'summary', 'text_options', 'with_learned', 'without_own_field']
