@@ -14,10 +14,13 @@ import pytest
 from rosbags.rosbag2 import Writer
 from rosbags.typesys import Stores, get_typestore
 
+from mag_calibrator_ros.calibration.fit.calibration import Compensation
 from mag_calibrator_ros.calibration.store.calibration_file import load_calibration
 from mag_calibrator_ros.sim.board import course_recording
 from mag_calibrator_ros.tools import fit
+from mag_calibrator_ros.tools.fit_compensation import without_own_field
 from mag_calibrator_ros.tools.recordings import (
+    Recording,
     RecordingError,
     compensation_columns,
     read_recording,
@@ -117,6 +120,23 @@ def test_the_static_calibration_comes_from_the_whole_log_wherever_it_ends(tmp_pa
     saved = load_calibration(output).compensation
     assert np.allclose(saved.interference[:, 0],
                        summary['compensation']['interference']['current'])
+
+
+def test_the_second_pass_removes_the_field_of_each_rows_latest_inputs():
+    """A row without a current or a temperature (a gap in the log) takes the latest one before
+    it, as the node holds the latest sample; before the first there is none to remove."""
+    compensation = Compensation(('motor', 'battery'), np.array([[1.0, 0.0], [0.0, 2.0],
+                                                                [0.0, 0.0]]),
+                                np.array([0.0, 0.0, 0.5]), 20.0)
+    samples = np.zeros((4, 3))
+    recording = Recording(samples, 'log', 'text', 'fields 0,1,2', {}, 'T',
+                          inputs=np.array([[3.0, math.nan], [math.nan, 1.0], [5.0, math.nan],
+                                           [math.nan, math.nan]]),
+                          input_names=('battery', 'motor'),
+                          temperature=np.array([math.nan, 22.0, math.nan, 24.0]))
+    removed = -without_own_field(recording, compensation)
+    np.testing.assert_allclose(removed, [[0.0, 6.0, 0.0], [1.0, 6.0, 1.0], [1.0, 10.0, 1.0],
+                                         [1.0, 10.0, 2.0]])
 
 
 def test_without_the_columns_the_result_is_todays(tmp_path, capsys, course):
