@@ -255,6 +255,14 @@ def test_a_column_is_named_with_or_without_the_unit_its_header_gives():
         compensation_columns(twice, (0, 1, 2), 'log', 'current', '')
     assert compensation_columns(twice, (0, 1, 2), 'log', 'current (mA)', '').inputs == (
         (4, 'current (mA)'),)
+    with pytest.raises(RecordingError, match="no column named 'current \\(A\\)'"):
+        compensation_columns(['mx,my,mz,current (mA)', '1,2,3,5'], (0, 1, 2), 'log',
+                             'current (A)', '')  # a unit of its own is part of the name asked
+    with pytest.raises(RecordingError, match="no column named 'esc\\[1\\].current'"):
+        compensation_columns(['mx,my,mz,esc[0].current', '1,2,3,5'], (0, 1, 2), 'log',
+                             'esc[1].current', '')  # an index is no unit
+    with pytest.raises(RecordingError, match="input columns 3, 4 are all named 'current'"):
+        compensation_columns(['mx,my,mz,current,current', '1,2,3,5,6'], (0, 1, 2), 'log')
 
 
 def test_a_ros1_bag_pairs_its_battery_and_temperature_and_names_bad_values(tmp_path):

@@ -189,8 +189,10 @@ def test_paired_reader_reports_header_units(tmp_path):
     recording = read_paired_recording(path, accel_columns='ax,ay,az')
     assert recording.units == 'uT'
     np.testing.assert_array_equal(recording.samples, rows)
-    (note,) = [note for note in recording.notes if 'chosen by their names' in note]
-    assert 'ignored' not in note  # the accelerometer is read, not ignored
+    for accel_columns in ('ax,ay,az', 'ay,ax,az'):  # a remapped accelerometer is read too
+        recording = read_paired_recording(path, accel_columns=accel_columns)
+        (note,) = [note for note in recording.notes if 'chosen by their names' in note]
+        assert 'ignored' not in note, note
     alone = read_recording(path)
     assert any('ignored accelerometer ax,ay,az (fields 0,1,2)' in n for n in alone.notes)
 

@@ -89,8 +89,10 @@ def test_a_whitespace_log_read_line_by_line_keeps_its_time(tmp_path):
     (1.1e8 + np.arange(10) * 4000, None, 1e-6),  # PX4 sensor_combined: us since boot, 250 Hz
     (2e7 + np.arange(10) * 20000, None, 1e-6),  # PX4 vehicle_magnetometer at 50 Hz
     (3e12 + np.arange(10) * 10**7, None, 1e-9),  # nanoseconds since boot at 100 Hz
-    (1.7e9 + np.arange(10) * 50, None, 1e-3),  # milliseconds since boot, 20 Hz: not 1970
-    (1.7e12 + np.arange(10) * 10, None, 1e-3),  # ... and since 1970
+    (1.7e9 + np.arange(10) * 2, None, 1.0),  # epoch seconds every 2 s
+    (1.7e12 + np.arange(10) * 1001 + np.arange(10) % 2, None, 1e-3),  # epoch ms, 1 Hz, jitter
+    (5e5 + np.arange(10) * 1001 + np.arange(10) % 2, None, 1e-3),  # millis() at 1 Hz, jitter
+    (1.5e9 + np.arange(10) * 4000, None, 1e-6),  # us since boot (25 min): not a 1970 date
 ])
 def test_time_units_from_values_or_header(values, header, scale):
     assert time_unit(values, header)[0] == scale

@@ -63,7 +63,7 @@ import numpy as np
 
 from mag_calibrator_ros.calibration.fit.earth_field import TESLA_PER_UNIT
 from mag_calibrator_ros.calibration.live.pairing import PAIR_TOLERANCE_NS
-from mag_calibrator_ros.calibration.live.screening import MAX_READING
+from mag_calibrator_ros.calibration.live.screening import MAX_FORWARD_JUMP_NS, MAX_READING
 
 MAGNETIC_FIELD = 'sensor_msgs/msg/MagneticField'
 IMU = 'sensor_msgs/msg/Imu'
@@ -414,6 +414,7 @@ _OTHER_WORDS = {
 """Words naming x, y, z columns that are no sensor reading (ArduPilot's OfsX and MOX, a pose)."""
 _AXES = {'x': 0, 'y': 1, 'z': 2}
 _INDEX_AXIS = re.compile(r'\[([012])\]\s*$')  # PX4: magnetometer_ga[0]
+_INDEX = re.compile(r'\[\d+\]')  # an array's element, part of a name: esc[1].current
 _UNITS = re.compile(r'\([^)]*\)|\[[^\]]*\]|\{[^}]*\}')  # "Bx (µT)", "mag_x [uT]"
 _CAMEL = re.compile(r'(?<=[a-z0-9])(?=[A-Z])')  # magX -> mag_X
 _COMPACT = re.compile(r'([a-z]+?)([xyz])')  # mx, gyrox, ofsx
@@ -594,7 +595,7 @@ def detect_layout(lines: list[str], source: str, role: str = 'magnetometer',
                                  '(three header names or zero-based field indices)')
         others = [f'{name} {roles.describe(unread)}' for name, found in roles.sensors.items()
                   if name != role and (unread := [triplet for triplet in found
-                                                  if triplet != read_beside])]
+                                                  if set(triplet) != set(read_beside)])]
         units = header_units(roles.labels[chosen])
         notes = (f'{role} columns {roles.labels[chosen]} (fields '
                  f'{",".join(map(str, chosen))}) chosen by their names'
@@ -643,7 +644,7 @@ def header_units(labels: str) -> str | None:
     when it is a unit of magnetic field; else None."""
     found = set()
     for name in labels.split(','):
-        bracketed = [unit for unit in _UNITS.findall(name) if not _INDEX_AXIS.fullmatch(unit)]
+        bracketed = [unit for unit in _UNITS.findall(name) if not _INDEX.fullmatch(unit)]
         suffix = _UNIT_SUFFIX.search(name)
         if len(bracketed) + (suffix is not None) != 1:
             return None
@@ -748,15 +749,9 @@ def _explicit_layout(spec: str, lines: list[str], source: str) -> TextLayout:
         indices = tuple(int(c) for c in columns)
         return TextLayout(indices, None, f'fields {",".join(map(str, indices))}', (),  # type: ignore[arg-type]
                        delimiter, numpy_fields)
-    for line in lines:
-        if found is not None:  # names only where they align with the data fields: the words of
-            aligned = _header_cells(line, found[0])  # 'Time (s),mx (uT)' are not its fields
-            candidates = [] if aligned is None else [aligned]
-        else:
-            candidates = [_split(line)]
-            candidates += [[cell.strip().strip('"\'') for cell in line.split(delimiter)]
-                           for delimiter in (',', '\t', ';') if delimiter in line]
-        for cells in candidates:
+    for line in lines if found is not None else ():
+        cells = _header_cells(line, found[0])  # names that align with the data fields only:
+        if cells is not None:  # the words of 'Time (s),mx (uT)' are not its fields
             named = [field_named(str(name), cells, f"--columns '{spec}'", source)
                      for name in columns]
             if None not in named:
@@ -770,15 +765,19 @@ def _explicit_layout(spec: str, lines: list[str], source: str) -> TextLayout:
 
 def field_named(name: str, cells: Sequence[str], option: str, source: str) -> int | None:
     """The field a header ``cells`` (aligned with the data fields) names ``name``, any case: the
-    cell that is the name, else the one whose name is it without its unit (``current`` names
-    ``current (A)``, as a header's unit never is part of a name); None when no cell does.
-    Raises RecordingError when several do."""
+    cell that is the name, else, for a name without a unit of its own, the one whose name is it
+    without its unit (``current`` names ``current (A)``, as a header's unit never is part of a
+    name; an index such as PX4's ``[0]`` is); None when no cell does. Raises RecordingError
+    when several do."""
     def plain(text: str) -> str:
-        return ' '.join(_UNITS.sub(' ', text).split()).lower()
+        unitless = _UNITS.sub(lambda bracket: bracket[0] if _INDEX.fullmatch(bracket[0])
+                              else ' ', text)
+        return ' '.join(unitless.split()).lower()
 
     lowered = [cell.strip().strip('"\'').lower() for cell in cells]
-    for matches in ([i for i, cell in enumerate(lowered) if cell == name.strip().lower()],
-                    [i for i, cell in enumerate(lowered) if plain(cell) == plain(name)]):
+    exact = [i for i, cell in enumerate(lowered) if cell == name.strip().lower()]
+    named = [i for i, cell in enumerate(lowered) if plain(cell) == plain(name)]
+    for matches in (exact, named if plain(name) == ' '.join(name.split()).lower() else []):
         if len(matches) == 1:
             return matches[0]
         if matches:
@@ -1024,6 +1023,13 @@ def compensation_columns(lines: list[str], taken: Sequence[int], source: str,
             chosen_inputs.append((index, cell.strip()))
         elif role == 'temperature' and temperature is None and chosen_temperature is None:
             chosen_temperature, unit = (index, cell.strip()), cell_unit
+    names = [name for _, name in chosen_inputs]
+    repeated = [name for name in dict.fromkeys(names) if names.count(name) > 1]
+    if repeated:  # K is kept and applied by input name, on the robot too
+        fields = ', '.join(str(index) for index, name in chosen_inputs if name == repeated[0])
+        raise RecordingError(f"{source}: input columns {fields} are all named '{repeated[0]}': a "
+                             'compensation tells its inputs apart by name; rename them in the '
+                             'header, or choose one with --input-columns')
     celsius = (0.0, 1.0)
     if unit in KELVIN_UNITS:
         celsius = (-273.15, 1.0)
@@ -1059,19 +1065,23 @@ def input_values(values: np.ndarray, name: str, kind: str) -> tuple[np.ndarray, 
     return values, problems
 
 
-MAX_STEP_S = 1.0
-"""No calibration log has less than a reading a second: a unit that would make the median step
-longer is not the log's. Epoch-sized stamps so read are time since boot (PX4's microseconds
-past 10^8 are not seconds of 1973), and integer steps too long for milliseconds are
-microseconds (PX4's ``ulog2csv`` timestamps, an Arduino's micros()), or nanoseconds."""
+MAX_STEP_S = 1.5
+"""Elapsed-time stamps whose steps would be longer than this in milliseconds (under one reading
+in 1.5 s) are microseconds, longer still nanoseconds: PX4's ``ulog2csv`` 'timestamp' steps 4000
+to 20000 at 250 to 50 Hz, an Arduino's micros() alike, while a 1 Hz millis() log with jitter
+(1001, 1002 ...) stays milliseconds."""
+EPOCH_SECONDS = (946_684_800.0, 4_102_444_800.0)
+"""Stamps since 1970 are dates from 2000 to 2100: PX4's 1.1e8 microseconds since boot are not
+seconds of 1973."""
 
 
 def time_unit(values: np.ndarray, header_unit: str | None = None) -> tuple[float, str]:
     """(seconds per unit, why) of a time column: the header's unit when it gives one; else
-    from the values: epoch-sized numbers by their size (s, ms, us, ns since 1970), and elapsed
-    time by its steps: integer steps of a millisecond or more are milliseconds (an Arduino's
-    millis()), as are steps of 5 or more (no log has 5 s between readings and calls it a
-    calibration); anything else is seconds. Either way within MAX_STEP_S."""
+    from the values: numbers that are dates (EPOCH_SECONDS) in s, ms, us or ns since 1970 whose
+    steps are not jumps the calibrator refuses (MAX_FORWARD_JUMP_NS), and elapsed time by its
+    steps: integer steps of a millisecond or more are milliseconds (an Arduino's millis()), as
+    are steps of 5 or more (no log has 5 s between readings and calls it a calibration), up to
+    MAX_STEP_S; anything else is seconds."""
     if header_unit is not None and header_unit in TIME_UNITS:
         scale = TIME_UNITS[header_unit]
         return scale, f'{_TIME_UNIT_WORDS[scale]} (from the header)'
@@ -1082,8 +1092,9 @@ def time_unit(values: np.ndarray, header_unit: str | None = None) -> tuple[float
     steps = steps[steps > 0]
     step = float(np.median(steps)) if len(steps) else 0.0
     size = float(np.median(np.abs(finite)))
-    for threshold, scale in ((1e17, 1e-9), (1e14, 1e-6), (1e11, 1e-3), (1e8, 1.0)):
-        if size >= threshold and step * scale <= MAX_STEP_S:
+    for scale in (1e-9, 1e-6, 1e-3, 1.0):
+        if (EPOCH_SECONDS[0] <= size * scale < EPOCH_SECONDS[1]
+                and step * scale * 1e9 <= MAX_FORWARD_JUMP_NS):
             return scale, f'{_TIME_UNIT_WORDS[scale]} since 1970 (from their size)'
     integers = bool(np.all(finite == np.round(finite)))
     if step * 1e-3 > MAX_STEP_S:
