@@ -96,6 +96,7 @@ def test_a_csv_with_current_and_temperature_learns_k_and_c(tmp_path, capsys, cou
     assert_near_truth(found, truth, recording)
     assert found['removed_pct'] > 1.0 and found['reference_temperature_degC'] is not None
     assert status == 0, summary['reason']
+    assert summary['buffer']['learning_pass']['fits']['compensate'] > 0
     saved = load_calibration(output).compensation
     assert saved is not None and saved.inputs == ('current',)
     assert np.allclose(saved.interference[:, 0], found['interference']['current'])

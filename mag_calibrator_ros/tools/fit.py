@@ -343,18 +343,17 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     }
     session = learner = None
     if settings is not None:
-        session = learner = streamed(settings, metadata, recording, recording.samples, clock,
-                                     earth, progress, own=True)
+        fitted = recording.samples  # plot the whole recording, corrected by the buffer's fit
+        session = learner = streamed(settings, metadata, recording, fitted, clock, earth,
+                                     progress, learn_own_field=True)
         learned = own_field.learned(learner)
         if learned is not None:  # the static part from every reading without K and c
-            session = streamed(settings, metadata, recording,
-                               own_field.without_own_field(recording, learned), clock, earth,
-                               progress)
+            fitted = own_field.without_own_field(recording, learned)
+            session = streamed(settings, metadata, recording, fitted, clock, earth, progress)
         attempt = session.calibrate_now()
         if attempt.outcome is None or attempt.outcome.result is None:
             raise UsageError(attempt.message)
         outcome = attempt.outcome
-        fitted = recording.samples  # plot the whole recording, corrected by the buffer's fit
         screening = None
     else:
         fitted, screening, kept = screen_all(recording.samples, args.full_scale)
@@ -386,6 +385,9 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     summary = build_summary(args, recording, units, result, calibration, session, screening,
                             written, plotted)
     summary['compensation'] = _finite(own_field.summary(recording, calibration, learner))
+    if learner is not session and learner is not None:  # what the first pass did, learning
+        summary['buffer']['learning_pass'] = {'fits': dict(learner.jobs_run),
+                                              'live_adoptions': dict(learner.adoptions)}
     add_reference(summary, outcome, earth, clock)
     status = EXIT_CALIBRATED if result.success else EXIT_FAILED_GATES
     try:
@@ -616,18 +618,19 @@ def input_problem(recording: Recording, units: str, scaled: bool = False) -> str
 
 def streamed(settings: SessionSettings, metadata: dict[str, Any], recording: Recording,
              samples: np.ndarray, clock: Clock, earth: EarthField | None,
-             progress: ProgressBar, own: bool = False) -> CalibrationSession:
+             progress: ProgressBar, learn_own_field: bool = False) -> CalibrationSession:
     """A live session that has seen ``samples`` (the recording's, or them without the robot's
-    own field) with the recording's clock and IMU, and with its own-field inputs when ``own``."""
+    own field) with the recording's clock and IMU, and with its own-field inputs when
+    ``learn_own_field``."""
     session = CalibrationSession(settings, metadata=metadata)
     if recording.kind == 'text':
         session.pairing.force_range = None  # a log's accelerometer may be in g or counts
     session.attitudes = StaticAttitudes(clock=clock.stamped)
     session.set_earth_field(earth)
-    if own:
+    if learn_own_field:
         own_field.configure(session, recording)
     stream(session, samples, clock.stamps_ns, progress, recording.accel, recording.gyro,
-           recording if own else None)
+           recording if learn_own_field else None)
     session.attitudes.finish()  # the recording ends: its last still stretch too
     return session
 
@@ -824,6 +827,11 @@ def human_summary(summary: dict[str, Any]) -> str:
             f"{info['accepted']} accepted ({info['held_out']} held out to judge fits), "
             f"{info['fill']} points kept standing for {info['readings_held']} readings "
             f"({info['merged']} merged as not unique); live fits: {fits}")
+        if 'learning_pass' in info:
+            learning = ', '.join(f'{count} {kind}' for kind, count in
+                                 info['learning_pass']['fits'].items())
+            lines.append(f'          that is a second pass, over the readings without the '
+                         f'own field the first pass learned (its live fits: {learning})')
     else:
         lines.append(f"mode      all: fitted every one of {metrics['n_samples']} samples")
     how = f"   {summary['reason'].removeprefix('ok ')}" if summary['success'] else ''

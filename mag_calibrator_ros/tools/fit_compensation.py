@@ -34,7 +34,9 @@ HELP = (
     'in K or F is converted); a bag: its only sensor_msgs/BatteryState topic (current) and its '
     'only sensor_msgs/Temperature topic, each paired with the reading nearest its stamp. Only '
     "with the buffer (not --all). K is applied to the node's interference_inputs in the "
-    'order the file names them: list the topics carrying these inputs in that order.')
+    'order the file names them: list the topics carrying these inputs in that order. Once K '
+    'or c is learned, the static calibration comes from a second pass over every reading '
+    'without them.')
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -118,15 +120,17 @@ def without_own_field(recording: Recording, compensation: Compensation) -> np.nd
     holds the latest sample); none before the first."""
     inputs = temperature = None
     if recording.inputs is not None and len(compensation.inputs):
-        columns = [recording.input_names.index(name) for name in compensation.inputs]
+        columns = [recording.input_names.index(name) for name in compensation.inputs]  # unique
         inputs = _latest(recording.inputs[:, columns])
     if recording.temperature is not None:
-        temperature = _latest(recording.temperature[:, None])[:, 0]
+        temperature = _latest(recording.temperature.reshape(-1, 1))[:, 0]
     return recording.samples - compensation.field(inputs, temperature)
 
 
 def _latest(values: np.ndarray) -> np.ndarray:
     """(n, k): each NaN replaced by the latest finite value above it in its column."""
+    if values.ndim != 2:
+        raise ValueError(f'_latest takes (n, k) columns, not an array of shape {values.shape}')
     known = np.isfinite(values)
     rows = np.where(known, np.arange(len(values))[:, None], -1)
     np.maximum.accumulate(rows, axis=0, out=rows)
