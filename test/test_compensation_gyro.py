@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from mag_calibrator_ros.calibration.fit import compensation as compensation_fit
 from mag_calibrator_ros.calibration.fit.calibration import Calibration, Compensation
 from mag_calibrator_ros.calibration.fit.compensation import (
     PAIR_MAX_TURN_DEG,
@@ -232,6 +233,25 @@ def test_the_offset_is_held_where_the_calibration_in_force_is_right_not_at_the_r
     assert np.linalg.norm(error) < 0.1e-6
     moved = across @ (unanchored.calibration.offset - OFFSET)  # held at the mean current
     assert np.linalg.norm(moved) > 1e-6
+
+
+def test_the_offset_is_placed_for_the_terms_as_they_will_be_used(monkeypatch):
+    """Axes a fit does not determine are left at zero; the offset must be placed with them at
+    zero, not with the values the fit gave them. Placed for those, a real multicopter's hover
+    log (K_x, K_z undetermined at 2.5-3 % of the field) gave a candidate 35 % off on held-out
+    readings instead of 15 %. Here the limit is lowered so that a standing robot's noisy axes
+    are the undetermined ones."""
+    monkeypatch.setattr(compensation_fit, 'DETERMINED_PCT', 0.05)
+    run = standing(seed=3)
+    run['raw'][:, 0] += np.random.default_rng(9).normal(0.0, 2e-6, len(run['t']))
+    fit = fit_compensation(_data(run), Calibration(OFFSET, np.eye(3), F))
+    gains = fit.calibration.compensation.interference[:, 0]
+    assert gains[0] == 0.0 and gains[2] == pytest.approx(GAIN[2], abs=0.05e-6)
+    errors = np.linalg.norm(fit.calibration.apply(run['raw'], run['current'][:, None]),
+                            axis=1) / F - 1.0
+    assert abs(np.median(errors)) < 0.002  # 4 % when placed for the fitted values
+    assert 100 * np.sqrt(np.mean(errors**2)) == pytest.approx(fit.residual_pct, rel=0.1)
+    assert fit.held_candidate_pct < fit.held_current_pct
 
 
 def stand_turn_stand(seed: int, rate: float = 20.0) -> dict[str, np.ndarray]:
