@@ -161,20 +161,30 @@ def header(stamp_ns: int):
         frame_id='imu_link')
 
 
-def write_rosbag2(path: Path, recording) -> Path:
+def write_rosbag2(path: Path, recording, imu: bool = False) -> Path:
     """The course as a rosbag2: MagneticField at the course's rate, BatteryState at 10 Hz,
-    the driver's imu/temperature at 1 Hz (sqlite3, as ros2 bag record writes by default)."""
+    the driver's imu/temperature at 1 Hz (sqlite3, as ros2 bag record writes by default);
+    with ``imu``, imu/data_raw beside each MagneticField (the same stamp)."""
     types = {'mag': 'sensor_msgs/msg/MagneticField', 'battery': 'sensor_msgs/msg/BatteryState',
-             'temperature': 'sensor_msgs/msg/Temperature'}
+             'temperature': 'sensor_msgs/msg/Temperature', 'imu': 'sensor_msgs/msg/Imu'}
+    vector = ROS2.types['geometry_msgs/msg/Vector3']
     start = 1_700_000_000 * 10**9
     with Writer(path, version=9) as writer:
         connections = {name: writer.add_connection(f'/{name}', msgtype, typestore=ROS2)
-                       for name, msgtype in types.items()}
+                       for name, msgtype in types.items() if imu or name != 'imu'}
         for i, t in enumerate(recording.times.tolist()):
             stamp = start + round(t * 1e9)
-            messages = [('mag', ROS2.types[types['mag']](
-                header=header(stamp), magnetic_field=ROS2.types['geometry_msgs/msg/Vector3'](
-                    *map(float, recording.mag[i])), magnetic_field_covariance=np.zeros(9)))]
+            messages = [('imu', ROS2.types[types['imu']](
+                header=header(stamp),
+                orientation=ROS2.types['geometry_msgs/msg/Quaternion'](0.0, 0.0, 0.0, 1.0),
+                orientation_covariance=np.zeros(9),
+                angular_velocity=vector(*map(float, recording.gyro[i])),
+                angular_velocity_covariance=np.zeros(9),
+                linear_acceleration=vector(*map(float, recording.accel[i])),
+                linear_acceleration_covariance=np.zeros(9)))] if imu else []
+            messages.append(('mag', ROS2.types[types['mag']](
+                header=header(stamp), magnetic_field=vector(*map(float, recording.mag[i])),
+                magnetic_field_covariance=np.zeros(9))))
             if i % int(RATE_HZ / 10) == 0:
                 messages.append(('battery', ROS2.types[types['battery']](
                     header=header(stamp), voltage=12.0, temperature=25.0,

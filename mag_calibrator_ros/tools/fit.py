@@ -24,9 +24,14 @@ replayed ``--rate`` apart (default 100 Hz) for the session's timing only, and it
 readings are found without a clock (``StaticAttitudes(clock=False)``), so no ``--rate`` makes or
 breaks its alignment.
 
+With ``--calibration FILE`` the session starts from a saved calibration, as the node does with
+``calibration_file``, and the answer is what that node would hold at the recording's end
+(``fit_start.py``).
+
 Exit codes: 0 calibrated; 1 the fit failed a quality gate (the best-effort numbers are printed,
 marked NOT passing, and no calibration file is written: a robot must never load a calibration
-that failed its gates); 2 usage or input errors (one line on stderr, no traceback).
+that failed its gates), or with ``--calibration`` the answer does not fit the recording; 2 usage
+or input errors (one line on stderr, no traceback).
 """
 
 from __future__ import annotations
@@ -69,6 +74,7 @@ from mag_calibrator_ros.calibration.store.calibration_file import (
     save_calibration,
 )
 from mag_calibrator_ros.tools import fit_compensation as own_field
+from mag_calibrator_ros.tools import fit_start
 from mag_calibrator_ros.tools.recordings import (
     Recording,
     RecordingError,
@@ -114,6 +120,9 @@ examples:
   ros2 topic echo /imu/mag | {PROG} - --json    messages on stdin (tesla), JSON summary
   {PROG} drive.csv --units uT -o cal.yaml    with current and temperature columns: K and c too
   {PROG} drive_bag --battery-topic /battery    a bag's BatteryState current (and Temperature)
+  {PROG} hover_bag --accel /imu --calibration cal.yaml -o cal_k.yaml
+                                           K from a drive that never turns, on a saved
+                                           calibration (exit 1 if it does not fit the drive)
   ros2 topic echo --csv /imu/mag | {PROG} -    the same as CSV (the field is found by itself)
   {PROG} cal_output_2.log --accel-columns 0,1,2 --rate 3 --latitude 45.5 --longitude -122.7
                                            align to the accelerometer logged beside the
@@ -133,7 +142,9 @@ exit status:
   0  calibrated (passed every quality gate; --output written)
   1  the fit failed a quality gate: the best-effort result is printed, marked NOT passing, with
      the reason (e.g. which rotation is missing); --output is NOT written (an existing file is
-     left untouched) because a robot must never load a failed calibration; --plot is written
+     left untouched) because a robot must never load a failed calibration; --plot is written.
+     With --calibration: the answer (the buffer's fit, else the calibration in force at the
+     end) does not fit the recording's readings
   2  usage or input error (missing/unreadable file, too few rows, bad --columns, --output
      without the input's unit, an unwritable --output or --plot ...), or input no
      calibration can fix: readings that cannot be in their unit (0.5 "T" is gauss), or a field
@@ -220,6 +231,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help='raw counts: tesla per count (e.g. 0.15e-6 for 0.15 uT/LSB); the '
                         'samples are converted to tesla as they are read, so --output loads '
                         'right')
+    fit_start.add_argument(parser)
     parser.add_argument('--output', '-o', metavar='FILE', default=None,
                         help='write the calibration YAML (ROS 2 parameters file for the node, in '
                         'tesla: needs --units or --scale unless the input says its unit) only '
@@ -275,7 +287,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         with np.errstate(all='ignore'):  # results are judged (finite, gated), never warned about
             return run(args)
-    except (UsageError, RecordingError, CalibrationFileError) as error:
+    except (UsageError, RecordingError, CalibrationFileError, fit_start.StartError) as error:
         _error(str(error))
         return EXIT_USAGE
     except MemoryError:
@@ -299,6 +311,7 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     progress = ProgressBar(sys.stderr, args.input)
 
     earth = location(args)  # usage errors before reading anything
+    loaded = fit_start.read(args)
     bag = args.input != '-' and is_rosbag(Path(args.input))
     if own_field.text_options(args) if bag else own_field.bag_options(args):
         given = (own_field.text_options if bag else own_field.bag_options)(args)
@@ -333,6 +346,7 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
             f"--output writes the calibration in tesla, the node's unit, but {recording.source} "
             f"does not say its unit ('{units}'): give it with --units uT|nT|G|mG|T, or the "
             'tesla per count of raw counts with --scale (e.g. --scale 0.15e-6)')
+    start = None if loaded is None else fit_start.in_units(loaded, units, recording.source)
     reference = None if earth is None else EarthReference(
         earth, units, args.max_field_error, args.max_dip_error, not args.no_earth_gate)
     metadata = {
@@ -345,11 +359,12 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     if settings is not None:
         fitted = recording.samples  # plot the whole recording, corrected by the buffer's fit
         session = learner = streamed(settings, metadata, recording, fitted, clock, earth,
-                                     progress, learn_own_field=True)
+                                     progress, learn_own_field=True, start=start)
         learned = own_field.learned(learner)
         if learned is not None:  # the static part from every reading without K and c
             fitted = own_field.without_own_field(recording, learned)
-            session = streamed(settings, metadata, recording, fitted, clock, earth, progress)
+            session = streamed(settings, metadata, recording, fitted, clock, earth, progress,
+                               start=None if start is None else fit_start.second_start(learner))
         attempt = session.calibrate_now()
         if attempt.outcome is None or attempt.outcome.result is None:
             raise UsageError(attempt.message)
@@ -373,14 +388,23 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     result = outcome.result
     progress.finish()
 
-    calibration = own_field.with_learned(result.calibration, learner)
+    success = result.success
+    answer = None
+    if start is not None:  # what the node would hold: a request adopts a passing fit
+        calibration = own_field.with_learned(session.calibration, learner)
+        answer = fit_start.judged(loaded, calibration, recording, result, [learner, session],
+                                  options.max_residual_pct)
+        success = answer['check']['fits']
+    else:
+        calibration = own_field.with_learned(result.calibration, learner)
     written = None
-    if result.success and calibration is not None and args.output is not None:
+    if success and calibration is not None and args.output is not None:
         save_calibration(args.output, in_tesla(calibration, units), node_name=OUTPUT_SECTION)
         written = args.output
     plotted = None
     if args.plot is not None:
-        plotted = write_plot(args.plot, recording, fitted, calibration, result, units)
+        plotted = write_plot(args.plot, recording, fitted, calibration, result, units,
+                             success)
 
     summary = build_summary(args, recording, units, result, calibration, session, screening,
                             written, plotted)
@@ -388,13 +412,19 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     if learner is not session and learner is not None:  # what the first pass did, learning
         summary['buffer']['learning_pass'] = {'fits': dict(learner.jobs_run),
                                               'live_adoptions': dict(learner.adoptions)}
-    add_reference(summary, outcome, earth, clock)
-    status = EXIT_CALIBRATED if result.success else EXIT_FAILED_GATES
+    add_reference(summary, outcome, calibration, earth, clock)
+    if answer is not None:
+        summary['start'] = _finite(answer)
+        summary['success'] = success
+        summary['reason'] = (fit_start.reason(answer, options.max_residual_pct) if not success
+                             else result.reason if result.success
+                             else 'ok the calibration in force at the end (see answer)')
+    status = EXIT_CALIBRATED if success else EXIT_FAILED_GATES
     try:
         if args.json:
             json.dump(summary, out, indent=2, allow_nan=False)
             out.write('\n')
-        elif not (args.quiet and result.success):
+        elif not (args.quiet and success):
             out.write(human_summary(summary))
         out.flush()
     except BrokenPipeError:
@@ -618,11 +648,14 @@ def input_problem(recording: Recording, units: str, scaled: bool = False) -> str
 
 def streamed(settings: SessionSettings, metadata: dict[str, Any], recording: Recording,
              samples: np.ndarray, clock: Clock, earth: EarthField | None,
-             progress: ProgressBar, learn_own_field: bool = False) -> CalibrationSession:
+             progress: ProgressBar, learn_own_field: bool = False,
+             start: Calibration | None = None) -> CalibrationSession:
     """A live session that has seen ``samples`` (the recording's, or them without the robot's
     own field) with the recording's clock and IMU, and with its own-field inputs when
-    ``learn_own_field``."""
+    ``learn_own_field``; ``start`` in force from the first (as the node's calibration_file)."""
     session = CalibrationSession(settings, metadata=metadata)
+    if start is not None:
+        session.apply_calibration(start, 'file')
     if recording.kind == 'text':
         session.pairing.force_range = None  # a log's accelerometer may be in g or counts
     session.attitudes = StaticAttitudes(clock=clock.stamped)
@@ -694,11 +727,14 @@ def gravity_directions(accel: np.ndarray) -> np.ndarray:
 
 
 def write_plot(path: str, recording: Recording, fitted: np.ndarray,
-               calibration: Calibration | None, result: FitResult, units: str) -> str:
+               calibration: Calibration | None, result: FitResult, units: str,
+               success: bool) -> str:
     from mag_calibrator_ros.tools.plotting import plot_calibration  # matplotlib: only when asked
 
-    verdict = 'calibrated' if result.success else 'NOT passing: ' + result.reason
-    title = f'{Path(recording.source).name}: {result.metrics.model}, {verdict}'
+    model = result.metrics.model if calibration is None else calibration.model
+    verdict = ('calibrated' if success else 'NOT passing: ' + result.reason if not result.success
+               else 'NOT fitting the recording')
+    title = f'{Path(recording.source).name}: {model}, {verdict}'
     if len(title) > 160:
         title = title[:157] + '...'
     outliers = result.outliers if len(result.outliers) == len(fitted) else None  # --all only
@@ -781,12 +817,11 @@ def build_summary(
     return _finite(summary)
 
 
-def add_reference(summary: dict[str, Any], outcome: JobOutcome,
+def add_reference(summary: dict[str, Any], outcome: JobOutcome, calibration: Calibration | None,
                   earth: EarthField | None, clock: Clock) -> None:
     """The --json 'alignment' and 'earth_field' objects (when an accelerometer / a location
     was given), the calibration's rotation and the recording's clock ('time', 'rate_hz': the
     stamps' median rate, or the replay rate of a log without time)."""
-    calibration = outcome.result.calibration if outcome.result is not None else None
     summary['rotation'] = None if calibration is None else _floats(calibration.rotation.reshape(9))
     summary['rate_hz'] = _finite(float(clock.rate_hz))
     summary['time'] = {'stamped': clock.stamped, 'source': clock.source}
@@ -834,6 +869,7 @@ def human_summary(summary: dict[str, Any]) -> str:
                          f'own field the first pass learned (its live fits: {learning})')
     else:
         lines.append(f"mode      all: fitted every one of {metrics['n_samples']} samples")
+    lines.extend(fit_start.lines(summary.get('start')))
     how = f"   {summary['reason'].removeprefix('ok ')}" if summary['success'] else ''
     lines.append(f"model     {summary['model']}{how}")
     if summary['offset'] is not None:

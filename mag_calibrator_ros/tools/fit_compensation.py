@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from mag_calibrator_ros.calibration.fit.calibration import Calibration, Compensation
+from mag_calibrator_ros.calibration.live.compensation import input_columns
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.tools.recordings import Recording
 
@@ -110,17 +111,21 @@ def with_learned(calibration: Calibration | None, session: CalibrationSession | 
 
 
 def learned(session: CalibrationSession) -> Compensation | None:
-    """The compensation the session learned and holds in force at the recording's end."""
-    return None if session.calibration is None else session.calibration.compensation
+    """The compensation the session learned and holds in force at the recording's end (None
+    when it learned none: a calibration it started from may bring its own)."""
+    if session.calibration is None or not session.adoptions.get('compensation'):
+        return None
+    return session.calibration.compensation
 
 
 def without_own_field(recording: Recording, compensation: Compensation) -> np.ndarray:
     """The recording's readings without the robot's own field ``compensation`` models: each
     row's inputs and temperature, or the latest before it where the row has none (as the node
-    holds the latest sample); none before the first."""
+    holds the latest sample); none before the first. Inputs are matched to the recording's
+    as the node matches them (``input_columns``); a term with no input here removes nothing."""
     inputs = temperature = None
-    if recording.inputs is not None and len(compensation.inputs):
-        columns = [recording.input_names.index(name) for name in compensation.inputs]  # unique
+    columns = input_columns(compensation.inputs, recording.input_names)
+    if recording.inputs is not None and len(compensation.inputs) and columns is not None:
         inputs = _latest(recording.inputs[:, columns])
     if recording.temperature is not None:
         temperature = _latest(recording.temperature.reshape(-1, 1))[:, 0]

@@ -17,6 +17,7 @@ readings between which the robot barely turned (``fit/compensation.py`` gyro_pai
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 import math
 
@@ -63,6 +64,18 @@ GYRO_GAP_NS = 100_000_000
 """A longer gap between gyroscope samples (or a non-finite one) ends a stretch of integrated
 attitude: the rotation across it is not known, so no readings across it are compared."""
 NO_ATTITUDE = (math.nan,) * 5
+
+
+def input_columns(names: Sequence[str], own: Sequence[str]) -> list[int] | None:
+    """Where each of a compensation's input ``names`` is among the ``own`` inputs here: by
+    name when all are here, else by position when the counts agree (a file learnt offline
+    names its columns, the node its topics); None when they cannot be matched."""
+    names, own = tuple(names), tuple(own)
+    if all(name in own for name in names):
+        return [own.index(name) for name in names]
+    if len(names) == len(own):
+        return list(range(len(own)))
+    return None
 
 
 @dataclass
@@ -323,15 +336,11 @@ class CompensationLearner:
         subscribes them all, else by position when the counts agree (a file learnt offline
         names its columns); a term with no input here contributes nothing (NaN), said in
         ``diagnostic_values`` as ``interference_unmatched``."""
-        own = self.names
-        if tuple(names) == own:
-            return values
-        if all(name in own for name in names):
-            return [values[own.index(name)] for name in names]
-        if len(names) == len(own):
-            return values
-        self.unmatched = names
-        return [math.nan] * len(names)
+        columns = input_columns(names, self.names)
+        if columns is None:
+            self.unmatched = names
+            return [math.nan] * len(names)
+        return [values[column] for column in columns]
 
     # -- fits ----------------------------------------------------------------------------------
 
@@ -553,4 +562,5 @@ def coefficient_values(compensation: Compensation | None, units: str = 'T'
     return values
 
 
-__all__ = ['LEARNED', 'TEMPERATURE', 'CompensationLearner', 'coefficient_values']
+__all__ = ['LEARNED', 'TEMPERATURE', 'CompensationLearner', 'coefficient_values',
+           'input_columns']
