@@ -235,6 +235,19 @@ def test_the_offset_is_held_where_the_calibration_in_force_is_right_not_at_the_r
     assert np.linalg.norm(moved) > 1e-6
 
 
+@pytest.mark.parametrize('made_at', [0.0, 1.0, 8.0])
+def test_a_calibration_from_a_file_is_held_where_the_magnitudes_say_it_is_right(made_at):
+    """A file does not say at which current it was made (``anchor_unknown``): the field K
+    adds along the Earth's tells it, and the offset is held there, across the directions the
+    still field cannot tell too; not at the standing readings' mean current (3.9 A)."""
+    run = standing()
+    base = Calibration(OFFSET + GAIN * made_at, np.eye(3), F)
+    found = fit_compensation(replace(_data(run), anchor_unknown=True), base)
+    across = np.eye(3) - np.outer(EARTH, EARTH) / F**2
+    assert np.linalg.norm(across @ (found.calibration.offset - OFFSET)) < 0.1e-6
+    assert found.calibration.compensation.interference[:, 0] == pytest.approx(GAIN, abs=0.05e-6)
+
+
 def test_the_offset_is_placed_for_the_terms_as_they_will_be_used(monkeypatch):
     """Axes a fit does not determine are left at zero; the offset must be placed with them at
     zero, not with the values the fit gave them. Placed for those, a real multicopter's hover
@@ -305,8 +318,15 @@ def test_the_learner_anchors_a_static_fit_at_the_mean_inputs_since_the_buffer_wa
         session.process(stamp, 'imu', EARTH + OFFSET)
     session.apply_calibration(Calibration(OFFSET, np.eye(3), F), 'refine')
     assert learner.anchor == pytest.approx([3.0, 30.0], abs=0.05)
+    assert not learner.anchor_unknown
     session.apply_calibration(Calibration(OFFSET, np.eye(3), F), 'file')
     assert learner.anchor is None  # a file does not say where it was right
+    assert learner.anchor_unknown and learner.data(session.calibration).anchor_unknown
+    session.apply_calibration(Calibration(OFFSET, np.eye(3), F), 'realign')
+    assert learner.anchor_unknown  # rotated into the IMU frame, still the file's offset
+    session.apply_calibration(Calibration(OFFSET, np.eye(3), F).with_compensation(
+        Compensation(('current',), GAIN[:, None])), 'file')
+    assert not learner.anchor_unknown  # its offset goes with its own K
 
 
 def test_learn_compensation_learns_k_and_keeps_the_drift_in_force():

@@ -55,6 +55,12 @@ OFFSET_PRIOR = 0.1
 the field. A robot turning in a plane does not determine the offset along the plane's normal
 apart from the field strength; the static fit put it within a few percent, and the prior keeps
 it there instead of letting it drift."""
+ANCHOR_PRIOR = 1.0
+"""Where a calibration from a file is right is unknown: each input's value there is found from
+the magnitudes (``_anchored``), with a prior of 1 sigma of three times the larger of the
+input's span and its mean over the readings (a file made with the motors off, a hover at
+10 A) around that mean."""
+
 OFFSET_SEEN_DEG = 0.5
 """With gyroscope pairs, the offset changes only along directions the field's direction spread
 over by this much (root mean square of its component over the readings) beyond twice what the
@@ -113,6 +119,10 @@ class CompensationData:
     offset is held there along what the readings do not tell (default: at the readings' mean
     inputs). Held at the wrong inputs, a K learned standing or driving straight would move
     the offset by K times their difference."""
+    anchor_unknown: bool = False
+    """The calibration in force came from elsewhere (a file, parameters): where it is right is
+    not known, and with gyroscope pairs the offset is placed where the magnitudes put it
+    (``_anchored``) rather than at the readings' mean inputs."""
     temperature_term: tuple[tuple[float, float, float], float] | None = None
     """(c, T0) kept as they are: the fit learns the inputs' K only, and the readings come
     without that drift (``~/learn_compensation``: a few degrees of warm-up tell no c)."""
@@ -343,7 +353,8 @@ def _solve(raw: np.ndarray, columns: np.ndarray, spans: list[float], base: Calib
 
 
 def _placed(raw: np.ndarray, columns: np.ndarray, gains: np.ndarray, base: Calibration,
-            pairs: GyroPairs, anchor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            pairs: GyroPairs, anchor: np.ndarray, anchor_unknown: bool = False
+            ) -> tuple[np.ndarray, np.ndarray]:
     """The offset change at zero input, and the residuals, with the terms ``gains`` (3, m)
     fixed as they will be used (undetermined axes zero: placed for the values the fit gave
     them, a multicopter's hover log had a candidate 35 % off on held-out readings instead of
@@ -351,11 +362,50 @@ def _placed(raw: np.ndarray, columns: np.ndarray, gains: np.ndarray, base: Calib
     do not tell (``_solve``'s hold). The terms come from the fit without the hold: with it, a
     robot that stood, then turned at another current, had every axis of K determined by that
     one step, carrying the calibration's small error along the unseen axes into K (-0.47,
-    -1.12, -0.15 uT/A against a true 1.6, 0, 0, measured on the benchmark's course)."""
+    -1.12, -0.15 uT/A against a true 1.6, 0, 0, measured on the benchmark's course). With
+    ``anchor_unknown``, the hold is where the magnitudes put it (``_anchored``)."""
     centre = _centre(columns, pairs, anchor)
+    if anchor_unknown and len(pairs):
+        centre = _anchored(raw, columns, gains, base, centre)
     shifted = raw - (columns - centre) @ gains.T
     w, _, _, residuals = _solve(shifted, np.zeros((len(raw), 0)), [], base, pairs, hold=True)
     return w[:, 0] - gains @ centre, residuals
+
+
+def _anchored(raw: np.ndarray, columns: np.ndarray, gains: np.ndarray, base: Calibration,
+              centre: np.ndarray) -> np.ndarray:
+    """The inputs at which ``base`` is right, when nothing says (a calibration from a file): a
+    static fit made at inputs ``a`` holds ``K a`` in its offset, so with the terms ``gains``
+    (3, m) the corrected field is ``M (raw - b + K a - K u)``, and its magnitude tells ``a``
+    wherever ``K`` has a component along the field. Each ``a_j`` starts at ``centre`` and stays
+    near it where the magnitudes cannot tell (ANCHOR_PRIOR). Held at the readings' mean
+    instead, a file fitted with the motors idle and a drive at 2 A gave a learned offset 3 uT
+    off and |B| 9 % off (mag_calibrator_fit --calibration on the quick procedure)."""
+    m = columns.shape[1]
+    if m == 0 or len(raw) == 0:
+        return centre
+    matrix, strength = base.matrix, base.field_strength
+    without = raw - base.offset - columns @ gains.T  # the field at zero input, but for K a
+    scale = ANCHOR_PRIOR * np.maximum(np.maximum(np.ptp(columns, axis=0), np.abs(centre)),
+                                      1e-12)
+    anchor = centre.astype(float).copy()
+    for iteration in range(2 * ITERATIONS):
+        corrected = (without + anchor @ gains.T) @ matrix.T
+        magnitude = np.linalg.norm(corrected, axis=1)
+        residuals = magnitude - strength
+        mad = 1.4826 * float(np.median(np.abs(residuals - np.median(residuals))))
+        noise2 = max(mad, 1e-9 * strength) ** 2
+        weights = np.ones(len(raw)) if iteration < 2 else np.minimum(
+            1.0, 4.0 * math.sqrt(noise2) / np.maximum(np.abs(residuals), 1e-300))
+        jacobian = ((corrected / np.maximum(magnitude, 1e-300)[:, None]) @ matrix) @ gains
+        normal = (jacobian * weights[:, None]).T @ jacobian + noise2 * np.diag(scale ** -2.0)
+        gradient = (jacobian * weights[:, None]).T @ residuals + noise2 * (
+            anchor - centre) / scale ** 2
+        step = -np.linalg.lstsq(normal, gradient, rcond=None)[0]
+        anchor = anchor + step
+        if np.all(np.abs(step) < 1e-9 * scale):
+            break
+    return anchor if np.all(np.isfinite(anchor)) else centre
 
 
 def _offset_precision(corrected: np.ndarray, sigma: float) -> np.ndarray:
@@ -479,7 +529,8 @@ def fit_compensation(data: CompensationData, base: Calibration) -> CompensationF
     if len(pairs) and kept:
         for position, index in enumerate(kept):  # placed for the terms as they will be used
             w[~determined_axes[index], position + 1] = 0.0
-        w[:, 0], residuals = _placed(raw, design, w[:, 1:], base, pairs, anchors[kept])
+        w[:, 0], residuals = _placed(raw, design, w[:, 1:], base, pairs, anchors[kept],
+                                     data.anchor_unknown)
     gains = np.zeros((3, len(names)))
     drift = np.zeros(3)
     for position, index in enumerate(kept):

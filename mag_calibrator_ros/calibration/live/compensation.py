@@ -172,6 +172,9 @@ class CompensationLearner:
         straight shows the field one way only). Live fits hold it at their own readings' mean
         inputs: those span headings and the warm-up, and holding it at a cold start's
         temperature pulled c 11-14 % off (bench_interference, seeds 2 and 3)."""
+        self.anchor_unknown = False
+        """The calibration in force is a static one from a file or parameters: where it is right
+        is not known, so fits find it (``CompensationData.anchor_unknown``)."""
         self.reset()
         self.configure(inputs, use_temperature, learn)
         self.last_fit = None
@@ -385,7 +388,7 @@ class CompensationLearner:
             held[:, 1:4], held[:, ROW_INPUTS:], held[:, 4] if with_temperature else None, t0,
             kept[:, 0], kept[:, 5:10] if gyroscope else None,
             held[:, 0], held[:, 5:10] if gyroscope else None,
-            self.anchor if self._window is not None else None, term)
+            self.anchor if self._window is not None else None, self.anchor_unknown, term)
 
     def job(self, calibration: Calibration) -> FitJob:
         """The next compensation fit, on the calibration in force."""
@@ -404,10 +407,15 @@ class CompensationLearner:
         compensated by it); a file, parameters or a learned compensation bring their own.
         Notes where the new calibration is right (``anchor``): a static fit, at the mean inputs
         of the readings since the buffer was last emptied; a learned compensation, where the
-        one before it was (its offset was held there); a file or parameters, unknown."""
+        one before it was (its offset was held there); a file or parameters, unknown
+        (``anchor_unknown`` when it has no compensation: the next fits find it)."""
         if source in ('file', 'parameters', 'given'):
             self.anchor = None
-        elif source not in ('compensation', 'realign', 'tracking'):
+            self.anchor_unknown = calibration.compensation is None  # a static part, made where?
+        elif source == 'compensation':
+            self.anchor_unknown = False  # its offset was placed with its terms
+        elif source not in ('realign', 'tracking'):
+            self.anchor_unknown = False
             self.anchor = np.array([total / count if count else math.nan
                                     for total, count in zip(self._sums, self._counts,
                                                             strict=True)])
