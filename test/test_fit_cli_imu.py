@@ -170,7 +170,7 @@ def test_a_disturbed_place_fails_the_gate_or_is_only_reported(tmp_path, capsys):
     ([*PORTLAND[:4], '--date', 'today'], 'date must be YYYY-MM-DD'),
     (['--latitude', '95', '--longitude', '0'], 'latitude must be within'),
     (['--accel-columns', '0,1,2', '--columns', '1,2,3'], 'overlap'),
-    (['--accel-columns', '0,1'], 'bad --columns'),
+    (['--accel-columns', '0,1'], 'bad --accel-columns'),
     (['--max-alignment', '200', '--accel-columns', '0,1,2'], '--max-alignment must be in'),
 ])
 def test_bad_options_are_usage_errors(shared_data, capsys, argv, message):

@@ -142,3 +142,40 @@ def test_a_compensation_meets_the_inputs_as_the_node_matches_them():
     assert without_own_field(recording, learned)[:, 0].tolist() == [-1.0, -1.0, -2.0]
     other = Compensation(('left', 'right'), np.ones((3, 2)))
     assert np.array_equal(without_own_field(recording, other), samples)
+
+
+def write_imu_csv(path: Path, recording) -> Path:
+    """A logger's line: time, accelerometer (m/s^2), gyroscope (deg/s), magnetometer (T),
+    current, temperature."""
+    lines = ['time,ax,ay,az,gx (deg/s),gy (deg/s),gz (deg/s),mx,my,mz,current,temperature']
+    for i, t in enumerate(recording.times.tolist()):
+        lines.append(','.join([f'{t:.3f}', *(f'{v:.6g}' for v in recording.accel[i]),
+                               *(f'{v:.6g}' for v in np.degrees(recording.gyro[i])),
+                               *(f'{v:.9g}' for v in recording.mag[i]),
+                               f'{recording.current_a[i]:.4f}',
+                               f'{recording.temperature_c[i]:.3f}']))
+    path.write_text('\n'.join(lines) + '\n')
+    return path
+
+
+def test_a_text_log_with_its_gyroscope_learns_k_on_a_drive_that_never_turns(tmp_path, capsys,
+                                                                           saved):
+    """One line per reading with the IMU and the current, as a logger writes them: without
+    the gyroscope the current's field cannot be told from the Earth's on one heading; with
+    it (--gyro-columns) readings between which the robot barely turned tell it, as on a bag."""
+    static, _, truth, _ = saved
+    drive = course_recording(robot(1), motion.CourseDriver(motion.QUICK_PROCEDURE),
+                             rate_hz=RATE_HZ)
+    csv = write_imu_csv(tmp_path / 'drive.csv', drive)
+    common = [csv, '--units', 'T', '--accel-columns', 'ax,ay,az', '--calibration', static]
+    _, blind = run(capsys, *common)
+    assert blind['compensation']['inputs'] == ['current'] and blind['compensation']['temperature']
+    assert not blind['compensation']['learned']
+    assert 'not in enough headings' in blind['compensation']['needs']
+    _, summary = run(capsys, *common, '--gyro-columns', 'gx,gy,gz',
+                     '--gyro-units', 'deg/s')
+    assert 'gyroscope columns gx,gy,gz (fields 4,5,6)' in summary['input']['layout']
+    [k] = summary['compensation']['interference'].values()
+    assert abs(k[0] - truth.current_field[0]) <= TOLERANCE * truth.current_field[0], k
+    assert fit.main([str(csv), '--accel-columns', 'ax,ay,az', '--gyro-columns', '4,5,6']) == 2
+    assert '--gyro-columns needs --gyro-units' in capsys.readouterr().err

@@ -10,11 +10,12 @@ units; ``--output`` writes it in tesla, the node's unit, so it needs the recordi
 the tesla per count of raw counts (``--scale``, which converts the samples to tesla as they are
 read).
 
-With ``--accel-columns`` (a text log with the accelerometer on each line) or ``--accel`` (a
-bag's Imu topic, paired by stamp) the calibration is aligned to the accelerometer from the
-readings held still, as the node does with imu/data_raw; with ``--latitude``/``--longitude`` it
-is checked against the World Magnetic Model there. A recording that logs the current or the
-sensor temperature (columns by header name, or a bag's BatteryState / Temperature topics) also
+With ``--accel-columns`` (a text log with the accelerometer on each line, its gyroscope with
+``--gyro-columns``) or ``--accel`` (a bag's Imu topic, paired by stamp) the calibration is
+aligned to the accelerometer from the readings held still, as the node does with imu/data_raw;
+with ``--latitude``/``--longitude`` it is checked against the World Magnetic Model there. A
+recording that logs the current or the sensor temperature (columns by header name, or a bag's
+BatteryState / Temperature topics) also
 teaches the robot's own field, K and c, as the node learns them (``fit_compensation.py``); the
 buffer fitted is then that of a second pass over the readings without them.
 
@@ -96,6 +97,8 @@ PROGRESS_MIN_ROWS = 20_000
 PROGRESS_MIN_BYTES = 1 << 20
 PROGRESS_CHUNK = 2048
 DEFAULT_RATE_HZ = 100.0
+GYRO_UNITS = {'rad/s': 1.0, 'deg/s': math.pi / 180.0}
+"""--gyro-units: rad/s per unit."""
 OUTPUT_SECTION = '/**'
 """--output files apply to any node they are given to with --params-file (any name, any
 namespace): which robot a recording came from is the user's to say, by the file they pass."""
@@ -252,6 +255,13 @@ def build_parser() -> argparse.ArgumentParser:
                      help="text input: the accelerometer's three zero-based field indices "
                      '(e.g. 0,1,2) or header names (ax,ay,az); the magnetometer is then '
                      '--columns or the first other numeric fields')
+    imu.add_argument('--gyro-columns', metavar='COLS', default=None,
+                     help="text input, with --accel-columns: the gyroscope's three fields "
+                     '(indices or header names), in --gyro-units: readings between which it '
+                     'says the robot barely turned tell the own field on a drive that never '
+                     'turns, as imu/data_raw does on the node')
+    imu.add_argument('--gyro-units', choices=tuple(GYRO_UNITS), default=None,
+                     help='the unit of --gyro-columns (needed with it)')
     imu.add_argument('--max-alignment', type=float, metavar='DEG', default=None,
                      help='a larger rotation to the accelerometer is reported as a mounting '
                      'error with the remap that fixes it, not applied (default 15)')
@@ -321,13 +331,15 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
         if args.topic is not None or args.accel is not None:
             raise UsageError('--accel-columns applies to text input, not to a bag (use --accel '
                              'for its Imu topic)')
-        if own_field.text_options(args):
-            raise UsageError('--input-columns and --temperature-column are not read with '
-                             '--accel-columns; drop one of them')
-        recording = read_paired_recording(args.input, accel_columns=args.accel_columns,
-                                          columns=args.columns, min_rows=options.min_samples,
-                                          progress=progress.reading)
+        recording = read_paired_recording(
+            args.input, accel_columns=args.accel_columns, columns=args.columns,
+            min_rows=options.min_samples, progress=progress.reading,
+            gyro_columns=args.gyro_columns, gyro_scale=gyro_scale(args),
+            compensation=own_field.reader_option(args, False))
     else:
+        if args.gyro_columns is not None or args.gyro_units is not None:
+            raise UsageError('--gyro-columns and --gyro-units are read with --accel-columns '
+                             '(a text log; a bag: --accel reads its Imu topic, gyroscope too)')
         recording = read_recording(args.input, columns=args.columns, topic=args.topic,
                                    accel_topic=args.accel, min_rows=options.min_samples,
                                    progress=progress.reading,
@@ -495,6 +507,14 @@ def in_tesla(calibration: Calibration, units: str) -> Calibration:
         return calibration
     scaled = calibration.scaled(TESLA_PER_UNIT[units])  # b and F scale; M does not
     return scaled.with_metadata(**{UNITS_KEY: TESLA})
+
+
+def gyro_scale(args: argparse.Namespace) -> float:
+    """rad/s per unit of --gyro-columns."""
+    if (args.gyro_columns is None) != (args.gyro_units is None):
+        raise UsageError('--gyro-columns needs --gyro-units (rad/s or deg/s), and --gyro-units '
+                         'needs --gyro-columns')
+    return GYRO_UNITS.get(args.gyro_units, 1.0)
 
 
 def fit_options(args: argparse.Namespace) -> FitOptions:

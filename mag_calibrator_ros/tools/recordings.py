@@ -170,10 +170,11 @@ def describe_skips(skipped: dict[str, int]) -> str:
                      for reason, count in skipped.items() if count)
 
 
-def parse_columns(spec: str) -> tuple[int, int, int] | tuple[str, str, str]:
+def parse_columns(spec: str, option: str = '--columns'
+                  ) -> tuple[int, int, int] | tuple[str, str, str]:
     """Parse ``'1,3,5'`` (zero-based field indices) or ``'mx,my,mz'`` (header names)."""
     parts = [part.strip() for part in re.split(r'[,\s]+', spec.strip()) if part.strip()]
-    usage = (f"bad --columns '{spec}': give three zero-based field indices such as 0,1,2 "
+    usage = (f"bad {option} '{spec}': give three zero-based field indices such as 0,1,2 "
              f'(1,3,5 for "Mx 144 My -270 Mz 415") or three header names such as mx,my,mz')
     if len(parts) != 3:
         raise RecordingError(usage)
@@ -578,8 +579,8 @@ def detect_layout(lines: list[str], source: str, role: str = 'magnetometer',
     three that are neither constant nor time stamps (:func:`_axis_candidates`). Raises
     RecordingError, naming the candidates, when nothing decides (more numeric fields than three
     and no names, several candidate sets, or names for other sensors only). The note names the
-    other sensors' columns as ignored, but for ``read_beside`` (the accelerometer's, when the
-    reader takes it too)."""
+    other sensors' columns as ignored, but for ``read_beside`` (the accelerometer's and the
+    gyroscope's, when the reader takes them too)."""
     found = _data_pattern(lines)
     if found is None:
         raise RecordingError(f'{source}: no line with three numeric fields in the first '
@@ -595,7 +596,7 @@ def detect_layout(lines: list[str], source: str, role: str = 'magnetometer',
                                  '(three header names or zero-based field indices)')
         others = [f'{name} {roles.describe(unread)}' for name, found in roles.sensors.items()
                   if name != role and (unread := [triplet for triplet in found
-                                                  if set(triplet) != set(read_beside)])]
+                                                  if not set(triplet) <= set(read_beside)])]
         units = header_units(roles.labels[chosen])
         notes = (f'{role} columns {roles.labels[chosen]} (fields '
                  f'{",".join(map(str, chosen))}) chosen by their names'
@@ -739,8 +740,9 @@ def _numpy_reading(
     return None, field_count
 
 
-def _explicit_layout(spec: str, lines: list[str], source: str) -> TextLayout:
-    columns = parse_columns(spec)
+def _explicit_layout(spec: str, lines: list[str], source: str, option: str = '--columns'
+                     ) -> TextLayout:
+    columns = parse_columns(spec, option)
     found = _data_pattern(lines)
     delimiter, numpy_fields = None, None
     if found is not None:
@@ -752,14 +754,14 @@ def _explicit_layout(spec: str, lines: list[str], source: str) -> TextLayout:
     for line in lines if found is not None else ():
         cells = _header_cells(line, found[0])  # names that align with the data fields only:
         if cells is not None:  # the words of 'Time (s),mx (uT)' are not its fields
-            named = [field_named(str(name), cells, f"--columns '{spec}'", source)
+            named = [field_named(str(name), cells, f"{option} '{spec}'", source)
                      for name in columns]
             if None not in named:
                 indices = tuple(named)
                 return TextLayout(indices, None, f'columns {",".join(map(str, columns))} '  # type: ignore[arg-type]
                                f'(fields {",".join(map(str, indices))})', (), delimiter,
                                numpy_fields, header_units(','.join(cells[i] for i in indices)))
-    raise RecordingError(f"{source}: no header line names all of --columns '{spec}' "
+    raise RecordingError(f"{source}: no header line names all of {option} '{spec}' "
                          f'in the first {len(lines)} lines')
 
 
@@ -1617,18 +1619,24 @@ def read_paired_recording(
     min_rows: int = 1,
     stdin: TextIO | None = None,
     progress: ProgressCallback | None = None,
+    gyro_columns: str | None = None,
+    gyro_scale: float = 1.0,
+    compensation: tuple[str | None, str | None] | None = None,
 ) -> Recording:
     """A text recording that logs the accelerometer beside the magnetometer on each line.
 
     ``accel_columns``: three zero-based field indices or header names (``'0,1,2'``,
     ``'ax,ay,az'``); ``columns`` the magnetometer's, by default the first three numeric fields
     that are not the accelerometer's. A line is used only when all six values are numbers, so
-    ``Recording.samples`` and ``Recording.accel`` stay row for row.
+    ``Recording.samples`` and ``Recording.accel`` stay row for row. ``gyro_columns``: the
+    gyroscope's three fields, times ``gyro_scale`` to rad/s (NaN where a value is no number);
+    ``compensation``: the own field's inputs too, as ``read_recording`` reads them.
     """
+    options = (gyro_columns, gyro_scale, compensation)
     if str(source) == STDIN:
         stream = stdin if stdin is not None else sys.stdin
         return _read_paired(_bounded_lines(stream, 'stdin'), 'stdin', accel_columns, columns,
-                            min_rows, progress, None)
+                            min_rows, progress, None, *options)
     path = Path(source)
     if is_rosbag(path):
         raise RecordingError(f'{path}: --accel-columns applies to text input, not to a rosbag2 '
@@ -1641,14 +1649,15 @@ def read_paired_recording(
         _refuse_binary(path, head)
         with path.open(encoding='utf-8-sig', errors='replace', newline=None) as stream:
             return _read_paired(_bounded_lines(stream, str(path)), str(path), accel_columns,
-                                columns, min_rows, progress, path.stat().st_size)
+                                columns, min_rows, progress, path.stat().st_size, *options)
     except OSError as error:
         raise RecordingError(f'{path}: cannot read ({error.strerror or error})') from error
 
 
 def _read_paired(stream: Iterable[str], source: str, accel_columns: str, columns: str | None,
-                 min_rows: int, progress: ProgressCallback | None, total: int | None
-                 ) -> Recording:
+                 min_rows: int, progress: ProgressCallback | None, total: int | None,
+                 gyro_columns: str | None = None, gyro_scale: float = 1.0,
+                 compensation: tuple[str | None, str | None] | None = None) -> Recording:
     lines = iter(stream)
     first = _head(lines)
     notes: tuple[str, ...] = ()
@@ -1656,31 +1665,44 @@ def _read_paired(stream: Iterable[str], source: str, accel_columns: str, columns
         first = [_decimal_point(line) for line in first]
         lines = map(_decimal_point, lines)
         notes = ('";"-separated numbers with decimal commas',)
-    accel = _explicit_layout(accel_columns, first, source)
+    accel = _explicit_layout(accel_columns, first, source, '--accel-columns')
+    gyro = (None if gyro_columns is None
+            else _explicit_layout(gyro_columns, first, source, '--gyro-columns'))
+    beside = (*accel.indices, *(() if gyro is None else gyro.indices))
     if columns is not None:
         mag = _explicit_layout(columns, first, source)
     else:
         try:  # a header naming the magnetometer's columns
-            mag = detect_layout(first, source, 'magnetometer', guess=False,
-                                read_beside=accel.indices)
+            mag = detect_layout(first, source, 'magnetometer', guess=False, read_beside=beside)
             notes += mag.notes
         except RecordingError:
-            mag = _other_numeric_fields(first, accel.indices, source)
+            mag = _other_numeric_fields(first, beside, source)
             notes += (f'magnetometer from {mag.description}, the first numeric fields besides '
-                      'the accelerometer (choose others with --columns)',)
-    if set(mag.indices) & set(accel.indices):
-        raise RecordingError(f'{source}: the magnetometer fields {mag.description} overlap the '
-                             f'accelerometer fields {accel.description}')
-    time = time_column(first, (*mag.indices, *accel.indices))
+                      f"the {'accelerometer' if gyro is None else 'IMU'} (choose others with "
+                      '--columns)',)
+    sensors = [('magnetometer', mag), ('accelerometer', accel), ('gyroscope', gyro)]
+    for number, (name, layout) in enumerate(sensors):
+        for other, other_layout in sensors[number + 1:]:
+            if layout is not None and other_layout is not None and (
+                    set(layout.indices) & set(other_layout.indices)):
+                raise RecordingError(f'{source}: the {name} fields {layout.description} overlap '
+                                     f'the {other} fields {other_layout.description}')
+    gyro_fields = () if gyro is None else gyro.indices
+    time = time_column(first, (*mag.indices, *accel.indices, *gyro_fields))
     time_fields = () if time is None else (time.index,)
-    needed = max(*mag.indices, *accel.indices, *time_fields) + 1
+    chosen = InputColumns()
+    if compensation is not None:
+        chosen = compensation_columns(first, (*mag.indices, *accel.indices, *gyro_fields,
+                                              *time_fields), source, *compensation)
+    needed = max(*mag.indices, *accel.indices, *gyro_fields, *chosen.fields, *time_fields) + 1
     found = _data_pattern(first)
     field_count = None if found is None else found[0]
     units = mag.units
     mag = TextLayout(mag.indices, field_count, mag.description,
-                     time_index=None if time is None else time.index)
+                     time_index=None if time is None else time.index,
+                     extra=(*gyro_fields, *chosen.fields))
     accel_layout = TextLayout(accel.indices, field_count, accel.description)
-    rows = _GrowingRows(7 if time is not None else 6)
+    rows = _GrowingRows(len(mag.fields) + 3)
     skipped: Counter[str] = Counter()
     consumed = 0
     for block in _blocks(itertools.chain(first, lines)):
@@ -1705,14 +1727,19 @@ def _read_paired(stream: Iterable[str], source: str, accel_columns: str, columns
     if progress is not None:
         progress(consumed, total if total is not None else consumed)
     data = rows.result()
-    layout = f'{mag.description}; accelerometer {accel.description}'
+    layout = f'{mag.description}; accelerometer {accel.description}' + (
+        '' if gyro is None else f'; gyroscope {gyro.description}')
     if len(data) < max(min_rows, 1):
         found_rows = 'no usable rows' if len(data) == 0 else f'only {len(data)} usable rows'
         need = f' (need at least {min_rows})' if min_rows > 1 else ''
         raise RecordingError(f'{source}: {found_rows} from {layout}{need}')
     stamps, time_source = _stamps(data, time)
+    rates = None if gyro is None else data[:, 6:9] * gyro_scale
+    extras = _compensation_extras(data[:, [0, 1, 2, *range(6 + len(gyro_fields),
+                                                            data.shape[1])]], chosen)
     return Recording(data[:, :3].copy(), source, 'text', layout, dict(skipped), units, notes,
-                     accel=data[:, 3:6].copy(), stamps=stamps, time_source=time_source)
+                     accel=data[:, 3:6].copy(), gyro=rates, stamps=stamps,
+                     time_source=time_source, **extras)
 
 
 def _other_numeric_fields(lines: list[str], taken: tuple[int, ...], source: str) -> TextLayout:
