@@ -150,6 +150,23 @@ def test_the_learner_integrates_the_gyroscope_and_restarts_after_a_gap():
     assert turned.magnitude() == pytest.approx(rate * (before[-1, 0] - before[0, 0]), rel=0.02)
 
 
+def test_a_log_s_ten_hertz_imu_rows_with_jitter_are_one_stretch():
+    """A flight log's rows come 100 ms apart give or take a millisecond (ArduPilot's MAG rate,
+    the IMU resampled to it): each of them must continue the integrated attitude. With a
+    100 ms limit a real hover log broke every fourth step and made no pair at all."""
+    session = CalibrationSession(SessionSettings(interference_inputs=(BATTERY,)),
+                                 calibration=Calibration(OFFSET, np.eye(3), F))
+    learner = session.compensation
+    jitter = np.random.default_rng(4).uniform(-0.001, 0.001, 300)
+    for index in range(300):  # 30 s at 10 Hz
+        stamp = int(round((index * 0.1 + jitter[index]) * 1e9)) + 10**9
+        learner.input(0, stamp, 1.0 + index % 7)
+        session.process_imu(stamp, 'imu', (0.0, 0.0, 9.81), (0.0, 0.0, 0.02))
+        session.process(stamp, 'imu', EARTH + OFFSET)
+    data = learner.data(session.calibration)
+    assert len(data.attitudes) > 100 and len(set(data.attitudes[:, 0])) == 1
+
+
 def _answers(session: CalibrationSession, ticket: int) -> list:
     return [event.attempt for event in session.take_events() if event.ticket == ticket]
 

@@ -60,9 +60,11 @@ MAX_WINDOW_S = 600.0
 PENDING = 40
 """Readings waiting for their inputs' samples, at most (one every KEEP_EVERY_S: 2 s of stream);
 the oldest is then paired with the sample nearest it within INPUT_TOLERANCE_NS, or dropped."""
-GYRO_GAP_NS = 100_000_000
+GYRO_GAP_NS = 250_000_000
 """A longer gap between gyroscope samples (or a non-finite one) ends a stretch of integrated
-attitude: the rotation across it is not known, so no readings across it are compared."""
+attitude: the rotation across it is not known, so no readings across it are compared. A log's
+10 Hz rows (ArduPilot's MAG rate) come 100 ms apart give or take a millisecond: a 100 ms limit
+broke every fourth step of a real hover log, and no pair was made."""
 NO_ATTITUDE = (math.nan,) * 5
 
 
