@@ -343,7 +343,8 @@ def test_the_learner_anchors_a_static_fit_at_the_mean_inputs_since_the_buffer_wa
     assert learner.anchor_unknown  # rotated into the IMU frame, still the file's offset
     session.apply_calibration(Calibration(OFFSET, np.eye(3), F).with_compensation(
         Compensation(('current',), GAIN[:, None])), 'file')
-    assert not learner.anchor_unknown  # its offset goes with its own K
+    assert not learner.anchor_unknown  # right at zero current: its offset is K's
+    assert learner.data(session.calibration).anchor[0] == 0.0  # live fits hold it there too
 
 
 def test_learn_compensation_learns_k_and_keeps_the_drift_in_force():

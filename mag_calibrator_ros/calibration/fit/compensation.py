@@ -57,9 +57,10 @@ apart from the field strength; the static fit put it within a few percent, and t
 it there instead of letting it drift."""
 ANCHOR_PRIOR = 1.0
 """Where a calibration from a file is right is unknown: each input's value there is found from
-the magnitudes (``_anchored``), with a prior of 1 sigma of three times the larger of the
-input's span and its mean over the readings (a file made with the motors off, a hover at
-10 A) around that mean."""
+the magnitudes (``_anchored``), with a prior of 1 sigma of the larger of the input's span and
+its mean over the readings (a file made with the motors off, a hover at 10 A) around that
+mean. Three times that let a warm-up's term and the current's trade 18 degC against 1.7 A
+along what the magnitudes of one heading cannot tell (the quick procedure on a file)."""
 
 OFFSET_SEEN_DEG = 0.5
 """With gyroscope pairs, the offset changes only along directions the field's direction spread
@@ -386,8 +387,8 @@ def _anchored(raw: np.ndarray, columns: np.ndarray, gains: np.ndarray, base: Cal
         return centre
     matrix, strength = base.matrix, base.field_strength
     without = raw - base.offset - columns @ gains.T  # the field at zero input, but for K a
-    scale = ANCHOR_PRIOR * np.maximum(np.maximum(np.ptp(columns, axis=0), np.abs(centre)),
-                                      1e-12)
+    spans = np.array([_span(columns[:, j]) for j in range(m)])
+    scale = ANCHOR_PRIOR * np.maximum(np.maximum(spans, np.abs(centre)), 1e-12)
     anchor = centre.astype(float).copy()
     for iteration in range(2 * ITERATIONS):
         corrected = (without + anchor @ gains.T) @ matrix.T

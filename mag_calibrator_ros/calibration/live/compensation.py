@@ -174,7 +174,7 @@ class CompensationLearner:
         straight shows the field one way only). Live fits hold it at their own readings' mean
         inputs: those span headings and the warm-up, and holding it at a cold start's
         temperature pulled c 11-14 % off (bench_interference, seeds 2 and 3)."""
-        self.anchor_unknown = False
+        self.anchor_unknown = self._anchor_exact = False
         """The calibration in force is a static one from a file or parameters: where it is right
         is not known, so fits find it (``CompensationData.anchor_unknown``)."""
         self.reset()
@@ -390,7 +390,8 @@ class CompensationLearner:
             held[:, 1:4], held[:, ROW_INPUTS:], held[:, 4] if with_temperature else None, t0,
             kept[:, 0], kept[:, 5:10] if gyroscope else None,
             held[:, 0], held[:, 5:10] if gyroscope else None,
-            self.anchor if self._window is not None else None, self.anchor_unknown, term)
+            self.anchor if self._window is not None or self._anchor_exact else None,
+            self.anchor_unknown, term)
 
     def job(self, calibration: Calibration) -> FitJob:
         """The next compensation fit, on the calibration in force."""
@@ -407,25 +408,34 @@ class CompensationLearner:
               source: str) -> Calibration:
         """A static fit put in force keeps the compensation in force (its readings were
         compensated by it); a file, parameters or a learned compensation bring their own.
-        Notes where the new calibration is right (``anchor``): a static fit, at the mean inputs
-        of the readings since the buffer was last emptied; a learned compensation, where the
-        one before it was (its offset was held there); a file or parameters, unknown
-        (``anchor_unknown`` when it has no compensation: the next fits find it)."""
-        if source in ('file', 'parameters', 'given'):
-            self.anchor = None
-            self.anchor_unknown = calibration.compensation is None  # a static part, made where?
-        elif source == 'compensation':
-            self.anchor_unknown = False  # its offset was placed with its terms
-        elif source not in ('realign', 'tracking'):
-            self.anchor_unknown = False
+        Notes where the new calibration is right for raw readings (``anchor``), which is where
+        the fits hold the offset: with a compensation of every input here, at zero inputs (and
+        at its T0); a static fit without, at the mean inputs of the readings since
+        the buffer was last emptied; a static file or parameters, unknown (``anchor_unknown``:
+        the next fits find it). 'realign' and 'tracking' keep the offset, and so the anchor."""
+        if (source not in ('file', 'parameters', 'given', 'compensation')
+                and previous is not None and previous.compensation is not None
+                and calibration.compensation is None):
+            learned = {key: previous.metadata[key] for key in LEARNED
+                       if key in previous.metadata}
+            calibration = calibration.with_compensation(previous.compensation, **learned)
+        if source in ('realign', 'tracking'):
+            return calibration
+        compensation = calibration.compensation
+        self.anchor_unknown = self._anchor_exact = False
+        if compensation is not None and len(compensation.inputs) == len(self.series) and (
+                input_columns(compensation.inputs, self.names) is not None):
+            t0 = compensation.reference_temperature
+            self.anchor = np.array([0.0] * len(self.series)
+                                   + [math.nan if t0 is None else t0])
+            self._anchor_exact = True
+        elif source in ('file', 'parameters', 'given'):
+            self.anchor, self.anchor_unknown = None, True
+        else:
             self.anchor = np.array([total / count if count else math.nan
                                     for total, count in zip(self._sums, self._counts,
                                                             strict=True)])
-        if (source in ('file', 'parameters', 'given', 'compensation') or previous is None
-                or previous.compensation is None or calibration.compensation is not None):
-            return calibration
-        learned = {key: previous.metadata[key] for key in LEARNED if key in previous.metadata}
-        return calibration.with_compensation(previous.compensation, **learned)
+        return calibration
 
     # -- the quick procedure: ~/learn_compensation ----------------------------------------------
 
