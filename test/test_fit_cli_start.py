@@ -68,14 +68,12 @@ def test_a_drive_that_never_turns_learns_k_on_a_saved_calibration(tmp_path, caps
     assert 'coverage' in start['buffer_fit']  # the drive alone calibrates nothing
     [k] = summary['compensation']['interference'].values()
     assert abs(k[0] - truth.current_field[0]) <= TOLERANCE * truth.current_field[0], k
-    assert summary['success'] == start['check']['fits']
-    assert status == (0 if start['check']['fits'] else 1)
-    assert output.exists() == (status == 0)
-    if status == 0:  # the file's soft iron, with the K learned
-        written, given = load_calibration(output), load_calibration(static)
-        assert np.allclose(written.matrix, given.matrix)
-        assert written.compensation is not None
-        assert np.allclose(written.compensation.interference[:, 0], k)
+    assert start['compensation'] == 'learned' and summary['compensation']['learned']
+    assert status == 0 and summary['success'] and start['check']['fits']
+    written, given = load_calibration(output), load_calibration(static)
+    assert np.allclose(written.matrix, given.matrix)  # the file's soft iron, with K learned
+    assert written.compensation is not None
+    assert np.allclose(written.compensation.interference[:, 0], k)
 
 
 def test_a_saved_calibration_that_does_not_fit_is_never_written(tmp_path, capsys, saved):
@@ -113,6 +111,35 @@ def test_a_recording_that_turns_replaces_the_saved_calibration(tmp_path, capsys,
     assert status == 0 and summary['start']['answer'] == 'buffer fit'
     assert summary['start']['check']['fits']
     assert np.allclose(summary['offset'], given.offset, atol=0.05 * given.field_strength)
+    adopted = {source: count for source, count in summary['buffer']['live_adoptions'].items()
+               if source not in ('file', 'request')}
+    assert summary['start']['changes_in_force'] == adopted  # one pass, counted once
+    status = fit.main([str(turning), '--units', 'T', '--calibration', str(moved)])
+    out = capsys.readouterr().out
+    assert status == 0 and "answer    the buffer's own fit" in out
+    assert 'check     on all 9000 readings' in out
+
+
+def test_a_file_s_k_is_not_carried_to_a_fit_of_a_recording_without_its_inputs(
+        tmp_path, capsys, saved):
+    """A fit of readings that K never compensated holds their own field in its offset: the
+    file's K on top would take it off twice. With the file's static part (nothing fitted), the
+    file's K stays."""
+    static, bag, _, turning = saved
+    given = load_calibration(static)
+    with_k = tmp_path / 'with_k.yaml'
+    save_calibration(with_k, given.with_compensation(
+        Compensation(('current',), np.array([[1.6e-6], [0.0], [0.0]]))))
+    output = tmp_path / 'cal.yaml'
+    status, summary = run(capsys, turning, '--units', 'T', '--calibration', with_k,
+                          '--output', output)
+    assert status == 0 and 'not carried' in summary['start']['compensation']
+    assert load_calibration(output).compensation is None
+    status, summary = run(capsys, bag, '--accel', '/imu', '--no-compensation', '--calibration',
+                          with_k, '--output', output)
+    assert summary['start']['answer'] == 'in force'
+    assert summary['start']['compensation'].startswith("the file's, kept")
+    assert np.allclose(summary['offset'], given.offset)
 
 
 def test_usage_errors_are_one_line(tmp_path, capsys, saved):

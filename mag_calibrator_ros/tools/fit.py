@@ -403,10 +403,11 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     success = result.success
     answer = None
     if start is not None:  # what the node would hold: a request adopts a passing fit
-        calibration = own_field.with_learned(session.calibration, learner)
-        answer = fit_start.judged(loaded, calibration, recording, result, [learner, session],
-                                  options.max_residual_pct)
+        calibration, answer = fit_start.answer(loaded, (learner, session), recording, result,
+                                               options.max_residual_pct)
         success = answer['check']['fits']
+        if calibration.compensation is not None:  # plotted as they were judged
+            fitted = own_field.without_own_field(recording, calibration.compensation)
     else:
         calibration = own_field.with_learned(result.calibration, learner)
     written = None
@@ -428,6 +429,8 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     if answer is not None:
         summary['start'] = _finite(answer)
         summary['success'] = success
+        if answer['answer'] == 'in force':
+            summary['field_strength_source'] = 'the calibration in force'
         summary['reason'] = (fit_start.reason(answer, options.max_residual_pct) if not success
                              else result.reason if result.success
                              else 'ok the calibration in force at the end (see answer)')
@@ -752,7 +755,8 @@ def write_plot(path: str, recording: Recording, fitted: np.ndarray,
     from mag_calibrator_ros.tools.plotting import plot_calibration  # matplotlib: only when asked
 
     model = result.metrics.model if calibration is None else calibration.model
-    verdict = ('calibrated' if success else 'NOT passing: ' + result.reason if not result.success
+    verdict = ('calibrated' if success
+               else ('NOT passing: ' + result.reason) if not result.success
                else 'NOT fitting the recording')
     title = f'{Path(recording.source).name}: {model}, {verdict}'
     if len(title) > 160:
@@ -862,9 +866,12 @@ def human_summary(summary: dict[str, Any]) -> str:
     metrics = summary['metrics']
     source = summary['input']
     units = summary['units']
+    start = summary.get('start')
     lines = ['CALIBRATED' if summary['success']
              else 'NOT CALIBRATED: the fit failed a quality gate (best-effort result below, '
-                  'do not use it)']
+                  'do not use it)' if start is None
+             else 'NOT CALIBRATED: the calibration does not fit this recording (below; do not '
+                  'use it)']
     label = ('not stated (give --units, or --scale for raw counts)' if units == 'input'
              else units)
     lines.append(f"input     {source['source']}: {source['rows']} rows from {source['layout']}; "
@@ -889,7 +896,7 @@ def human_summary(summary: dict[str, Any]) -> str:
                          f'own field the first pass learned (its live fits: {learning})')
     else:
         lines.append(f"mode      all: fitted every one of {metrics['n_samples']} samples")
-    lines.extend(fit_start.lines(summary.get('start')))
+    lines.extend(fit_start.lines(start))
     how = f"   {summary['reason'].removeprefix('ok ')}" if summary['success'] else ''
     lines.append(f"model     {summary['model']}{how}")
     if summary['offset'] is not None:
@@ -925,7 +932,9 @@ def human_summary(summary: dict[str, Any]) -> str:
         lines.append(f"plot      {outputs['plot']}")
     if not summary['success']:
         lines.append(f"FAILED    {summary['reason']}")
-        lines.append('          no calibration file written (a failed fit never writes --output)')
+        lines.append('          no calibration file written (a failed fit never writes --output)'
+                     if start is None else '          no calibration file written (one '
+                     'that does not fit the recording never writes --output)')
     return '\n'.join(lines) + '\n'
 
 

@@ -161,8 +161,8 @@ def summary(recording: Recording, calibration: Calibration | None,
         usable = recording.temperature[np.isfinite(recording.temperature)]
         found['temperature_range_degC'] = [float(usable.min()), float(usable.max())]
     compensation = None if calibration is None else calibration.compensation
-    if compensation is not None:
-        found['learned'] = True
+    found['learned'] = session is not None and learned(session) is not None
+    if compensation is not None:  # learned, or a file's (mag_calibrator_fit --calibration)
         found['interference'] = {name: [float(v) for v in compensation.interference[:, j]]
                                  for j, name in enumerate(compensation.inputs)}
         found['temperature_coefficient'] = [float(v)
@@ -190,7 +190,7 @@ def lines(found: dict[str, Any] | None, units: str) -> list[str]:
         logged.append(f'temperature {low:.1f}..{high:.1f} degC')
     out = [f"own field {'; '.join(logged) or 'no usable input'}"]
     out += [f'          problem: {problem}' for problem in found['problems']]
-    if found['learned']:
+    if 'interference' in found:
         for name, column in found['interference'].items():
             out.append(f"K         [{'  '.join(f'{v:>12.6g}' for v in column)} ]  "
                        f'{units} per unit of {name}')
@@ -205,7 +205,7 @@ def lines(found: dict[str, Any] | None, units: str) -> list[str]:
         if any(':' not in name for name in found['interference']):
             out.append("          on the robot: the node's interference_inputs name the topics "
                        'carrying these inputs, in this order (topic:package/msg/Type:field)')
-    else:
+    if not found['learned']:
         out.append('          not learned: ' + (found['needs'] or 'nothing determined'))
     if found['learned'] and found['needs']:
         out.append(f"          still undetermined: {found['needs']}")

@@ -26,9 +26,10 @@ from typing import Any
 
 import numpy as np
 
-from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.fit.calibration import Calibration, Compensation
 from mag_calibrator_ros.calibration.fit.earth_field import TESLA_PER_UNIT
 from mag_calibrator_ros.calibration.fit.fitting import FitResult
+from mag_calibrator_ros.calibration.live.compensation import input_columns
 from mag_calibrator_ros.calibration.live.evidence import MISFIT_MIN_SPAN, check_fit
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.calibration.store.calibration_file import (
@@ -43,12 +44,12 @@ from mag_calibrator_ros.tools.recordings import Recording
 HELP = ("start from a saved calibration (a node's calibration_file, or an earlier --output), "
         "as the node does: the answer is the buffer's fit when it passes its gates, else the "
         'calibration in force at the end (this one, as refined and compensated on the way). '
-        'Learns the own field from recordings that never turn; checks a saved calibration '
-        'against a new recording (exit 1 when it does not fit it)')
+        'Learns the own field from recordings that never turn (with their gyroscope); checks a '
+        'saved calibration against a new recording (exit 1 when it does not fit it)')
 
 
 CHANGES = {'compensation': 'own field learned', 'refine': 'refined', 'auto': 'recalibrated',
-           'realign': 'realigned to the IMU', 'tracking': 'tracked', 'parameters': 'parameters'}
+           'realign': 'realigned to the IMU', 'tracking': 'tracked'}
 """What each ``CalibrationSession.adoptions`` source did to the calibration in force."""
 
 
@@ -104,45 +105,76 @@ class RecordingCheck:
 
 
 def check(calibration: Calibration, readings: np.ndarray, gate_pct: float) -> RecordingCheck:
-    """``calibration`` (static part) on ``readings`` without the robot's own field."""
+    """``calibration`` (static part) on ``readings`` without the robot's own field: off when
+    the live misfit rule says so, or when the median |B| error is past the residual gate."""
     readings = readings[np.all(np.isfinite(readings), axis=1)]
     verdict = check_fit(calibration, readings, gate_pct)
     strength = calibration.field_strength
     magnitudes = strength * np.linalg.norm(calibration.apply(readings) / strength, axis=1)
     median = (float(np.median(np.abs(magnitudes / strength - 1.0))) * 100.0
               if len(readings) else math.nan)
-    off = verdict.off if verdict.judged else not median <= gate_pct
+    off = (verdict.judged and verdict.off) or not median <= gate_pct
     return RecordingCheck(len(readings), median, verdict.judged, off)
 
 
-def judged(loaded: LoadedCalibration, answer: Calibration, recording: Recording,
-           fit: FitResult, sessions: list[CalibrationSession], gate_pct: float
-           ) -> dict[str, Any]:
-    """The --json 'start' object: where the ``answer`` came from (the buffer's ``fit``, or
-    the calibration in force after what ``sessions`` changed), and it judged on every reading
-    of the ``recording`` without its own field."""
-    readings = recording.samples
-    if answer.compensation is not None:
-        readings = own_field.without_own_field(recording, answer.compensation)
+def fed(compensation: Compensation, recording: Recording) -> bool:
+    """Whether the recording logs what ``compensation`` needs: its inputs (matched as the node
+    matches them) and, with a temperature term, the temperature."""
+    inputs = not len(compensation.inputs) or (
+        recording.inputs is not None
+        and input_columns(compensation.inputs, recording.input_names) is not None)
+    drift = (not np.any(compensation.temperature_coefficient)
+             or compensation.reference_temperature is None)
+    return inputs and (drift or recording.temperature is not None)
+
+
+def answer(loaded: LoadedCalibration, sessions: tuple[CalibrationSession, CalibrationSession],
+           recording: Recording, fit: FitResult, gate_pct: float
+           ) -> tuple[Calibration, dict[str, Any]]:
+    """The calibration the node would hold at the recording's end (the second of ``sessions``,
+    with the compensation the first learned), and the --json 'start' object: where it came
+    from, and it judged on every reading without its own field.
+
+    A compensation the file brought and the recording cannot feed (it does not log its inputs)
+    goes with the file's static part, but not with a fit of this recording: that fit holds the
+    field of the recording's inputs in its offset, and K would take it off twice."""
+    learner, session = sessions
+    calibration = own_field.with_learned(session.calibration, learner)
+    compensation = calibration.compensation
+    own = 'learned' if own_field.learned(learner) is not None else None
+    if own is None and compensation is not None:
+        names = ', '.join(compensation.inputs) or 'the temperature'
+        if fed(compensation, recording):
+            own = "the file's, applied to the recording's inputs"
+        elif fit.success:
+            calibration = calibration.with_compensation(None)
+            own = (f"the file's, not carried: the recording does not log {names}, so the fit "
+                   'of it holds their field in its offset')
+        else:
+            own = f"the file's, kept (the recording does not log {names})"
+    readings = (recording.samples if calibration.compensation is None
+                else own_field.without_own_field(recording, calibration.compensation))
     changes: dict[str, int] = {}
-    for session in sessions:
-        for source, count in session.adoptions.items():
+    for each in {id(each): each for each in sessions}.values():  # one, or two passes
+        for source, count in each.adoptions.items():
             if source not in ('file', 'request'):
                 changes[source] = changes.get(source, 0) + count
-    return {'file': str(loaded.path), 'notes': list(loaded.notes),
-            'answer': 'buffer fit' if fit.success else 'in force', 'changes_in_force': changes,
-            'buffer_fit': fit.reason, 'check': check(answer, readings, gate_pct).as_dict()}
+    found = {'file': str(loaded.path), 'notes': list(loaded.notes),
+             'answer': 'buffer fit' if fit.success else 'in force', 'changes_in_force': changes,
+             'buffer_fit': fit.reason, 'compensation': own,
+             'check': check(calibration, readings, gate_pct).as_dict()}
+    return calibration, found
 
 
 def reason(found: dict[str, Any], gate_pct: float) -> str:
     """Why the answer does not fit the recording (the report's FAILED line)."""
-    judged = found['check']
-    if judged['judged_by_misfit_rule']:
-        return (f"the calibration does not fit this recording: median |B| error "
-                f"{judged['median_error_pct']:.2f} % of F, beyond what its own residual "
-                'predicts and explained by a new offset (another board, or the iron moved)')
-    return (f"the calibration does not fit this recording: median |B| error "
-            f"{judged['median_error_pct']:.2f} % of F, over the {gate_pct:g} % gate")
+    error = found['check']['median_error_pct']
+    if error <= gate_pct:
+        return (f'the calibration does not fit this recording: median |B| error {error:.2f} % '
+                'of F, beyond what its own residual predicts and explained by a new offset '
+                '(another board, or the iron moved)')
+    return (f'the calibration does not fit this recording: median |B| error {error:.2f} % of '
+            f'F, over the {gate_pct:g} % gate')
 
 
 def lines(found: dict[str, Any] | None) -> list[str]:
@@ -161,15 +193,17 @@ def lines(found: dict[str, Any] | None) -> list[str]:
                    + (f', changed by: {changed}' if changed else ', unchanged'))
         out.append(f"          (the buffer's own fit did not pass: {found['buffer_fit']}; the "
                    "residual and coverage below are that fit's)")
-    judged = found['check']
-    how = ('' if judged['judged_by_misfit_rule'] else
+    if found['compensation'] is not None:
+        out.append(f"          own field: {found['compensation']}")
+    verdict = found['check']
+    how = ('' if verdict['judged_by_misfit_rule'] else
            f' (by magnitude only: a misfit check needs readings over '
            f'{100.0 * MISFIT_MIN_SPAN:.0f} % of directions)')
-    out.append(f"check     on all {judged['readings']} readings: median |B| error "
-               f"{judged['median_error_pct']:.2f} % of F, "
-               f"{'fits' if judged['fits'] else 'does NOT fit'}{how}")
+    out.append(f"check     on all {verdict['readings']} readings: median |B| error "
+               f"{verdict['median_error_pct']:.2f} % of F, "
+               f"{'fits' if verdict['fits'] else 'does NOT fit'}{how}")
     return out
 
 
-__all__ = ['RecordingCheck', 'StartError', 'add_argument', 'check', 'in_units', 'judged',
+__all__ = ['RecordingCheck', 'StartError', 'add_argument', 'answer', 'check', 'fed', 'in_units',
            'lines', 'read', 'reason', 'second_start']
