@@ -47,16 +47,22 @@ def course():
     return course_recording(board, rate_hz=RATE_HZ), board.interference_truth()
 
 
+IMU_COLUMNS = ('ax', 'ay', 'az', 'gx (deg/s)', 'gy (deg/s)', 'gz (deg/s)')
+
+
 def write_csv(path: Path, recording, columns=('current', 'temperature'), rows=None,
-              current=None, temperature=None) -> Path:
+              current=None, temperature=None, imu: bool = False) -> Path:
+    """time, (with ``imu``: the accelerometer in m/s^2 and the gyroscope in deg/s, as a logger
+    writes them), the magnetometer in tesla, then ``columns``."""
     rows = range(len(recording.times)) if rows is None else rows
     current = recording.current_a if current is None else current
     temperature = recording.temperature_c if temperature is None else temperature
-    lines = [','.join(('time', 'mx', 'my', 'mz', *columns))]
+    lines = [','.join(('time', *(IMU_COLUMNS if imu else ()), 'mx', 'my', 'mz', *columns))]
     for i in rows:
         values = {'current': current[i], 'temperature': temperature[i],
                   'T (C)': temperature[i], 'motor_a': current[i]}
-        lines.append(','.join([f'{recording.times[i]:.3f}',
+        sensed = [*recording.accel[i], *np.degrees(recording.gyro[i])] if imu else []
+        lines.append(','.join([f'{recording.times[i]:.3f}', *(f'{v:.6g}' for v in sensed),
                                *(f'{v:.9g}' for v in recording.mag[i]),
                                *(str(values[name]) for name in columns)]))
     path.write_text('\n'.join(lines) + '\n')

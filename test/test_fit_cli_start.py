@@ -171,20 +171,6 @@ def test_a_compensation_meets_the_inputs_as_the_node_matches_them():
     assert np.array_equal(without_own_field(recording, other), samples)
 
 
-def write_imu_csv(path: Path, recording) -> Path:
-    """A logger's line: time, accelerometer (m/s^2), gyroscope (deg/s), magnetometer (T),
-    current, temperature."""
-    lines = ['time,ax,ay,az,gx (deg/s),gy (deg/s),gz (deg/s),mx,my,mz,current,temperature']
-    for i, t in enumerate(recording.times.tolist()):
-        lines.append(','.join([f'{t:.3f}', *(f'{v:.6g}' for v in recording.accel[i]),
-                               *(f'{v:.6g}' for v in np.degrees(recording.gyro[i])),
-                               *(f'{v:.9g}' for v in recording.mag[i]),
-                               f'{recording.current_a[i]:.4f}',
-                               f'{recording.temperature_c[i]:.3f}']))
-    path.write_text('\n'.join(lines) + '\n')
-    return path
-
-
 def test_a_text_log_with_its_gyroscope_learns_k_on_a_drive_that_never_turns(tmp_path, capsys,
                                                                            saved):
     """One line per reading with the IMU and the current, as a logger writes them: without
@@ -193,7 +179,7 @@ def test_a_text_log_with_its_gyroscope_learns_k_on_a_drive_that_never_turns(tmp_
     static, _, truth, _ = saved
     drive = course_recording(robot(1), motion.CourseDriver(motion.QUICK_PROCEDURE),
                              rate_hz=RATE_HZ)
-    csv = write_imu_csv(tmp_path / 'drive.csv', drive)
+    csv = write_csv(tmp_path / 'drive.csv', drive, imu=True)
     common = [csv, '--units', 'T', '--accel-columns', 'ax,ay,az', '--calibration', static]
     _, blind = run(capsys, *common)
     assert blind['compensation']['inputs'] == ['current'] and blind['compensation']['temperature']
