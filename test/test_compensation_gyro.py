@@ -336,15 +336,30 @@ def test_the_learner_anchors_a_static_fit_at_the_mean_inputs_since_the_buffer_wa
     session.apply_calibration(Calibration(OFFSET, np.eye(3), F), 'refine')
     assert learner.anchor == pytest.approx([3.0, 30.0], abs=0.05)
     assert not learner.anchor_unknown
-    session.apply_calibration(Calibration(OFFSET, np.eye(3), F), 'file')
-    assert learner.anchor is None  # a file does not say where it was right
+    static = Calibration(OFFSET, np.eye(3), F)
+    session.apply_calibration(static, 'file')
+    assert np.isnan(learner.anchor).all()  # a file does not say where it was right
     assert learner.anchor_unknown and learner.data(session.calibration).anchor_unknown
-    session.apply_calibration(Calibration(OFFSET, np.eye(3), F), 'realign')
+    session.apply_calibration(static, 'realign')
     assert learner.anchor_unknown  # rotated into the IMU frame, still the file's offset
-    session.apply_calibration(Calibration(OFFSET, np.eye(3), F).with_compensation(
+    session.apply_calibration(static.with_compensation(
         Compensation(('current',), GAIN[:, None])), 'file')
-    assert not learner.anchor_unknown  # right at zero current: its offset is K's
-    assert learner.data(session.calibration).anchor[0] == 0.0  # live fits hold it there too
+    assert learner.anchor[0] == 0.0 and np.isnan(learner.anchor[1])  # its K: right at 0 A
+    assert learner.anchor_unknown  # the temperature's is not known
+    live = learner.data(session.calibration).anchor  # live fits hold the known one too
+    assert live[0] == 0.0 and np.isnan(live[1])
+    drift_only = Compensation(('current',), np.zeros((3, 1)), np.array([0.0, 0.2e-6, 0.0]), 25.0)
+    session.apply_calibration(static.with_compensation(drift_only), 'compensation')
+    assert learner.anchor[0] == 0.0 and learner.anchor[1] == 25.0  # current: as before
+    for index in range(200, 300):  # the buffer emptied: readings at 5 A since
+        stamp = index * 10_000_000 + 1
+        learner.input(0, stamp, 5.0)
+        learner.temperature(stamp, 30.0)
+        session.process(stamp, 'imu', EARTH + OFFSET)
+    session.apply_calibration(static, 'refine')  # the drift carried; the current at its mean
+    assert learner.anchor == pytest.approx([5.0, 25.0], abs=0.05)
+    assert not learner.anchor_unknown
+    assert np.isnan(learner.data(session.calibration).anchor[0])  # live: the readings' mean
 
 
 def test_learn_compensation_learns_k_and_keeps_the_drift_in_force():

@@ -115,15 +115,16 @@ class CompensationData:
     """Stream seconds (n,) and (n, 5) gyroscope attitudes: a stretch number and the quaternion
     (x, y, z, w) integrated within it (NaN: no gyroscope then); None without an IMU."""
     anchor: np.ndarray | None = None
-    """(k + 1,): the inputs and the temperature at which the calibration in force is right (the
-    mean of those of the readings its static fit saw; NaN: unknown). With gyroscope pairs the
-    offset is held there along what the readings do not tell (default: at the readings' mean
-    inputs). Held at the wrong inputs, a K learned standing or driving straight would move
-    the offset by K times their difference."""
+    """(k + 1,): the inputs and the temperature at which the calibration in force is right for
+    raw readings (zero where it compensates the term, else e.g. the mean of those of the
+    readings its static fit saw; NaN: unknown; ``live/compensation.py`` carry). With gyroscope
+    pairs the offset is held there along what the readings do not tell (default: at the
+    readings' mean inputs). Held at the wrong inputs, a K learned standing or driving straight
+    would move the offset by K times their difference."""
     anchor_unknown: bool = False
     """The calibration in force came from elsewhere (a file, parameters): where it is right is
-    not known, and with gyroscope pairs the offset is placed where the magnitudes put it
-    (``_anchored``) rather than at the readings' mean inputs."""
+    not known for the terms whose ``anchor`` is NaN, and with gyroscope pairs the offset is
+    placed where the magnitudes put them (``_anchored``) rather than at the readings' mean."""
     temperature_term: tuple[tuple[float, float, float], float] | None = None
     """(c, T0) kept as they are: the fit learns the inputs' K only, and the readings come
     without that drift (``~/learn_compensation``: a few degrees of warm-up tell no c)."""
@@ -366,22 +367,25 @@ def _placed(raw: np.ndarray, columns: np.ndarray, gains: np.ndarray, base: Calib
     -1.12, -0.15 uT/A against a true 1.6, 0, 0, measured on the benchmark's course). With
     ``anchor_unknown``, the hold is where the magnitudes put it (``_anchored``)."""
     centre = _centre(columns, pairs, anchor)
-    if anchor_unknown and len(pairs):
-        centre = _anchored(raw, columns, gains, base, centre)
+    free = ~np.isfinite(anchor) if anchor is not None else np.ones(len(centre), dtype=bool)
+    if anchor_unknown and len(pairs) and free.any():
+        centre = _anchored(raw, columns, gains, base, centre, free)
     shifted = raw - (columns - centre) @ gains.T
     w, _, _, residuals = _solve(shifted, np.zeros((len(raw), 0)), [], base, pairs, hold=True)
     return w[:, 0] - gains @ centre, residuals
 
 
 def _anchored(raw: np.ndarray, columns: np.ndarray, gains: np.ndarray, base: Calibration,
-              centre: np.ndarray) -> np.ndarray:
+              centre: np.ndarray, free: np.ndarray | None = None) -> np.ndarray:
     """The inputs at which ``base`` is right, when nothing says (a calibration from a file): a
     static fit made at inputs ``a`` holds ``K a`` in its offset, so with the terms ``gains``
     (3, m) the corrected field is ``M (raw - b + K a - K u)``, and its magnitude tells ``a``
     wherever ``K`` has a component along the field. Each ``a_j`` starts at ``centre`` and stays
-    near it where the magnitudes cannot tell (ANCHOR_PRIOR). Held at the readings' mean
-    instead, a file fitted with the motors idle and a drive at 2 A gave a learned offset 3 uT
-    off and |B| 9 % off (mag_calibrator_fit --calibration on the quick procedure)."""
+    near it where the magnitudes cannot tell (ANCHOR_PRIOR); only the ``free`` ones move (the
+    others are known: a term the calibration compensates is right at zero). Held at the
+    readings' mean instead, a file fitted with the motors idle and a drive at 2 A gave a
+    learned offset 3 uT off and |B| 9 % off (mag_calibrator_fit --calibration on the quick
+    procedure)."""
     m = columns.shape[1]
     if m == 0 or len(raw) == 0:
         return centre
@@ -389,6 +393,7 @@ def _anchored(raw: np.ndarray, columns: np.ndarray, gains: np.ndarray, base: Cal
     without = raw - base.offset - columns @ gains.T  # the field at zero input, but for K a
     spans = np.array([_span(columns[:, j]) for j in range(m)])
     scale = ANCHOR_PRIOR * np.maximum(np.maximum(spans, np.abs(centre)), 1e-12)
+    scale = np.where(np.ones(m, dtype=bool) if free is None else free, scale, 1e-9 * scale)
     anchor = centre.astype(float).copy()
     for iteration in range(2 * ITERATIONS):
         corrected = (without + anchor @ gains.T) @ matrix.T

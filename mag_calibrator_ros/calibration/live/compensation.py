@@ -68,6 +68,22 @@ broke every fourth step of a real hover log, and no pair was made."""
 NO_ATTITUDE = (math.nan,) * 5
 
 
+def covered_terms(compensation: Compensation | None, own: Sequence[str]) -> np.ndarray:
+    """(k + 1,) booleans: which of the ``own`` inputs, then the temperature, ``compensation``
+    has a term for (a column of K not zero, matched as ``input_columns`` matches; c not zero
+    with its T0)."""
+    covered = np.zeros(len(own) + 1, dtype=bool)
+    if compensation is None:
+        return covered
+    columns = input_columns(compensation.inputs, own)
+    if columns is not None and len(columns) == len(compensation.inputs):
+        for position, column in enumerate(columns):
+            covered[column] |= bool(np.any(compensation.interference[:, position]))
+    covered[-1] = (compensation.reference_temperature is not None
+                   and bool(np.any(compensation.temperature_coefficient)))
+    return covered
+
+
 def input_columns(names: Sequence[str], own: Sequence[str]) -> list[int] | None:
     """Where each of a compensation's input ``names`` is among the ``own`` inputs here: by
     name when all are here, else by position when the counts agree (a file learnt offline
@@ -169,14 +185,14 @@ class CompensationLearner:
         self.use_temperature = use_temperature
         self._window: _Window | None = None  # an open ~/learn_compensation
         self.anchor: np.ndarray | None = None
-        """The inputs and temperature where the calibration in force is right (``carry``):
-        ``~/learn_compensation``'s fits hold the offset there (a robot on a stand or driving
-        straight shows the field one way only). Live fits hold it at their own readings' mean
-        inputs: those span headings and the warm-up, and holding it at a cold start's
-        temperature pulled c 11-14 % off (bench_interference, seeds 2 and 3)."""
-        self.anchor_unknown = self._anchor_exact = False
-        """The calibration in force is a static one from a file or parameters: where it is right
-        is not known, so fits find it (``CompensationData.anchor_unknown``)."""
+        """The inputs and temperature where the calibration in force is right for raw readings
+        (``carry``; NaN: unknown): fits hold the offset there (``_anchor_for_fits``), as a robot
+        on a stand or driving straight shows the field one way only."""
+        self.covered = np.zeros(1, dtype=bool)
+        """Which of those terms the compensation in force has (held exactly there)."""
+        self.anchor_unknown = self._from_file = False
+        """The calibration in force came from a file or parameters and some term's anchor is
+        unknown, so fits find it (``CompensationData.anchor_unknown``)."""
         self.reset()
         self.configure(inputs, use_temperature, learn)
         self.last_fit = None
@@ -390,8 +406,18 @@ class CompensationLearner:
             held[:, 1:4], held[:, ROW_INPUTS:], held[:, 4] if with_temperature else None, t0,
             kept[:, 0], kept[:, 5:10] if gyroscope else None,
             held[:, 0], held[:, 5:10] if gyroscope else None,
-            self.anchor if self._window is not None or self._anchor_exact else None,
-            self.anchor_unknown, term)
+            self._anchor_for_fits(), self.anchor_unknown, term)
+
+    def _anchor_for_fits(self) -> np.ndarray | None:
+        """``~/learn_compensation``'s fits hold the offset at the whole anchor; live fits only
+        where the compensation in force covers a term (exact), else at their readings' mean:
+        those span headings and the warm-up, and holding it at a cold start's temperature
+        pulled c 11-14 % off (bench_interference, seeds 2 and 3)."""
+        if self.anchor is None or len(self.anchor) != len(self.series) + 1:
+            return None
+        if self._window is not None:
+            return self.anchor
+        return np.where(self.covered, self.anchor, math.nan) if self.covered.any() else None
 
     def job(self, calibration: Calibration) -> FitJob:
         """The next compensation fit, on the calibration in force."""
@@ -408,11 +434,13 @@ class CompensationLearner:
               source: str) -> Calibration:
         """A static fit put in force keeps the compensation in force (its readings were
         compensated by it); a file, parameters or a learned compensation bring their own.
-        Notes where the new calibration is right for raw readings (``anchor``), which is where
-        the fits hold the offset: with a compensation of every input here, at zero inputs (and
-        at its T0); a static fit without, at the mean inputs of the readings since
-        the buffer was last emptied; a static file or parameters, unknown (``anchor_unknown``:
-        the next fits find it). 'realign' and 'tracking' keep the offset, and so the anchor."""
+        Notes, term by term, where the new calibration is right for raw readings (``anchor``),
+        which is where the fits hold the offset: for a term its compensation has (K's column
+        not zero, c with its T0), at zero input (at T0), and every fit holds it there
+        (``covered``); for another, a static fit's at the mean of the readings since the
+        buffer was last emptied, a learned compensation's where the one before it was, a
+        static file's or parameters' unknown (``anchor_unknown``: the next fits find it).
+        'realign' and 'tracking' keep the offset, and so the anchor."""
         if (source not in ('file', 'parameters', 'given', 'compensation')
                 and previous is not None and previous.compensation is not None
                 and calibration.compensation is None):
@@ -421,20 +449,23 @@ class CompensationLearner:
             calibration = calibration.with_compensation(previous.compensation, **learned)
         if source in ('realign', 'tracking'):
             return calibration
-        compensation = calibration.compensation
-        self.anchor_unknown = self._anchor_exact = False
-        if compensation is not None and len(compensation.inputs) == len(self.series) and (
-                input_columns(compensation.inputs, self.names) is not None):
-            t0 = compensation.reference_temperature
-            self.anchor = np.array([0.0] * len(self.series)
-                                   + [math.nan if t0 is None else t0])
-            self._anchor_exact = True
-        elif source in ('file', 'parameters', 'given'):
-            self.anchor, self.anchor_unknown = None, True
+        terms = len(self.series) + 1
+        if source in ('file', 'parameters', 'given'):
+            elsewhere, self._from_file = np.full(terms, math.nan), True
+        elif source == 'compensation':
+            elsewhere = (np.full(terms, math.nan) if self.anchor is None
+                         or len(self.anchor) != terms else self.anchor)
         else:
-            self.anchor = np.array([total / count if count else math.nan
-                                    for total, count in zip(self._sums, self._counts,
-                                                            strict=True)])
+            self._from_file = False
+            elsewhere = np.array([total / count if count else math.nan
+                                  for total, count in zip(self._sums, self._counts,
+                                                          strict=True)])
+        self.covered = covered_terms(calibration.compensation, self.names)
+        zero = np.zeros(terms)
+        if calibration.compensation is not None and self.covered[-1]:
+            zero[-1] = calibration.compensation.reference_temperature  # type: ignore[assignment]
+        self.anchor = np.where(self.covered, zero, elsewhere)
+        self.anchor_unknown = self._from_file and bool(np.isnan(self.anchor).any())
         return calibration
 
     # -- the quick procedure: ~/learn_compensation ----------------------------------------------
@@ -583,4 +614,4 @@ def coefficient_values(compensation: Compensation | None, units: str = 'T'
 
 
 __all__ = ['LEARNED', 'TEMPERATURE', 'CompensationLearner', 'coefficient_values',
-           'input_columns']
+           'covered_terms', 'input_columns']
