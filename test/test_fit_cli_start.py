@@ -20,7 +20,7 @@ from mag_calibrator_ros.calibration.store.calibration_file import (
 )
 from mag_calibrator_ros.sim import motion
 from mag_calibrator_ros.sim.board import course_recording
-from mag_calibrator_ros.tools import fit
+from mag_calibrator_ros.tools import fit, fit_start
 from mag_calibrator_ros.tools.fit_compensation import without_own_field
 from mag_calibrator_ros.tools.recordings import Recording
 
@@ -133,7 +133,7 @@ def test_a_file_s_k_is_not_carried_to_a_fit_of_a_recording_without_its_inputs(
     output = tmp_path / 'cal.yaml'
     status, summary = run(capsys, turning, '--units', 'T', '--calibration', with_k,
                           '--output', output)
-    assert status == 0 and 'not carried' in summary['start']['compensation']
+    assert status == 0 and 'without the terms of current' in summary['start']['compensation']
     assert load_calibration(output).compensation is None
     status, summary = run(capsys, bag, '--accel', '/imu', '--no-compensation', '--calibration',
                           with_k, '--output', output)
@@ -153,6 +153,23 @@ def test_usage_errors_are_one_line(tmp_path, capsys, saved):
         assert fit.main([str(turning), *map(str, options)]) == 2
         error = capsys.readouterr().err
         assert words in error and error.count('\n') == 1, error
+
+
+def test_a_file_s_terms_are_dropped_one_by_one_where_the_recording_cannot_feed_them():
+    both = Compensation(('current',), np.array([[1.6e-6], [0.0], [0.0]]),
+                        np.array([0.0, 0.2e-6, 0.0]), 25.0)
+    samples = np.zeros((2, 3))
+    current_only = Recording(samples=samples, source='log', kind='text', layout='',
+                             inputs=np.ones((2, 1)), input_names=('current',))
+    assert fit_start.unfed(both, current_only) == ['the temperature']
+    kept = fit_start._without(both, ['the temperature'])
+    assert kept.interference[0, 0] == 1.6e-6 and not kept.temperature_coefficient.any()
+    assert kept.reference_temperature is None
+    neither = Recording(samples=samples, source='log', kind='text', layout='')
+    assert fit_start.unfed(both, neither) == ['current', 'the temperature']
+    assert fit_start._without(both, ['current', 'the temperature']) is None
+    drift_left = fit_start._without(both, ['current'])
+    assert not drift_left.interference.any() and drift_left.reference_temperature == 25.0
 
 
 def test_a_compensation_meets_the_inputs_as_the_node_matches_them():
@@ -192,3 +209,9 @@ def test_a_text_log_with_its_gyroscope_learns_k_on_a_drive_that_never_turns(tmp_
     assert abs(k[0] - truth.current_field[0]) <= TOLERANCE * truth.current_field[0], k
     assert fit.main([str(csv), '--accel-columns', 'ax,ay,az', '--gyro-columns', '4,5,6']) == 2
     assert '--gyro-columns needs --gyro-units' in capsys.readouterr().err
+    untimed = tmp_path / 'untimed.csv'  # integrated on a replay rate, it would be made up
+    untimed.write_text(''.join(line.split(',', 1)[1] + '\n'
+                               for line in csv.read_text().splitlines()))
+    assert fit.main([str(untimed), '--units', 'T', '--accel-columns', 'ax,ay,az',
+                     '--gyro-columns', 'gx,gy,gz', '--gyro-units', 'deg/s']) == 2
+    assert '--gyro-columns needs a time column' in capsys.readouterr().err

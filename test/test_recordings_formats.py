@@ -276,3 +276,24 @@ def test_dense_paired_text_costs_little_beyond_the_float_arrays(tmp_path):
     np.testing.assert_array_equal(recording.accel, rows[:, :3])
     np.testing.assert_array_equal(recording.samples, rows[:, 3:])
     assert per_value < 2 * 8 + 6  # rows while reading, then the two column arrays
+
+
+def test_a_logger_line_gives_every_sensor_and_input_row_for_row():
+    """Columns in any order: the magnetometer, the accelerometer, the gyroscope (times its
+    scale to rad/s; NaN where no number, counted), the inputs and the temperature, the time."""
+    header = 'temp,mx,my,mz,stamp_ms,gx,gy,gz,ax,ay,az,motor_current,battery_current'
+    lines = [header] + [f'{20 + i * 0.1},{30 + i},{-20 + i % 5},{40 - i % 3},{1000 + i * 10},'
+                        f"{'x' if i == 7 else 0.1 * i},0.2,0.3,0.01,0.02,9.8,{i % 4},{5 + i % 3}"
+                        for i in range(40)]
+    recording = read_paired_recording('-', accel_columns='ax,ay,az', gyro_columns='gx,gy,gz',
+                                      gyro_scale=2.0, compensation=(None, None),
+                                      stdin=io.StringIO('\n'.join(lines) + '\n'))
+    assert recording.samples[3].tolist() == [33.0, -17.0, 40.0]
+    assert recording.accel[3].tolist() == [0.01, 0.02, 9.8]
+    assert recording.gyro[3] == pytest.approx([0.6, 0.4, 0.6])
+    assert np.isnan(recording.gyro[7, 0]) and any('1 of 40 rows' in n for n in recording.notes)
+    assert recording.input_names == ('motor_current', 'battery_current')
+    assert recording.inputs[3].tolist() == [3.0, 5.0]
+    assert recording.temperature[3] == pytest.approx(20.3)
+    assert recording.stamps[3] - recording.stamps[0] == pytest.approx(0.03)
+    assert 'gyroscope columns gx,gy,gz (fields 5,6,7)' in recording.layout

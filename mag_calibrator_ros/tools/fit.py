@@ -345,6 +345,9 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
                                    progress=progress.reading,
                                    compensation=own_field.reader_option(args, bag))
     progress.finish()
+    if recording.gyro is not None and recording.stamps is None:
+        raise UsageError(f'{recording.source}: --gyro-columns needs a time column: a gyroscope '
+                         'is integrated over time, and --rate only replays a log without one')
     clock = Clock.of(recording, args.rate)
     units = input_units(args, recording)
     if args.scale is not None:
@@ -677,14 +680,14 @@ def streamed(settings: SessionSettings, metadata: dict[str, Any], recording: Rec
     own field) with the recording's clock and IMU, and with its own-field inputs when
     ``learn_own_field``; ``start`` in force from the first (as the node's calibration_file)."""
     session = CalibrationSession(settings, metadata=metadata)
-    if start is not None:
-        session.apply_calibration(start, 'file')
     if recording.kind == 'text':
         session.pairing.force_range = None  # a log's accelerometer may be in g or counts
     session.attitudes = StaticAttitudes(clock=clock.stamped)
     session.set_earth_field(earth)
     if learn_own_field:
         own_field.configure(session, recording)
+    if start is not None:  # once the inputs are named: where it is right depends on them
+        session.apply_calibration(start, 'file')
     stream(session, samples, clock.stamps_ns, progress, recording.accel, recording.gyro,
            recording if learn_own_field else None)
     session.attitudes.finish()  # the recording ends: its last still stretch too

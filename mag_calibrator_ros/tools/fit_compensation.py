@@ -69,7 +69,7 @@ def reader_option(args: argparse.Namespace, bag: bool) -> tuple[str | None, str 
 
 
 def text_options(args: argparse.Namespace) -> list[str]:
-    """The text-only options given (refused with a bag, or with --accel-columns)."""
+    """The text-only options given (refused with a bag)."""
     return [option for option, value in (('--input-columns', args.input_columns),
                                          ('--temperature-column', args.temperature_column))
             if value is not None]

@@ -117,15 +117,31 @@ def check(calibration: Calibration, readings: np.ndarray, gate_pct: float) -> Re
     return RecordingCheck(len(readings), median, verdict.judged, off)
 
 
-def fed(compensation: Compensation, recording: Recording) -> bool:
-    """Whether the recording logs what ``compensation`` needs: its inputs (matched as the node
-    matches them) and, with a temperature term, the temperature."""
-    inputs = not len(compensation.inputs) or (
-        recording.inputs is not None
-        and input_columns(compensation.inputs, recording.input_names) is not None)
-    drift = (not np.any(compensation.temperature_coefficient)
-             or compensation.reference_temperature is None)
-    return inputs and (drift or recording.temperature is not None)
+def unfed(compensation: Compensation, recording: Recording) -> list[str]:
+    """What ``compensation`` needs that the recording does not log: its inputs (matched as the
+    node matches them), the temperature for its temperature term."""
+    missing = []
+    if np.any(compensation.interference) and (
+            recording.inputs is None
+            or input_columns(compensation.inputs, recording.input_names) is None):
+        missing.append(', '.join(compensation.inputs))
+    if (compensation.reference_temperature is not None
+            and np.any(compensation.temperature_coefficient) and recording.temperature is None):
+        missing.append('the temperature')
+    return missing
+
+
+def _without(compensation: Compensation, missing: list[str]) -> Compensation | None:
+    """``compensation`` without the terms of what the recording does not log."""
+    gains, drift = compensation.interference, compensation.temperature_coefficient
+    if 'the temperature' in missing:
+        drift = np.zeros(3)
+    if any(item != 'the temperature' for item in missing):
+        gains = np.zeros_like(gains)
+    if not (np.any(gains) or np.any(drift)):
+        return None
+    return Compensation(compensation.inputs, gains, drift,
+                        compensation.reference_temperature if np.any(drift) else None)
 
 
 def answer(loaded: LoadedCalibration, sessions: tuple[CalibrationSession, CalibrationSession],
@@ -135,21 +151,22 @@ def answer(loaded: LoadedCalibration, sessions: tuple[CalibrationSession, Calibr
     with the compensation the first learned), and the --json 'start' object: where it came
     from, and it judged on every reading without its own field.
 
-    A compensation the file brought and the recording cannot feed (it does not log its inputs)
-    goes with the file's static part, but not with a fit of this recording: that fit holds the
-    field of the recording's inputs in its offset, and K would take it off twice."""
+    A term of the file's compensation the recording cannot feed (it does not log its input, or
+    the temperature) goes with the file's static part, but not with a fit of this recording:
+    that fit holds the term's field in its offset, and the term would take it off twice."""
     learner, session = sessions
     calibration = own_field.with_learned(session.calibration, learner)
     compensation = calibration.compensation
     own = 'learned' if own_field.learned(learner) is not None else None
     if own is None and compensation is not None:
-        names = ', '.join(compensation.inputs) or 'the temperature'
-        if fed(compensation, recording):
+        missing = unfed(compensation, recording)
+        names = ' and '.join(missing)
+        if not missing:
             own = "the file's, applied to the recording's inputs"
         elif fit.success:
-            calibration = calibration.with_compensation(None)
-            own = (f"the file's, not carried: the recording does not log {names}, so the fit "
-                   'of it holds their field in its offset')
+            calibration = calibration.with_compensation(_without(compensation, missing))
+            own = (f"the file's, without the terms of {names}: the recording does not log "
+                   'them, so the fit of it holds their field in its offset')
         else:
             own = f"the file's, kept (the recording does not log {names})"
     readings = (recording.samples if calibration.compensation is None
@@ -205,5 +222,5 @@ def lines(found: dict[str, Any] | None) -> list[str]:
     return out
 
 
-__all__ = ['RecordingCheck', 'StartError', 'add_argument', 'answer', 'check', 'fed', 'in_units',
-           'lines', 'read', 'reason', 'second_start']
+__all__ = ['RecordingCheck', 'StartError', 'add_argument', 'answer', 'check', 'in_units', 'lines',
+           'read', 'reason', 'second_start', 'unfed']

@@ -989,8 +989,9 @@ def _named_column(spec: str, cells: list[str] | None, field_count: int | None, t
         index = found
         name = cells[index].strip()  # type: ignore[index]
     if index in taken:
-        raise RecordingError(f'{source}: {option} {spec} names a field already read as the '
-                             'magnetometer, the time or another input')
+        raise RecordingError(f'{source}: {option} {spec} names a field already read (the '
+                             'magnetometer, the accelerometer, the gyroscope, the time or '
+                             'another input)')
     return index, name
 
 
@@ -1735,6 +1736,10 @@ def _read_paired(stream: Iterable[str], source: str, accel_columns: str, columns
         raise RecordingError(f'{source}: {found_rows} from {layout}{need}')
     stamps, time_source = _stamps(data, time)
     rates = None if gyro is None else data[:, 6:9] * gyro_scale
+    if rates is not None and not np.isfinite(rates).all():
+        bad = int(np.count_nonzero(~np.isfinite(rates).all(axis=1)))
+        notes += (f'gyroscope {gyro.description}: {bad} of {len(rates)} rows not a finite '  # type: ignore[union-attr]
+                  'number (each ends a stretch of integrated attitude)',)
     extras = _compensation_extras(data[:, [0, 1, 2, *range(6 + len(gyro_fields),
                                                             data.shape[1])]], chosen)
     return Recording(data[:, :3].copy(), source, 'text', layout, dict(skipped), units, notes,
