@@ -202,16 +202,16 @@ def test_a_text_log_with_its_gyroscope_learns_k_on_a_drive_that_never_turns(tmp_
     assert blind['compensation']['inputs'] == ['current'] and blind['compensation']['temperature']
     assert not blind['compensation']['learned']
     assert 'not in enough headings' in blind['compensation']['needs']
-    _, summary = run(capsys, *common, '--gyro-columns', 'gx,gy,gz',
-                     '--gyro-units', 'deg/s')
+    _, summary = run(capsys, *common, '--gyro-columns', 'gx,gy,gz')  # deg/s: the header
     assert 'gyroscope columns gx,gy,gz (fields 4,5,6)' in summary['input']['layout']
     [k] = summary['compensation']['interference'].values()
     assert abs(k[0] - truth.current_field[0]) <= TOLERANCE * truth.current_field[0], k
-    assert fit.main([str(csv), '--accel-columns', 'ax,ay,az', '--gyro-columns', '4,5,6']) == 2
-    assert '--gyro-columns needs --gyro-units' in capsys.readouterr().err
+    assert fit.main([str(csv), '--accel-columns', 'ax,ay,az', '--gyro-columns', '4,5,6',
+                     '--gyro-units', 'rad/s']) == 2
+    assert 'say deg/s, not rad/s' in capsys.readouterr().err
     untimed = tmp_path / 'untimed.csv'  # integrated on a replay rate, it would be made up
     untimed.write_text(''.join(line.split(',', 1)[1] + '\n'
                                for line in csv.read_text().splitlines()))
     assert fit.main([str(untimed), '--units', 'T', '--accel-columns', 'ax,ay,az',
-                     '--gyro-columns', 'gx,gy,gz', '--gyro-units', 'deg/s']) == 2
+                     '--gyro-columns', 'gx,gy,gz']) == 2
     assert '--gyro-columns needs a time column' in capsys.readouterr().err

@@ -286,14 +286,21 @@ def test_a_logger_line_gives_every_sensor_and_input_row_for_row():
                         f"{'x' if i == 7 else 0.1 * i},0.2,0.3,0.01,0.02,9.8,{i % 4},{5 + i % 3}"
                         for i in range(40)]
     recording = read_paired_recording('-', accel_columns='ax,ay,az', gyro_columns='gx,gy,gz',
-                                      gyro_scale=2.0, compensation=(None, None),
+                                      gyro_units='deg/s', compensation=(None, None),
                                       stdin=io.StringIO('\n'.join(lines) + '\n'))
     assert recording.samples[3].tolist() == [33.0, -17.0, 40.0]
     assert recording.accel[3].tolist() == [0.01, 0.02, 9.8]
-    assert recording.gyro[3] == pytest.approx([0.6, 0.4, 0.6])
+    assert recording.gyro[3] == pytest.approx(np.radians([0.3, 0.2, 0.3]))
     assert np.isnan(recording.gyro[7, 0]) and any('1 of 40 rows' in n for n in recording.notes)
     assert recording.input_names == ('motor_current', 'battery_current')
     assert recording.inputs[3].tolist() == [3.0, 5.0]
     assert recording.temperature[3] == pytest.approx(20.3)
     assert recording.stamps[3] - recording.stamps[0] == pytest.approx(0.03)
     assert 'gyroscope columns gx,gy,gz (fields 5,6,7)' in recording.layout
+    with pytest.raises(RecordingError, match='do not say their unit: give --gyro-units'):
+        read_paired_recording('-', accel_columns='ax,ay,az', gyro_columns='gx,gy,gz',
+                              stdin=io.StringIO('\n'.join(lines) + '\n'))
+    said = [lines[0].replace('gx,gy,gz', 'gx [rad/s],gy [rad/s],gz [rad/s]'), *lines[1:]]
+    recording = read_paired_recording('-', accel_columns='ax,ay,az', gyro_columns='gx,gy,gz',
+                                      stdin=io.StringIO('\n'.join(said) + '\n'))
+    assert recording.gyro[3] == pytest.approx([0.3, 0.2, 0.3])

@@ -77,6 +77,7 @@ from mag_calibrator_ros.calibration.store.calibration_file import (
 from mag_calibrator_ros.tools import fit_compensation as own_field
 from mag_calibrator_ros.tools import fit_start
 from mag_calibrator_ros.tools.recordings import (
+    RATE_UNITS,
     Recording,
     RecordingError,
     describe_skips,
@@ -97,8 +98,6 @@ PROGRESS_MIN_ROWS = 20_000
 PROGRESS_MIN_BYTES = 1 << 20
 PROGRESS_CHUNK = 2048
 DEFAULT_RATE_HZ = 100.0
-GYRO_UNITS = {'rad/s': 1.0, 'deg/s': math.pi / 180.0}
-"""--gyro-units: rad/s per unit."""
 OUTPUT_SECTION = '/**'
 """--output files apply to any node they are given to with --params-file (any name, any
 namespace): which robot a recording came from is the user's to say, by the file they pass."""
@@ -257,11 +256,12 @@ def build_parser() -> argparse.ArgumentParser:
                      '--columns or the first other numeric fields')
     imu.add_argument('--gyro-columns', metavar='COLS', default=None,
                      help="text input, with --accel-columns: the gyroscope's three fields "
-                     '(indices or header names), in --gyro-units: readings between which it '
+                     '(indices or header names) in their unit: readings between which it '
                      'says the robot barely turned tell the own field on a drive that never '
                      'turns, as imu/data_raw does on the node')
-    imu.add_argument('--gyro-units', choices=tuple(GYRO_UNITS), default=None,
-                     help='the unit of --gyro-columns (needed with it)')
+    imu.add_argument('--gyro-units', choices=tuple(RATE_UNITS), default=None,
+                     help="the unit of --gyro-columns (default: the one their header gives, "
+                     "e.g. 'gx (deg/s)')")
     imu.add_argument('--max-alignment', type=float, metavar='DEG', default=None,
                      help='a larger rotation to the accelerometer is reported as a mounting '
                      'error with the remap that fixes it, not applied (default 15)')
@@ -327,6 +327,8 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
         given = (own_field.text_options if bag else own_field.bag_options)(args)
         raise UsageError(f"{', '.join(given)} applies to {'text input' if bag else 'a bag'}, "
                          f"not to {'a bag' if bag else 'text'} ({args.input})")
+    if args.gyro_units is not None and args.gyro_columns is None:
+        raise UsageError('--gyro-units is the unit of --gyro-columns: give them together')
     if args.accel_columns is not None:
         if args.topic is not None or args.accel is not None:
             raise UsageError('--accel-columns applies to text input, not to a bag (use --accel '
@@ -334,10 +336,10 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
         recording = read_paired_recording(
             args.input, accel_columns=args.accel_columns, columns=args.columns,
             min_rows=options.min_samples, progress=progress.reading,
-            gyro_columns=args.gyro_columns, gyro_scale=gyro_scale(args),
+            gyro_columns=args.gyro_columns, gyro_units=args.gyro_units,
             compensation=own_field.reader_option(args, False))
     else:
-        if args.gyro_columns is not None or args.gyro_units is not None:
+        if args.gyro_columns is not None:
             raise UsageError('--gyro-columns and --gyro-units are read with --accel-columns '
                              '(a text log; a bag: --accel reads its Imu topic, gyroscope too)')
         recording = read_recording(args.input, columns=args.columns, topic=args.topic,
@@ -513,14 +515,6 @@ def in_tesla(calibration: Calibration, units: str) -> Calibration:
         return calibration
     scaled = calibration.scaled(TESLA_PER_UNIT[units])  # b and F scale; M does not
     return scaled.with_metadata(**{UNITS_KEY: TESLA})
-
-
-def gyro_scale(args: argparse.Namespace) -> float:
-    """rad/s per unit of --gyro-columns."""
-    if (args.gyro_columns is None) != (args.gyro_units is None):
-        raise UsageError('--gyro-columns needs --gyro-units (rad/s or deg/s), and --gyro-units '
-                         'needs --gyro-columns')
-    return GYRO_UNITS.get(args.gyro_units, 1.0)
 
 
 def fit_options(args: argparse.Namespace) -> FitOptions:

@@ -1621,7 +1621,7 @@ def read_paired_recording(
     stdin: TextIO | None = None,
     progress: ProgressCallback | None = None,
     gyro_columns: str | None = None,
-    gyro_scale: float = 1.0,
+    gyro_units: str | None = None,
     compensation: tuple[str | None, str | None] | None = None,
 ) -> Recording:
     """A text recording that logs the accelerometer beside the magnetometer on each line.
@@ -1630,10 +1630,11 @@ def read_paired_recording(
     ``'ax,ay,az'``); ``columns`` the magnetometer's, by default the first three numeric fields
     that are not the accelerometer's. A line is used only when all six values are numbers, so
     ``Recording.samples`` and ``Recording.accel`` stay row for row. ``gyro_columns``: the
-    gyroscope's three fields, times ``gyro_scale`` to rad/s (NaN where a value is no number);
+    gyroscope's three fields in ``gyro_units`` (RATE_UNITS), else in the unit their header
+    gives (``gx (deg/s)``), converted to rad/s (NaN where a value is no number);
     ``compensation``: the own field's inputs too, as ``read_recording`` reads them.
     """
-    options = (gyro_columns, gyro_scale, compensation)
+    options = (gyro_columns, gyro_units, compensation)
     if str(source) == STDIN:
         stream = stdin if stdin is not None else sys.stdin
         return _read_paired(_bounded_lines(stream, 'stdin'), 'stdin', accel_columns, columns,
@@ -1657,7 +1658,7 @@ def read_paired_recording(
 
 def _read_paired(stream: Iterable[str], source: str, accel_columns: str, columns: str | None,
                  min_rows: int, progress: ProgressCallback | None, total: int | None,
-                 gyro_columns: str | None = None, gyro_scale: float = 1.0,
+                 gyro_columns: str | None = None, gyro_units: str | None = None,
                  compensation: tuple[str | None, str | None] | None = None) -> Recording:
     lines = iter(stream)
     first = _head(lines)
@@ -1735,7 +1736,8 @@ def _read_paired(stream: Iterable[str], source: str, accel_columns: str, columns
         need = f' (need at least {min_rows})' if min_rows > 1 else ''
         raise RecordingError(f'{source}: {found_rows} from {layout}{need}')
     stamps, time_source = _stamps(data, time)
-    rates = None if gyro is None else data[:, 6:9] * gyro_scale
+    rates = None if gyro is None else data[:, 6:9] * RATE_UNITS[
+        _rate_unit(first, gyro, gyro_units, source)]
     if rates is not None and not np.isfinite(rates).all():
         bad = int(np.count_nonzero(~np.isfinite(rates).all(axis=1)))
         notes += (f'gyroscope {gyro.description}: {bad} of {len(rates)} rows not a finite '  # type: ignore[union-attr]
@@ -1745,6 +1747,35 @@ def _read_paired(stream: Iterable[str], source: str, accel_columns: str, columns
     return Recording(data[:, :3].copy(), source, 'text', layout, dict(skipped), units, notes,
                      accel=data[:, 3:6].copy(), gyro=rates, stamps=stamps,
                      time_source=time_source, **extras)
+
+
+RATE_UNITS = {'rad/s': 1.0, 'deg/s': math.pi / 180.0}
+"""A gyroscope's units: rad/s per unit."""
+_RATE_WORDS = {'rad/s': 'rad/s', 'rad/sec': 'rad/s', 'rads': 'rad/s', 'deg/s': 'deg/s',
+               'deg/sec': 'deg/s', 'dps': 'deg/s', '\u00b0/s': 'deg/s'}
+
+
+def _rate_unit(lines: list[str], gyro: TextLayout, given: str | None, source: str) -> str:
+    """The gyroscope's unit: ``given`` (--gyro-units), which its header must not contradict,
+    else the one its header gives all three columns (``gx (deg/s)``); raises RecordingError
+    when neither says."""
+    header = _header_before_data(lines)
+    said = None
+    if header is not None and max(gyro.indices) < len(header[0]):
+        words = set()
+        for index in gyro.indices:
+            bracketed = [unit[1:-1].strip().lower() for unit in _UNITS.findall(header[0][index])
+                         if not _INDEX.fullmatch(unit)]
+            words.add(_RATE_WORDS.get(bracketed[0]) if len(bracketed) == 1 else None)
+        said = words.pop() if len(words) == 1 else None
+    if given is not None and said is not None and given != said:
+        raise RecordingError(f'{source}: the gyroscope columns {gyro.description} say {said}, '
+                             f'not {given} (drop --gyro-units)')
+    unit = given or said
+    if unit is None:
+        raise RecordingError(f'{source}: the gyroscope columns {gyro.description} do not say '
+                             'their unit: give --gyro-units rad/s or deg/s')
+    return unit
 
 
 def _other_numeric_fields(lines: list[str], taken: tuple[int, ...], source: str) -> TextLayout:
