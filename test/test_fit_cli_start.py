@@ -76,6 +76,23 @@ def test_a_drive_that_never_turns_learns_k_on_a_saved_calibration(tmp_path, caps
     assert np.allclose(written.compensation.interference[:, 0], k)
 
 
+def test_the_alignment_and_model_lines_describe_the_answer_in_force(tmp_path, capsys, saved):
+    """The buffer's fit failed, so its alignment and model check say nothing about the
+    answer: the model check is of the calibration in force, and no fit that passed aligned it."""
+    static, bag, _, _ = saved
+    output = tmp_path / 'cal.yaml'
+    location = ['--latitude', '45.5', '--longitude', '-122.7', '--date', '2026-11-27']
+    status, summary = run(capsys, bag, '--accel', '/imu', '--calibration', static,
+                          '--output', output, *location)
+    assert status == 0 and summary['start']['answer'] == 'in force'
+    earth = summary['earth_field']
+    assert earth['radius_ratio'] == pytest.approx(
+        load_calibration(output).field_radius() / earth['intensity'])
+    assert 'alignment' not in summary  # the failed fit's "too few static attitudes" is gone
+    fit.main([str(bag), '--accel', '/imu', '--calibration', str(static), *location])
+    assert 'field in force 0.4' in capsys.readouterr().out
+
+
 def test_a_saved_calibration_that_does_not_fit_is_never_written(tmp_path, capsys, saved):
     """The iron moved: the offset 40 % of the field off. A drive that never turns cannot fit
     anew, so the file stays in force, is judged on every reading, and is refused; what was at

@@ -50,12 +50,13 @@ from typing import Any, NoReturn, TextIO
 
 import numpy as np
 
-from mag_calibrator_ros.calibration.fit.alignment import StaticAttitudes
+from mag_calibrator_ros.calibration.fit.alignment import Alignment, StaticAttitudes
 from mag_calibrator_ros.calibration.fit.calibration import MODELS, Calibration
 from mag_calibrator_ros.calibration.fit.earth_field import (
     MAX_DIP_ERROR_DEG,
     MAX_FIELD_ERROR_PCT,
     TESLA_PER_UNIT,
+    EarthCheck,
     EarthField,
     EarthFieldError,
     EarthReference,
@@ -64,7 +65,7 @@ from mag_calibrator_ros.calibration.fit.earth_field import (
 from mag_calibrator_ros.calibration.fit.fitting import FitOptions, FitResult
 from mag_calibrator_ros.calibration.fit.input_sanity import field_unit_problem, normalised_problem
 from mag_calibrator_ros.calibration.live.buffer import DEFAULT_CAPACITY, DEFAULT_K
-from mag_calibrator_ros.calibration.live.jobs import FitJob, JobOutcome, run_job
+from mag_calibrator_ros.calibration.live.jobs import FitJob, run_job
 from mag_calibrator_ros.calibration.live.screening import VALUE_REASONS, reading_problem
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
@@ -430,7 +431,10 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     if learner is not session and learner is not None:  # what the first pass did, learning
         summary['buffer']['learning_pass'] = {'fits': dict(learner.jobs_run),
                                               'live_adoptions': dict(learner.adoptions)}
-    add_reference(summary, outcome, calibration, earth, clock)
+    alignment, earth_check = outcome.alignment, outcome.earth_check
+    if answer is not None and answer['answer'] == 'in force':
+        alignment, earth_check = fit_start.in_force_reference(session, calibration, reference)
+    add_reference(summary, alignment, earth_check, calibration, earth, clock)
     if answer is not None:
         summary['start'] = _finite(answer)
         summary['success'] = success
@@ -838,18 +842,19 @@ def build_summary(
     return _finite(summary)
 
 
-def add_reference(summary: dict[str, Any], outcome: JobOutcome, calibration: Calibration | None,
+def add_reference(summary: dict[str, Any], alignment: Alignment | None,
+                  earth_check: EarthCheck | None, calibration: Calibration | None,
                   earth: EarthField | None, clock: Clock) -> None:
-    """The --json 'alignment' and 'earth_field' objects (when an accelerometer / a location
-    was given), the calibration's rotation and the recording's clock ('time', 'rate_hz': the
-    stamps' median rate, or the replay rate of a log without time)."""
+    """The --json 'alignment' and 'earth_field' objects of the answer (when an accelerometer
+    / a location was given), the calibration's rotation and the recording's clock ('time',
+    'rate_hz': the stamps' median rate, or the replay rate of a log without time)."""
     summary['rotation'] = None if calibration is None else _floats(calibration.rotation.reshape(9))
     summary['rate_hz'] = _finite(float(clock.rate_hz))
     summary['time'] = {'stamped': clock.stamped, 'source': clock.source}
-    if outcome.alignment is not None:
-        summary['alignment'] = _finite(outcome.alignment.as_dict())
-    if outcome.earth_check is not None:
-        summary['earth_field'] = _finite(outcome.earth_check.as_dict())
+    if alignment is not None:
+        summary['alignment'] = _finite(alignment.as_dict())
+    if earth_check is not None:
+        summary['earth_field'] = _finite(earth_check.as_dict())
         summary['earth_model'] = f'{earth.model} at {earth.latitude_deg:g}, ' \
                                  f'{earth.longitude_deg:g}, {earth.altitude_m:g} m, {earth.date}'
 
@@ -958,8 +963,10 @@ def reference_lines(summary: dict[str, Any]) -> list[str]:
                      f"{earth['inclination_deg']:.2f} deg, declination "
                      f"{earth['declination_deg']:.2f} deg")
         checks = []
+        start = summary.get('start')
+        field = 'field in force' if start and start['answer'] == 'in force' else 'fitted field'
         if earth['radius_ratio'] is not None:
-            checks.append(f"fitted field {earth['radius_ratio']:.3f}x the model's")
+            checks.append(f"{field} {earth['radius_ratio']:.3f}x the model's")
         else:
             checks.append('field not compared (give --units)')
         if earth['dip_error_deg'] is not None:

@@ -26,8 +26,13 @@ from typing import Any
 
 import numpy as np
 
+from mag_calibrator_ros.calibration.fit.alignment import Alignment
 from mag_calibrator_ros.calibration.fit.calibration import Calibration, Compensation
-from mag_calibrator_ros.calibration.fit.earth_field import TESLA_PER_UNIT
+from mag_calibrator_ros.calibration.fit.earth_field import (
+    TESLA_PER_UNIT,
+    EarthCheck,
+    EarthReference,
+)
 from mag_calibrator_ros.calibration.fit.fitting import FitResult
 from mag_calibrator_ros.calibration.live.compensation import input_columns
 from mag_calibrator_ros.calibration.live.evidence import MISFIT_MIN_SPAN, check_fit
@@ -183,6 +188,18 @@ def answer(loaded: LoadedCalibration, sessions: tuple[CalibrationSession, Calibr
     return calibration, found
 
 
+def in_force_reference(session: CalibrationSession, calibration: Calibration,
+                       reference: EarthReference | None
+                       ) -> tuple[Alignment | None, EarthCheck | None]:
+    """The alignment and model check of an answer that is the calibration in force (the
+    buffer's fit failed, so its own say nothing about the answer): the alignment of the latest
+    fit that passed its gates on the way (None when none did: the file's mounting stands), and
+    the calibration against the model as the node's diagnostics judge it."""
+    earth_check = None if reference is None else reference.check(
+        calibration.field_radius(), calibration.metadata_number('dip_deg'))
+    return session.findings.alignment, earth_check
+
+
 def reason(found: dict[str, Any], gate_pct: float) -> str:
     """Why the answer does not fit the recording (the report's FAILED line)."""
     error = found['check']['median_error_pct']
@@ -209,7 +226,8 @@ def lines(found: dict[str, Any] | None) -> list[str]:
         out.append("answer    the calibration in force at the end: the file's"
                    + (f', changed by: {changed}' if changed else ', unchanged'))
         out.append(f"          (the buffer's own fit did not pass: {found['buffer_fit']}; the "
-                   "residual and coverage below are that fit's)")
+                   "residual and coverage below are that fit's, the alignment and earth lines "
+                   "the calibration in force's)")
     if found['compensation'] is not None:
         out.append(f"          own field: {found['compensation']}")
     verdict = found['check']
@@ -222,5 +240,5 @@ def lines(found: dict[str, Any] | None) -> list[str]:
     return out
 
 
-__all__ = ['RecordingCheck', 'StartError', 'add_argument', 'answer', 'check', 'in_units', 'lines',
-           'read', 'reason', 'second_start', 'unfed']
+__all__ = ['RecordingCheck', 'StartError', 'add_argument', 'answer', 'check', 'in_force_reference',
+           'in_units', 'lines', 'read', 'reason', 'second_start', 'unfed']
