@@ -15,9 +15,9 @@ With ``--accel-columns`` (a text log with the accelerometer on each line, its gy
 aligned to the accelerometer from the readings held still, as the node does with imu/data_raw;
 with ``--latitude``/``--longitude`` it is checked against the World Magnetic Model there. A
 recording that logs the current or the sensor temperature (columns by header name, or a bag's
-BatteryState / Temperature topics) also
-teaches the robot's own field, K and c, as the node learns them (``fit_compensation.py``); the
-buffer fitted is then that of a second pass over the readings without them.
+BatteryState / Temperature topics) also teaches the robot's own field, K and c, as the node
+learns them (``fit_compensation.py``); the buffer fitted is then that of a second pass over the
+readings without them.
 
 Time: a bag's header stamps or a log's time column time the live session and tell still
 readings; the summary says which. A log without time has no rate anyone knows: its rows are

@@ -35,7 +35,11 @@ from mag_calibrator_ros.calibration.fit.earth_field import (
 )
 from mag_calibrator_ros.calibration.fit.fitting import FitResult
 from mag_calibrator_ros.calibration.live.compensation import input_columns
-from mag_calibrator_ros.calibration.live.evidence import MISFIT_MIN_SPAN, check_fit
+from mag_calibrator_ros.calibration.live.evidence import (
+    MISFIT_MIN_SPAN,
+    check_fit,
+    relative_errors,
+)
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.calibration.store.calibration_file import (
     TESLA,
@@ -114,10 +118,8 @@ def check(calibration: Calibration, readings: np.ndarray, gate_pct: float) -> Re
     the live misfit rule says so, or when the median |B| error is past the residual gate."""
     readings = readings[np.all(np.isfinite(readings), axis=1)]
     verdict = check_fit(calibration, readings, gate_pct)
-    strength = calibration.field_strength
-    magnitudes = strength * np.linalg.norm(calibration.apply(readings) / strength, axis=1)
-    median = (float(np.median(np.abs(magnitudes / strength - 1.0))) * 100.0
-              if len(readings) else math.nan)
+    errors = relative_errors(calibration, readings)
+    median = float(np.median(np.abs(errors))) * 100.0 if len(readings) else math.nan
     off = (verdict.judged and verdict.off) or not median <= gate_pct
     return RecordingCheck(len(readings), median, verdict.judged, off)
 

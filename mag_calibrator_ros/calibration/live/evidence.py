@@ -328,15 +328,14 @@ def check_fit(calibration: Calibration, recent: np.ndarray, gate_pct: float) -> 
     span = evidence_span(recent, MISFIT_MIN_READINGS)
     if span < MISFIT_MIN_SPAN:
         return FitCheck(False, False, math.nan, math.nan, expected, span)
-    corrected = calibration.apply(recent)
-    magnitudes = expected * np.linalg.norm(corrected / expected, axis=1)  # no underflow
-    median_error = float(np.median(np.abs(magnitudes / expected - 1.0)))
+    errors = relative_errors(calibration, recent)
+    median_error = float(np.median(np.abs(errors)))
     own = (calibration.metadata_number('residual_rms_pct') or 0.0) / 100.0
     threshold = max(MISFIT_FLOOR * gate_pct / 100.0, MISFIT_FACTOR * 0.67 * own)
-    explained = _sphere_error(corrected)
+    explained = _sphere_error(calibration.apply(recent))
     off = median_error > threshold and median_error > MISFIT_EXPLAINED * explained
-    return FitCheck(True, off, 100.0 * median_error, float(np.median(magnitudes)), expected,
-                    span, 100.0 * explained)
+    return FitCheck(True, off, 100.0 * median_error, expected * float(1.0 + np.median(errors)),
+                    expected, span, 100.0 * explained)
 
 
 def _sphere_error(points: np.ndarray) -> float:

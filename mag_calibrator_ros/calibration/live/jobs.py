@@ -55,6 +55,7 @@ from mag_calibrator_ros.calibration.live.evidence import (
     check_fit,
     compare_on_evidence,
     compare_residuals,
+    relative_errors,
 )
 
 JOB_KINDS = ('reference', 'calibrate', 'refine', 'check', 'compensate')
@@ -302,8 +303,7 @@ def reference_fit(
         return None
     if not len(shell_directions(job.samples, calibration, job.readings)[0]):
         return None
-    relative = np.linalg.norm(calibration.apply(job.samples) / calibration.field_strength, axis=1)
-    sigma = robust_sigma((relative - 1.0) * np.sqrt(job.weights))  # of one reading
+    sigma = robust_sigma(relative_errors(calibration, job.samples) * np.sqrt(job.weights))
     spread = math.hypot(sigma, prediction_sigma(result))
     tolerance = min(options.outlier_threshold * spread, DEFAULT_MAGNITUDE_TOLERANCE)
     if not tolerance > 0.0:
