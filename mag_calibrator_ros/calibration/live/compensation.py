@@ -190,9 +190,7 @@ class CompensationLearner:
         on a stand or driving straight shows the field one way only."""
         self.covered = np.zeros(1, dtype=bool)
         """Which of those terms the compensation in force has (held exactly there)."""
-        self.anchor_unknown = self._from_file = False
-        """The calibration in force came from a file or parameters and some term's anchor is
-        unknown, so fits find it (``CompensationData.anchor_unknown``)."""
+        self._from_file = False  # the calibration in force came from a file or parameters
         self.reset()
         self.configure(inputs, use_temperature, learn)
         self.last_fit = None
@@ -465,8 +463,14 @@ class CompensationLearner:
         if calibration.compensation is not None and self.covered[-1]:
             zero[-1] = calibration.compensation.reference_temperature  # type: ignore[assignment]
         self.anchor = np.where(self.covered, zero, elsewhere)
-        self.anchor_unknown = self._from_file and bool(np.isnan(self.anchor).any())
         return calibration
+
+    @property
+    def anchor_unknown(self) -> bool:
+        """The calibration in force came from a file or parameters and some term's anchor is
+        unknown, so fits find it (``CompensationData.anchor_unknown``)."""
+        return (self._from_file and self.anchor is not None
+                and bool(np.isnan(self.anchor).any()))
 
     # -- the quick procedure: ~/learn_compensation ----------------------------------------------
 
