@@ -36,6 +36,9 @@ error of the correction itself under the 0.7° a single sample's noise adds. Row
     and back at three speeds) after its first turn in place, ``~/learn_compensation``
     (``CalibrationSession.request_compensation``) called as it starts; scored over the rest of
     the course (the same legs as (d) after its first turn); its answer's time and K, c.
+(f) ``~/calibrate`` asked as (e)'s ``~/learn_compensation`` answers, the robot having driven
+    straight since its first turn (``calibrate_after_learning``): its answer, and that of the
+    same robot without its own field asked at the same moment.
 
     python benchmarks/bench_interference.py                 # three seeds, a few minutes
     python benchmarks/bench_interference.py --seeds 1       # quicker
@@ -175,6 +178,39 @@ def quick(seed: int) -> tuple[CourseRecording, CourseRecording, np.ndarray, np.n
     return recording, clean, corrected, noise_free, session, resumes, took, answer
 
 
+def calibrate_after_learning(seed: int, interference: bool = True,
+                             ask_at: float | None = None) -> tuple[str, str, float]:
+    """(e)'s first turn and quick procedure, and ``~/calibrate`` asked as the request for the
+    own field answers: (that answer, ~/calibrate's, the stream seconds it was asked). A
+    compensation put in force emptied the buffer until stop 34, and the straight legs since
+    could not calibrate. ``interference`` False and ``ask_at``: the twin without the own field,
+    ~/calibrate asked then (what the buffer holds when nothing needs compensating)."""
+    legs = (*motion.GROUND_COURSE[:2], *motion.QUICK_PROCEDURE)
+    starts = float(sum(leg.duration_s for leg in motion.GROUND_COURSE[:2]))
+    recording = course_recording(robot(seed, interference=interference),
+                                 motion.CourseDriver(legs), rate_hz=RATE_HZ)
+    session = CalibrationSession(COMPENSATING)
+    learning = calibrating = None
+    answers, asked = {}, math.nan
+    for index in range(len(recording.times)):
+        now = float(recording.times[index])
+        if ask_at is None and learning is None and now >= starts and session.calibration:
+            learning = session.request_compensation(60.0)
+        if ask_at is not None and calibrating is None and now >= ask_at:
+            calibrating, asked = session.request_calibration(), now
+        feed(session, recording, index, inputs=True)
+        for event in session.take_events():
+            if event.attempt is not None and event.ticket is not None \
+                    and event.ticket in (learning, calibrating):
+                answers[event.ticket] = event.attempt.message
+                if event.ticket == learning:
+                    calibrating, asked = session.request_calibration(), now
+        if calibrating in answers:
+            break
+    session.close()
+    return answers.get(learning, 'not asked'), answers.get(calibrating, 'no answer'), asked
+
+
 def static_perfect(board: BoardModel, recording: CourseRecording) -> np.ndarray:
     """The true power-on calibration (cold, motors idle) applied to every row."""
     config = board.config
@@ -250,6 +286,11 @@ def one_seed(seed: int) -> dict[str, tuple[float, float, int, float]]:
           f'{None if learned_q is None else learned_q.interference[:, 0] * 1e6} uT/A, c = '
           f'{None if learned_q is None else learned_q.temperature_coefficient * 1e6} uT/°C '
           f'at the end; adoptions {session_q.adoptions}', flush=True)
+    learned_answer, calibrated, asked = calibrate_after_learning(seed)
+    _, twin, _ = calibrate_after_learning(seed, interference=False, ask_at=asked)
+    print(f'seed {seed}: ~/calibrate as ~/learn_compensation answered ({learned_answer[:60]}'
+          f'...) at {asked:.1f} s: {calibrated}\n  the twin without its own field, asked '
+          f'then: {twin}', flush=True)
     learned = learning.calibration.compensation if learning.calibration else None
     if learned is not None:
         print(f'seed {seed}: learned K = {learned.interference[:, 0] * 1e6} uT/A, c = '

@@ -629,3 +629,40 @@ def test_readings_are_a_bounded_draw_of_recent_readings():
     np.testing.assert_array_equal(again.readings, first)  # deterministic
     buffer.clear()
     assert buffer.readings.shape == (0, 3)
+
+
+def test_shift_moves_each_point_by_its_readings_mean_state_and_forgets_unknown_ones():
+    """What was taken off the readings changed (a compensation put in force): each point
+    moves by the change at the mean of its merged readings' states, its neighbours rebuilt;
+    a point or reading whose state is unknown cannot move and is forgotten."""
+    raw, _, _ = tumble_stream(seed=31)
+    buffer = SampleBuffer(capacity=60, k=4)
+    buffer.forget_states(1)
+    buffer.set_reference(rough_reference(), 0.1, merge=True)
+    for reading in raw:
+        buffer.add(reading, state=[reading[0]])  # a state whose mean is the mean's x
+    assert buffer.merged > 0
+    before, anchors, counts = buffer.samples, buffer.anchors, buffer.counts
+    draw = buffer.readings
+
+    def change(states):
+        return 0.01 * states * [[1.0, 0.0, 0.0]]
+
+    assert buffer.shift(change) == 0  # the anchor moves as the mean (its readings with it)
+    moved = buffer.anchors - anchors  # by 0.01 x of the readings' mean: ``samples`` but for
+    np.testing.assert_allclose(moved, change(before[:, :1]), atol=0.02)  # its placing
+    assert np.ptp(moved[:, 0]) > 1.0
+    np.testing.assert_array_equal(buffer.counts, counts)
+    np.testing.assert_allclose(buffer.readings - draw, change(draw[:, :1]), atol=1e-12)
+    assert_bookkeeping_exact(buffer)
+    buffer.set_reference(None)
+    buffer.clear()
+    buffer.add_many(raw[:40])  # no state: unknown
+    for reading in raw[40:50]:
+        buffer.add(reading, state=[1.0])
+    assert buffer.shift(change) == 40
+    assert buffer.fill == 10 and len(buffer.readings) == 10
+    np.testing.assert_allclose(buffer.samples, raw[40:50] + change(np.ones((10, 1))))
+    assert_bookkeeping_exact(buffer)
+    with pytest.raises(ValueError, match='a state has 1 values here, got 2'):
+        buffer.add([1.0, 2.0, 3.0], state=[1.0, 2.0])

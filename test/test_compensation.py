@@ -302,6 +302,37 @@ def test_readings_held_while_a_compensation_was_learned_never_refill_the_buffer(
     assert session.last_residual_pct < 2.0
 
 
+def test_a_compensation_put_in_force_moves_what_the_buffer_holds_instead_of_emptying_it():
+    """A robot that turned to calibrate, then had its own field's compensation put in force,
+    had to turn again before ~/calibrate could fit: the buffer and evidence were emptied (the
+    readings in them were compensated by the one before). Each is now moved by the difference
+    the new compensation makes at its own inputs and temperature, merged points by their mean."""
+    run = drive(seconds=100.0, rate=20.0)
+    static = _static(run)
+    settings = SessionSettings(interference_inputs=(BATTERY,), auto_calibrate=False,
+                               refine=False, learn_compensation=False)
+    session = CalibrationSession(settings, calibration=static)
+    _stream(session, run)
+
+    exact = Calibration(OFFSET, np.eye(3), F)
+
+    def spread(samples: np.ndarray) -> float:
+        return float(np.std(np.linalg.norm(exact.apply(samples), axis=1) / F))
+
+    before, held = session.buffer.samples, len(session.evidence)
+    true = Compensation(('current',), np.array([[0.8e-6], [0.0], [0.0]]),
+                        np.array([0.2e-6, 0.0, 0.0]), 25.0)
+    session.apply_calibration(exact.with_compensation(true), 'file')
+    after = session.buffer.samples
+    assert len(after) == len(before) and len(session.evidence) == held
+    assert spread(after) < 0.2 * spread(before)  # on the static sphere once compensated
+    attempt = session.calibrate_now()  # no turn since
+    assert attempt.success, attempt.message
+    assert session.last_residual_pct < 1.0
+    session.apply_calibration(static, 'file')  # and back: the own field is in them again
+    assert spread(session.buffer.samples) == pytest.approx(spread(before), rel=0.05)
+
+
 def test_a_bad_input_spec_is_refused_with_the_form_it_needs():
     problems = SessionSettings(interference_inputs=('battery current',)).problems()
     assert any('topic:package/msg/Type:field' in problem for problem in problems)

@@ -351,13 +351,20 @@ def test_the_learner_anchors_a_static_fit_at_the_mean_inputs_since_the_buffer_wa
     drift_only = Compensation(('current',), np.zeros((3, 1)), np.array([0.0, 0.2e-6, 0.0]), 25.0)
     session.apply_calibration(static.with_compensation(drift_only), 'compensation')
     assert learner.anchor[0] == 0.0 and learner.anchor[1] == 25.0  # current: as before
-    for index in range(200, 300):  # the buffer emptied: readings at 5 A since
+    for index in range(200, 300):  # the buffer kept its readings, moved: 5 A since
         stamp = index * 10_000_000 + 1
         learner.input(0, stamp, 5.0)
         learner.temperature(stamp, 30.0)
         session.process(stamp, 'imu', EARTH + OFFSET)
     session.apply_calibration(static, 'refine')  # the drift carried; the current at its mean
-    assert learner.anchor == pytest.approx([5.0, 25.0], abs=0.05)
+    assert learner.anchor == pytest.approx([11.0 / 3.0, 25.0], abs=0.05)
+    session.reset()  # emptied: the mean starts again
+    for index in range(300, 400):
+        stamp = index * 10_000_000 + 1
+        learner.input(0, stamp, 5.0)
+        session.process(stamp, 'imu', EARTH + OFFSET)
+    session.apply_calibration(static, 'refine')
+    assert learner.anchor[0] == pytest.approx(5.0)
     assert not learner.anchor_unknown
     assert np.isnan(learner.data(session.calibration).anchor[0])  # live: the readings' mean
 

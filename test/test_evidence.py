@@ -83,6 +83,19 @@ def test_evidence_keeps_the_latest_few_per_direction_and_forgets_old_times():
     assert len(store) == 0 and store.readings().shape == (0, 3)
 
 
+def test_shifted_evidence_moves_by_each_reading_s_state_and_drops_unknown_ones():
+    store = HeldOutEvidence()
+    store.forget_states(1)
+    rng = np.random.default_rng(2)
+    units = directions(rng, 60)
+    for i, unit in enumerate(units):
+        store.add(50.0 * unit, unit, float(i), None if i < 10 else [float(i)])
+    store.shift(lambda states: states * [[0.0, 0.0, 0.1]])
+    assert len(store) == 50
+    np.testing.assert_allclose(store.readings(), 50.0 * units[10:] + np.outer(
+        np.arange(10, 60), [0.0, 0.0, 0.1]))
+
+
 # -- refinement's judge ---------------------------------------------------------------------------
 
 

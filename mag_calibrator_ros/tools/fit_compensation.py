@@ -7,10 +7,10 @@ and ``sensor_msgs/Temperature`` topics, paired by stamp) is streamed with them, 
 values handed to the session as the node's ``imu/temperature`` and ``interference_inputs``
 subscriptions hand theirs over (``nodes/inputs.py``): the same learner, the same evidence rule,
 so the offline K, c and T0 are what the robot would learn from the same drive. Once K and c
-are learned, the static calibration is fitted on every reading without them
-(:func:`without_own_field`): a learned compensation empties the node's buffer (what it held was
-compensated by the one before), so the buffer at the recording's end may hold its last seconds
-only, a drive straight ahead that calibrates nothing.
+are learned, the static calibration is fitted on a second pass over every reading without
+them (:func:`without_own_field`), as a node with them in force from its first reading would
+hold it: the first pass's buffer chose and merged its readings while K and c were still being
+learned (each compensation put in force moves them, but chose none of them).
 """
 
 from __future__ import annotations

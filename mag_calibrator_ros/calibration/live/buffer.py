@@ -33,6 +33,12 @@ fit of the buffer):
   rather than when merging means an early, rougher reference bends nothing for good. The buffered
   point keeps its original position (its *anchor*) for the uniqueness rule, which is unchanged.
 
+Each reading may carry an opaque *state* (``add``): the owner's record of what was taken off
+it before it got here (the robot's own field, ``live/compensation.py``), linear, so a merged
+point keeps the mean of its readings' states. When what is taken off changes, ``shift`` moves
+every point and recent reading by what the owner computes from those states, instead of
+forgetting them.
+
 Input must already be screened (finite, not all-zero, not saturated): see
 :mod:`~mag_calibrator_ros.calibration.live.screening`. Memory is fixed: every array is
 allocated once for the configured capacity.
@@ -40,7 +46,7 @@ allocated once for the configured capacity.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 import math
 import random
 
@@ -96,6 +102,7 @@ class SampleBuffer:
 
     def __init__(self, capacity: int = DEFAULT_CAPACITY, k: int = DEFAULT_K) -> None:
         capacity, k = _checked_size(capacity, k)
+        self._state_size = 0  # see forget_states
         self._allocate(capacity, k)
         self._seen = 0
         self.evicted = 0
@@ -107,6 +114,8 @@ class SampleBuffer:
         self._projection: _MagnitudeScreen | None = None  # the latest that merged: places means
         self._readings = np.zeros((READING_SAMPLE_SIZE, 3))
         self._paired = np.zeros((PAIRED_SAMPLE_SIZE, 6))  # reading, gravity's direction
+        self._reading_states = np.full((READING_SAMPLE_SIZE, 0), math.nan)
+        self._paired_states = np.full((PAIRED_SAMPLE_SIZE, 0), math.nan)
         self._paired_recorded = 0
         self._paired_draw = random.Random(1)
         self._recorded = 0  # readings offered: the draw's population
@@ -121,6 +130,7 @@ class SampleBuffer:
         self._sums = np.zeros((capacity, 3))
         self._moments = np.zeros((capacity, 6))  # upper triangle: xx xy xz yy yz zz
         self._up_sums = np.zeros((capacity, 3))  # gravity directions of the paired readings
+        self._state_sums = np.full((capacity, self._state_size), math.nan)  # NaN: unknown
         self._nbr_dist = np.full((capacity, k), np.inf)  # distances to the k nearest others
         self._nbr_index = np.full((capacity, k), -1, dtype=np.intp)
         self._kth = np.full(capacity, np.inf)  # largest of those: a closer newcomer enters
@@ -279,10 +289,12 @@ class SampleBuffer:
 
     # -- feeding -------------------------------------------------------------------------------
 
-    def add(self, sample: ArrayLike, up: Sequence[float] | None = None) -> str:
+    def add(self, sample: ArrayLike, up: Sequence[float] | None = None,
+            state: Sequence[float] | None = None) -> str:
         """Offer one screened reading (3,); returns the outcome (see :data:`OUTCOMES`).
         ``up``: gravity's unit direction paired with it (the accelerometer), or None; a buffered
-        point carries the mean direction of its readings (``ups``).
+        point carries the mean direction of its readings (``ups``). ``state``: the reading's
+        state (``forget_states``' size; None: unknown), for ``shift``.
 
         Raises ValueError for a malformed, non-finite or all-zero sample: screening is the
         caller's job (``screening``), done once per message.
@@ -296,25 +308,32 @@ class SampleBuffer:
                 x0 or x1 or x2):
             raise ValueError(f'a sample must be finite and not all zero, got {x.tolist()}; '
                              'screen readings before buffering them')
+        if state is None:
+            state = (math.nan,) * self._state_size
+        elif len(state) != self._state_size:
+            raise ValueError(f'a state has {self._state_size} values here, got {len(state)}')
         self._seen += 1
         if self._reference is not None and self._reference.check((x0, x1, x2)):
             return 'magnitude_outlier'
-        self._record_reading(x)
+        self._record_reading(x, state)
         if up is not None:
-            self._record_paired(x, up)
-        return self._admit(x, up)
+            self._record_paired(x, up, state)
+        return self._admit(x, up, state)
 
-    def _record_reading(self, x: np.ndarray) -> None:
+    def _record_reading(self, x: np.ndarray, state: Sequence[float]) -> None:
         """Reservoir sampling (Algorithm R) over a population capped at READING_HORIZON."""
         self._recorded += 1
         if self._recorded <= READING_SAMPLE_SIZE:
-            self._readings[self._recorded - 1] = x
-            return
-        slot = int(self._draw.random() * min(self._recorded, READING_HORIZON))
-        if slot < READING_SAMPLE_SIZE:
-            self._readings[slot] = x
+            slot = self._recorded - 1
+        else:
+            slot = int(self._draw.random() * min(self._recorded, READING_HORIZON))
+            if slot >= READING_SAMPLE_SIZE:
+                return
+        self._readings[slot] = x
+        self._reading_states[slot] = state
 
-    def _record_paired(self, x: np.ndarray, up: Sequence[float]) -> None:
+    def _record_paired(self, x: np.ndarray, up: Sequence[float], state: Sequence[float]
+                       ) -> None:
         """The same draw over the paired readings, with gravity's direction."""
         self._paired_recorded += 1
         slot = self._paired_recorded - 1
@@ -324,12 +343,14 @@ class SampleBuffer:
                 return
         self._paired[slot, :3] = x
         self._paired[slot, 3:] = up
+        self._paired_states[slot] = state
 
-    def _admit(self, x: np.ndarray, up: Sequence[float] | None = None) -> str:
+    def _admit(self, x: np.ndarray, up: Sequence[float] | None = None,
+               state: Sequence[float] = ()) -> str:
         """The uniqueness rule for a screened sample; a sample that is not unique is merged."""
         n = self._fill
         if n == 0:
-            self._store(0, x, up)
+            self._store(0, x, up, state)
             self._fill = 1
             self._refresh_all()
             return 'added'
@@ -339,20 +360,21 @@ class SampleBuffer:
         if distances[nearest] == 0.0 and np.array_equal(self._points[nearest], x):
             return 'duplicate'
         if n < self._capacity:
-            self._place(n, x, distances, up)
+            self._place(n, x, distances, up, state)
             return 'added'
         k = self._k
         own_score = float(np.partition(distances, k - 1)[:k].mean())
         # Strictly higher: a candidate only as unique as the weakest sample changes nothing.
         if own_score > self._weakest_score:
-            self._place(self._weakest, x, distances, up)
+            self._place(self._weakest, x, distances, up, state)
             return 'replaced'
         if self._merging:
-            self._merge(nearest, x, up)
+            self._merge(nearest, x, up, state)
             self.merged += 1
         return 'not_unique'
 
-    def _merge(self, slot: int, x: np.ndarray, up: Sequence[float] | None = None) -> None:
+    def _merge(self, slot: int, x: np.ndarray, up: Sequence[float] | None = None,
+               state: Sequence[float] = ()) -> None:
         """Add reading ``x`` to ``slot``'s count, sum and second moment (about the anchor, so
         a large hard-iron offset costs no precision). Plain floats: this runs per sample."""
         a0, a1, a2 = self._points[slot].tolist()
@@ -363,6 +385,8 @@ class SampleBuffer:
         self._moments[slot] += (d0 * d0, d0 * d1, d0 * d2, d1 * d1, d1 * d2, d2 * d2)
         if up is not None:
             self._up_sums[slot] += up
+        if self._state_size:
+            self._state_sums[slot] += state
 
     def add_many(self, samples: ArrayLike) -> dict[str, int]:
         """Offer many samples (n, 3) in order; returns how often each outcome happened."""
@@ -446,7 +470,43 @@ class SampleBuffer:
 
     def _per_point(self) -> tuple[np.ndarray, ...]:
         """Every per-point array but the neighbour lists (those are rebuilt)."""
-        return self._points, self._counts, self._sums, self._moments, self._up_sums
+        return (self._points, self._counts, self._sums, self._moments, self._up_sums,
+                self._state_sums)
+
+    # -- states --------------------------------------------------------------------------------
+
+    def forget_states(self, size: int) -> None:
+        """States from now on have ``size`` values; those held are unknown (the owner's record
+        changed its meaning), so ``shift`` removes their points."""
+        self._state_size = int(size)
+        self._state_sums = np.full((self._capacity, self._state_size), math.nan)
+        self._reading_states = np.full((READING_SAMPLE_SIZE, self._state_size), math.nan)
+        self._paired_states = np.full((PAIRED_SAMPLE_SIZE, self._state_size), math.nan)
+
+    def shift(self, change: Callable[[np.ndarray], np.ndarray]) -> int:
+        """Move every point and recent reading by ``change(states)`` ((n, size) states, a
+        point's the mean of its readings', to (n, 3) shifts): what was taken off them changed.
+        A point's readings move together by their mean's shift (exact for the mean, its spread
+        kept). What cannot move (a NaN shift: an unknown state) is forgotten; returns how many
+        points were. The neighbour lists are rebuilt; the reference stays the owner's to set."""
+        n = self._fill
+        moves = np.asarray(change(self._state_sums[:n] / self._counts[:n, None]), dtype=float)
+        movable = np.all(np.isfinite(moves), axis=1)
+        self._points[:n][movable] += moves[movable]
+        removed = int(n - np.count_nonzero(movable))
+        if removed:
+            self._keep_rows(movable)
+        else:
+            self._refresh_all()
+        kept = _shift_draw(self._readings, self._reading_states,
+                           min(self._recorded, READING_SAMPLE_SIZE), change)
+        if kept is not None:  # the draw starts again from what it kept
+            self._recorded = kept
+        kept = _shift_draw(self._paired, self._paired_states,
+                           min(self._paired_recorded, PAIRED_SAMPLE_SIZE), change)
+        if kept is not None:
+            self._paired_recorded = kept
+        return removed
 
     def _reallocate(self, capacity: int, k: int) -> None:
         n = self._fill
@@ -479,12 +539,12 @@ class SampleBuffer:
     # -- neighbour bookkeeping -----------------------------------------------------------------
 
     def _place(self, slot: int, x: np.ndarray, distances: np.ndarray,
-               up: Sequence[float] | None = None) -> None:
+               up: Sequence[float] | None = None, state: Sequence[float] = ()) -> None:
         """Store ``x`` in ``slot`` (append or replace); ``distances``: x to the old rows."""
         n_before = self._fill
         n_after = max(n_before, slot + 1)
         if n_after - 1 <= self._k:  # still filling the first k + 1: every row changes
-            self._store(slot, x, up)
+            self._store(slot, x, up, state)
             self._fill = n_after
             self._refresh_all()
             return
@@ -500,7 +560,7 @@ class SampleBuffer:
             rebuild = np.array([slot])
         if slot < n_before and self._merging:
             self._fold_displaced(slot)
-        self._store(slot, x, up)
+        self._store(slot, x, up, state)
         self._fill = n_after
         gain = np.flatnonzero(enters)
         if len(gain):  # the newcomer takes the place of their farthest neighbour: O(k) each
@@ -512,12 +572,14 @@ class SampleBuffer:
             self._score[gain] = nearest.mean(axis=1)
         self._refresh_rows(rebuild)
 
-    def _store(self, slot: int, x: np.ndarray, up: Sequence[float] | None = None) -> None:
+    def _store(self, slot: int, x: np.ndarray, up: Sequence[float] | None = None,
+               state: Sequence[float] = ()) -> None:
         self._points[slot] = x
         self._counts[slot] = 1.0
         self._sums[slot] = 0.0
         self._moments[slot] = 0.0
         self._up_sums[slot] = 0.0 if up is None else up
+        self._state_sums[slot] = state
 
     def _fold_displaced(self, slot: int) -> None:
         """The replaced point's readings join its nearest neighbour: nothing measured is lost.
@@ -538,6 +600,7 @@ class SampleBuffer:
         self._sums[target] += sums + count * shift
         self._moments[target] += moments[_TRIU]
         self._up_sums[target] += self._up_sums[slot]
+        self._state_sums[target] += self._state_sums[slot]
 
     def _remove(self, slot: int) -> None:
         """Remove the sample in ``slot``; the last sample moves into it."""
@@ -591,6 +654,24 @@ class SampleBuffer:
             self._weakest_score = float(self._score[self._weakest])
         else:
             self._weakest, self._weakest_score = 0, math.inf
+
+
+def _shift_draw(table: np.ndarray, states: np.ndarray, count: int,
+                change: Callable[[np.ndarray], np.ndarray]) -> int | None:
+    """Shift the first ``count`` rows of a draw (the reading in ``table``'s first three columns)
+    by ``change(states)``; rows that cannot move are dropped and the rest moved up. Returns
+    the rows kept when any were dropped, else None."""
+    if count == 0:
+        return None
+    moves = np.asarray(change(states[:count]), dtype=float)
+    movable = np.all(np.isfinite(moves), axis=1)
+    table[:count, :3][movable] += moves[movable]
+    if movable.all():
+        return None
+    kept = int(np.count_nonzero(movable))
+    table[:kept] = table[:count][movable]
+    states[:kept] = states[:count][movable]
+    return kept
 
 
 class _MagnitudeScreen:

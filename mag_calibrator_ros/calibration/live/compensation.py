@@ -298,9 +298,10 @@ class CompensationLearner:
         return self._last_stamp if self._last_stamp is not None else 0
 
     def observe(self, stamp_ns: int, reading: np.ndarray, calibration: Calibration | None
-                ) -> np.ndarray:
-        """The reading without the robot's own field in force (``Calibration.compensated``);
-        one every KEEP_EVERY_S of stream waits (``_settle``) to be kept to learn from once a
+                ) -> tuple[np.ndarray, tuple[float, ...]]:
+        """The reading without the robot's own field in force (``Calibration.compensated``),
+        and its own-field state (``field_of``: what any compensation takes off it); one every
+        KEEP_EVERY_S of stream waits (``_settle``) to be kept to learn from once a
         calibration is in force (before it, a robot that stood, then turned to calibrate,
         changed its current with its motion only once, and a K fitted to that step was
         wrong on every axis but one: measured, issue #26)."""
@@ -317,16 +318,43 @@ class CompensationLearner:
             self._pending.append((stamp_ns, *reading, *self._attitude_at(stamp_ns)))
         if self._pending:
             self._settle()
-        compensation = None if calibration is None else calibration.compensation
-        if compensation is None:
-            return reading
-        held = self.in_order_of(compensation.inputs, [
-            value if math.isfinite(value) else series.latest
-            for value, series in zip(inputs, self.series, strict=True)])
+        held = [value if math.isfinite(value) else series.latest
+                for value, series in zip(inputs, self.series, strict=True)]
         if not math.isfinite(temperature) and self.use_temperature:
             temperature = self.temperature_series.latest
-        return calibration.compensated(reading, held if held else None,
-                                       temperature if self.use_temperature else None)
+        known = self.use_temperature and math.isfinite(temperature)
+        state = (*(value if math.isfinite(value) else 0.0 for value in held),
+                 temperature if known else 0.0, 1.0 if known else 0.0)
+        compensation = None if calibration is None else calibration.compensation
+        if compensation is None:
+            return reading, state
+        ordered = self.in_order_of(compensation.inputs, held)
+        return calibration.compensated(reading, ordered if ordered else None,
+                                       temperature if self.use_temperature else None), state
+
+    @property
+    def state_size(self) -> int:
+        """Length of an own-field state (``observe``): the inputs, then the temperature and
+        whether it was known."""
+        return len(self.series) + 2
+
+    def field_of(self, compensation: Compensation | None, states: np.ndarray) -> np.ndarray:
+        """What ``compensation`` takes off readings with these own-field states, (n, 3): the
+        same as ``observe`` for one reading, and, being linear in the states, for the mean of
+        many (a buffered point's merged readings). An input or temperature not known for a
+        reading contributes nothing, as in ``Compensation.field``."""
+        states = np.asarray(states, dtype=float).reshape(-1, self.state_size)
+        total = np.zeros((len(states), 3))
+        if compensation is None:
+            return total
+        count = len(self.series)
+        columns = input_columns(compensation.inputs, self.names)
+        if columns is not None and len(columns):
+            total += states[:, columns] @ compensation.interference.T
+        if compensation.reference_temperature is not None:
+            drift = states[:, count] - states[:, count + 1] * compensation.reference_temperature
+            total += np.multiply.outer(drift, compensation.temperature_coefficient)
+        return total
 
     def _settle(self) -> None:
         """Keep the waiting readings whose inputs' samples are there (one stamped at or after

@@ -15,6 +15,7 @@ judges on those:
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 import math
 
@@ -81,7 +82,8 @@ nothing, and no single reading can decide more than a cap's worth."""
 
 
 class HeldOutEvidence:
-    """Held-out readings, the latest few per direction cell, each with its stream time."""
+    """Held-out readings, the latest few per direction cell, each with its stream time and
+    its state (as ``SampleBuffer``'s: what was taken off it, for ``shift``)."""
 
     def __init__(self, per_cell: int = READINGS_PER_CELL) -> None:
         self._per_cell = per_cell
@@ -90,8 +92,10 @@ class HeldOutEvidence:
         self._times = np.full(size, -math.inf)
         self._valid = np.zeros(size, dtype=bool)
         self._next = np.zeros(CELL_COUNT, dtype=int)  # ring position within each cell
+        self.forget_states(0)
 
-    def add(self, reading: np.ndarray, direction: np.ndarray, time_s: float) -> None:
+    def add(self, reading: np.ndarray, direction: np.ndarray, time_s: float,
+            state: Sequence[float] | None = None) -> None:
         """Keep ``reading`` in the cell of ``direction`` (any non-zero vector)."""
         direction = direction / np.max(np.abs(direction))  # a norm of tiny values underflows
         cell = int(cell_index(direction.reshape(1, 3) / np.linalg.norm(direction))[0])
@@ -100,6 +104,21 @@ class HeldOutEvidence:
         self._readings[slot] = reading
         self._times[slot] = time_s
         self._valid[slot] = True
+        self._states[slot] = math.nan if state is None else state
+
+    def forget_states(self, size: int) -> None:
+        """States from now on have ``size`` values; those held are unknown."""
+        self._states = np.full((len(self._readings), int(size)), math.nan)
+
+    def shift(self, change: Callable[[np.ndarray], np.ndarray]) -> None:
+        """Move each reading by ``change(states)`` ((n, size) to (n, 3)); one that cannot
+        move (an unknown state) is dropped. It stays in its direction cell: a shift is a small
+        part of the field."""
+        valid = np.flatnonzero(self._valid)
+        moves = np.asarray(change(self._states[valid]), dtype=float)
+        movable = np.all(np.isfinite(moves), axis=1)
+        self._readings[valid[movable]] += moves[movable]
+        self._valid[valid[~movable]] = False
 
     def __len__(self) -> int:
         return int(self._valid.sum())

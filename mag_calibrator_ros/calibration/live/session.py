@@ -156,8 +156,9 @@ class CalibrationSession:
         self._last_taught: np.ndarray | None = None  # corrected direction last fed to the tracker
         self._last_tracking_check: float | None = None
         self.buffer_reference = BufferReference(self.buffer)
-        self.backlog = Backlog()  # (reading, stamp, compensation epoch, pair) while a fit runs
+        self.backlog = Backlog()  # (reading, stamp, epoch, state, pair) while a fit runs
         self._compensation_epoch = 0  # bumped by each learned compensation put in force
+        self._state_specs: tuple | None = None  # the own-field inputs the states are made of
         self._job: FitJob | None = None
         self._job_epoch = 0
         self._measured_coverage: tuple[float, Coverage] | None = None  # (stream s, coverage)
@@ -236,9 +237,14 @@ class CalibrationSession:
         if reason is not None:
             return _REFUSED
         self.accepted += 1
-        reading = self.compensation.observe(stamp_ns, np.array((x0, x1, x2)), self.calibration)
+        if self.compensation.specs is not self._state_specs:  # new inputs: new states
+            self._state_specs = self.compensation.specs
+            for part in (self.buffer, self.evidence):
+                part.forget_states(self.compensation.state_size)
+        reading, state = self.compensation.observe(stamp_ns, np.array((x0, x1, x2)),
+                                                   self.calibration)
         decided = self.pairing.settle(stamp_ns, frame_id,
-                                      (reading, stamp_ns, self._compensation_epoch))
+                                      (reading, stamp_ns, self._compensation_epoch, state))
         if self.pairing.has_warnings:
             self._imu_warnings()
         self._advance()
@@ -293,22 +299,23 @@ class CalibrationSession:
         if self._job is None and not len(self.backlog) and self.backlog.waiting:
             self._submit('request')
 
-    def _hold(self, reading: np.ndarray, stamp_ns: int, epoch: int,
+    def _hold(self, reading: np.ndarray, stamp_ns: int, epoch: int, state: tuple[float, ...],
               pair: Pair | None = None) -> None:
-        overflow = self.backlog.hold((reading, stamp_ns, epoch, pair))
+        overflow = self.backlog.hold((reading, stamp_ns, epoch, state, pair))
         if overflow is not None:  # the backlog is full: its oldest is fed now
             self._ingest(*overflow)
 
-    def _ingest(self, reading: np.ndarray, stamp_ns: int, epoch: int,
+    def _ingest(self, reading: np.ndarray, stamp_ns: int, epoch: int, state: tuple[float, ...],
                 pair: Pair | None = None) -> None:
         """Everything a reading teaches, in stream order (the held ones after the fit).
 
-        ``epoch``: the learned compensation the reading was compensated by on arrival. One put
-        in force since empties the buffer and evidence (``_put_in_force``); a reading that was
-        held (a fit ran) or waited for its IMU sample then still carries the old one's
-        correction and teaches nothing: how many there are depends on how long the fit took,
-        and on a loaded computer a backlog of them, some not compensated at all, refilled the
-        emptied buffer and failed the next fit (a residual of 5.9 %, issue #22)."""
+        ``epoch``: the learned compensation the reading was compensated by on arrival;
+        ``state``: its own-field state (``CompensationLearner.observe``). One put in force since
+        moved the buffer and evidence (``_put_in_force``); a reading that was held (a fit ran)
+        or waited for its IMU sample then still carries the old one's correction and teaches
+        nothing: how many there are depends on how long the fit took, and on a loaded computer
+        a backlog of them, some not compensated at all, went into the buffer and failed the
+        next fit (a residual of 5.9 %, issue #22)."""
         now = self.clock.advance(stamp_ns)
         self.backlog.ingested += 1
         if epoch != self._compensation_epoch:
@@ -319,11 +326,12 @@ class CalibrationSession:
         # Evidence judges a calibration: none yet, none needed. The draw is pseudo-random (and
         # deterministic), so a recording replayed again holds out other readings.
         if self.calibration is not None and self._hold_out.random() * HOLD_OUT_EVERY < 1.0:
-            self.evidence.add(reading, self.buffer_reference.direction(reading), now)
+            self.evidence.add(reading, self.buffer_reference.direction(reading), now, state)
         else:
             if self.buffer_reference.left_plane(reading):
                 self._leave_plane()
-            outcome = self.buffer.add(reading, None if pair is None else up_direction(pair[0]))
+            outcome = self.buffer.add(reading, None if pair is None else up_direction(pair[0]),
+                                      state)
             if outcome in self.refusals:
                 self.refusals[outcome] += 1
             else:
@@ -600,17 +608,34 @@ class CalibrationSession:
                 reference.calibration_plane = PlaneWatch.of(
                     calibration.metadata.get('plane_normal'), self.buffer.samples)
             self.adoptions[source] = self.adoptions.get(source, 0) + 1
-            if source == 'compensation':  # what is stored was compensated by the old one
-                self.evidence.clear()
-                self.buffer.clear()
-                self.compensation.restart_mean()
-                self._compensation_epoch += 1  # and so was what is held: _ingest drops it
+            in_force = None if self.calibration is None else self.calibration.compensation
+            if calibration.compensation is not in_force:  # learned, or a file's
+                self._recompensate(calibration)
             self.misfit.reset()
             self.scheduler.calibration_changed()
             if reference.source != 'fit':
                 reference.set(calibration, None, 'calibration')
         self.calibration = calibration  # last: whoever sees it in force sees it counted
         self._restart_tracker()
+
+    def _recompensate(self, calibration: Calibration) -> None:
+        """What the buffer and evidence hold was compensated by the compensation in force:
+        move each reading by the difference ``calibration``'s makes at its own-field state
+        (they were emptied before, and a robot that had just turned to calibrate had to turn
+        again before ``~/calibrate`` could fit). The buffer's own fit described the old
+        readings: it screens by the new calibration until the next reference fit."""
+        learner = self.compensation
+        old = None if self.calibration is None else self.calibration.compensation
+
+        def change(states: np.ndarray) -> np.ndarray:
+            return learner.field_of(old, states) - learner.field_of(calibration.compensation,
+                                                                    states)
+        self.buffer.shift(change)
+        self.evidence.shift(change)
+        self.buffer_reference.provisional = None
+        self.buffer_reference.set(calibration, None, 'calibration')
+        self.scheduler.reference_done(False)
+        self._compensation_epoch += 1  # what waits to be learned is dropped (``_ingest``)
 
     def _leave_plane(self) -> None:
         """The sensor left the plane its planar calibration was turned in: stop screening the
