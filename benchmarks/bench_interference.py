@@ -38,7 +38,7 @@ error of the correction itself under the 0.7° a single sample's noise adds. Row
     the course (the same legs as (d) after its first turn); its answer's time and K, c.
 (f) ``~/calibrate`` asked as (e)'s ``~/learn_compensation`` answers, the robot having driven
     straight since its first turn (``calibrate_after_learning``): its answer, and that of the
-    same robot without its own field asked at the same moment.
+    same robot without the current's field asked at the same moment.
 
     python benchmarks/bench_interference.py                 # three seeds, a few minutes
     python benchmarks/bench_interference.py --seeds 1       # quicker
@@ -178,16 +178,17 @@ def quick(seed: int) -> tuple[CourseRecording, CourseRecording, np.ndarray, np.n
     return recording, clean, corrected, noise_free, session, resumes, took, answer
 
 
-def calibrate_after_learning(seed: int, interference: bool = True,
+def calibrate_after_learning(seed: int, current: bool = True,
                              ask_at: float | None = None) -> tuple[str, str, float]:
     """(e)'s first turn and quick procedure, and ``~/calibrate`` asked as the request for the
     own field answers: (that answer, ~/calibrate's, the stream seconds it was asked). A
     compensation put in force emptied the buffer until stop 34, and the straight legs since
-    could not calibrate. ``interference`` False and ``ask_at``: the twin without the own field,
-    ~/calibrate asked then (what the buffer holds when nothing needs compensating)."""
+    could not calibrate. ``current`` False and ``ask_at``: the twin without the current's
+    field (the die's drift it has, as the learned compensation does not yet hold it), asked
+    then: what the buffer holds when K needs no compensating."""
     legs = (*motion.GROUND_COURSE[:2], *motion.QUICK_PROCEDURE)
     starts = float(sum(leg.duration_s for leg in motion.GROUND_COURSE[:2]))
-    recording = course_recording(robot(seed, interference=interference),
+    recording = course_recording(robot(seed, current=current),
                                  motion.CourseDriver(legs), rate_hz=RATE_HZ)
     session = CalibrationSession(COMPENSATING)
     learning = calibrating = None
@@ -287,10 +288,10 @@ def one_seed(seed: int) -> dict[str, tuple[float, float, int, float]]:
           f'{None if learned_q is None else learned_q.temperature_coefficient * 1e6} uT/°C '
           f'at the end; adoptions {session_q.adoptions}', flush=True)
     learned_answer, calibrated, asked = calibrate_after_learning(seed)
-    _, twin, _ = calibrate_after_learning(seed, interference=False, ask_at=asked)
+    _, twin, _ = calibrate_after_learning(seed, current=False, ask_at=asked)
     print(f'seed {seed}: ~/calibrate as ~/learn_compensation answered ({learned_answer[:60]}'
-          f'...) at {asked:.1f} s: {calibrated}\n  the twin without its own field, asked '
-          f'then: {twin}', flush=True)
+          f"...) at {asked:.1f} s: {calibrated}\n  the twin without the current's field, "
+          f'asked then: {twin}', flush=True)
     learned = learning.calibration.compensation if learning.calibration else None
     if learned is not None:
         print(f'seed {seed}: learned K = {learned.interference[:, 0] * 1e6} uT/A, c = '

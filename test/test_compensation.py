@@ -6,6 +6,7 @@ by fit/compensation.py, kept and adopted by live/compensation.py and verdicts.py
 
 from __future__ import annotations
 
+from dataclasses import replace
 import math
 
 import numpy as np
@@ -283,9 +284,10 @@ class _SlowRunner:
 
 def test_readings_held_while_a_compensation_was_learned_never_refill_the_buffer():
     """Issue #22: readings that arrive while a fit runs are held, compensated by the
-    compensation in force on arrival (none, the first time). A learned one put in force empties
-    the buffer; the held ones then refilled it, and the more of them the slower the worker (a
-    loaded computer), so the next ~/calibrate failed on a residual of 5-6 %."""
+    compensation in force on arrival (none, the first time). A learned one put in force emptied
+    the buffer (it now moves it); the held ones then refilled it, and the more of them the
+    slower the worker (a loaded computer), so the next ~/calibrate failed on a residual of
+    5-6 %."""
     run = drive(seconds=100.0, rate=20.0)
     static = Calibration(OFFSET + np.array([0.8e-6 * 3.0, 0.0, 0.0]), np.eye(3), F)
     session = CalibrationSession(
@@ -331,6 +333,59 @@ def test_a_compensation_put_in_force_moves_what_the_buffer_holds_instead_of_empt
     assert session.last_residual_pct < 1.0
     session.apply_calibration(static, 'file')  # and back: the own field is in them again
     assert spread(session.buffer.samples) == pytest.approx(spread(before), rel=0.05)
+
+
+def test_new_inputs_make_the_states_held_unknown_wherever_they_wait():
+    """The inputs changed at run time (``interference_inputs``): states made of the old ones,
+    in the buffer, the evidence or readings waiting while a fit runs, mean nothing. A
+    compensation put in force before the next reading forgets the points made of them instead
+    of reading their values as the new inputs' (or failing on their length); a waiting reading
+    goes in with its state unknown."""
+    run = drive(seconds=60.0, rate=20.0)
+    one = SessionSettings(interference_inputs=(BATTERY,), auto_calibrate=False, refine=False,
+                          learn_compensation=False)
+    two = replace(one, interference_inputs=(
+        BATTERY, 'motor_state:sensor_msgs/msg/BatteryState:current'))
+    session = CalibrationSession(one, calibration=_static(run), runner=_SlowRunner(50))
+    _stream(session, run)
+    assert len(session.backlog) > 0 and session.buffer.fill > 0  # fits ran: readings wait
+    session.reconfigure(two)
+    both = Compensation(two.interference_inputs, np.array([[0.8e-6, 0.0], [0.0] * 2, [0.0] * 2]))
+    session.apply_calibration(Calibration(OFFSET, np.eye(3), F).with_compensation(both), 'file')
+    assert session.buffer.fill == 0 and len(session.evidence) == 0  # nothing could be moved
+    later = drive(seconds=30.0, rate=20.0)
+    later['t'] = later['t'] + run['t'][-1] + 1.0
+    _stream(session, later)
+    assert len(session.backlog) > 0
+    session.reconfigure(one)  # what waits was made of two inputs
+    while len(session.backlog) or session._job is not None:
+        session.poll()
+    assert session.buffer.fill > 0  # in, their states unknown
+    session.apply_calibration(_static(run).with_compensation(
+        Compensation((BATTERY,), np.array([[0.8e-6], [0.0], [0.0]]))), 'file')
+    assert session.buffer.fill == 0
+
+
+def test_a_fit_made_before_a_compensation_went_in_force_is_abandoned():
+    """A request's fit runs while a file's compensation is loaded: it fitted readings that
+    have since moved, so its answer says so instead of putting them in force."""
+    run = drive(seconds=60.0, rate=20.0)
+    settings = SessionSettings(interference_inputs=(BATTERY,), auto_calibrate=False,
+                               refine=False, learn_compensation=False)
+    session = CalibrationSession(settings, calibration=_static(run), runner=_SlowRunner(5))
+    _stream(session, run)
+    while len(session.backlog) or session._job is not None:
+        session.poll()
+    ticket = session.request_calibration()  # its fit runs now
+    assert session._job is not None and session._job.ticket == ticket
+    true = Compensation(('current',), np.array([[0.8e-6], [0.0], [0.0]]))
+    session.apply_calibration(Calibration(OFFSET, np.eye(3), F).with_compensation(true), 'file')
+    later = drive(seconds=2.0, rate=20.0)
+    later['t'] = later['t'] + run['t'][-1] + 1.0
+    _stream(session, later)
+    [answer] = [event.attempt for event in session.take_events() if event.ticket == ticket]
+    assert not answer.success and 'went in force while it ran' in answer.message
+    assert session.calibration.compensation.same_field(true)
 
 
 def test_a_bad_input_spec_is_refused_with_the_form_it_needs():

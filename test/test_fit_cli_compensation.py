@@ -111,11 +111,11 @@ def test_a_csv_with_current_and_temperature_learns_k_and_c(tmp_path, capsys, cou
 @pytest.mark.parametrize('share', [0.7])
 def test_the_static_calibration_comes_from_the_whole_log_wherever_it_ends(tmp_path, capsys,
                                                                           course, share):
-    """A learned compensation empties the live buffer (what it held was compensated by the one
-    before), so a log that ended soon after one went in force left the buffer its last
-    seconds, straight ahead: 'NOT CALIBRATED, coverage 0 %' from a good drive (the full course
-    of the test above, once). The static part is fitted on a second pass over every reading
-    without K and c, wherever the log ends."""
+    """A learned compensation emptied the live buffer (until stop 34; it now moves it), so a
+    log that ended soon after one went in force left the buffer its last seconds, straight
+    ahead: 'NOT CALIBRATED, coverage 0 %' from a good drive (the full course of the test
+    above, once). The static part is fitted on a second pass over every reading without K and
+    c, wherever the log ends."""
     recording, _ = course
     rows = range(int(share * len(recording.times)))
     csv = write_csv(tmp_path / 'part.csv', recording, rows=rows)

@@ -194,9 +194,10 @@ def in_force_reference(session: CalibrationSession, calibration: Calibration,
                        reference: EarthReference | None
                        ) -> tuple[Alignment | None, EarthCheck | None]:
     """The alignment and model check of an answer that is the calibration in force (the
-    buffer's fit failed, so its own say nothing about the answer): the alignment of the latest
-    fit that passed its gates on the way (None when none did: the file's mounting stands), and
-    the calibration against the model as the node's diagnostics judge it."""
+    buffer's fit failed, so its own say nothing about the answer), as the node's diagnostics
+    show them: the alignment of the latest fit that passed its own gates on the way, adopted
+    or not (None when none did: the file's mounting stands), and the calibration against the
+    model."""
     earth_check = None if reference is None else reference.check(
         calibration.field_radius(), calibration.metadata_number('dip_deg'))
     return session.findings.alignment, earth_check

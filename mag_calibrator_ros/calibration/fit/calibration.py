@@ -122,6 +122,14 @@ class Compensation:
         """Whether it changes nothing (K = 0 and c = 0): today's static calibration."""
         return not (np.any(self.interference) or np.any(self.temperature_coefficient))
 
+    def same_field(self, other: Compensation | None) -> bool:
+        """Whether ``other`` takes off the same field: the same inputs, K, c and T0."""
+        return other is not None and (
+            self.inputs == other.inputs
+            and np.array_equal(self.interference, other.interference)
+            and np.array_equal(self.temperature_coefficient, other.temperature_coefficient)
+            and self.reference_temperature == other.reference_temperature)
+
     def field(self, inputs: ArrayLike | None = None,
               temperature: ArrayLike | None = None) -> np.ndarray:
         """``K u + c (T - T0)`` for one reading (3,) or many (n, 3): ``inputs`` (k,) or (n, k),

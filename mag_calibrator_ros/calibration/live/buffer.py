@@ -487,11 +487,13 @@ class SampleBuffer:
         """Move every point and recent reading by ``change(states)`` ((n, size) states, a
         point's the mean of its readings', to (n, 3) shifts): what was taken off them changed.
         A point's readings move together by their mean's shift (exact for the mean, its spread
-        kept). What cannot move (a NaN shift: an unknown state) is forgotten; returns how many
-        points were. The neighbour lists are rebuilt; the reference stays the owner's to set."""
+        kept). What cannot move (an unknown state, or a NaN shift) is forgotten; returns how
+        many points were. The neighbour lists are rebuilt; the reference is the owner's to
+        set."""
         n = self._fill
-        moves = np.asarray(change(self._state_sums[:n] / self._counts[:n, None]), dtype=float)
-        movable = np.all(np.isfinite(moves), axis=1)
+        states = self._state_sums[:n] / self._counts[:n, None]
+        moves = np.asarray(change(states), dtype=float)
+        movable = np.all(np.isfinite(moves), axis=1) & np.all(np.isfinite(states), axis=1)
         self._points[:n][movable] += moves[movable]
         removed = int(n - np.count_nonzero(movable))
         if removed:
@@ -664,7 +666,7 @@ def _shift_draw(table: np.ndarray, states: np.ndarray, count: int,
     if count == 0:
         return None
     moves = np.asarray(change(states[:count]), dtype=float)
-    movable = np.all(np.isfinite(moves), axis=1)
+    movable = np.all(np.isfinite(moves), axis=1) & np.all(np.isfinite(states[:count]), axis=1)
     table[:count, :3][movable] += moves[movable]
     if movable.all():
         return None

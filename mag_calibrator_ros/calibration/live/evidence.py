@@ -115,8 +115,9 @@ class HeldOutEvidence:
         move (an unknown state) is dropped. It stays in its direction cell: a shift is a small
         part of the field."""
         valid = np.flatnonzero(self._valid)
-        moves = np.asarray(change(self._states[valid]), dtype=float)
-        movable = np.all(np.isfinite(moves), axis=1)
+        states = self._states[valid]
+        moves = np.asarray(change(states), dtype=float)
+        movable = np.all(np.isfinite(moves), axis=1) & np.all(np.isfinite(states), axis=1)
         self._readings[valid[movable]] += moves[movable]
         self._valid[valid[~movable]] = False
 

@@ -156,11 +156,12 @@ class CalibrationSession:
         self._last_taught: np.ndarray | None = None  # corrected direction last fed to the tracker
         self._last_tracking_check: float | None = None
         self.buffer_reference = BufferReference(self.buffer)
-        self.backlog = Backlog()  # (reading, stamp, epoch, state, pair) while a fit runs
-        self._compensation_epoch = 0  # bumped by each learned compensation put in force
+        self.backlog = Backlog()  # (reading, stamp, epochs, state, pair) while a fit runs
+        self._compensation_epoch = 0  # bumped by each compensation put in force
         self._state_specs: tuple | None = None  # the own-field inputs the states are made of
+        self._state_epoch = 0  # bumped when they change: states made before mean nothing
         self._job: FitJob | None = None
-        self._job_epoch = 0
+        self._job_epoch = (0, 0)  # (_epoch, _compensation_epoch) when the job was made
         self._measured_coverage: tuple[float, Coverage] | None = None  # (stream s, coverage)
         self._epoch = 0  # bumped by reset(): outcomes of older jobs are stale
         self._next_ticket = 1
@@ -237,14 +238,11 @@ class CalibrationSession:
         if reason is not None:
             return _REFUSED
         self.accepted += 1
-        if self.compensation.specs is not self._state_specs:  # new inputs: new states
-            self._state_specs = self.compensation.specs
-            for part in (self.buffer, self.evidence):
-                part.forget_states(self.compensation.state_size)
+        self._sync_states()
         reading, state = self.compensation.observe(stamp_ns, np.array((x0, x1, x2)),
                                                    self.calibration)
-        decided = self.pairing.settle(stamp_ns, frame_id,
-                                      (reading, stamp_ns, self._compensation_epoch, state))
+        epochs = (self._compensation_epoch, self._state_epoch)
+        decided = self.pairing.settle(stamp_ns, frame_id, (reading, stamp_ns, epochs, state))
         if self.pairing.has_warnings:
             self._imu_warnings()
         self._advance()
@@ -299,28 +297,31 @@ class CalibrationSession:
         if self._job is None and not len(self.backlog) and self.backlog.waiting:
             self._submit('request')
 
-    def _hold(self, reading: np.ndarray, stamp_ns: int, epoch: int, state: tuple[float, ...],
-              pair: Pair | None = None) -> None:
-        overflow = self.backlog.hold((reading, stamp_ns, epoch, state, pair))
+    def _hold(self, reading: np.ndarray, stamp_ns: int, epochs: tuple[int, int],
+              state: tuple[float, ...], pair: Pair | None = None) -> None:
+        overflow = self.backlog.hold((reading, stamp_ns, epochs, state, pair))
         if overflow is not None:  # the backlog is full: its oldest is fed now
             self._ingest(*overflow)
 
-    def _ingest(self, reading: np.ndarray, stamp_ns: int, epoch: int, state: tuple[float, ...],
-                pair: Pair | None = None) -> None:
+    def _ingest(self, reading: np.ndarray, stamp_ns: int, epochs: tuple[int, int],
+                state: tuple[float, ...] | None, pair: Pair | None = None) -> None:
         """Everything a reading teaches, in stream order (the held ones after the fit).
 
-        ``epoch``: the learned compensation the reading was compensated by on arrival;
-        ``state``: its own-field state (``CompensationLearner.observe``). One put in force since
-        moved the buffer and evidence (``_put_in_force``); a reading that was held (a fit ran)
-        or waited for its IMU sample then still carries the old one's correction and teaches
-        nothing: how many there are depends on how long the fit took, and on a loaded computer
-        a backlog of them, some not compensated at all, went into the buffer and failed the
-        next fit (a residual of 5.9 %, issue #22)."""
+        ``epochs``: the compensation the reading was compensated by on arrival, and the inputs
+        its own-field ``state`` is made of (``CompensationLearner.observe``). A compensation put
+        in force since moved the buffer and evidence (``_put_in_force``); a reading that was
+        held (a fit ran) or waited for its IMU sample then still carries the old one's
+        correction and teaches nothing: how many there are depends on how long the fit took,
+        and on a loaded computer a backlog of them, some not compensated at all, went into the
+        buffer and failed the next fit (a residual of 5.9 %, issue #22). A state of other
+        inputs than today's is unknown."""
         now = self.clock.advance(stamp_ns)
         self.backlog.ingested += 1
-        if epoch != self._compensation_epoch:
+        if epochs[0] != self._compensation_epoch:
             self.stale_dropped += 1
             return
+        if epochs[1] != self._state_epoch:
+            state = None
         if pair is not None and self.settings.align:
             self.attitudes.add(now, reading, pair[0], pair[1])
         # Evidence judges a calibration: none yet, none needed. The draw is pseudo-random (and
@@ -376,7 +377,7 @@ class CalibrationSession:
             return self._refuse_fit(kind, ticket, self.input_watch.problem)
         job = self._make_job(kind, ticket)
         self.jobs_run[job.kind] = self.jobs_run.get(job.kind, 0) + 1
-        self._job, self._job_epoch = job, self._epoch
+        self._job, self._job_epoch = job, (self._epoch, self._compensation_epoch)
         self.runner.submit(job)
         outcome = self.runner.poll()  # an inline runner has it already
         if outcome is not None:
@@ -433,14 +434,24 @@ class CalibrationSession:
 
     # -- a fit's outcome -----------------------------------------------------------------------
 
+    def _stale(self, job: FitJob) -> str | None:
+        """Why a finished job's outcome no longer describes the session, None when it does."""
+        reset, compensated = self._job_epoch
+        if reset != self._epoch:
+            return 'the buffer was reset while it ran'
+        if compensated != self._compensation_epoch and job.kind != 'compensate':
+            return ("another compensation of the robot's own field went in force while it ran "
+                    '(it fitted readings since moved): ask again')
+        return None
+
     def _complete(self, outcome: JobOutcome) -> None:
         """A finished fit: the verdict of its kind (verdicts.py) applied, with the bookkeeping
         around it (the scheduler, the latest alignment and model check)."""
         job = outcome.job
-        if self._job_epoch != self._epoch:  # fitted to a buffer since reset
+        stale = self._stale(job)
+        if stale is not None:
             if job.ticket is not None:
-                attempt = CalibrationAttempt(
-                    False, 'calibration abandoned: the buffer was reset while it ran', outcome)
+                attempt = CalibrationAttempt(False, f'calibration abandoned: {stale}', outcome)
                 self._event('warning', attempt.message, ticket=job.ticket, attempt=attempt)
             return
         if outcome.coverage is not None:
@@ -595,6 +606,7 @@ class CalibrationSession:
         steps it towards the tracker's (counted in ``tracked_updates``; the buffer's reference
         follows when it is the calibration in force; a static fit keeps the compensation)."""
         calibration = self.compensation.carry(calibration, self.calibration, source)
+        self._sync_states()
         reference = self.buffer_reference
         if source == 'tracking':
             self.tracked_updates += 1
@@ -603,17 +615,20 @@ class CalibrationSession:
             self.calibration = calibration
             return
         if source != 'realign':
+            in_force = None if self.calibration is None else self.calibration.compensation
+            moved = not (calibration.compensation is in_force or (
+                calibration.compensation is not None
+                and calibration.compensation.same_field(in_force)))
+            if moved:  # learned, or a file's
+                self._recompensate(calibration)
             reference.calibration_plane = None
             if calibration.model == 'planar':
                 reference.calibration_plane = PlaneWatch.of(
                     calibration.metadata.get('plane_normal'), self.buffer.samples)
             self.adoptions[source] = self.adoptions.get(source, 0) + 1
-            in_force = None if self.calibration is None else self.calibration.compensation
-            if calibration.compensation is not in_force:  # learned, or a file's
-                self._recompensate(calibration)
             self.misfit.reset()
             self.scheduler.calibration_changed()
-            if reference.source != 'fit':
+            if reference.source != 'fit' or moved:
                 reference.set(calibration, None, 'calibration')
         self.calibration = calibration  # last: whoever sees it in force sees it counted
         self._restart_tracker()
@@ -623,7 +638,8 @@ class CalibrationSession:
         move each reading by the difference ``calibration``'s makes at its own-field state
         (they were emptied before, and a robot that had just turned to calibrate had to turn
         again before ``~/calibrate`` could fit). The buffer's own fit described the old
-        readings: it screens by the new calibration until the next reference fit."""
+        readings: the caller screens by the new calibration until the next reference fit, and
+        a fit made of the old ones is abandoned (``_complete``)."""
         learner = self.compensation
         old = None if self.calibration is None else self.calibration.compensation
 
@@ -633,9 +649,17 @@ class CalibrationSession:
         self.buffer.shift(change)
         self.evidence.shift(change)
         self.buffer_reference.provisional = None
-        self.buffer_reference.set(calibration, None, 'calibration')
         self.scheduler.reference_done(False)
         self._compensation_epoch += 1  # what waits to be learned is dropped (``_ingest``)
+
+    def _sync_states(self) -> None:
+        """The learner's inputs changed (parameters, a recording's columns): the states held
+        were made of the old ones and are unknown from now on (``forget_states``)."""
+        if self.compensation.specs is not self._state_specs:
+            self._state_specs = self.compensation.specs
+            self._state_epoch += 1
+            for part in (self.buffer, self.evidence):
+                part.forget_states(self.compensation.state_size)
 
     def _leave_plane(self) -> None:
         """The sensor left the plane its planar calibration was turned in: stop screening the
