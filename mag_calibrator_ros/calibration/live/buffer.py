@@ -491,9 +491,7 @@ class SampleBuffer:
         many points were. The neighbour lists are rebuilt; the reference is the owner's to
         set."""
         n = self._fill
-        states = self._state_sums[:n] / self._counts[:n, None]
-        moves = np.asarray(change(states), dtype=float)
-        movable = np.all(np.isfinite(moves), axis=1) & np.all(np.isfinite(states), axis=1)
+        moves, movable = moves_of(change, self._state_sums[:n] / self._counts[:n, None])
         self._points[:n][movable] += moves[movable]
         removed = int(n - np.count_nonzero(movable))
         if removed:
@@ -658,6 +656,13 @@ class SampleBuffer:
             self._weakest, self._weakest_score = 0, math.inf
 
 
+def moves_of(change: Callable[[np.ndarray], np.ndarray], states: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """(``change(states)``, which rows can move: a known state and a finite shift)."""
+    moves = np.asarray(change(states), dtype=float)
+    return moves, np.all(np.isfinite(moves), axis=1) & np.all(np.isfinite(states), axis=1)
+
+
 def _shift_draw(table: np.ndarray, states: np.ndarray, count: int,
                 change: Callable[[np.ndarray], np.ndarray]) -> int | None:
     """Shift the first ``count`` rows of a draw (the reading in ``table``'s first three columns)
@@ -665,8 +670,7 @@ def _shift_draw(table: np.ndarray, states: np.ndarray, count: int,
     the rows kept when any were dropped, else None."""
     if count == 0:
         return None
-    moves = np.asarray(change(states[:count]), dtype=float)
-    movable = np.all(np.isfinite(moves), axis=1) & np.all(np.isfinite(states[:count]), axis=1)
+    moves, movable = moves_of(change, states[:count])
     table[:count, :3][movable] += moves[movable]
     if movable.all():
         return None

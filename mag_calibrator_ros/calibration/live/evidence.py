@@ -25,6 +25,7 @@ from mag_calibrator_ros.calibration.fit.calibration import Calibration
 from mag_calibrator_ros.calibration.fit.coverage import CELL_COUNT, cell_index, direction_coverage
 from mag_calibrator_ros.calibration.fit.ellipsoid import robust_sigma
 from mag_calibrator_ros.calibration.fit.heading import heading_coverage_of, yaw_only
+from mag_calibrator_ros.calibration.live.buffer import moves_of
 
 HOLD_OUT_EVERY = 4
 """While a calibration is in force, one accepted reading in four (a deterministic pseudo-random
@@ -115,9 +116,7 @@ class HeldOutEvidence:
         move (an unknown state) is dropped. It stays in its direction cell: a shift is a small
         part of the field."""
         valid = np.flatnonzero(self._valid)
-        states = self._states[valid]
-        moves = np.asarray(change(states), dtype=float)
-        movable = np.all(np.isfinite(moves), axis=1) & np.all(np.isfinite(states), axis=1)
+        moves, movable = moves_of(change, self._states[valid])
         self._readings[valid[movable]] += moves[movable]
         self._valid[valid[~movable]] = False
 

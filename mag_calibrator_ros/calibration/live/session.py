@@ -615,10 +615,9 @@ class CalibrationSession:
             self.calibration = calibration
             return
         if source != 'realign':
+            new = calibration.compensation
             in_force = None if self.calibration is None else self.calibration.compensation
-            moved = not (calibration.compensation is in_force or (
-                calibration.compensation is not None
-                and calibration.compensation.same_field(in_force)))
+            moved = not (new is in_force or (new is not None and new.same_field(in_force)))
             if moved:  # learned, or a file's
                 self._recompensate(calibration)
             reference.calibration_plane = None
