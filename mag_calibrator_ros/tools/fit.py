@@ -65,7 +65,9 @@ from mag_calibrator_ros.calibration.fit.earth_field import (
 from mag_calibrator_ros.calibration.fit.fitting import FitOptions, FitResult
 from mag_calibrator_ros.calibration.fit.input_sanity import field_unit_problem, normalised_problem
 from mag_calibrator_ros.calibration.live.buffer import DEFAULT_CAPACITY, DEFAULT_K
+from mag_calibrator_ros.calibration.live.gravity import GravityTracker
 from mag_calibrator_ros.calibration.live.jobs import FitJob, run_job
+from mag_calibrator_ros.calibration.live.pairing import force_problem
 from mag_calibrator_ros.calibration.live.screening import VALUE_REASONS, reading_problem
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
@@ -394,7 +396,7 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
         if recording.accel is not None:
             attitudes = still_attitudes(recording.samples, recording.accel, clock,
                                         args.full_scale, recording.gyro)
-            ups = gravity_directions(recording.accel[kept])
+            ups = gravity_directions(recording.accel, recording.gyro, clock.stamps_ns)[kept]
         if earth is not None and args.field_strength is None and not args.normalise:
             intensity = earth.intensity_in(units)
             if intensity is not None:  # the model's intensity is the target, as in the node
@@ -739,14 +741,23 @@ def screen_all(samples: np.ndarray, full_scale: float | None
     return (samples if keep.all() else samples[keep]), dict(counts), keep
 
 
-def gravity_directions(accel: np.ndarray) -> np.ndarray:
-    """--all: gravity's unit direction from each accelerometer row (NaN where it is unusable),
-    so a planar fit is levelled as in the node."""
-    force = np.asarray(accel, dtype=float)
-    norms = np.linalg.norm(force, axis=1)
-    with np.errstate(invalid='ignore', divide='ignore'):
-        ups = force / norms[:, None]
-    ups[~(np.isfinite(norms) & (norms > 0))] = np.nan
+def gravity_directions(accel: np.ndarray, gyro: np.ndarray | None, stamps_ns: np.ndarray
+                       ) -> np.ndarray:
+    """--all: gravity's unit direction behind each row as the node's pairing gives it (one
+    ``GravityTracker`` over the rows in order, the gyroscope telling a tilt from the robot
+    accelerating), NaN where the accelerometer is unusable or was not measuring gravity."""
+    tracker = GravityTracker()
+    ups = np.full((len(accel), 3), np.nan)
+    rates = [None] * len(accel) if gyro is None else gyro.tolist()
+    for index, (stamp, force, rate) in enumerate(zip(stamps_ns.tolist(), accel.tolist(), rates,
+                                                     strict=True)):
+        if not all(math.isfinite(value) for value in force) or force_problem(force, None):
+            continue
+        if rate is not None and not all(math.isfinite(value) for value in rate):
+            rate = None
+        up = tracker.update(int(stamp), tuple(force), None if rate is None else tuple(rate))
+        if up is not None:
+            ups[index] = up
     return ups
 
 

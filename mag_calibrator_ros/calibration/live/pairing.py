@@ -8,7 +8,8 @@ or a bound has passed (``settle``). Both are counted in message stamps and arriv
 recording replayed offline decides the same; only what the reading teaches waits, not its
 correction. A pair tells the alignment which way is
 up while the sensor is held still (``alignment.StaticAttitudes``) and the buffer the gravity
-direction behind a sample (``levelled.py``).
+direction behind a sample (``levelled.py``): the one ``gravity.GravityTracker`` holds, and none
+while the specific force is the robot accelerating.
 
 Only what can mean that is paired: a sample that is no plausible specific force, or that is in
 another frame than the magnetometer's (an alignment between two frames would rotate the
@@ -26,9 +27,13 @@ import math
 import statistics
 import sys
 
+from mag_calibrator_ros.calibration.live.gravity import GravityTracker
+
 Vector = tuple[float, float, float]
-Pair = tuple[Vector, Vector | None]
-"""(specific force, angular rate or None) of the accelerometer sample paired with a reading."""
+Pair = tuple[Vector, Vector | None, Vector | None]
+"""(specific force, angular rate or None, gravity's direction or None) of the accelerometer
+sample paired with a reading; gravity's is None while the robot accelerated
+(``GravityTracker``)."""
 
 IMU_RING = 256
 """Recent accelerometer samples kept to pair magnetometer readings with (256 ms at 1 kHz)."""
@@ -118,8 +123,10 @@ class ImuPairing:
         self.force_range = force_range
         """Plausible |specific force| (SPECIFIC_FORCE_RANGE, m/s^2); None when the unit is
         unknown (``mag_calibrator_fit`` reads logs in counts or g)."""
-        self._ring: deque[tuple[int, float, float, float, Vector | None, str]] = deque(
-            maxlen=IMU_RING)
+        self._ring: deque[tuple[int, float, float, float, Vector | None, str, Vector | None]
+                          ] = deque(maxlen=IMU_RING)
+        self.gravity = GravityTracker()
+        """Gravity's direction from the samples kept, and how many measured none."""
         self.rate = RateMeter()
         self.accepted = 0
         self.refusals = dict.fromkeys(IMU_REASONS, 0)
@@ -163,8 +170,9 @@ class ImuPairing:
         if reason is not None:
             self.refusals[reason] += 1
             return False
-        self._ring.append((int(stamp_ns), *force, None if gyro is None else _vector(gyro),
-                           frame_id))
+        rate = None if gyro is None else _vector(gyro)
+        up = self.gravity.update(int(stamp_ns), force, rate, frame_id)
+        self._ring.append((int(stamp_ns), *force, rate, frame_id, up))
         self.accepted += 1
         self._since_sample = self._readings_since_sample = 0
         self._latest_sample = int(stamp_ns)
@@ -257,7 +265,7 @@ class ImuPairing:
             return None
         self._judge(best_gap)
         self.paired += 1
-        return (best[1], best[2], best[3]), best[4]
+        return (best[1], best[2], best[3]), best[4], best[6]
 
     def _judge(self, gap: float) -> None:
         """One reading's nearest gap into the starvation window, while an IMU is there."""
@@ -320,20 +328,13 @@ class ImuPairing:
         """Forget the samples and the readings waiting for one (a reset: a new sensor may
         follow; the session drops what it held too); the counters stay."""
         self._ring.clear()
+        self.gravity.restart()
         self._waiting.clear()
         self._decided.clear()
         self._latest_sample, self._readings_since_sample = None, IMU_ABSENT_READINGS
         self._gaps.clear()
         self._unpaired, self._starving = 0, False
         self._since_sample = IMU_ABSENT_READINGS
-
-
-def up_direction(accel: Sequence[float]) -> Vector:
-    """Gravity's unit direction from a paired specific force (its norm a normal float: ``add``
-    refuses the rest); ``math.hypot`` neither underflows nor overflows."""
-    ax, ay, az = accel
-    norm = math.hypot(ax, ay, az)
-    return ax / norm, ay / norm, az / norm
 
 
 __all__ = [
@@ -347,5 +348,4 @@ __all__ = [
     'Pair',
     'RateMeter',
     'force_problem',
-    'up_direction',
 ]

@@ -394,6 +394,7 @@ def _reference_values(session: ReportedSession, now: float) -> dict[str, object]
         values['imu_messages_refused'] = int(pairing.refused)
         values.update({f'imu_rejected_{k}': int(v) for k, v in pairing.refusals.items()})
         values['readings_paired'] = int(pairing.paired)
+        values['imu_samples_accelerating'] = int(pairing.gravity.rejected)
         values['imu_warning'] = pairing.warning()
         values['static_attitudes'] = int(session.attitudes.fill)
     calibration = session.calibration

@@ -41,7 +41,7 @@ from mag_calibrator_ros.calibration.live.evidence import (
 from mag_calibrator_ros.calibration.live.findings import Findings
 from mag_calibrator_ros.calibration.live.hints import MotionHints
 from mag_calibrator_ros.calibration.live.jobs import REFERENCE_OPTIONS, FitJob, JobOutcome
-from mag_calibrator_ros.calibration.live.pairing import ImuPairing, Pair, RateMeter, up_direction
+from mag_calibrator_ros.calibration.live.pairing import ImuPairing, Pair, RateMeter
 from mag_calibrator_ros.calibration.live.reference import BufferReference
 from mag_calibrator_ros.calibration.live.report import CalibrationAttempt
 from mag_calibrator_ros.calibration.live.sanity import InputWatch
@@ -331,8 +331,7 @@ class CalibrationSession:
         else:
             if self.buffer_reference.left_plane(reading):
                 self._leave_plane()
-            outcome = self.buffer.add(reading, None if pair is None else up_direction(pair[0]),
-                                      state)
+            outcome = self.buffer.add(reading, None if pair is None else pair[2], state)
             if outcome in self.refusals:
                 self.refusals[outcome] += 1
             else:

@@ -1,0 +1,172 @@
+"""Gravity's direction in the IMU frame, and which accelerometer samples measured it.
+
+An accelerometer measures gravity and the robot's own acceleration together: a ground robot
+starting to drive at 0.5 m/s^2 reads as a tilt of 2.9°, and a planar fit levelled by those
+readings takes it for one (``fit/levelled.py``): the vertical field no longer fits, so the fit
+makes it vanish and reports a dip near zero and an offset along the turning axis far from the
+truth. Only the gyroscope tells a rotation from an acceleration.
+
+``GravityTracker`` is a complementary filter (Mahony, Hamel and Pflimlin, "Nonlinear
+Complementary Filters on the Special Orthogonal Group", IEEE TAC 53(5), 2008) for gravity's
+direction alone: the gyroscope carries it from sample to sample, and it is pulled towards the
+accelerometer's (low-passed against vibration) while the two agree, which also learns the
+gyroscope's bias about the tilt axes. A specific force further than GRAVITY_DEG from where the
+gyroscope carried gravity is the robot accelerating: it corrects nothing and measures no
+gravity, as x-io Fusion rejects accelerations (github.com/xioTechnologies/Fusion,
+``FusionAhrs.c``, acceleration rejection and recovery). Only directions are used, so any unit
+of the accelerometer serves; the gyroscope is in rad/s.
+"""
+
+from __future__ import annotations
+
+import math
+
+Vector = tuple[float, float, float]
+
+LOWPASS_S = 0.1
+"""Time constant of the accelerometer's low-pass (carried by the gyroscope, so a turn does not
+smear it): a floor's and motors' vibration above a few hertz averages out, while a drive's
+acceleration (a few tenths of a second or more) stays and is rejected."""
+CORRECTION_S = 0.25
+"""Time constant with which the tracked direction follows the accelerometer's while they agree.
+An unlearnt gyroscope bias about a tilt axis makes it lag by bias x CORRECTION_S (0.25° for
+1 °/s) until BIAS_S has learnt it."""
+BIAS_S = 10.0
+"""Time constant with which the gyroscope's bias about the tilt axes is learnt (the integral
+term; the bias about gravity moves nothing this tracks)."""
+MAX_BIAS_RAD_S = math.radians(20.0)
+"""The largest bias learnt: four times the ICM-20948's initial zero-rate tolerance (±5 °/s,
+DS-000189 table 1); more is no bias."""
+GRAVITY_DEG = 1.0
+"""A specific force within this of the tracked direction is gravity: a horizontal acceleration
+of 0.17 m/s^2 (a tenth of what a robot starting to drive gives) or less, which levels a tilt to
+a degree; the accelerometer's noise after the low-pass is a few hundredths of a degree."""
+SETTLE_S = 1.0
+"""After a (re)start nothing counts as gravity for this long: four correction time constants."""
+RESTART_S = 3.0
+"""Samples rejected for this long in a row restart the tracker on the accelerometer (its
+direction had drifted, or the robot was turned while nothing tracked). A constant acceleration
+that lasts longer (an arc driven for seconds) is then taken for a tilt."""
+MAX_STEP_S = 0.25
+"""A gap between samples longer than this (or a stamp going back, another frame) restarts the
+tracker: the gyroscope no longer carries the direction across it."""
+
+
+class GravityTracker:
+    """Gravity's unit direction in the IMU frame (``up``: where the specific force points at
+    rest), updated sample by sample in O(1)."""
+
+    def __init__(self) -> None:
+        self.bias: Vector = (0.0, 0.0, 0.0)
+        """The gyroscope's bias about the tilt axes learnt so far (rad/s)."""
+        self.rejected = 0
+        """Samples whose specific force was not gravity (the robot accelerating)."""
+        self._up: Vector | None = None
+        self._filtered: Vector = (0.0, 0.0, 1.0)
+        self._stamp_ns: int | None = None
+        self._frame: str | None = None
+        self._settling_s = 0.0
+        self._rejecting_s = 0.0
+        self._verdict: Vector | None = None
+
+    def restart(self) -> None:
+        """Forget the direction (a reset, a new sensor); the learnt bias stays, it is the
+        gyroscope's."""
+        self._up = self._stamp_ns = self._frame = self._verdict = None
+
+    def update(self, stamp_ns: int, force: Vector, gyro: Vector | None,
+               frame_id: str = '') -> Vector | None:
+        """One accelerometer sample (a finite specific force of a normal, non-zero norm) and
+        its gyroscope sample: gravity's direction at that sample, or None when the specific
+        force is not gravity (or the tracker has not settled). Without a gyroscope nothing can
+        tell an acceleration from a tilt: the specific force's own direction is returned, as
+        every reading was levelled by before this tracker."""
+        measured = _unit(force)
+        if gyro is None:
+            self.restart()
+            return measured
+        step_s = (None if self._stamp_ns is None or frame_id != self._frame
+                  else (stamp_ns - self._stamp_ns) * 1e-9)
+        if step_s == 0.0:
+            return self._verdict  # the same instant again
+        if step_s is None or not 0.0 < step_s <= MAX_STEP_S:
+            self._start(stamp_ns, measured, frame_id)
+            return None
+        self._stamp_ns = stamp_ns
+        bias = self.bias
+        rate = (gyro[0] - bias[0], gyro[1] - bias[1], gyro[2] - bias[2])
+        if not math.isfinite(math.hypot(*rate)):
+            self._start(stamp_ns, measured, frame_id)  # a rate beyond any gyroscope's
+            return None
+        share = min(1.0, step_s / LOWPASS_S)
+        blend = _towards(_carried(self._filtered, rate, step_s), measured, share)
+        if not math.hypot(*blend) > 0.0:  # the measurement turned exactly over
+            self._start(stamp_ns, measured, frame_id)
+            return None
+        up = _carried(self._up, rate, step_s)
+        self._filtered = filtered = _unit(blend)
+        agreement = up[0] * filtered[0] + up[1] * filtered[1] + up[2] * filtered[2]
+        if agreement < math.cos(math.radians(GRAVITY_DEG)):
+            self._up = up
+            self.rejected += 1
+            self._rejecting_s += step_s
+            if self._rejecting_s > RESTART_S:
+                self._start(stamp_ns, measured, frame_id)
+            self._verdict = None
+            return None
+        self._rejecting_s = 0.0
+        pull = min(1.0, step_s / CORRECTION_S)
+        axis = _cross(up, filtered)  # rotating up about it moves it towards the measurement
+        learn = step_s / (CORRECTION_S * BIAS_S)
+        bias = (bias[0] + learn * axis[0], bias[1] + learn * axis[1], bias[2] + learn * axis[2])
+        size = math.hypot(*bias)
+        self.bias = (bias if size <= MAX_BIAS_RAD_S
+                     else tuple(b * MAX_BIAS_RAD_S / size for b in bias))
+        self._up = up = _unit(_towards(up, filtered, pull))
+        self._settling_s += step_s
+        self._verdict = up if self._settling_s >= SETTLE_S else None
+        return self._verdict
+
+    def _start(self, stamp_ns: int, measured: Vector, frame_id: str) -> None:
+        self._up = self._filtered = measured
+        self._stamp_ns, self._frame = stamp_ns, frame_id
+        self._settling_s = self._rejecting_s = 0.0
+        self._verdict = None
+
+
+def _unit(vector: Vector) -> Vector:
+    """The unit vector along a vector of a normal, non-zero norm (``math.hypot``: no
+    underflow)."""
+    x, y, z = vector
+    norm = math.hypot(x, y, z)
+    return x / norm, y / norm, z / norm
+
+
+def _towards(a: Vector, b: Vector, share: float) -> Vector:
+    """a + share (b - a)."""
+    return (a[0] + share * (b[0] - a[0]), a[1] + share * (b[1] - a[1]),
+            a[2] + share * (b[2] - a[2]))
+
+
+def _cross(a: Vector, b: Vector) -> Vector:
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def _carried(vector: Vector, rate: Vector, step_s: float) -> Vector:
+    """A direction fixed in the world, seen from a body turning at ``rate`` (rad/s, body frame)
+    for ``step_s``: rotated by -rate x step (Rodrigues' formula, exact for a constant rate)."""
+    wx, wy, wz = rate
+    angle = math.hypot(wx, wy, wz) * step_s
+    if not angle > 0.0:
+        return vector
+    scale = step_s / angle
+    kx, ky, kz = -wx * scale, -wy * scale, -wz * scale  # the unit axis of -rate
+    vx, vy, vz = vector
+    cos, sin = math.cos(angle), math.sin(angle)
+    dot = (kx * vx + ky * vy + kz * vz) * (1.0 - cos)
+    cx, cy, cz = ky * vz - kz * vy, kz * vx - kx * vz, kx * vy - ky * vx
+    return (vx * cos + cx * sin + kx * dot, vy * cos + cy * sin + ky * dot,
+            vz * cos + cz * sin + kz * dot)
+
+
+__all__ = ['GRAVITY_DEG', 'GravityTracker']
