@@ -178,11 +178,13 @@ def test_the_committed_real_ros1_bag_reads_and_is_named_normalised(capsys):
 
 
 def as_csv(recording, path: Path) -> Path:
-    """The same readings as a CSV with a time column: stamps exactly as read (repr)."""
-    lines = ['time,mx,my,mz,ax,ay,az']
-    for stamp, field, force in zip(recording.stamps.tolist(), recording.samples.tolist(),
-                                   recording.accel.tolist(), strict=True):
-        lines.append(','.join(repr(value) for value in (stamp, *field, *force)))
+    """The same readings as a CSV with a time column: stamps exactly as read (repr), and the
+    gyroscope (it tells the drive's accelerations from tilts: live/gravity.py)."""
+    lines = ['time,mx,my,mz,ax,ay,az,gx,gy,gz']
+    for stamp, field, force, rate in zip(recording.stamps.tolist(), recording.samples.tolist(),
+                                         recording.accel.tolist(), recording.gyro.tolist(),
+                                         strict=True):
+        lines.append(','.join(repr(value) for value in (stamp, *field, *force, *rate)))
     path.write_text('\n'.join(lines) + '\n')
     return path
 
@@ -198,14 +200,14 @@ def the_calibration(summary: dict) -> dict:
 
 
 def compare(runs: dict[str, tuple[int, dict]]) -> None:
-    """Every container, the same calibration; the bags (which carry the Imu's gyroscope, as a
-    CSV of x, y, z and the accelerometer does not) the same alignment and rotation too."""
+    """Every container, the same calibration, alignment and rotation (the CSV carries the
+    Imu's gyroscope as the bags do)."""
     calibrations = {name: (status, the_calibration(summary))
                     for name, (status, summary) in runs.items()}
     assert len({json.dumps(value) for value in calibrations.values()}) == 1, calibrations
-    bags = {name: (summary['rotation'], summary['alignment'])
-            for name, (_, summary) in runs.items() if name != 'csv'}
-    assert len({json.dumps(value) for value in bags.values()}) == 1, bags
+    alignments = {name: (summary['rotation'], summary['alignment'])
+                  for name, (_, summary) in runs.items()}
+    assert len({json.dumps(value) for value in alignments.values()}) == 1, alignments
 
 
 @pytest.mark.parametrize('mode', [[], ['--all']])
@@ -219,7 +221,8 @@ def test_one_calibration_from_a_ros1_bag_its_rosbag2_and_its_csv(tmp_path, capsy
     csv = as_csv(recording, tmp_path / 'phidgets.csv')
     inputs = {'ros1': [bag, '--accel'], 'mcap': [as_rosbag2(bag, tmp_path / 'b2', 'mcap'),
                                                 '--accel'],
-              'csv': [csv, '--accel-columns', 'ax,ay,az', '--units', 'T']}
+              'csv': [csv, '--accel-columns', 'ax,ay,az', '--gyro-columns', 'gx,gy,gz',
+                      '--gyro-units', 'rad/s', '--units', 'T']}
     for name, argv in inputs.items():
         status = fit.main([str(a) for a in argv] + ['--json', *mode])
         summary = json.loads(capsys.readouterr().out)
@@ -258,7 +261,8 @@ def test_a_simulated_ros1_bag_and_its_rosbag2_and_csv_agree(tmp_path, capsys):
     inputs = {'ros1': [bag, '--accel'],
               'sqlite3': [as_rosbag2(bag, tmp_path / 'b2', 'sqlite3'), '--accel'],
               'csv': [as_csv(recording, tmp_path / 'simulated.csv'), '--accel-columns',
-                      'ax,ay,az', '--units', 'T']}
+                      'ax,ay,az', '--gyro-columns', 'gx,gy,gz', '--gyro-units', 'rad/s',
+                      '--units', 'T']}
     runs = {}
     for name, argv in inputs.items():
         status = fit.main([str(a) for a in argv] + ['--json'])

@@ -34,7 +34,8 @@ from .ellipsoid import EllipsoidFit, robust_sigma
 
 MIN_PAIRED_SHARE = 0.8
 """Share of the readings that must carry gravity: a ring half of whose readings came without it
-(an IMU that started late, dropped messages) levels only part of the turn."""
+(an IMU that started late, dropped messages, a robot accelerating: ``live/gravity.py``) levels
+only part of the turn."""
 
 MAX_UP_TO_NORMAL_DEG = 30.0
 """Gravity must lie within this of the plane of the turn's normal: soft iron tilts the raw plane
@@ -112,7 +113,8 @@ def level_planar(
     paired[paired] = np.linalg.norm(ups[paired], axis=1) > 0
     if paired.sum() < MIN_PAIRED_SHARE * len(points) or paired.sum() < MIN_POINTS:
         return Levelling(None, None,
-                         f'{int(paired.sum())} of {len(points)} readings paired with gravity')
+                         f'{int(paired.sum())} of {len(points)} readings carry gravity (paired '
+                         'with the IMU while the robot did not accelerate)')
     up = np.full_like(points, np.nan)
     up[paired] = ups[paired] / np.linalg.norm(ups[paired], axis=1)[:, None]
     normal = np.asarray(plain.plane_normal, dtype=float)

@@ -22,7 +22,13 @@ import math
 import numpy as np
 
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
-from mag_calibrator_ros.calibration.fit.coverage import CELL_COUNT, cell_index, direction_coverage
+from mag_calibrator_ros.calibration.fit.coverage import (
+    CELL_COUNT,
+    HEADING_SECTORS,
+    cell_index,
+    direction_coverage,
+    sector_of,
+)
 from mag_calibrator_ros.calibration.fit.ellipsoid import robust_sigma
 from mag_calibrator_ros.calibration.fit.heading import heading_coverage_of, yaw_only
 from mag_calibrator_ros.calibration.live.buffer import moves_of
@@ -46,8 +52,9 @@ MIN_EVIDENCE = 30
 
 MIN_EVIDENCE_SPAN = 0.25
 """Share of direction cells the evidence must span (judged by its own shape, not through the
-calibration under test) before a candidate may replace the calibration in force: better in one
-corner of the sphere is not better."""
+calibration under test; yaw-only, also about the centre either calibration puts it round,
+``span_about``) before a candidate may replace the calibration in force: better in one corner
+of the sphere is not better."""
 THIN_CELLS = 64
 """A heading circle's span is judged on one reading per 1/64 of their extent (about 1 uT of a
 50 uT field): where readings piled up says nothing of the headings they span (``_thinned``)."""
@@ -165,6 +172,23 @@ def evidence_span(readings: np.ndarray, minimum: int = MIN_EVIDENCE) -> float:
     return float(direction_coverage(readings, None, readings).fraction)
 
 
+def span_about(calibration: Calibration, readings: np.ndarray) -> float | None:
+    """Share of heading sectors yaw-only ``readings`` span about the centre ``calibration`` puts
+    them round (their headings as it corrects them, in the plane they lie in), or None when
+    they are not yaw-only. Their own ring (``evidence_span``) can be fooled: a short arc of a
+    turn and a straight leg's readings, smeared by the robot's own field, fit a small circle
+    that spans a third of the headings; about a centre that no reading moved, they span what
+    they span (stop 33's follow-up, found again through bench_interference's quick procedure)."""
+    corrected = calibration.apply(np.asarray(readings, dtype=float).reshape(-1, 3))
+    corrected = corrected[np.all(np.isfinite(corrected), axis=1)]
+    if len(corrected) < MIN_EVIDENCE or not yaw_only(corrected):
+        return None
+    thinned = _thinned(corrected)
+    _, _, axes = np.linalg.svd(thinned - thinned.mean(axis=0), full_matrices=False)
+    headings = np.arctan2(thinned @ np.cross(axes[2], axes[0]), thinned @ axes[0])
+    return len(np.unique(sector_of(headings))) / HEADING_SECTORS
+
+
 def _thinned(readings: np.ndarray) -> np.ndarray:
     """One reading per cell of a grid THIN_CELLS to their extent: a robot that stood, or drove
     one way, most of the time leaves a cluster that outweighs its turns in any fit of their own
@@ -231,6 +255,9 @@ def compare_on_evidence(
     what = 'held-out readings'
     if inputs is None and temperatures is None:
         span = evidence_span(evidence[keep])
+        about = [span_about(calibration, evidence[keep]) for calibration in (current, candidate)]
+        if None not in about:  # yaw-only: spread about the centre either calibration puts
+            span = min(span, max(about))
     else:  # raw readings the robot's own field moved off their ring: their span as corrected
         span = max(evidence_span(calibration.apply(evidence, inputs, temperatures)[keep])
                    for calibration in (current, candidate))
