@@ -327,6 +327,9 @@ def test_yaw_only_evidence_spans_what_it_spans_about_the_calibrations_centre(mon
     ring = np.column_stack([25.0 * np.cos(full), 25.0 * np.sin(full), np.full(80, 43.0)])
     assert evidence.span_about(current, ring + offset) == 1.0
     assert evidence.span_about(current, offset + 50.0 * directions(rng, 200)) is None  # 3-D
+    with monkeypatch.context() as patch:  # two stands of a quiet sensor thin to two rows
+        patch.setattr(evidence, '_thinned', lambda corrected: corrected[[0, -1]])
+        assert evidence.span_about(current, readings) == 2 / 36  # an IndexError before
     monkeypatch.setattr(evidence, 'evidence_span', lambda readings: 1.0)  # a fooled ring fit
     candidate = Calibration(offset + (3.0, 0.0, 0.0), np.eye(3), float(np.hypot(25.0, 43.0)))
     comparison = compare_on_evidence(current, candidate, readings)

@@ -76,6 +76,22 @@ def test_without_a_gyroscope_the_specific_force_is_taken_as_it_is():
     assert tracker.rejected == 0
 
 
+def test_a_sample_without_its_rate_is_skipped_once_a_gyroscope_came():
+    """A log whose gyroscope cells are missing now and then (sensors logged at other rates)
+    keeps its gravity: each such sample is skipped, not a restart and a second of settling."""
+    tracker = GravityTracker()
+    step = round(1e9 / RATE_HZ)
+    given = []
+    for k in range(round(5.0 * RATE_HZ)):
+        gyro = None if k % 10 == 9 else (0.0, 0.0, 0.0)
+        given.append(tracker.update(k * step, (0.0, 0.0, 9.81), gyro, 'imu_link'))
+    assert all(up is None for up in given[9::10])
+    settled = [up for k, up in enumerate(given) if k % 10 != 9 and k >= 2 * RATE_HZ]
+    assert all(up == pytest.approx((0.0, 0.0, 1.0)) for up in settled)
+    tracker.restart()  # a new sensor: it may have no gyroscope
+    assert tracker.update(6_000_000_000, (0.0, 0.0, 9.81), None) == (0.0, 0.0, 1.0)
+
+
 def steady(tracker: GravityTracker, start_ns: int, seconds: float, force=(0.0, 0.0, 9.81),
            gyro=(0.0, 0.0, 0.0), frame_id: str = 'imu_link') -> list:
     step = round(1e9 / RATE_HZ)
@@ -90,8 +106,8 @@ def test_it_settles_before_it_says_and_restarts_where_the_gyroscope_cannot_carry
     assert all(up is None for up in ups[:settled - 1])
     assert all(up == pytest.approx((0.0, 0.0, 1.0)) for up in ups[settled + 1:])
     last_ns = round(1.99e9)
-    assert tracker.update(last_ns, (0.0, 0.0, 9.81), (0.0, 0.0, 0.0), 'imu_link') is not None
-    # the same instant again: the same answer
+    again = tracker.update(last_ns, (0.0, 0.0, 9.81), (0.0, 0.0, 0.0), 'imu_link')
+    assert again is not None and again == ups[-1]  # the same instant again: the same answer
     restarts = {
         'a gap': last_ns + round((MAX_STEP_S + 0.01) * 1e9),
         'a stamp going back': last_ns - 5_000_000_000,
@@ -103,9 +119,13 @@ def test_it_settles_before_it_says_and_restarts_where_the_gyroscope_cannot_carry
         last_ns = stamp_ns + 10_000_000 + round(1.99e9)
     assert tracker.update(last_ns + 10_000_000, (0.0, 0.0, 9.81), (0.0, 0.0, 0.0),
                           'base_link') is None  # another frame: another sensor
-    # a rate beyond any gyroscope's restarts it instead of raising
-    assert tracker.update(last_ns + 20_000_000, (0.0, 0.0, 9.81), (1e308, 1e308, 0.0),
-                          'base_link') is None
+    ups = steady(tracker, last_ns + 20_000_000, 2.0, frame_id='base_link')
+    assert ups[-1] is not None
+    # a rate beyond any gyroscope's (its norm overflows) restarts it instead of raising
+    huge_ns = last_ns + 20_000_000 + round(2e9)
+    assert tracker.update(huge_ns, (0.0, 0.0, 9.81), (1.7e308,) * 3, 'base_link') is None
+    assert tracker.update(huge_ns + 10_000_000, (0.0, 0.0, 9.81), (0.0, 0.0, 0.0),
+                          'base_link') is None  # settling again
 
 
 def test_an_acceleration_is_no_gravity_until_it_lasts_too_long_to_be_one():

@@ -184,7 +184,7 @@ def span_about(calibration: Calibration, readings: np.ndarray) -> float | None:
     if len(corrected) < MIN_EVIDENCE or not yaw_only(corrected):
         return None
     thinned = _thinned(corrected)
-    _, _, axes = np.linalg.svd(thinned - thinned.mean(axis=0), full_matrices=False)
+    _, _, axes = np.linalg.svd(thinned - thinned.mean(axis=0))  # 3 axes from 2 rows too
     headings = np.arctan2(thinned @ np.cross(axes[2], axes[0]), thinned @ axes[0])
     return len(np.unique(sector_of(headings))) / HEADING_SECTORS
 

@@ -15,6 +15,10 @@ gyroscope carried gravity is the robot accelerating: it corrects nothing and mea
 gravity, as x-io Fusion rejects accelerations (github.com/xioTechnologies/Fusion,
 ``FusionAhrs.c``, acceleration rejection and recovery). Only directions are used, so any unit
 of the accelerometer serves; the gyroscope is in rad/s.
+
+What it cannot tell: an acceleration that builds up slowly (0.5 m/s^2 reached over a second)
+is followed as it grows, at CORRECTION_S, and passes as a tilt as it would without a
+gyroscope; so does one that lasts longer than RESTART_S.
 """
 
 from __future__ import annotations
@@ -38,9 +42,10 @@ MAX_BIAS_RAD_S = math.radians(20.0)
 """The largest bias learnt: four times the ICM-20948's initial zero-rate tolerance (±5 °/s,
 DS-000189 table 1); more is no bias."""
 GRAVITY_DEG = 1.0
-"""A specific force within this of the tracked direction is gravity: a horizontal acceleration
-of 0.17 m/s^2 (a tenth of what a robot starting to drive gives) or less, which levels a tilt to
-a degree; the accelerometer's noise after the low-pass is a few hundredths of a degree."""
+"""A specific force within this of the tracked direction is gravity: an acceleration that
+starts within a few tenths of a second is caught from 0.17 m/s^2 (a tenth of what a robot
+starting to drive gives); the accelerometer's noise after the low-pass is a few hundredths of a
+degree."""
 SETTLE_S = 1.0
 """After a (re)start nothing counts as gravity for this long: four correction time constants."""
 RESTART_S = 3.0
@@ -68,23 +73,27 @@ class GravityTracker:
         self._settling_s = 0.0
         self._rejecting_s = 0.0
         self._verdict: Vector | None = None
+        self._gyro_seen = False
 
     def restart(self) -> None:
-        """Forget the direction (a reset, a new sensor); the learnt bias stays, it is the
-        gyroscope's."""
+        """Forget the direction and whether a gyroscope came (a reset, a new sensor); the
+        learnt bias stays, it is the gyroscope's."""
         self._up = self._stamp_ns = self._frame = self._verdict = None
+        self._gyro_seen = False
 
     def update(self, stamp_ns: int, force: Vector, gyro: Vector | None,
                frame_id: str = '') -> Vector | None:
         """One accelerometer sample (a finite specific force of a normal, non-zero norm) and
         its gyroscope sample: gravity's direction at that sample, or None when the specific
-        force is not gravity (or the tracker has not settled). Without a gyroscope nothing can
-        tell an acceleration from a tilt: the specific force's own direction is returned, as
-        every reading was levelled by before this tracker."""
+        force is not gravity (or the tracker has not settled). Without a gyroscope (none came
+        since the start) nothing can tell an acceleration from a tilt: the specific force's own
+        direction is returned, as every reading was levelled by before this tracker. Once one
+        came, a sample without its rate (a NaN, a log's missing cell) is skipped: None, and the
+        next sample carries on, or restarts after a gap."""
         measured = _unit(force)
         if gyro is None:
-            self.restart()
-            return measured
+            return None if self._gyro_seen else measured
+        self._gyro_seen = True
         step_s = (None if self._stamp_ns is None or frame_id != self._frame
                   else (stamp_ns - self._stamp_ns) * 1e-9)
         if step_s == 0.0:
