@@ -751,7 +751,7 @@ def gravity_directions(accel: np.ndarray, gyro: np.ndarray | None, stamps_ns: np
     rates = [None] * len(accel) if gyro is None else gyro.tolist()
     for index, (stamp, force, rate) in enumerate(zip(stamps_ns.tolist(), accel.tolist(), rates,
                                                      strict=True)):
-        if not all(math.isfinite(value) for value in force) or force_problem(force, None):
+        if force_problem(force, None):  # NaN, Inf, zero or subnormal, as the pairing refuses
             continue
         if rate is not None and not all(math.isfinite(value) for value in rate):
             rate = None
