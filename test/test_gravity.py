@@ -4,7 +4,9 @@ levelled after straight legs is not tilted by them."""
 
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,9 +14,11 @@ import pytest
 from mag_calibrator_ros.calibration.live.gravity import (
     GRAVITY_DEG,
     MAX_STEP_S,
+    RATE_DISAGREE,
     RESTART_S,
     SETTLE_S,
     GravityTracker,
+    RateCheck,
 )
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
@@ -22,8 +26,11 @@ from mag_calibrator_ros.sim import motion
 from mag_calibrator_ros.sim.board import BoardModel, course_recording
 from mag_calibrator_ros.sim.config import SimConfig
 from mag_calibrator_ros.tools.fit import gravity_directions
+from mag_calibrator_ros.tools.recordings import read_recording
 
 RATE_HZ = 100.0
+RAZOR = Path(__file__).resolve().parent / 'data' / 'imu_tools' / 'sparkfun_razor.bag'
+"""A real SparkFun 9DoF Razor turned by hand (imu_tools' sample, GPL-3.0-or-later)."""
 HARD_IRON_UT = (55.0, -45.0, 25.0)
 SOFT_IRON = (1.1, 0.08, 0.0, 0.08, 0.9, 0.05, 0.0, 0.05, 1.0)
 TURN_AND_DRIVE = motion.GROUND_COURSE[:4]
@@ -170,17 +177,17 @@ def test_the_whole_recording_fit_levels_by_the_same_gravity():
     board = robot()
     recording = course_recording(board, motion.CourseDriver(TURN_AND_DRIVE), rate_hz=RATE_HZ)
     stamps = np.round(recording.times * 1e9).astype(np.int64)
-    ups = gravity_directions(recording.accel, recording.gyro, stamps)
+    ups, _ = gravity_directions(recording.accel, recording.gyro, stamps)
     accelerating = np.abs(np.gradient(recording.speed, recording.times)) > 0.5
     assert accelerating.sum() > 50
     assert np.isnan(ups[accelerating]).all(axis=1).mean() > 0.9
-    without_gyro = gravity_directions(recording.accel, None, stamps)
+    without_gyro, _ = gravity_directions(recording.accel, None, stamps)
     assert np.allclose(without_gyro,
                        recording.accel / np.linalg.norm(recording.accel, axis=1)[:, None])
     broken = recording.accel.copy()
     broken[10] = (math.nan, 0.0, 0.0)
     broken[11] = 0.0
-    assert np.isnan(gravity_directions(broken, recording.gyro, stamps)[10:12]).all()
+    assert np.isnan(gravity_directions(broken, recording.gyro, stamps)[0][10:12]).all()
 
 
 def test_the_session_levels_only_by_what_was_gravity():
@@ -193,3 +200,102 @@ def test_the_session_levels_only_by_what_was_gravity():
     assert session.diagnostic_values(0.0)['imu_samples_accelerating'] \
         == session.pairing.gravity.rejected
 
+
+
+def handheld(seconds: float = 30.0, seed: int = 1, with_field: bool = False) -> tuple:
+    """(stamps ns, specific force, rates) of an IMU turned and shaken by hand (``tumble``), and
+    its magnetometer's readings (uT) ``with_field``."""
+    config = SimConfig(field_ut=50.0, inclination_deg=60.0, hard_iron_ut=HARD_IRON_UT,
+                       noise_ut=0.3, motion='tumble', seed=seed)
+    board = BoardModel(config, motion.make_trajectory('tumble', seed))
+    times = np.arange(0.0, seconds, 1.0 / RATE_HZ)
+    rows = [board.inertial(t, 57.0, 57.0) for t in times]
+    found = (np.round(times * 1e9).astype(np.int64), np.array([row[0] for row in rows]),
+             np.array([row[1] for row in rows]))
+    if not with_field:
+        return found
+    return (*found, np.array([board.magnetometer(t)[0] for t in times]))
+
+
+def rates_over(stamps, accel, gyro) -> RateCheck:
+    tracker = GravityTracker()
+    for stamp, force, rate in zip(stamps.tolist(), accel.tolist(), gyro.tolist(), strict=True):
+        tracker.update(stamp, tuple(force), tuple(rate))
+    return tracker.rates
+
+
+def test_a_gyroscope_that_does_not_turn_with_the_accelerometer_is_named():
+    """A gyroscope in deg/s (or with its signs flipped) makes every tilt look like an
+    acceleration; checked against the accelerometer's own turning, on a simulated hand and on a
+    real Razor's."""
+    stamps, accel, gyro = handheld()
+    agreeing = rates_over(stamps, accel, gyro)
+    assert agreeing.agree and agreeing.scale > 0.8 and agreeing.problem() == ''
+    in_degrees = rates_over(stamps, accel, np.degrees(gyro))
+    assert not in_degrees.agree and in_degrees.scale < RATE_DISAGREE
+    assert 'look like deg/s' in in_degrees.problem()
+    flipped = rates_over(stamps, accel, -gyro)
+    assert not flipped.agree and flipped.scale < 0.0
+    assert 'axes' in flipped.problem() and 'look like deg/s' not in flipped.problem()
+    razor = read_recording(RAZOR, accel_topic='')
+    razor_stamps = np.round(razor.stamps * 1e9).astype(np.int64)
+    real = rates_over(razor_stamps, razor.accel, razor.gyro)
+    assert real.agree and real.scale > 0.8
+    assert 'look like deg/s' in rates_over(razor_stamps, razor.accel,
+                                           np.degrees(razor.gyro)).problem()
+
+
+def test_one_glitch_of_the_gyroscope_moves_the_check_by_a_hundredth_at_most():
+    stamps, accel, gyro = handheld()
+    clean = rates_over(stamps, accel, gyro)
+    glitched = gyro.copy()
+    glitched[len(gyro) // 2] = (30.0, -30.0, 30.0)  # one sample beyond any hand
+    spiked = rates_over(stamps, accel, glitched)
+    assert spiked.agree
+    assert abs(spiked.scale - clean.scale) < 0.03  # one window of a hundred, clipped
+
+
+def test_a_ground_robot_is_warned_of_a_gyroscope_in_degrees_once():
+    """On a 2° wobbly floor a deg/s gyroscope rejected a fifth of the samples as the robot
+    accelerating, and nothing said why; turning on a level floor about gravity judges nothing."""
+    recording = course_recording(robot(), motion.CourseDriver(motion.GROUND_COURSE[:8]),
+                                 rate_hz=RATE_HZ)
+    session = CalibrationSession(SessionSettings(auto_calibrate=False))
+    session.feed(recording.mag, RATE_HZ, frame_id='imu_link', accel=recording.accel,
+                 gyro=np.degrees(recording.gyro))
+    values = session.diagnostic_values(0.0)
+    assert values['imu_turning_share'] < RATE_DISAGREE
+    assert 'angular_velocity' in values['imu_warning'] and 'deg/s' in values['imu_warning']
+    said = [event for event in session.take_events() if 'angular_velocity' in event.message]
+    assert len(said) == 1 and said[0].level == 'warning'
+    right = CalibrationSession(SessionSettings(auto_calibrate=False))
+    right.feed(recording.mag, RATE_HZ, frame_id='imu_link', accel=recording.accel,
+               gyro=recording.gyro)
+    values = right.diagnostic_values(0.0)
+    assert values['imu_warning'] == '' and values.get('imu_turning_share', 1.0) > 0.5
+    session.close()
+    right.close()
+
+
+@pytest.mark.parametrize('mode', [[], ['--all']])
+def test_the_offline_fit_notes_a_gyroscope_column_in_degrees(tmp_path, capsys, mode):
+    """A log's gyroscope columns declared rad/s but holding deg/s: the fit says so."""
+    from mag_calibrator_ros.tools import fit
+
+    stamps, accel, gyro, field = handheld(with_field=True)
+    lines = ['time,mx,my,mz,ax,ay,az,gx,gy,gz']
+    for row in zip(stamps.tolist(), field.tolist(), accel.tolist(), np.degrees(gyro).tolist(),
+                   strict=True):
+        lines.append(','.join(repr(value) for value in (row[0] * 1e-9, *row[1], *row[2],
+                                                       *row[3])))
+    log = tmp_path / 'handheld.csv'
+    log.write_text('\n'.join(lines) + '\n')
+    notes = {}
+    for unit in ('rad/s', 'deg/s'):
+        fit.main([str(log), '--units', 'uT', '--accel-columns', 'ax,ay,az', '--gyro-columns',
+                  'gx,gy,gz', '--gyro-units', unit, '--json', *mode])
+        notes[unit] = [note for note in json.loads(capsys.readouterr().out)['input']['notes']
+                       if 'the gyroscope' in note]
+    assert len(notes['rad/s']) == 1 and 'look like deg/s' in notes['rad/s'][0]
+    assert '--gyro-units' in notes['rad/s'][0]
+    assert notes['deg/s'] == []

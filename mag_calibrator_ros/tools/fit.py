@@ -376,6 +376,7 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
         'mode': 'all' if settings is None else f'buffer {settings.buffer_size}',
     }
     session = learner = None
+    gyro_problem = ''
     if settings is not None:
         fitted = recording.samples  # plot the whole recording, corrected by the buffer's fit
         session = learner = streamed(settings, metadata, recording, fitted, clock, earth,
@@ -396,7 +397,9 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
         if recording.accel is not None:
             attitudes = still_attitudes(recording.samples, recording.accel, clock,
                                         args.full_scale, recording.gyro)
-            ups = gravity_directions(recording.accel, recording.gyro, clock.stamps_ns)[kept]
+            ups, gyro_problem = gravity_directions(recording.accel, recording.gyro,
+                                                   clock.stamps_ns)
+            ups = ups[kept]
         if earth is not None and args.field_strength is None and not args.normalise:
             intensity = earth.intensity_in(units)
             if intensity is not None:  # the model's intensity is the target, as in the node
@@ -407,6 +410,12 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
             ups=ups))
     result = outcome.result
     progress.finish()
+    if session is not None:
+        gyro_problem = session.pairing.gravity.rates.problem()
+    if gyro_problem:
+        where = ("--gyro-units gives the columns' unit" if recording.kind == 'text'
+                 else "the Imu messages' angular_velocity, in rad/s by sensor_msgs/Imu")
+        recording = replace(recording, notes=(*recording.notes, f'{gyro_problem} ({where})'))
 
     success = result.success
     answer = None
@@ -742,10 +751,11 @@ def screen_all(samples: np.ndarray, full_scale: float | None
 
 
 def gravity_directions(accel: np.ndarray, gyro: np.ndarray | None, stamps_ns: np.ndarray
-                       ) -> np.ndarray:
+                       ) -> tuple[np.ndarray, str]:
     """--all: gravity's unit direction behind each row as the node's pairing gives it (one
     ``GravityTracker`` over the rows in order, the gyroscope telling a tilt from the robot
-    accelerating), NaN where the accelerometer is unusable or was not measuring gravity."""
+    accelerating), NaN where the accelerometer is unusable or was not measuring gravity; and
+    why the gyroscope disagreed with the accelerometer at the end ('' if it did not)."""
     tracker = GravityTracker()
     ups = np.full((len(accel), 3), np.nan)
     rates = [None] * len(accel) if gyro is None else gyro.tolist()
@@ -758,7 +768,7 @@ def gravity_directions(accel: np.ndarray, gyro: np.ndarray | None, stamps_ns: np
         up = tracker.update(int(stamp), tuple(force), None if rate is None else tuple(rate))
         if up is not None:
             ups[index] = up
-    return ups
+    return ups, tracker.rates.problem()
 
 
 def write_plot(path: str, recording: Recording, fitted: np.ndarray,

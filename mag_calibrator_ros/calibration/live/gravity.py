@@ -16,6 +16,12 @@ gravity, as x-io Fusion rejects accelerations (github.com/xioTechnologies/Fusion
 ``FusionAhrs.c``, acceleration rejection and recovery). Only directions are used, so any unit
 of the accelerometer serves; the gyroscope is in rad/s.
 
+A gyroscope that does not turn with the accelerometer (in deg/s where sensor_msgs/Imu asks
+rad/s, or about other axes) makes every tilt look like an acceleration, and nothing else would
+say so: ``RateCheck`` compares the two turnings and names the likely cause. It only says; what
+the tracker gives is the same either way (a multirotor in flight disagrees too, its
+accelerometer reading thrust, and there taking the accelerometer for gravity would be wrong).
+
 What it cannot tell: an acceleration that builds up slowly (0.5 m/s^2 reached over a second)
 is followed as it grows, at CORRECTION_S, and passes as a tilt as it would without a
 gyroscope; so does one that lasts longer than RESTART_S.
@@ -57,6 +63,94 @@ MAX_STEP_S = 0.25
 tracker: the gyroscope no longer carries the direction across it."""
 
 
+RATE_WINDOW_S = 0.05
+"""The accelerometer's direction and the gyroscope's turning of it are compared over windows this
+long: short, so that even in deg/s the gyroscope turns it well under half a turn in one."""
+RATE_MIN_TURN = 0.005
+"""A window counts when the gyroscope turns gravity's direction at least this far in it (rad:
+0.1 rad/s of tilting): well above the accelerometer's noise between two samples. A ground robot
+turning about gravity predicts none and is never judged."""
+RATE_WINDOWS = 100
+"""Windows counted before the comparison judges (five seconds of tilting), and over which it
+keeps judging (an exponential mean): one shock or glitch moves it by a hundredth; a gyroscope
+that changes (a driver restarted in another unit) is followed within seconds."""
+RATE_DISAGREE = 0.3
+"""The two disagree when the accelerometer turns less than this share of what the gyroscope
+predicts (deg/s read as rad/s: 1/57; other axes: about 0 or less; a multirotor in flight: 0 to
+0.2), and agree again from RATE_AGREE (a handheld IMU: 0.9 and more). The robot's accelerations
+add noise to the accelerometer's turning, not a share."""
+RATE_AGREE = 0.5
+RATE_CLIP = (-1.0, 3.0)
+"""One window's share is clipped to this, symmetric about agreement: a window the robot's
+acceleration dominates cannot outvote many."""
+RAD_PER_DEG = math.pi / 180.0
+
+
+class RateCheck:
+    """How far the accelerometer's direction turns per turn the gyroscope predicts for it: the
+    mean over windows of RATE_WINDOW_S of each window's share (the measured change projected on
+    the predicted one), from the raw directions (no low-pass lags the one behind the other); 1
+    when both agree. Beside it, how much better the rates would predict read as deg/s: the one
+    mistake common enough to name."""
+
+    def __init__(self) -> None:
+        self.scale: float | None = None
+        """The accelerometer's turning per the gyroscope's (None until RATE_WINDOWS counted)."""
+        self.agree = True
+        self._start: Vector | None = None  # the measured direction at the window's start
+        self._turned: Vector = (0.0, 0.0, 1.0)  # it, turned by the gyroscope since
+        self._turned_deg: Vector = (0.0, 0.0, 1.0)  # it, turned by the rates read as deg/s
+        self._elapsed_s = 0.0
+        self._counted = 0
+        self._mean = 0.0
+        self._misfit = 0.0  # mean |measured change - predicted|^2 over the windows counted
+        self._misfit_deg = 0.0  # the same with the rates read as deg/s
+
+    def update(self, measured: Vector, rate: Vector | None, step_s: float) -> None:
+        """One sample; ``rate`` None (a gap, a restart) starts a new window."""
+        if rate is None or self._start is None:
+            self._start = self._turned = self._turned_deg = measured
+            self._elapsed_s = 0.0
+            return
+        self._turned = _carried(self._turned, rate, step_s)
+        self._turned_deg = _carried(self._turned_deg, rate, step_s * RAD_PER_DEG)
+        self._elapsed_s += step_s
+        if self._elapsed_s < RATE_WINDOW_S:
+            return
+        start, turned, turned_deg = self._start, self._turned, self._turned_deg
+        self._start = self._turned = self._turned_deg = measured
+        self._elapsed_s = 0.0
+        predicted = _difference(turned, start)
+        turn = _dot(predicted, predicted)
+        if not turn >= RATE_MIN_TURN ** 2:
+            return
+        change = _difference(measured, start)
+        share = min(max(_dot(change, predicted) / turn, RATE_CLIP[0]), RATE_CLIP[1])
+        self._counted = min(self._counted + 1, RATE_WINDOWS)
+        weight = 1.0 / self._counted
+        self._mean += (share - self._mean) * weight
+        misses = _difference(measured, turned), _difference(measured, turned_deg)
+        self._misfit += (_dot(misses[0], misses[0]) - self._misfit) * weight
+        self._misfit_deg += (_dot(misses[1], misses[1]) - self._misfit_deg) * weight
+        if self._counted >= RATE_WINDOWS:
+            self.scale = self._mean
+            self.agree = self.scale >= (RATE_DISAGREE if self.agree else RATE_AGREE)
+
+    def problem(self) -> str:
+        """Why the gyroscope and the accelerometer disagree, in words ('' while they agree)."""
+        if self.agree or self.scale is None:
+            return ''
+        said = (f"the gyroscope does not turn gravity's direction as the accelerometer sees it "
+                f'turn ({self.scale:+.2f} times as far)')
+        if 4.0 * self._misfit_deg < self._misfit:
+            return (f'{said}: its rates look like deg/s where rad/s are due (read as deg/s they '
+                    'predict it four times better or more), so every tilt looks like an '
+                    'acceleration')
+        return (f"{said}: are its axes the accelerometer's (one frame, the same signs) and its "
+                'unit rad/s? (A multirotor in flight gives this too: its accelerometer reads '
+                'thrust, not gravity)')
+
+
 class GravityTracker:
     """Gravity's unit direction in the IMU frame (``up``: where the specific force points at
     rest), updated sample by sample in O(1)."""
@@ -74,12 +168,15 @@ class GravityTracker:
         self._rejecting_s = 0.0
         self._verdict: Vector | None = None
         self._gyro_seen = False
+        self.rates = RateCheck()
+        """Whether the gyroscope turns with the accelerometer (``problem()`` says why not)."""
 
     def restart(self) -> None:
-        """Forget the direction and whether a gyroscope came (a reset, a new sensor); the
-        learnt bias stays, it is the gyroscope's."""
+        """Forget the direction, whether a gyroscope came and how it turned (a reset, a new
+        sensor); the learnt bias stays, it is the gyroscope's."""
         self._up = self._stamp_ns = self._frame = self._verdict = None
         self._gyro_seen = False
+        self.rates = RateCheck()
 
     def update(self, stamp_ns: int, force: Vector, gyro: Vector | None,
                frame_id: str = '') -> Vector | None:
@@ -98,15 +195,15 @@ class GravityTracker:
                   else (stamp_ns - self._stamp_ns) * 1e-9)
         if step_s == 0.0:
             return self._verdict  # the same instant again
-        if step_s is None or not 0.0 < step_s <= MAX_STEP_S:
+        bias = self.bias
+        rate = (gyro[0] - bias[0], gyro[1] - bias[1], gyro[2] - bias[2])
+        carries = (step_s is not None and 0.0 < step_s <= MAX_STEP_S
+                   and math.isfinite(math.hypot(*rate)))  # else a gap, or no gyroscope's rate
+        self.rates.update(measured, rate if carries else None, step_s or 0.0)
+        if not carries:
             self._start(stamp_ns, measured, frame_id)
             return None
         self._stamp_ns = stamp_ns
-        bias = self.bias
-        rate = (gyro[0] - bias[0], gyro[1] - bias[1], gyro[2] - bias[2])
-        if not math.isfinite(math.hypot(*rate)):
-            self._start(stamp_ns, measured, frame_id)  # a rate beyond any gyroscope's
-            return None
         share = min(1.0, step_s / LOWPASS_S)
         blend = _towards(_carried(self._filtered, rate, step_s), measured, share)
         if not math.hypot(*blend) > 0.0:  # the measurement turned exactly over
@@ -114,7 +211,7 @@ class GravityTracker:
             return None
         up = _carried(self._up, rate, step_s)
         self._filtered = filtered = _unit(blend)
-        agreement = up[0] * filtered[0] + up[1] * filtered[1] + up[2] * filtered[2]
+        agreement = _dot(up, filtered)
         if agreement < math.cos(math.radians(GRAVITY_DEG)):
             self._up = up
             self.rejected += 1
@@ -157,6 +254,14 @@ def _towards(a: Vector, b: Vector, share: float) -> Vector:
             a[2] + share * (b[2] - a[2]))
 
 
+def _dot(a: Vector, b: Vector) -> float:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _difference(a: Vector, b: Vector) -> Vector:
+    return a[0] - b[0], a[1] - b[1], a[2] - b[2]
+
+
 def _cross(a: Vector, b: Vector) -> Vector:
     return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
@@ -178,4 +283,4 @@ def _carried(vector: Vector, rate: Vector, step_s: float) -> Vector:
             vz * cos + cz * sin + kz * dot)
 
 
-__all__ = ['GRAVITY_DEG', 'GravityTracker']
+__all__ = ['GRAVITY_DEG', 'GravityTracker', 'RateCheck']

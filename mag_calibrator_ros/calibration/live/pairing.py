@@ -15,7 +15,8 @@ Only what can mean that is paired: a sample that is no plausible specific force,
 another frame than the magnetometer's (an alignment between two frames would rotate the
 corrected field out of the frame its header names), is refused and counted by reason. When an
 IMU is there but its stamps never meet the readings' (another clock, a delay), most readings
-go unpaired: that is measured and said, with the offset.
+go unpaired: that is measured and said, with the offset; so is a gyroscope whose rates do not
+turn gravity's direction as the accelerometer sees it turn (``gravity.RateCheck``: deg/s).
 """
 
 from __future__ import annotations
@@ -141,6 +142,7 @@ class ImuPairing:
         self._since_sample = IMU_ABSENT_READINGS  # readings since the latest kept sample
         self._starving = False
         self._warnings: list[str] = []
+        self._rates_said = False  # the gyroscope's disagreement is logged once per episode
         # (stamp, frame, item, the latest sample's stamp when the reading arrived)
         self._waiting: deque[tuple[int, str | None, object, int | None]] = deque()
         self._decided: list[tuple[object, Pair | None]] = []
@@ -172,6 +174,11 @@ class ImuPairing:
             return False
         rate = None if gyro is None else _vector(gyro)
         up = self.gravity.update(int(stamp_ns), force, rate, frame_id)
+        disagree = not self.gravity.rates.agree
+        if disagree != self._rates_said:
+            self._rates_said = disagree
+            if disagree:
+                self._warnings.append(self.rates_problem())
         self._ring.append((int(stamp_ns), *force, rate, frame_id, up))
         self.accepted += 1
         self._since_sample = self._readings_since_sample = 0
@@ -307,16 +314,22 @@ class ImuPairing:
         return (f'imu/data_raw samples are too sparse: {what} (median distance to the nearest '
                 f'{spacing:.0f} ms); publish the IMU at 50 Hz or more')
 
+    def rates_problem(self) -> str:
+        """Why the gyroscope's rates disagree with the accelerometer ('' when they do not)."""
+        problem = self.gravity.rates.problem()
+        return f'imu/data_raw angular_velocity: {problem}' if problem else ''
+
     def warning(self) -> str:
         """What is wrong with the IMU input now, for a /diagnostics WARN ('' if nothing)."""
         if self._since_other_frame < FRAME_WARNING_MESSAGES and self.other_frame is not None:
             imu, mag = self.other_frame
             return (f"imu/data_raw samples in frame '{imu}' are refused: imu/mag is in "
                     f"'{mag}' (publish the IMU in the magnetometer's frame)")
-        return self.starvation()
+        return self.starvation() or self.rates_problem()
 
     def take_warnings(self) -> list[str]:
-        """New warnings since the last call, each said once (a frame pair, a starvation)."""
+        """New warnings since the last call, each said once (a frame pair, a starvation, the
+        gyroscope's rates disagreeing)."""
         warnings, self._warnings = self._warnings, []
         return warnings
 
@@ -335,6 +348,7 @@ class ImuPairing:
         self._gaps.clear()
         self._unpaired, self._starving = 0, False
         self._since_sample = IMU_ABSENT_READINGS
+        self._rates_said = False
 
 
 __all__ = [

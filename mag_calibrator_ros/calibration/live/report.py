@@ -395,6 +395,8 @@ def _reference_values(session: ReportedSession, now: float) -> dict[str, object]
         values.update({f'imu_rejected_{k}': int(v) for k, v in pairing.refusals.items()})
         values['readings_paired'] = int(pairing.paired)
         values['imu_samples_accelerating'] = int(pairing.gravity.rejected)
+        if pairing.gravity.rates.scale is not None:
+            values['imu_turning_share'] = round(pairing.gravity.rates.scale, 3)
         values['imu_warning'] = pairing.warning()
         values['static_attitudes'] = int(session.attitudes.fill)
     calibration = session.calibration
