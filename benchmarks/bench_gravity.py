@@ -15,8 +15,18 @@ through ``CalibrationSession`` (inline fits: the numbers do not depend on load).
     along the turning axis (truth 25 uT; held at the data's mean when not determined), the dip
     it reports (truth 60°) and the heading RMS of its calibration over a noise-free full turn;
     gravity from the tracker (today) against the accelerometer's own direction (before).
+(c) ``RateCheck``, the gyroscope against the accelerometer's turning, on real recordings (the
+    three ROS 1 bags of imu_tools' ``imu_filter_madgwick/sample``, from
+    ``scripts/fetch_public_recordings.py``; absent ones are skipped) and on this course: the
+    share it ends on, whether it agrees, how often the verdict changed, when it first judged,
+    and what it names; the rates as recorded, in deg/s (times 180/pi) and negated.
+
+``--ramp S``: (a) and (b) with every change of speed and turn rate eased in over S seconds (a
+raised cosine, commanded at 100 Hz, as a smooth controller or a joystick pushed gradually
+does): the acceleration then builds up instead of stepping.
 
     PYTHONPATH=$PWD .venv/bin/python benchmarks/bench_gravity.py            # seeds 1 2 3
+    PYTHONPATH=$PWD .venv/bin/python benchmarks/bench_gravity.py --ramp 2
 """
 
 from __future__ import annotations
@@ -34,10 +44,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_interference import RATE_HZ, robot  # noqa: E402  (one robot for both benchmarks)
 
 from mag_calibrator_ros.calibration.live.gravity import GravityTracker  # noqa: E402
+from mag_calibrator_ros.calibration.live.pairing import force_problem  # noqa: E402
 from mag_calibrator_ros.calibration.live.session import CalibrationSession  # noqa: E402
 from mag_calibrator_ros.sim import motion  # noqa: E402
 from mag_calibrator_ros.sim.board import BoardModel, course_recording  # noqa: E402
 from mag_calibrator_ros.tools.demo import GROUND_HARD_IRON_UT, azimuth_errors_deg  # noqa: E402
+from mag_calibrator_ros.tools.recordings import read_recording  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'scripts'))
+from fetch_public_recordings import recordings_dir  # noqa: E402
 
 COURSE = motion.GROUND_COURSE[:7]
 BIASED_DPS = (2.0, -2.0, 1.0)
@@ -50,6 +65,32 @@ class AccelerometerAsGravity(GravityTracker):
         return super().update(stamp_ns, force, None, frame_id)
 
 
+class EasedCourse(motion.CourseDriver):
+    """The course's commands eased from one leg's to the next over ``ramp_s`` (raised cosine)."""
+
+    def __init__(self, legs: tuple[motion.Leg, ...], ramp_s: float) -> None:
+        super().__init__(legs)
+        self.ramp_s = ramp_s
+        self.leg_ends = np.cumsum([leg.duration_s for leg in legs])
+
+    def command_at(self, t: float) -> tuple[float, float]:
+        now = super().command_at(t)
+        index = int(np.searchsorted(self.leg_ends, t, side='right'))
+        if index == 0 or self.ramp_s <= 0.0:
+            return now
+        since = t - self.leg_ends[index - 1]
+        before = super().command_at(self.leg_ends[index - 1] - 1e-9)
+        share = 0.5 - 0.5 * math.cos(math.pi * min(1.0, since / self.ramp_s))
+        return tuple(b + share * (n - b) for b, n in zip(before, now, strict=True))
+
+
+def course(ramp_s: float) -> tuple[motion.CourseDriver, float]:
+    """The driven course and how often its commands are sent (s)."""
+    if ramp_s > 0.0:
+        return EasedCourse(COURSE, ramp_s), 0.01
+    return motion.CourseDriver(COURSE), 0.1
+
+
 def board(seed: int, gyro_bias_dps=(0.0, 0.0, 0.0), noise_ut: float = 0.3) -> BoardModel:
     plain = robot(seed, interference=False, noise_ut=noise_ut)
     return BoardModel(replace(plain.config, gyro_bias_dps=gyro_bias_dps), plain.trajectory)
@@ -60,13 +101,14 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     return math.degrees(math.acos(min(1.0, cosine)))
 
 
-def directions(seed: int, gyro_bias_dps) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def directions(seed: int, gyro_bias_dps, ramp_s: float = 0.0
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(a): per-sample errors of the accelerometer and of the tracker (NaN: none given), and the
     bias it learnt (°/s). The truth is read while the course is driven (commands change the
     trajectory's future only)."""
     simulated = board(seed, gyro_bias_dps)
     trajectory = simulated.trajectory
-    driver = motion.CourseDriver(COURSE)
+    driver, period = course(ramp_s)
     tracker = GravityTracker()
     measured, tracked = [], []
     next_command = 0.0
@@ -75,7 +117,7 @@ def directions(seed: int, gyro_bias_dps) -> tuple[np.ndarray, np.ndarray, np.nda
         while next_command <= t:
             speed, yaw_rate = driver.command_at(next_command)
             trajectory.command(yaw_rate, next_command, speed=speed)
-            next_command += 0.1
+            next_command += period
         accel, gyro, truth = simulated.inertial(t, 57.0, 57.0)
         up = truth.rotation.T @ (0.0, 0.0, 1.0)
         measured.append(angle_deg(accel, up))
@@ -84,9 +126,10 @@ def directions(seed: int, gyro_bias_dps) -> tuple[np.ndarray, np.ndarray, np.nda
     return np.array(measured), np.array(tracked), np.degrees(tracker.bias)
 
 
-def calibrate(seed: int, tracked: bool) -> tuple[str, np.ndarray, float]:
+def calibrate(seed: int, tracked: bool, ramp_s: float = 0.0) -> tuple[str, np.ndarray, float]:
     """(b): the answer, its offset (uT) and its heading RMS over a noise-free full turn."""
-    recording = course_recording(board(seed), motion.CourseDriver(COURSE), rate_hz=RATE_HZ)
+    driver, period = course(ramp_s)
+    recording = course_recording(board(seed), driver, rate_hz=RATE_HZ, command_period_s=period)
     session = CalibrationSession()
     if not tracked:
         session.pairing.gravity = AccelerometerAsGravity()
@@ -102,14 +145,59 @@ def calibrate(seed: int, tracked: bool) -> tuple[str, np.ndarray, float]:
     return attempt.message, calibration.offset * 1e6, float(np.sqrt(np.mean(errors**2)))
 
 
+def rate_check(stamps_ns: np.ndarray, accel: np.ndarray, gyro: np.ndarray) -> str:
+    """(c): one tracker over the rows; what its RateCheck ends on."""
+    tracker = GravityTracker()
+    changes, first, verdict = 0, None, True
+    for stamp, force, rate in zip(stamps_ns.tolist(), accel.tolist(), gyro.tolist(),
+                                  strict=True):
+        if force_problem(tuple(force), None) or not np.all(np.isfinite(rate)):
+            continue
+        tracker.update(int(stamp), tuple(force), tuple(rate))
+        check = tracker.rates
+        if first is None and check.scale is not None:
+            first = (stamp - stamps_ns[0]) * 1e-9
+        changes += check.agree != verdict
+        verdict = check.agree
+    check = tracker.rates
+    if check.scale is None:
+        return 'not judged (too little tilting)'
+    named = ('deg/s named' if 'deg/s where' in check.problem()
+             else 'axes or unit asked' if check.problem() else '')
+    return (f'share {check.scale:+.3f}, {"agrees" if check.agree else "disagrees"}'
+            f' (verdict changed {changes}x, first judged at {first:.1f} s) {named}')
+
+
+def rate_checks(seeds: list[int]) -> None:
+    sources = []
+    for name in ('sparkfun_razor.bag', 'ardrone_imu.bag', 'phidgets_imu_upside_down.bag'):
+        path = recordings_dir() / name
+        if not path.exists():
+            print(f'  {name}: absent (scripts/fetch_public_recordings.py)')
+            continue
+        recording = read_recording(path, accel_topic='')
+        stamps = np.round(recording.stamps * 1e9).astype(np.int64)
+        sources.append((name, stamps, recording.accel, recording.gyro))
+    for seed in seeds:
+        recording = course_recording(board(seed), motion.CourseDriver(COURSE), rate_hz=RATE_HZ)
+        stamps = np.round(recording.times * 1e9).astype(np.int64)
+        sources.append((f'this course, seed {seed}', stamps, recording.accel, recording.gyro))
+    for name, stamps, accel, gyro in sources:
+        for what, rates in (('as recorded', gyro), ('deg/s', np.degrees(gyro)),
+                            ('negated', -gyro)):
+            print(f'  {name}, {what}: {rate_check(stamps, accel, rates)}')
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--seeds', type=int, nargs='+', default=[1, 2, 3])
+    parser.add_argument('--ramp', type=float, default=0.0,
+                        help='ease every command change over this many seconds')
     args = parser.parse_args(argv)
     print('(a) angle to the true gravity (deg): RMS / p99 / worst; share given; bias learnt')
     for bias in ((0.0, 0.0, 0.0), BIASED_DPS):
         for seed in args.seeds:
-            measured, tracked, learnt = directions(seed, bias)
+            measured, tracked, learnt = directions(seed, bias, args.ramp)
             given = np.isfinite(tracked)
             print(f'  bias {bias} seed {seed}: accelerometer {np.sqrt(np.mean(measured**2)):.3f}'
                   f' / {np.percentile(measured, 99):.2f} / {measured.max():.2f};'
@@ -121,7 +209,7 @@ def main(argv: list[str] | None = None) -> int:
     truth = np.asarray(GROUND_HARD_IRON_UT, dtype=float)
     for seed in args.seeds:
         for tracked in (False, True):
-            message, offset, heading = calibrate(seed, tracked)
+            message, offset, heading = calibrate(seed, tracked, args.ramp)
             dip = re.search(r'dip ([0-9.]+) deg', message)
             residual = re.search(r'residual ([0-9.]+) %', message)
             what = 'tracker      ' if tracked else 'accelerometer'
@@ -130,6 +218,8 @@ def main(argv: list[str] | None = None) -> int:
                   f' z {offset[2]:.1f}; dip {dip.group(1) if dip else "held"};'
                   f' residual {residual.group(1) if residual else "?"} %;'
                   f' heading {heading:.2f}° RMS')
+    print("(c) the gyroscope against the accelerometer's turning (RateCheck)")
+    rate_checks(args.seeds)
     return 0
 
 
