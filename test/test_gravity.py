@@ -53,6 +53,28 @@ def angle_deg(a, b) -> float:
     return math.degrees(math.acos(min(1.0, cosine)))
 
 
+def handheld(seconds: float = 30.0, seed: int = 1, with_field: bool = False) -> tuple:
+    """(stamps ns, specific force, rates) of an IMU turned and shaken by hand (``tumble``), and
+    its magnetometer's readings (uT) ``with_field``."""
+    config = SimConfig(field_ut=50.0, inclination_deg=60.0, hard_iron_ut=HARD_IRON_UT,
+                       noise_ut=0.3, motion='tumble', seed=seed)
+    board = BoardModel(config, motion.make_trajectory('tumble', seed))
+    times = np.arange(0.0, seconds, 1.0 / RATE_HZ)
+    rows = [board.inertial(t, 57.0, 57.0) for t in times]
+    found = (np.round(times * 1e9).astype(np.int64), np.array([row[0] for row in rows]),
+             np.array([row[1] for row in rows]))
+    if not with_field:
+        return found
+    return (*found, np.array([board.magnetometer(t)[0] for t in times]))
+
+
+def rates_over(stamps, accel, gyro) -> RateCheck:
+    tracker = GravityTracker()
+    for stamp, force, rate in zip(stamps.tolist(), accel.tolist(), gyro.tolist(), strict=True):
+        tracker.update(stamp, tuple(force), tuple(rate))
+    return tracker.rates
+
+
 @pytest.mark.parametrize('bias_dps, bound_deg', [((0.0, 0.0, 0.0), 0.4),
                                                  ((2.0, -2.0, 1.0), GRAVITY_DEG)])
 def test_gravity_follows_the_tilts_and_not_the_drive(bias_dps, bound_deg):
@@ -201,29 +223,6 @@ def test_the_session_levels_only_by_what_was_gravity():
         == session.pairing.gravity.rejected
 
 
-
-def handheld(seconds: float = 30.0, seed: int = 1, with_field: bool = False) -> tuple:
-    """(stamps ns, specific force, rates) of an IMU turned and shaken by hand (``tumble``), and
-    its magnetometer's readings (uT) ``with_field``."""
-    config = SimConfig(field_ut=50.0, inclination_deg=60.0, hard_iron_ut=HARD_IRON_UT,
-                       noise_ut=0.3, motion='tumble', seed=seed)
-    board = BoardModel(config, motion.make_trajectory('tumble', seed))
-    times = np.arange(0.0, seconds, 1.0 / RATE_HZ)
-    rows = [board.inertial(t, 57.0, 57.0) for t in times]
-    found = (np.round(times * 1e9).astype(np.int64), np.array([row[0] for row in rows]),
-             np.array([row[1] for row in rows]))
-    if not with_field:
-        return found
-    return (*found, np.array([board.magnetometer(t)[0] for t in times]))
-
-
-def rates_over(stamps, accel, gyro) -> RateCheck:
-    tracker = GravityTracker()
-    for stamp, force, rate in zip(stamps.tolist(), accel.tolist(), gyro.tolist(), strict=True):
-        tracker.update(stamp, tuple(force), tuple(rate))
-    return tracker.rates
-
-
 def test_a_gyroscope_that_does_not_turn_with_the_accelerometer_is_named():
     """A gyroscope in deg/s (or with its signs flipped) makes every tilt look like an
     acceleration; checked against the accelerometer's own turning, on a simulated hand and on a
@@ -245,14 +244,67 @@ def test_a_gyroscope_that_does_not_turn_with_the_accelerometer_is_named():
                                            np.degrees(razor.gyro)).problem()
 
 
-def test_one_glitch_of_the_gyroscope_moves_the_check_by_a_hundredth_at_most():
+def test_glitches_of_either_sensor_never_turn_the_verdict():
+    """One gyroscope sample beyond any hand; a tenth of a second of the accelerometer turned
+    90° (a knock): a verdict over a hundred windows, not over the last one."""
     stamps, accel, gyro = handheld()
     clean = rates_over(stamps, accel, gyro)
-    glitched = gyro.copy()
-    glitched[len(gyro) // 2] = (30.0, -30.0, 30.0)  # one sample beyond any hand
-    spiked = rates_over(stamps, accel, glitched)
-    assert spiked.agree
-    assert abs(spiked.scale - clean.scale) < 0.03  # one window of a hundred, clipped
+    middle = len(stamps) // 2
+    spiked = gyro.copy()
+    spiked[middle] = (30.0, -30.0, 30.0)
+    knocked = accel.copy()
+    knocked[middle:middle + 10] = np.cross(accel[middle], (0.0, 0.0, 1.0))
+    for forces, rates in ((accel, spiked), (knocked, gyro)):
+        tracker = GravityTracker()
+        for index, (stamp, force, rate) in enumerate(zip(stamps.tolist(), forces.tolist(),
+                                                         rates.tolist(), strict=True)):
+            tracker.update(stamp, tuple(force), tuple(rate))
+            assert tracker.rates.agree, index
+        assert abs(tracker.rates.scale - clean.scale) < 0.05
+
+
+def test_a_gyroscope_bias_not_learnt_yet_is_no_disagreement():
+    """A ground robot's correct gyroscope with the ICM-20948's largest zero-rate offset (5 °/s):
+    until the tracker learns it, it turns gravity while the accelerometer does not."""
+    for seed in (1, 2, 3):
+        recording = course_recording(robot(seed, gyro_bias_dps=(5.0, -5.0, 1.0)),
+                                     motion.CourseDriver(motion.GROUND_COURSE[:8]),
+                                     rate_hz=RATE_HZ)
+        tracker = GravityTracker()
+        for t, force, rate in zip(recording.times, recording.accel, recording.gyro, strict=True):
+            tracker.update(round(t * 1e9), tuple(force), tuple(rate))
+            assert tracker.rates.agree, t
+
+
+def test_the_check_follows_a_gyroscope_that_changes_and_forgets_on_a_restart():
+    """A driver restarted in the right unit is trusted again within seconds; a reset or
+    another sensor starts the check anew, and the session says it once until then."""
+    stamps, accel, gyro = handheld(60.0)
+    half = len(stamps) // 2
+    tracker = GravityTracker()
+    verdicts = []
+    for index, (stamp, force, rate) in enumerate(zip(stamps.tolist(), accel.tolist(),
+                                                     gyro.tolist(), strict=True)):
+        rate = np.degrees(rate) if index < half else rate
+        tracker.update(stamp, tuple(force), tuple(rate))
+        verdicts.append(tracker.rates.agree)
+    assert not verdicts[half - 1] and verdicts[-1] and tracker.rates.scale > 0.8
+    tracker.restart()
+    assert tracker.rates.agree and tracker.rates.scale is None
+    session = CalibrationSession(SessionSettings(auto_calibrate=False))
+    for stamp, force, rate in zip(stamps.tolist(), accel.tolist(), np.degrees(gyro).tolist(),
+                                  strict=True):
+        session.process_imu(stamp, 'imu_link', force, rate)
+    said = [event for event in session.take_events() if 'angular_velocity' in event.message]
+    assert len(said) == 1
+    session.pairing.clear()
+    assert session.pairing.warning() == ''
+    for stamp, force, rate in zip(stamps.tolist(), accel.tolist(), np.degrees(gyro).tolist(),
+                                  strict=True):
+        session.process_imu(stamp + stamps[-1] + 10**9, 'imu_link', force, rate)
+    assert len([event for event in session.take_events()
+                if 'angular_velocity' in event.message]) == 1
+    session.close()
 
 
 def test_a_ground_robot_is_warned_of_a_gyroscope_in_degrees_once():

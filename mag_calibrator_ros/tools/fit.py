@@ -65,7 +65,7 @@ from mag_calibrator_ros.calibration.fit.earth_field import (
 from mag_calibrator_ros.calibration.fit.fitting import FitOptions, FitResult
 from mag_calibrator_ros.calibration.fit.input_sanity import field_unit_problem, normalised_problem
 from mag_calibrator_ros.calibration.live.buffer import DEFAULT_CAPACITY, DEFAULT_K
-from mag_calibrator_ros.calibration.live.gravity import GravityTracker
+from mag_calibrator_ros.calibration.live.gravity import GravityTracker, RateCheck
 from mag_calibrator_ros.calibration.live.jobs import FitJob, run_job
 from mag_calibrator_ros.calibration.live.pairing import force_problem
 from mag_calibrator_ros.calibration.live.screening import VALUE_REASONS, reading_problem
@@ -375,8 +375,7 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
         else 'stdin',
         'mode': 'all' if settings is None else f'buffer {settings.buffer_size}',
     }
-    session = learner = None
-    gyro_problem = ''
+    session = learner = rates = None
     if settings is not None:
         fitted = recording.samples  # plot the whole recording, corrected by the buffer's fit
         session = learner = streamed(settings, metadata, recording, fitted, clock, earth,
@@ -397,8 +396,7 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
         if recording.accel is not None:
             attitudes = still_attitudes(recording.samples, recording.accel, clock,
                                         args.full_scale, recording.gyro)
-            ups, gyro_problem = gravity_directions(recording.accel, recording.gyro,
-                                                   clock.stamps_ns)
+            ups, rates = gravity_directions(recording.accel, recording.gyro, clock.stamps_ns)
             ups = ups[kept]
         if earth is not None and args.field_strength is None and not args.normalise:
             intensity = earth.intensity_in(units)
@@ -411,11 +409,11 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     result = outcome.result
     progress.finish()
     if session is not None:
-        gyro_problem = session.pairing.gravity.rates.problem()
-    if gyro_problem:
-        where = ("--gyro-units gives the columns' unit" if recording.kind == 'text'
-                 else "the Imu messages' angular_velocity, in rad/s by sensor_msgs/Imu")
-        recording = replace(recording, notes=(*recording.notes, f'{gyro_problem} ({where})'))
+        rates = session.pairing.gravity.rates
+    if rates is not None and rates.problem():
+        hint = (" (--gyro-units gives the columns' unit)"
+                if rates.looks_like_degrees and recording.kind == 'text' else '')
+        recording = replace(recording, notes=(*recording.notes, rates.problem() + hint))
 
     success = result.success
     answer = None
@@ -751,11 +749,11 @@ def screen_all(samples: np.ndarray, full_scale: float | None
 
 
 def gravity_directions(accel: np.ndarray, gyro: np.ndarray | None, stamps_ns: np.ndarray
-                       ) -> tuple[np.ndarray, str]:
+                       ) -> tuple[np.ndarray, RateCheck]:
     """--all: gravity's unit direction behind each row as the node's pairing gives it (one
     ``GravityTracker`` over the rows in order, the gyroscope telling a tilt from the robot
     accelerating), NaN where the accelerometer is unusable or was not measuring gravity; and
-    why the gyroscope disagreed with the accelerometer at the end ('' if it did not)."""
+    whether the gyroscope turned with the accelerometer."""
     tracker = GravityTracker()
     ups = np.full((len(accel), 3), np.nan)
     rates = [None] * len(accel) if gyro is None else gyro.tolist()
@@ -768,7 +766,7 @@ def gravity_directions(accel: np.ndarray, gyro: np.ndarray | None, stamps_ns: np
         up = tracker.update(int(stamp), tuple(force), None if rate is None else tuple(rate))
         if up is not None:
             ups[index] = up
-    return ups, tracker.rates.problem()
+    return ups, tracker.rates
 
 
 def write_plot(path: str, recording: Recording, fitted: np.ndarray,

@@ -66,10 +66,12 @@ tracker: the gyroscope no longer carries the direction across it."""
 RATE_WINDOW_S = 0.05
 """The accelerometer's direction and the gyroscope's turning of it are compared over windows this
 long: short, so that even in deg/s the gyroscope turns it well under half a turn in one."""
-RATE_MIN_TURN = 0.005
+RATE_MIN_TURN = 0.0125
 """A window counts when the gyroscope turns gravity's direction at least this far in it (rad:
-0.1 rad/s of tilting): well above the accelerometer's noise between two samples. A ground robot
-turning about gravity predicts none and is never judged."""
+0.25 rad/s of tilting): beyond what a gyroscope bias not learnt yet predicts (the ICM-20948's
+zero-rate tolerance is ±5 °/s an axis, DS-000189 table 1; 7 °/s about a tilt axis is 0.006 rad
+a window), and well above the accelerometer's noise between two samples. A ground robot turning
+about gravity predicts none and is never judged."""
 RATE_WINDOWS = 100
 """Windows counted before the comparison judges (five seconds of tilting), and over which it
 keeps judging (an exponential mean): one shock or glitch moves it by a hundredth; a gyroscope
@@ -83,6 +85,9 @@ RATE_AGREE = 0.5
 RATE_CLIP = (-1.0, 3.0)
 """One window's share is clipped to this, symmetric about agreement: a window the robot's
 acceleration dominates cannot outvote many."""
+DEGREES_BETTER = 4.0
+"""deg/s is named when the rates read as deg/s predict the accelerometer's turning this many
+times better (in the mean squared miss) than as they came."""
 RAD_PER_DEG = math.pi / 180.0
 
 
@@ -136,16 +141,22 @@ class RateCheck:
             self.scale = self._mean
             self.agree = self.scale >= (RATE_DISAGREE if self.agree else RATE_AGREE)
 
+    @property
+    def looks_like_degrees(self) -> bool:
+        """Whether the rates, disagreeing, would agree read as deg/s."""
+        return (not self.agree and self.scale is not None
+                and DEGREES_BETTER * self._misfit_deg < self._misfit)
+
     def problem(self) -> str:
         """Why the gyroscope and the accelerometer disagree, in words ('' while they agree)."""
         if self.agree or self.scale is None:
             return ''
         said = (f"the gyroscope does not turn gravity's direction as the accelerometer sees it "
                 f'turn ({self.scale:+.2f} times as far)')
-        if 4.0 * self._misfit_deg < self._misfit:
+        if self.looks_like_degrees:
             return (f'{said}: its rates look like deg/s where rad/s are due (read as deg/s they '
-                    'predict it four times better or more), so every tilt looks like an '
-                    'acceleration')
+                    f'predict it {DEGREES_BETTER:.0f} times better or more), so every tilt looks '
+                    'like an acceleration')
         return (f"{said}: are its axes the accelerometer's (one frame, the same signs) and its "
                 'unit rad/s? (A multirotor in flight gives this too: its accelerometer reads '
                 'thrust, not gravity)')
@@ -191,6 +202,8 @@ class GravityTracker:
         if gyro is None:
             return None if self._gyro_seen else measured
         self._gyro_seen = True
+        if self._frame is not None and frame_id != self._frame:
+            self.rates = RateCheck()  # another sensor: its own rates
         step_s = (None if self._stamp_ns is None or frame_id != self._frame
                   else (stamp_ns - self._stamp_ns) * 1e-9)
         if step_s == 0.0:

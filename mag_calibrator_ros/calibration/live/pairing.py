@@ -142,7 +142,7 @@ class ImuPairing:
         self._since_sample = IMU_ABSENT_READINGS  # readings since the latest kept sample
         self._starving = False
         self._warnings: list[str] = []
-        self._rates_said = False  # the gyroscope's disagreement is logged once per episode
+        self._rates_said = False  # the gyroscope's disagreement is logged once (until clear)
         # (stamp, frame, item, the latest sample's stamp when the reading arrived)
         self._waiting: deque[tuple[int, str | None, object, int | None]] = deque()
         self._decided: list[tuple[object, Pair | None]] = []
@@ -174,11 +174,9 @@ class ImuPairing:
             return False
         rate = None if gyro is None else _vector(gyro)
         up = self.gravity.update(int(stamp_ns), force, rate, frame_id)
-        disagree = not self.gravity.rates.agree
-        if disagree != self._rates_said:
-            self._rates_said = disagree
-            if disagree:
-                self._warnings.append(self.rates_problem())
+        if not (self._rates_said or self.gravity.rates.agree):
+            self._rates_said = True
+            self._warnings.append(self.rates_problem())
         self._ring.append((int(stamp_ns), *force, rate, frame_id, up))
         self.accepted += 1
         self._since_sample = self._readings_since_sample = 0
@@ -328,8 +326,9 @@ class ImuPairing:
         return self.starvation() or self.rates_problem()
 
     def take_warnings(self) -> list[str]:
-        """New warnings since the last call, each said once (a frame pair, a starvation, the
-        gyroscope's rates disagreeing)."""
+        """New warnings since the last call, each said once (a frame pair, a starvation; the
+        gyroscope's rates disagreeing, once until ``clear``: a verdict near its bound may come
+        and go, /diagnostics shows it as it is)."""
         warnings, self._warnings = self._warnings, []
         return warnings
 
