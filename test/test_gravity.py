@@ -347,7 +347,7 @@ def test_the_offline_fit_notes_a_gyroscope_column_in_degrees(tmp_path, capsys, m
         fit.main([str(log), '--units', 'uT', '--accel-columns', 'ax,ay,az', '--gyro-columns',
                   'gx,gy,gz', '--gyro-units', unit, '--json', *mode])
         notes[unit] = [note for note in json.loads(capsys.readouterr().out)['input']['notes']
-                       if 'the gyroscope' in note]
+                       if note.startswith('the gyroscope columns')]
     assert len(notes['rad/s']) == 1 and 'look like deg/s' in notes['rad/s'][0]
     assert '--gyro-units' in notes['rad/s'][0]
     assert notes['deg/s'] == []

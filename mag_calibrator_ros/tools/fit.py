@@ -411,9 +411,11 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     if session is not None:
         rates = session.pairing.gravity.rates
     if rates is not None and rates.problem():
-        hint = (" (--gyro-units gives the columns' unit)"
-                if rates.looks_like_degrees and recording.kind == 'text' else '')
-        recording = replace(recording, notes=(*recording.notes, rates.problem() + hint))
+        text = recording.kind == 'text'
+        hint = ' (--gyro-units gives their unit)' if rates.looks_like_degrees and text else ''
+        what = 'the gyroscope columns' if text else "the Imu messages' angular_velocity"
+        recording = replace(recording, notes=(*recording.notes,
+                                              f'{what}: {rates.problem()}{hint}'))
 
     success = result.success
     answer = None

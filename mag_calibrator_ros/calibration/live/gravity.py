@@ -148,18 +148,19 @@ class RateCheck:
                 and DEGREES_BETTER * self._misfit_deg < self._misfit)
 
     def problem(self) -> str:
-        """Why the gyroscope and the accelerometer disagree, in words ('' while they agree)."""
+        """Why the gyroscope and the accelerometer disagree, in words, the likely cause first
+        (/diagnostics shortens long values); '' while they agree."""
         if self.agree or self.scale is None:
             return ''
-        said = (f"the gyroscope does not turn gravity's direction as the accelerometer sees it "
-                f'turn ({self.scale:+.2f} times as far)')
+        seen = (f"the accelerometer sees gravity's direction turn {self.scale:+.2f} times as far "
+                'as the gyroscope turns it')
         if self.looks_like_degrees:
-            return (f'{said}: its rates look like deg/s where rad/s are due (read as deg/s they '
-                    f'predict it {DEGREES_BETTER:.0f} times better or more), so every tilt looks '
-                    'like an acceleration')
-        return (f"{said}: are its axes the accelerometer's (one frame, the same signs) and its "
-                'unit rad/s? (A multirotor in flight gives this too: its accelerometer reads '
-                'thrust, not gravity)')
+            return (f'the rates look like deg/s where rad/s are due: {seen}, and read as deg/s '
+                    f'they predict it {DEGREES_BETTER:.0f} times better or more; every tilt '
+                    'looks like an acceleration')
+        return (f"its turning does not follow the accelerometer's: {seen}; are its axes the "
+                "accelerometer's (one frame, the same signs) and its unit rad/s? (A multirotor "
+                'in flight gives this too: its accelerometer reads thrust, not gravity)')
 
 
 class GravityTracker:
