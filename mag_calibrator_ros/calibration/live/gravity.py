@@ -74,13 +74,15 @@ a window), and well above the accelerometer's noise between two samples. A groun
 about gravity predicts none and is never judged."""
 RATE_WINDOWS = 100
 """Windows counted before the comparison judges (five seconds of tilting), and over which it
-keeps judging (an exponential mean): one shock or glitch moves it by a hundredth; a gyroscope
-that changes (a driver restarted in another unit) is followed within seconds."""
+keeps judging (an exponential mean): one shock or glitch moves it by a few hundredths at most;
+a gyroscope that changes (a driver restarted in another unit) is followed within seconds."""
 RATE_DISAGREE = 0.3
 """The two disagree when the accelerometer turns less than this share of what the gyroscope
 predicts (deg/s read as rad/s: 1/57; other axes: about 0 or less; a multirotor in flight: 0 to
-0.2), and agree again from RATE_AGREE (a handheld IMU: 0.9 and more). The robot's accelerations
-add noise to the accelerometer's turning, not a share."""
+0.2), and agree again from RATE_AGREE (a handheld IMU: 0.9 and more). Noise pulls the share
+towards 1 (a window's start is noisy too, and the gyroscope turns its noise with it): an
+accelerometer that shakes by more than the tilts move it can hide a deg/s gyroscope, never
+invent one."""
 RATE_AGREE = 0.5
 RATE_CLIP = (-1.0, 3.0)
 """One window's share is clipped to this, symmetric about agreement: a window the robot's
