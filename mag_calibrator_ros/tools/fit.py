@@ -410,12 +410,12 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     progress.finish()
     if session is not None:
         rates = session.pairing.gravity.rates
-    if rates is not None and rates.problem():
+    gyro_problem = '' if rates is None else rates.problem()
+    if gyro_problem:
         text = recording.kind == 'text'
         hint = ' (--gyro-units gives their unit)' if rates.looks_like_degrees and text else ''
         what = 'the gyroscope columns' if text else "the Imu messages' angular_velocity"
-        recording = replace(recording, notes=(*recording.notes,
-                                              f'{what}: {rates.problem()}{hint}'))
+        recording = replace(recording, notes=(*recording.notes, f'{what}: {gyro_problem}{hint}'))
 
     success = result.success
     answer = None

@@ -101,8 +101,6 @@ class RateCheck:
     mistake common enough to name."""
 
     def __init__(self) -> None:
-        self.scale: float | None = None
-        """The accelerometer's turning per the gyroscope's (None until RATE_WINDOWS counted)."""
         self.agree = True
         self._start: Vector | None = None  # the measured direction at the window's start
         self._turned: Vector = (0.0, 0.0, 1.0)  # it, turned by the gyroscope since
@@ -140,8 +138,12 @@ class RateCheck:
         self._misfit += (_dot(misses[0], misses[0]) - self._misfit) * weight
         self._misfit_deg += (_dot(misses[1], misses[1]) - self._misfit_deg) * weight
         if self._counted >= RATE_WINDOWS:
-            self.scale = self._mean
-            self.agree = self.scale >= (RATE_DISAGREE if self.agree else RATE_AGREE)
+            self.agree = self._mean >= (RATE_DISAGREE if self.agree else RATE_AGREE)
+
+    @property
+    def scale(self) -> float | None:
+        """The accelerometer's turning per the gyroscope's (None until RATE_WINDOWS counted)."""
+        return self._mean if self._counted >= RATE_WINDOWS else None
 
     @property
     def looks_like_degrees(self) -> bool:
