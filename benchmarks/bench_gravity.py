@@ -21,6 +21,15 @@ through ``CalibrationSession`` (inline fits: the numbers do not depend on load).
     gyroscope bias and with 5 °/s, not learnt yet at the start): the share it ends on,
     whether it agrees, how often the verdict changed, when it first judged, and what it names;
     the rates as recorded, in deg/s (times 180/pi) and negated.
+(d) The live session over the whole three-minute ``motion.GROUND_COURSE`` (straight legs and
+    stops at a few headings between the turns), with its defaults: the heading RMS over a
+    noise-free full turn of the first calibration it puts in force, of the last, and of the
+    worst, and how many it put in force; at the magnetometer noise of each ``--noise`` (uT).
+(e) The levelled fit alone (``fit_calibration``, offline, gravity's true direction) on a robot
+    that turns a little over a circle on a 2° wobbly floor, stands 15 s, turns a half circle
+    and stands 14 s, with no soft iron and under six random ones (symmetric, spread 0.12), on six
+    floors each:
+    the heading RMS over a noise-free turn of another floor, mean and worst, at each noise.
 
 ``--ramp S``: (a) and (b) with every change of speed and turn rate eased in over S seconds (a
 raised cosine, commanded at 100 Hz, as a smooth controller or a joystick pushed gradually
@@ -28,6 +37,7 @@ does): the acceleration then builds up instead of stepping.
 
     PYTHONPATH=$PWD .venv/bin/python benchmarks/bench_gravity.py            # seeds 1 2 3
     PYTHONPATH=$PWD .venv/bin/python benchmarks/bench_gravity.py --ramp 2
+    PYTHONPATH=$PWD .venv/bin/python benchmarks/bench_gravity.py --parts d --seeds 1 2 3 4 5 6 7 8
 """
 
 from __future__ import annotations
@@ -44,6 +54,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_interference import RATE_HZ, robot  # noqa: E402  (one robot for both benchmarks)
 
+from mag_calibrator_ros.calibration.fit.fitting import FitOptions, fit_calibration  # noqa: E402
 from mag_calibrator_ros.calibration.live.gravity import GravityTracker  # noqa: E402
 from mag_calibrator_ros.calibration.live.pairing import force_problem  # noqa: E402
 from mag_calibrator_ros.calibration.live.session import CalibrationSession  # noqa: E402
@@ -196,12 +207,52 @@ def rate_checks(seeds: list[int]) -> None:
             print(f'  {name}, {what}: {rate_check(stamps, accel, rates)}')
 
 
+def in_force_headings(seed: int, noise_ut: float) -> list[float]:
+    """(d): the heading RMS (over a noise-free full turn) of every calibration the live session
+    put in force over the whole course, in order."""
+    recording = course_recording(board(seed, noise_ut=noise_ut), motion.CourseDriver(),
+                                 rate_hz=RATE_HZ)
+    turn = course_recording(board(seed, noise_ut=0.0), motion.CourseDriver(COURSE[:2]),
+                            rate_hz=RATE_HZ)
+    moving = turn.times >= COURSE[0].duration_s
+    session = CalibrationSession()
+    headings, last = [], None
+    for index, stamp in enumerate(np.round(recording.times * 1e9).astype(np.int64).tolist()):
+        session.process_imu(stamp, 'imu_link', recording.accel[index], recording.gyro[index])
+        session.process(stamp, 'imu_link', recording.mag[index])
+        session.poll()
+        if session.calibration is not None and session.calibration is not last:
+            last = session.calibration
+            errors = azimuth_errors_deg(last.apply(turn.mag[moving]), turn.truth[moving])
+            headings.append(float(np.sqrt(np.mean(errors**2))))
+    session.close()
+    return headings
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--seeds', type=int, nargs='+', default=[1, 2, 3])
     parser.add_argument('--ramp', type=float, default=0.0,
                         help='ease every command change over this many seconds')
+    parser.add_argument('--parts', default='abcde', help='which parts to run (default abcde)')
+    parser.add_argument('--noise', type=float, nargs='+', default=[0.3, 0.6],
+                        help="(d): the magnetometer's noise, uT (default 0.3 0.6)")
     args = parser.parse_args(argv)
+    if 'a' in args.parts:
+        part_a(args)
+    if 'b' in args.parts:
+        part_b(args)
+    if 'c' in args.parts:
+        print("(c) the gyroscope against the accelerometer's turning (RateCheck)")
+        rate_checks(args.seeds)
+    if 'd' in args.parts:
+        part_d(args)
+    if 'e' in args.parts:
+        part_e(args)
+    return 0
+
+
+def part_a(args: argparse.Namespace) -> None:
     print('(a) angle to the true gravity (deg): RMS / p99 / worst; share given; bias learnt')
     for bias in ((0.0, 0.0, 0.0), BIASED_DPS):
         for seed in args.seeds:
@@ -212,6 +263,9 @@ def main(argv: list[str] | None = None) -> int:
                   f' tracker {np.sqrt(np.mean(tracked[given]**2)):.3f}'
                   f' / {np.percentile(tracked[given], 99):.2f} / {tracked[given].max():.2f};'
                   f' given {100 * given.mean():.1f} %; bias learnt {np.round(learnt, 2)} °/s')
+
+
+def part_b(args: argparse.Namespace) -> None:
     print('(b) ~/calibrate after the course: offset error x, y (uT), z offset (truth 25), dip'
           ' (truth 60), residual, heading RMS')
     truth = np.asarray(GROUND_HARD_IRON_UT, dtype=float)
@@ -226,9 +280,78 @@ def main(argv: list[str] | None = None) -> int:
                   f' z {offset[2]:.1f}; dip {dip.group(1) if dip else "held"};'
                   f' residual {residual.group(1) if residual else "?"} %;'
                   f' heading {heading:.2f}° RMS')
-    print("(c) the gyroscope against the accelerometer's turning (RateCheck)")
-    rate_checks(args.seeds)
-    return 0
+
+
+def part_d(args: argparse.Namespace) -> None:
+    print('(d) the live session over the whole course: heading RMS of the calibrations in force'
+          ' (first / last / worst, deg) and how many')
+    for noise_ut in args.noise:
+        rows = []
+        for seed in args.seeds:
+            headings = in_force_headings(seed, noise_ut)
+            if not headings:
+                print(f'  noise {noise_ut} uT seed {seed}: none put in force')
+                continue
+            rows.append((headings[0], headings[-1], max(headings)))
+            print(f'  noise {noise_ut} uT seed {seed}: {headings[0]:.3f} / {headings[-1]:.3f} /'
+                  f' {max(headings):.3f}, {len(headings)} in force')
+        if rows:
+            first, final, worst = np.array(rows).T
+            print(f'  noise {noise_ut} uT over {len(rows)} seeds: first mean {first.mean():.3f}'
+                  f' max {first.max():.3f}; last mean {final.mean():.3f} max {final.max():.3f};'
+                  f' worst mean {worst.mean():.3f} max {worst.max():.3f}')
+
+
+
+DWELLING = ((14.0, 0.5), (15.0, 0.0), (4.0, 0.8), (14.0, 0.0))
+"""(e): (seconds, yaw rate rad/s): a turn a little over a circle, a stand, a half turn, a stand."""
+E_HARD_IRON_UT = np.array([20.0, -30.0, 40.0])
+
+
+def turned(seed: int, soft_iron: np.ndarray, noise_ut: float,
+           legs: tuple[tuple[float, float], ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(e): (raw uT, gravity's unit direction, true field uT) in the chip frame, at 50 Hz."""
+    trajectory = motion.CmdVelTrajectory(seed=seed, wobble_deg=2.0)
+    earth = motion.earth_field(50.0, 60.0)
+    rng = np.random.default_rng([seed, 7])
+    raw, ups, truth = [], [], []
+    start = 0.0
+    for duration, rate in legs:
+        for t in np.arange(start, start + duration, 0.02):
+            trajectory.command(rate, float(t))
+            rotation = trajectory.state(float(t)).rotation
+            field = rotation.T @ earth
+            raw.append(soft_iron @ field + E_HARD_IRON_UT + rng.normal(0.0, noise_ut, 3))
+            ups.append(rotation.T @ np.array([0.0, 0.0, 1.0]))
+            truth.append(field)
+        start += duration
+    return np.array(raw), np.array(ups), np.array(truth)
+
+
+def part_e(args: argparse.Namespace) -> None:
+    print('(e) the levelled fit alone, a turn and two stands: heading RMS (deg) over six floors,'
+          ' mean / worst, per soft iron')
+    rng = np.random.default_rng(5)
+    soft_irons = [np.eye(3)]  # none: the noise is the same in every corrected axis too
+    for _ in range(6):
+        spread = rng.normal(0.0, 0.12, (3, 3))
+        soft_irons.append(np.eye(3) + (spread + spread.T) / 2.0)
+    check_raw = {}
+    for noise_ut in args.noise:
+        for index, soft_iron in enumerate(soft_irons):
+            if index not in check_raw:
+                check_raw[index] = turned(99, soft_iron, 0.0, ((2.0, 0.0), (14.0, 0.5)))
+            raw_check, _, truth = check_raw[index]
+            errors = []
+            for floor in range(6):
+                raw, ups, _ = turned(floor, soft_iron, noise_ut, DWELLING)
+                result = fit_calibration(raw * 1e-6, FitOptions(model='planar'), ups=ups)
+                corrected = result.calibration.apply(raw_check[100:] * 1e-6)
+                errors.append(float(np.sqrt(np.mean(
+                    azimuth_errors_deg(corrected, truth[100:]) ** 2))))
+            eigenvalues = np.round(np.linalg.eigvalsh(soft_iron), 2)
+            print(f'  noise {noise_ut} uT, soft iron {index} (eigenvalues {eigenvalues}):'
+                  f' {np.mean(errors):.3f} / {np.max(errors):.3f}')
 
 
 if __name__ == '__main__':

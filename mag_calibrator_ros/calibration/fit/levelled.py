@@ -19,9 +19,11 @@ symmetric one, and a tilt explains the wobble instead of bending the shape. As i
 planar fit, the out-of-plane scale is held at the in-plane one; the offset along the plane normal
 (and with it V, the dip) is fitted when the tilts determine it, else held at the plain fit's.
 
-Residuals are relative to H (H = 1: the horizontal ring has unit radius), so no scale can shrink
-them. The result is an :class:`EllipsoidFit` like every other (``|unit| ≈ 1`` on the full field),
-so gates, evidence and the magnitude checks judge it the same way.
+The model is fitted with H = 1 (the horizontal ring has unit radius), so no scale can shrink its
+residuals, and each residual is taken over how far the raw reading's noise moves it (to first
+order the reading's distance from the model in its own units). The result is an
+:class:`EllipsoidFit` like every other (``|unit| ≈ 1`` on the full field), so gates, evidence
+and the magnitude checks judge it the same way.
 """
 
 from __future__ import annotations
@@ -220,8 +222,23 @@ class _Model:
         return self.parts(p)[0] - 1.0
 
     def _residuals(self, p: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        horizontal, vertical = self.parts(p, rows)
-        e = np.concatenate([horizontal - 1.0, vertical - p[8]])
+        """Each residual over its noise gain, how far it moves per unit the raw reading moves:
+        to first order the reading's distance from the model in its own units (Sampson,
+        "Fitting conic sections to 'very scattered' data", CGIP 18(1):97-108, 1982; gradient-
+        weighted, as Taubin, IEEE PAMI 13(11), 1991). Unscaled, the noise pulled the weakly
+        seen offset along the normal by about the noise squared, with or without soft iron,
+        most on readings that dwell at a few headings (BENCHMARKS.md, "The levelled fit and
+        noise")."""
+        matrix = self.matrix(p)
+        corrected = (self.w[rows] - p[5:8]) @ matrix.T
+        up = self.up[rows]
+        vertical = np.einsum('ij,ij->i', corrected, up)
+        across = corrected - vertical[:, None] * up
+        horizontal = np.maximum(np.linalg.norm(across, axis=1), 1e-300)
+        horizontal_gain = np.linalg.norm((across / horizontal[:, None]) @ matrix, axis=1)
+        vertical_gain = np.linalg.norm(up @ matrix, axis=1)
+        e = np.concatenate([(horizontal - 1.0) / horizontal_gain,
+                            (vertical - p[8]) / vertical_gain])
         if self.root is not None:
             e = e * np.tile(self.root[rows], 2)
         return e
