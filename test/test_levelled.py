@@ -4,6 +4,8 @@ the plain fit."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+import math
 from pathlib import Path
 import sys
 
@@ -51,6 +53,57 @@ def test_a_level_turn_is_levelled_too_but_its_vertical_stays_unobserved():
     assert heading_error_deg(plain.calibration, wobble_deg=0.0) > 0.2
     assert heading_error_deg(levelled.calibration, wobble_deg=0.0) < 0.1
     assert 'offset_normal' in levelled.calibration.metadata['unobserved']
+
+
+@pytest.mark.parametrize('std', [1e-3, 1e3, math.nan, -0.1, 'wide', None])
+def test_a_refinement_weighs_in_what_the_calibration_in_force_knew(std):
+    """``known``: its offset along the turning axis is a prior of its own 1-sigma (metadata
+    ``levelled_offset_normal_std``, a share of its field): a tight one holds the refit there,
+    a loose one leaves the readings to decide, and one that is no number is no prior."""
+    raw, _, up, _ = turning_imu(40.0, seed=0, wobble_deg=2.0)
+    free = fit_calibration(raw * UT, FitOptions(model='planar'), ups=up)
+    own_std = free.calibration.metadata['levelled_offset_normal_std']
+    assert 0.0 < own_std < 0.05  # determined by these tilts: the dip is fitted
+    normal = np.array(free.calibration.metadata['plane_normal'])
+    known = replace(free.calibration, offset=free.calibration.offset + 30.0 * UT * normal)
+    known = known.with_metadata(levelled_offset_normal_std=std)
+    weighed = fit_calibration(raw * UT, FitOptions(model='planar'), ups=up, known=known)
+    moved = float(normal @ (weighed.calibration.offset - free.calibration.offset)) / UT
+    if std == 1e-3:  # 0.05 uT: the readings cannot move it
+        assert 29.0 < moved < 30.5 and 'weighed with the calibration in force' in weighed.reason
+    elif std == 1e3:
+        assert abs(moved) < 0.1 and 'weighed' in weighed.reason
+    else:
+        assert np.array_equal(weighed.calibration.offset, free.calibration.offset)
+        assert 'weighed' not in weighed.reason
+    assert weighed.calibration.metadata['levelled_offset_normal_std'] == own_std  # the data's
+
+
+def test_a_level_first_turn_knows_nothing_and_a_wobbly_refinement_frees_it():
+    """A first calibration from a level turn holds the offset along the turning axis where the
+    plain fit put it (no tilts, no 1-sigma): a later refinement on a wobbly floor must fit it,
+    not keep it (a hard hold kept such a guess 40 uT off)."""
+    level, _, level_up, _ = turning_imu(30.0, seed=0, wobble_deg=0.0)
+    tilted, _, tilted_up, _ = turning_imu(60.0, seed=1, wobble_deg=0.5)
+    raw, up = np.vstack([level, tilted]) * UT, np.vstack([level_up, tilted_up])
+    session = CalibrationSession()
+    in_force = []
+    for index, (reading, direction) in enumerate(zip(raw.tolist(), up.tolist(), strict=True)):
+        stamp = round(index * 1e9 / RATE_HZ)
+        session.process_imu(stamp, 'imu_link', [G * value for value in direction], None)
+        session.process(stamp, 'imu_link', reading)
+        session.poll()
+        if session.calibration is not None and (not in_force
+                                                or session.calibration is not in_force[-1]):
+            in_force.append(session.calibration)
+    session.close()
+    assert len(in_force) >= 2 and session.adoptions.get('refine', 0) == len(in_force) - 1
+    first, refined = in_force[0], in_force[1]
+    assert 'levelled_offset_normal_std' not in first.metadata  # held, not fitted
+    assert abs(first.offset[2] / UT - HARD_IRON_UT[2]) > 20.0  # the plain fit's guess
+    assert abs(refined.offset[2] / UT - HARD_IRON_UT[2]) < 10.0  # the first refinement frees it
+    assert refined.metadata['levelled_offset_normal_std'] > 0.0
+    assert heading_error_deg(in_force[-1], wobble_deg=0.5) < 0.15
 
 
 def dwelling_turns(seed: int, noise_ut: float) -> tuple[np.ndarray, np.ndarray]:

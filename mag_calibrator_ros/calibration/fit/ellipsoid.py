@@ -204,6 +204,9 @@ class EllipsoidFit:
     """planar: levelled by gravity (levelled.py)."""
     dip_deg: float | None = None
     """The inclination a levelled fit determined from the tilts, else None."""
+    normal_offset_std: float | None = None
+    """A levelled fit's 1-sigma of its offset along the normal, relative to the field, from its
+    own readings (None: not levelled, or the offset held)."""
 
 
 def thickness(y: np.ndarray) -> tuple[float, np.ndarray]:

@@ -177,6 +177,7 @@ def fit_calibration(
     readings: ArrayLike | None = None,
     ups: ArrayLike | None = None,
     paired: tuple[ArrayLike, ArrayLike] | None = None,
+    known: Calibration | None = None,
 ) -> FitResult:
     """Fit ``options.model`` to (n, 3) raw samples; never raises on data, never returns NaN/Inf.
 
@@ -190,7 +191,9 @@ def fit_calibration(
     paired accelerometer; NaN rows: none); ``paired`` (readings (m, 3), their gravity
     directions (m, 3)), preferred when given (SampleBuffer.paired_readings: an unbiased draw). A
     planar fit without a prior is then levelled by them (see levelled.py): a ground robot's tilts
-    explained, its heading right on a tilted floor.
+    explained, its heading right on a tilted floor. ``known``, optional: the calibration in
+    force, whose offset along the turning axis such a fit weighs in as far as its own tilts
+    determined it (metadata ``levelled_offset_normal_std``): a refinement.
     """
     options = options or FitOptions()
     rows, finite, problem = _usable_rows(samples)
@@ -232,6 +235,8 @@ def fit_calibration(
         prior=None if options.prior is None else options.prior.scaled(1.0 / unit),
     )
     gravity = _gravity(rows, unit, weights, finite, ups, paired)
+    if gravity is not None:
+        gravity = (*gravity, _known_normal(known, unit))
     with np.errstate(all='ignore'):
         layer_thickness, _ = thickness(normalised[1])
         fitted, choice_note = _level(rows, options, gravity, *_fit_model(
@@ -358,6 +363,17 @@ def _paired_rows(points: ArrayLike, ups: ArrayLike
     return points, ups
 
 
+def _known_normal(known: Calibration | None, unit: float) -> tuple[np.ndarray, float] | None:
+    """(offset, its 1-sigma along the turning axis) of ``known`` in the rows' units, when its
+    levelled fit determined one (a finite, positive share of its field); else None."""
+    if known is None:
+        return None
+    std = known.metadata_number('levelled_offset_normal_std')
+    if not (std is not None and math.isfinite(std) and std > 0.0):
+        return None
+    return np.asarray(known.offset, dtype=float) / unit, std * known.field_strength / unit
+
+
 def _too_few(n: int, options: FitOptions) -> str:
     if n >= options.min_samples:
         return ''
@@ -370,15 +386,17 @@ def _too_few(n: int, options: FitOptions) -> str:
 def _level(
     rows: np.ndarray,
     options: FitOptions,
-    gravity: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None,
+    gravity: tuple[np.ndarray, np.ndarray, np.ndarray | None, tuple | None] | None,
     fitted: EllipsoidFit | None,
     note: str,
 ) -> tuple[EllipsoidFit | None, str]:
     """A planar fit without a prior, levelled by ``gravity`` (points in the rows' units, their
-    gravity directions, weights) when that stands (levelled.py); any other fit as it is."""
+    gravity directions, weights, what was known of the offset along the normal) when that
+    stands (levelled.py); any other fit as it is."""
     if fitted is None or fitted.model != 'planar' or gravity is None or options.prior is not None:
         return fitted, note
-    levelling = level_planar(*gravity[:2], fitted, gravity[2], options.outlier_threshold)
+    levelling = level_planar(*gravity[:2], fitted, gravity[2], options.outlier_threshold,
+                             gravity[3])
     if levelling.offset is None:
         return fitted, note
     return (levelling.ellipsoid_fit(rows, fitted, options.outlier_threshold),
@@ -504,6 +522,8 @@ def _judge(
             extra['levelled_by_gravity'] = True
             if fitted.dip_deg is not None:
                 extra['levelled_dip_deg'] = round(fitted.dip_deg, 3)
+            if fitted.normal_offset_std is not None:
+                extra['levelled_offset_normal_std'] = float(fitted.normal_offset_std)
         calibration = calibration.with_metadata(
             residual_rms_pct=residual_rms,
             coverage=float(coverage.fraction),

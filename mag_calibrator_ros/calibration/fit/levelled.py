@@ -17,7 +17,10 @@ Calibration and Axes Alignment", Technologies 8(1):11, 2020). Fitting both to
 corrected ring is perpendicular to gravity, its heading (rotation about the vertical) is the
 symmetric one, and a tilt explains the wobble instead of bending the shape. As in the plain
 planar fit, the out-of-plane scale is held at the in-plane one; the offset along the plane normal
-(and with it V, the dip) is fitted when the tilts determine it, else held at the plain fit's.
+(and with it V, the dip) is fitted unless the tilts leave it degenerate (a level floor), then held
+at the plain fit's. A refinement weighs it with what the calibration in force knew of it (a
+Gaussian prior of that fit's own 1-sigma): the held-out |B| residuals that judge a refinement
+barely see it, so a refit on a few headings must not move it by more than its data tell.
 
 The model is fitted with H = 1 (the horizontal ring has unit radius), so no scale can shrink its
 residuals, and each residual is taken over how far the raw reading's noise moves it (to first
@@ -73,6 +76,9 @@ class Levelling:
     note: str
     dip_deg: float | None = None
     """The fitted inclination when the tilts determined it, else None."""
+    normal_std: float | None = None
+    """The offset along the normal's 1-sigma from this fit's own readings, relative to the
+    field (None: held, not fitted)."""
 
     def ellipsoid_fit(self, rows: np.ndarray, plain: EllipsoidFit,
                       outlier_threshold: float) -> EllipsoidFit:
@@ -94,6 +100,7 @@ class Levelling:
             else ('offset_normal', 'matrix_normal'),
             plane_normal=normal, headings=np.arctan2(in_plane[:, 1], in_plane[:, 0]),
             robust=plain.robust, levelled=True, dip_deg=self.dip_deg,
+            normal_offset_std=self.normal_std,
         )  # fmt: skip
 
 
@@ -103,11 +110,14 @@ def level_planar(
     plain: EllipsoidFit,
     weights: np.ndarray | None = None,
     outlier_threshold: float = 4.0,
+    known: tuple[np.ndarray, float] | None = None,
 ) -> Levelling:
     """Refit the planar fit ``plain`` on ``points`` (n, 3) with gravity directions ``ups`` (n, 3;
     NaN rows: none paired). Best on an unbiased draw of readings (SampleBuffer.readings): the
     most spread-out samples of a thin ring are the noisiest ones. Points off the plain fit by
     more than ``outlier_threshold`` robust sigmas are left out, then flagged again on the result.
+    ``known``: (an offset (3,), its 1-sigma along the normal > 0), in the points' units: what
+    the calibration in force knew of the offset along the normal, weighed in as a prior.
     """
     if plain.plane_normal is None or len(points) != len(ups):
         return Levelling(None, None, 'no plane to level')
@@ -143,7 +153,15 @@ def level_planar(
         fitted = model.solve(start, inliers, free_normal=False)
     if fitted is None:
         return Levelling(None, None, 'the levelled fit did not converge')
-    observed = not held and model.normal_determined(fitted, inliers)
+    normal_std = None if held else model.normal_std(fitted, inliers)
+    observed = normal_std is not None and normal_std <= MAX_NORMAL_OFFSET_STD
+    weighed = not held and known is not None and model.know(known, fitted, inliers)
+    if weighed:
+        again = model.solve(fitted, inliers, free_normal=True)
+        if again is None:
+            model.prior, weighed = None, False
+        else:
+            fitted = again
     level = model.horizontal_residuals(fitted)
     refit = paired.copy()
     refit[paired] = np.abs(level[paired]) <= outlier_threshold * robust_sigma(level[paired])
@@ -162,8 +180,10 @@ def level_planar(
             and np.linalg.eigvalsh(matrix).min() > 0):
         return Levelling(None, None, 'the levelled soft-iron matrix is not positive definite')
     dip = float(np.degrees(np.arctan(abs(fitted[8]))))
-    note = 'levelled by gravity' + (f' (dip {dip:.1f} deg fitted)' if observed else '')
-    return Levelling(offset, matrix, note, dip if observed else None)
+    note = 'levelled by gravity' + (f' (dip {dip:.1f} deg fitted)' if observed else '') + (
+        " (the offset along the turning axis weighed with the calibration in force's)"
+        if weighed else '')
+    return Levelling(offset, matrix, note, dip if observed else None, normal_std)
 
 
 def _basis(normal: np.ndarray) -> np.ndarray:
@@ -185,6 +205,8 @@ class _Model:
         self.w = (rows - self.mean) @ basis
         self.up = up @ basis
         self.root = None if weights is None else np.sqrt(np.asarray(weights, dtype=float))
+        self.prior: tuple[float, float] | None = None
+        """(offset along the normal, weight): one more residual, (b_n - offset) x weight."""
 
     @staticmethod
     def matrix(p: np.ndarray) -> np.ndarray:
@@ -228,7 +250,7 @@ class _Model:
         weighted, as Taubin, IEEE PAMI 13(11), 1991). Unscaled, the noise pulled the weakly
         seen offset along the normal by about the noise squared, with or without soft iron,
         most on readings that dwell at a few headings (BENCHMARKS.md, "The levelled fit and
-        noise")."""
+        noise"); a prior (``know``) is one more residual."""
         matrix = self.matrix(p)
         corrected = (self.w[rows] - p[5:8]) @ matrix.T
         up = self.up[rows]
@@ -241,6 +263,8 @@ class _Model:
                             (vertical - p[8]) / vertical_gain])
         if self.root is not None:
             e = e * np.tile(self.root[rows], 2)
+        if self.prior is not None:
+            e = np.append(e, (p[7] - self.prior[0]) * self.prior[1])
         return e
 
     def solve(self, start: np.ndarray, rows: np.ndarray, free_normal: bool) -> np.ndarray | None:
@@ -276,19 +300,35 @@ class _Model:
         singular = np.linalg.svd(self._jacobian / norms, compute_uv=False)
         return not singular[-1] * MAX_CONDITION > singular[0]
 
-    def normal_determined(self, p: np.ndarray, rows: np.ndarray) -> bool:
-        """The offset along the normal's 1-sigma, from the last (free) solve's Jacobian,
-        relative to the field."""
+    def normal_std(self, p: np.ndarray, rows: np.ndarray) -> float | None:
+        """The offset along the normal's 1-sigma relative to the field, from the last (free,
+        prior-less) solve's Jacobian; None when it cannot be had."""
         jacobian, dof = self._jacobian, 2 * int(rows.sum()) - int(self._free.sum())
-        if dof <= 0:
-            return False
+        if dof <= 0 or not self._free[7]:
+            return None
         try:
             covariance = np.linalg.inv(jacobian.T @ jacobian) * (self._cost / dof)
         except np.linalg.LinAlgError:
-            return False
+            return None
         std = float(np.sqrt(max(covariance[7, 7], 0.0)))  # b_n, in the plane frame's units
         scale = float(np.sqrt(np.linalg.det(self.matrix(p)[:2, :2])))  # 1 / H in those units
-        return bool(np.isfinite(std) and std * scale <= MAX_NORMAL_OFFSET_STD * np.hypot(1, p[8]))
+        relative = std * scale / float(np.hypot(1.0, p[8]))
+        return relative if np.isfinite(relative) else None
+
+    def know(self, known: tuple[np.ndarray, float], p: np.ndarray, rows: np.ndarray) -> bool:
+        """Take ``known`` (offset, its 1-sigma along the normal, input units) as the prior of
+        the offset along the normal, weighed against the readings' noise as the last solve
+        (at ``p``, on ``rows``) measured it; False when either is unusable."""
+        offset, std = np.asarray(known[0], dtype=float), float(known[1])
+        dof = 2 * int(rows.sum()) - int(self._free.sum())
+        if offset.shape != (3,) or not (np.all(np.isfinite(offset)) and std > 0.0
+                                        and np.isfinite(std) and dof > 0):
+            return False
+        noise = float(np.sqrt(self._cost / dof))  # per unit weight, in the points' units
+        if not (np.isfinite(noise) and noise > 0.0):
+            return False
+        self.prior = (float(self.basis[:, 2] @ (offset - self.mean)), noise / std)
+        return True
 
     def calibration(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(offset, matrix) in input units, ``|unit| = 1`` on the full field (H = 1, V)."""

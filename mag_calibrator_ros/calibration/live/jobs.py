@@ -86,7 +86,8 @@ class FitJob:
     previous: Calibration | None = None
     """reference: the reference in use, to tell whether the new one settled."""
     current: Calibration | None = None
-    """refine and calibrate: the calibration in force, compared on ``evidence``."""
+    """refine and calibrate: the calibration in force, compared on ``evidence``; a refinement
+    also weighs in what it knew of the offset along a ground robot's turning axis."""
     evidence: np.ndarray | None = None
     """Held-out readings no fit has seen (see evidence.HeldOutEvidence)."""
     ticket: int | None = None
@@ -191,7 +192,8 @@ def _run(job: FitJob) -> JobOutcome:
         if coverage.fraction < needed:
             return JobOutcome(job, coverage=coverage)
     result = fit_calibration(job.samples, job.options, weights=job.weights, readings=job.readings,
-                             ups=job.ups, paired=job.paired)
+                             ups=job.ups, paired=job.paired,
+                             known=job.current if job.kind == 'refine' else None)
     if result.calibration is not None:
         stamped = result.calibration.with_metadata(
             time=time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()), **job.metadata
