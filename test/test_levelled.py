@@ -55,28 +55,52 @@ def test_a_level_turn_is_levelled_too_but_its_vertical_stays_unobserved():
     assert 'offset_normal' in levelled.calibration.metadata['unobserved']
 
 
-@pytest.mark.parametrize('std', [1e-3, 1e3, math.nan, -0.1, 'wide', None])
-def test_a_refinement_weighs_in_what_the_calibration_in_force_knew(std):
+@pytest.mark.parametrize('std', [1e-3, 'own', 1e3, math.nan, -0.1, 'wide', None])
+@pytest.mark.parametrize('field_strength', [None, 1.0])
+def test_a_refinement_weighs_in_what_the_calibration_in_force_knew(std, field_strength):
     """``known``: its offset along the turning axis is a prior of its own 1-sigma (metadata
-    ``levelled_offset_normal_std``, a share of its field): a tight one holds the refit there,
-    a loose one leaves the readings to decide, and one that is no number is no prior."""
+    ``levelled_offset_normal_std``, a share of the field it read, whatever F it was scaled to):
+    a tight one holds the refit there, one as sure as the readings meets them halfway, a loose
+    one leaves the readings to decide, and one that is no number is no prior."""
     raw, _, up, _ = turning_imu(40.0, seed=0, wobble_deg=2.0)
-    free = fit_calibration(raw * UT, FitOptions(model='planar'), ups=up)
+    options = FitOptions(model='planar', field_strength=field_strength)
+    free = fit_calibration(raw * UT, options, ups=up)
     own_std = free.calibration.metadata['levelled_offset_normal_std']
-    assert 0.0 < own_std < 0.05  # determined by these tilts: the dip is fitted
+    assert 0.0 < own_std < 0.1  # determined by these tilts
     normal = np.array(free.calibration.metadata['plane_normal'])
     known = replace(free.calibration, offset=free.calibration.offset + 30.0 * UT * normal)
-    known = known.with_metadata(levelled_offset_normal_std=std)
-    weighed = fit_calibration(raw * UT, FitOptions(model='planar'), ups=up, known=known)
+    known = known.with_metadata(levelled_offset_normal_std=own_std if std == 'own' else std)
+    weighed = fit_calibration(raw * UT, options, ups=up, known=known)
     moved = float(normal @ (weighed.calibration.offset - free.calibration.offset)) / UT
+    said = 'weighed with the calibration in force' in weighed.reason
     if std == 1e-3:  # 0.05 uT: the readings cannot move it
-        assert 29.0 < moved < 30.5 and 'weighed with the calibration in force' in weighed.reason
+        assert 29.0 < moved < 30.5 and said
+    elif std == 'own':  # as sure as the readings: halfway
+        assert 12.0 < moved < 18.0 and said
     elif std == 1e3:
-        assert abs(moved) < 0.1 and 'weighed' in weighed.reason
+        assert abs(moved) < 0.1 and not said
     else:
         assert np.array_equal(weighed.calibration.offset, free.calibration.offset)
-        assert 'weighed' not in weighed.reason
+        assert not said
     assert weighed.calibration.metadata['levelled_offset_normal_std'] == own_std  # the data's
+
+
+def test_a_level_floor_refit_keeps_what_the_calibration_in_force_knew():
+    """A refit on a level floor cannot tell the offset along the turning axis: it keeps the
+    calibration in force's and its 1-sigma, not the plain fit's guess."""
+    tilted, _, tilted_up, _ = turning_imu(40.0, seed=0, wobble_deg=2.0)
+    level, _, level_up, _ = turning_imu(40.0, seed=1, wobble_deg=0.0)
+    known = fit_calibration(tilted * UT, FitOptions(model='planar'), ups=tilted_up).calibration
+    own_std = known.metadata['levelled_offset_normal_std']
+    alone = fit_calibration(level * UT, FitOptions(model='planar'), ups=level_up)
+    kept = fit_calibration(level * UT, FitOptions(model='planar'), ups=level_up, known=known)
+    normal = np.array(kept.calibration.metadata['plane_normal'])
+    assert 'levelled_offset_normal_std' not in alone.calibration.metadata
+    assert abs(float(normal @ (alone.calibration.offset - known.offset))) > 10.0 * UT
+    assert abs(float(normal @ (kept.calibration.offset - known.offset))) < 0.01 * UT
+    assert "kept at the calibration in force's" in kept.reason
+    assert kept.calibration.metadata['levelled_offset_normal_std'] == pytest.approx(own_std,
+                                                                                   rel=0.05)
 
 
 def test_a_level_first_turn_knows_nothing_and_a_wobbly_refinement_frees_it():

@@ -33,6 +33,8 @@ CALIBRATION_METADATA_KEYS = (
     'residual_rms_pct', 'coverage', 'samples', 'time', 'frame_id', 'units', 'source',
     'plane_normal', 'unobserved', 'alignment_angle_deg', 'dip_deg', 'dip_std_deg',
     'static_samples', 'declination_deg',
+    # a ground robot's planar fit levelled by gravity (what a refinement weighs in)
+    'levelled_by_gravity', 'levelled_dip_deg', 'levelled_offset_normal_std',
     # the robot's own field (K u + c (T - T0)) and when it was learned
     'interference_inputs', 'interference', 'temperature_coefficient', 'reference_temperature',
     'compensation_time', 'compensation_removed_pct', 'compensation_readings',

@@ -365,13 +365,17 @@ def _paired_rows(points: ArrayLike, ups: ArrayLike
 
 def _known_normal(known: Calibration | None, unit: float) -> tuple[np.ndarray, float] | None:
     """(offset, its 1-sigma along the turning axis) of ``known`` in the rows' units, when its
-    levelled fit determined one (a finite, positive share of its field); else None."""
+    levelled fit determined one (a finite, positive share of the field it read: the raw field's
+    radius, whatever F the output was scaled to); else None."""
     if known is None:
         return None
     std = known.metadata_number('levelled_offset_normal_std')
     if not (std is not None and math.isfinite(std) and std > 0.0):
         return None
-    return np.asarray(known.offset, dtype=float) / unit, std * known.field_strength / unit
+    std = std * known.field_radius() / unit
+    if not (math.isfinite(std) and std > 0.0):
+        return None
+    return np.asarray(known.offset, dtype=float) / unit, std
 
 
 def _too_few(n: int, options: FitOptions) -> str:

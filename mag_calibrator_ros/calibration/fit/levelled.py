@@ -19,8 +19,9 @@ symmetric one, and a tilt explains the wobble instead of bending the shape. As i
 planar fit, the out-of-plane scale is held at the in-plane one; the offset along the plane normal
 (and with it V, the dip) is fitted unless the tilts leave it degenerate (a level floor), then held
 at the plain fit's. A refinement weighs it with what the calibration in force knew of it (a
-Gaussian prior of that fit's own 1-sigma): the held-out |B| residuals that judge a refinement
-barely see it, so a refit on a few headings must not move it by more than its data tell.
+Gaussian prior of that fit's own 1-sigma), and keeps that on a level floor: the held-out |B|
+residuals that judge a refinement barely see it, so a refit on a few headings must not move it
+by more than its data tell.
 
 The model is fitted with H = 1 (the horizontal ring has unit radius), so no scale can shrink its
 residuals, and each residual is taken over how far the raw reading's noise moves it (to first
@@ -149,12 +150,17 @@ def level_planar(
         return Levelling(None, None, 'too few readings near the plain fit')
     fitted = model.solve(start, inliers, free_normal=True)
     held = fitted is None or model.degenerate()
+    kept = held and known is not None and bool(np.all(np.isfinite(known[0])))
     if held:
+        if kept:  # a level floor tells nothing of it: what the calibration in force knew stands
+            start = start.copy()
+            start[7] = model.along_normal(known[0])
         fitted = model.solve(start, inliers, free_normal=False)
     if fitted is None:
         return Levelling(None, None, 'the levelled fit did not converge')
-    normal_std = None if held else model.normal_std(fitted, inliers)
-    observed = normal_std is not None and normal_std <= MAX_NORMAL_OFFSET_STD
+    normal_std = (model.relative(fitted, known[1]) if kept else None) if held else (
+        model.normal_std(fitted, inliers))
+    observed = not held and normal_std is not None and normal_std <= MAX_NORMAL_OFFSET_STD
     weighed = not held and known is not None and model.know(known, fitted, inliers)
     if weighed:
         again = model.solve(fitted, inliers, free_normal=True)
@@ -162,6 +168,10 @@ def level_planar(
             model.prior, weighed = None, False
         else:
             fitted = again
+    prior_std = model.relative(fitted, known[1]) if weighed else None
+    # said where the prior carried at least a tenth of what the readings told of it
+    weighed_much = (prior_std is not None and normal_std is not None
+                    and (normal_std / prior_std) ** 2 >= 0.1)
     level = model.horizontal_residuals(fitted)
     refit = paired.copy()
     refit[paired] = np.abs(level[paired]) <= outlier_threshold * robust_sigma(level[paired])
@@ -180,9 +190,12 @@ def level_planar(
             and np.linalg.eigvalsh(matrix).min() > 0):
         return Levelling(None, None, 'the levelled soft-iron matrix is not positive definite')
     dip = float(np.degrees(np.arctan(abs(fitted[8]))))
-    note = 'levelled by gravity' + (f' (dip {dip:.1f} deg fitted)' if observed else '') + (
-        " (the offset along the turning axis weighed with the calibration in force's)"
-        if weighed else '')
+    said = ([f'dip {dip:.1f} deg fitted'] if observed else []) + (
+        ["the offset along the turning axis weighed with the calibration in force's"]
+        if weighed_much else
+        ["the offset along the turning axis kept at the calibration in force's"]
+        if kept else [])
+    note = 'levelled by gravity' + (f' ({"; ".join(said)})' if said else '')
     return Levelling(offset, matrix, note, dip if observed else None, normal_std)
 
 
@@ -310,10 +323,17 @@ class _Model:
             covariance = np.linalg.inv(jacobian.T @ jacobian) * (self._cost / dof)
         except np.linalg.LinAlgError:
             return None
-        std = float(np.sqrt(max(covariance[7, 7], 0.0)))  # b_n, in the plane frame's units
-        scale = float(np.sqrt(np.linalg.det(self.matrix(p)[:2, :2])))  # 1 / H in those units
-        relative = std * scale / float(np.hypot(1.0, p[8]))
-        return relative if np.isfinite(relative) else None
+        return self.relative(p, float(np.sqrt(max(covariance[7, 7], 0.0))))
+
+    def along_normal(self, offset: np.ndarray) -> float:
+        """An offset (input units) as this model's offset along the normal."""
+        return float(self.basis[:, 2] @ (np.asarray(offset, dtype=float) - self.mean))
+
+    def relative(self, p: np.ndarray, std: float) -> float | None:
+        """A 1-sigma of the offset along the normal (input units) as a share of the field."""
+        scale = float(np.sqrt(np.linalg.det(self.matrix(p)[:2, :2])))  # 1 / H in input units
+        relative = float(std) * scale / float(np.hypot(1.0, p[8]))
+        return relative if np.isfinite(relative) and relative > 0.0 else None
 
     def know(self, known: tuple[np.ndarray, float], p: np.ndarray, rows: np.ndarray) -> bool:
         """Take ``known`` (offset, its 1-sigma along the normal, input units) as the prior of
@@ -327,7 +347,7 @@ class _Model:
         noise = float(np.sqrt(self._cost / dof))  # per unit weight, in the points' units
         if not (np.isfinite(noise) and noise > 0.0):
             return False
-        self.prior = (float(self.basis[:, 2] @ (offset - self.mean)), noise / std)
+        self.prior = (self.along_normal(offset), noise / std)
         return True
 
     def calibration(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
