@@ -85,6 +85,23 @@ def test_a_refinement_weighs_in_what_the_calibration_in_force_knew(std, field_st
     assert weighed.calibration.metadata['levelled_offset_normal_std'] == own_std  # the data's
 
 
+@pytest.mark.parametrize('wobble_deg', [0.0, 0.5, 2.0])
+def test_the_summary_says_how_far_the_tilts_told_the_offset_along_the_axis(wobble_deg):
+    """A level floor holds it, small tilts tell it roughly (and how roughly is said), larger
+    ones determine it with the dip; the scale along the axis is held throughout."""
+    raw, _, up, _ = turning_imu(40.0, seed=0, wobble_deg=wobble_deg)
+    summary = calibration_summary(
+        fit_calibration(raw * UT, FitOptions(model='planar'), ups=up).calibration)
+    held = 'held (not fitted): '
+    if wobble_deg == 0.0:
+        assert held + 'the offset along the turning axis and the scale along it' in summary
+    elif wobble_deg == 0.5:
+        assert held + "the scale along the turning axis; the offset along it told by the " \
+            "floor's tilts only to ±" in summary
+    else:
+        assert 'dip' in summary and summary.endswith(held + 'the scale along the turning axis')
+
+
 def test_a_level_floor_refit_keeps_what_the_calibration_in_force_knew():
     """A refit on a level floor cannot tell the offset along the turning axis: it keeps the
     calibration in force's and its 1-sigma, not the plain fit's guess."""

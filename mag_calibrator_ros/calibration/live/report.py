@@ -115,13 +115,21 @@ def unobserved_text(calibration: Calibration, units: str = 'T') -> str:
     """'; not observable turning in one plane, held (not fitted): ...' ('' when every term was
     fitted): a planar calibration's offset along the turning axis (unless tilts determined it)
     and its scale along it are held at the prior; without that offset (and unlevelled by
-    gravity), F is the field in the turning plane (the horizontal field), not the total."""
+    gravity), F is the field in the turning plane (the horizontal field), not the total. A
+    levelled fit whose small tilts told that offset only roughly says how roughly."""
     unobserved = calibration.metadata.get('unobserved')
     if not isinstance(unobserved, list | tuple) or not unobserved:
         return ''
-    terms = ' and '.join(UNOBSERVED_WORDS.get(str(term), str(term)) for term in unobserved)
-    text = f'; not observable turning in one plane, held (not fitted): {terms}'
     levelled = calibration.metadata.get('levelled_by_gravity') is True
+    told = calibration.metadata_number('levelled_offset_normal_std') if levelled else None
+    if told is not None and 0.0 < told and list(unobserved) == ['offset_normal', 'matrix_normal']:
+        return ('; not observable turning in one plane, held (not fitted): the scale along the '
+                "turning axis; the offset along it told by the floor's tilts only to "
+                f'±{100.0 * told:.0f} % of the field')
+    terms = ' and '.join(UNOBSERVED_WORDS.get(str(term), str(term)) for term in unobserved)
+    if 'offset_normal' not in unobserved:  # 'it' would have nothing to point to
+        terms = terms.replace('the scale along it', 'the scale along the turning axis')
+    text = f'; not observable turning in one plane, held (not fitted): {terms}'
     if 'offset_normal' in unobserved and not levelled:
         text += (f'; F {format_field(calibration.field_strength, units)} is the field in that '
                  'plane, not the total')
