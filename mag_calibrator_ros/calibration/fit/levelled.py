@@ -245,13 +245,19 @@ class _Model:
         return np.array([matrix[0, 0], matrix[0, 1], matrix[1, 1], matrix[0, 2], matrix[1, 2],
                          *offset, v])
 
-    def parts(self, p: np.ndarray, rows: np.ndarray | slice = slice(None)
-              ) -> tuple[np.ndarray, np.ndarray]:
-        corrected = (self.w[rows] - p[5:8]) @ self.matrix(p).T
+    def _split(self, p: np.ndarray, rows: np.ndarray | slice
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(matrix, gravity's directions, the corrected readings across them, along them)."""
+        matrix = self.matrix(p)
+        corrected = (self.w[rows] - p[5:8]) @ matrix.T
         up = self.up[rows]
         vertical = np.einsum('ij,ij->i', corrected, up)
-        horizontal = np.linalg.norm(corrected - vertical[:, None] * up, axis=1)
-        return horizontal, vertical
+        return matrix, up, corrected - vertical[:, None] * up, vertical
+
+    def parts(self, p: np.ndarray, rows: np.ndarray | slice = slice(None)
+              ) -> tuple[np.ndarray, np.ndarray]:
+        _, _, across, vertical = self._split(p, rows)
+        return np.linalg.norm(across, axis=1), vertical
 
     def horizontal_residuals(self, p: np.ndarray) -> np.ndarray:
         return self.parts(p)[0] - 1.0
@@ -264,11 +270,7 @@ class _Model:
         seen offset along the normal by about the noise squared, with or without soft iron,
         most on readings that dwell at a few headings (BENCHMARKS.md, "The levelled fit and
         noise"); a prior (``know``) is one more residual."""
-        matrix = self.matrix(p)
-        corrected = (self.w[rows] - p[5:8]) @ matrix.T
-        up = self.up[rows]
-        vertical = np.einsum('ij,ij->i', corrected, up)
-        across = corrected - vertical[:, None] * up
+        matrix, up, across, vertical = self._split(p, rows)
         horizontal = np.maximum(np.linalg.norm(across, axis=1), 1e-300)
         horizontal_gain = np.linalg.norm((across / horizontal[:, None]) @ matrix, axis=1)
         vertical_gain = np.linalg.norm(up @ matrix, axis=1)
