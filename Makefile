@@ -1,6 +1,6 @@
 # One-command set-up and entry points. Every target sets up the venv first (idempotent).
 #   make demo   - set up and run the live demo on a simulated ICM-20948
-#   make test   - set up and run lint + all tests
+#   make test   - set up and run lint + all tests (one pytest-xdist worker per core)
 #   make bench  - set up and run the benchmarks (not part of the tests)
 #   make fetch-recordings - the public recordings some tests use, outside the repository
 #   make stress - the tests RUNS times in a row with every core kept busy (RUNS=20)
@@ -30,11 +30,11 @@ lint: setup
 	$(VENV)/bin/ruff check .
 
 test: setup lint
-	$(PY) -m pytest -q test
+	$(PY) -m pytest -q -n auto --dist loadfile test
 
 RUNS ?= 20
 stress: setup lint
-	$(PY) benchmarks/stress_tests.py --runs $(RUNS) test
+	$(PY) benchmarks/stress_tests.py --runs $(RUNS) --make
 
 bench: bench-engine bench-replay bench-node
 

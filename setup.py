@@ -32,7 +32,7 @@ setup(
     description='Live magnetometer calibration (ICM-20948 driver, kNN sample buffer, robust '
     'ellipsoid fits) for ROS 2 Jazzy.',
     license='MIT',
-    tests_require=['pytest'],
+    tests_require=['pytest', 'pytest-xdist'],
     entry_points={
         'console_scripts': [
             f'icm20948_driver = {PACKAGE}.nodes.icm20948_driver:main',

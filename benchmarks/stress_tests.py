@@ -60,7 +60,7 @@ def command(args: argparse.Namespace) -> list[str]:
     if args.make:
         return ['make', 'test'] + ([f'VENV={args.venv}'] if args.venv else [])
     return [sys.executable, '-m', 'pytest', '-q', '-p', 'no:cacheprovider', '-rfE',
-            *args.tests]
+            '-n', 'auto', '--dist', 'loadfile', *args.tests]  # as make test runs them
 
 
 def run_once(cmd: list[str], timeout_s: float) -> dict:

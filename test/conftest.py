@@ -11,8 +11,14 @@ from hypothesis import settings
 import pytest
 
 # Every test run gets its own DDS domain on localhost only, so parallel runs (CI, other sessions,
-# a robot on the LAN) never see each other's topics. Must be set before rclpy.init().
+# a robot on the LAN) never see each other's topics. Must be set before rclpy.init(). pytest-xdist
+# workers inherit the controller's domain; each takes the next one along, so no two of one run
+# share a domain (ids 1..100: each fits Fast DDS's port range, localhost only).
 os.environ.setdefault('ROS_DOMAIN_ID', str(random.SystemRandom().randint(1, 100)))
+_WORKER = os.environ.get('PYTEST_XDIST_WORKER', '')
+if _WORKER.startswith('gw'):
+    _base = int(os.environ['ROS_DOMAIN_ID'])
+    os.environ['ROS_DOMAIN_ID'] = str((_base - 1 + int(_WORKER[2:])) % 100 + 1)
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 # Nodes keep their calibration files under ROS_HOME: tests never touch the user's ~/.ros.
 os.environ['ROS_HOME'] = tempfile.mkdtemp(prefix='mag_calibrator_tests_ros_home_')
