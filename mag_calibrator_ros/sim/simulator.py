@@ -195,8 +195,14 @@ class _ReadCounter:
     def latch(self, sample_id: int, truth: object) -> None:
         self.latched, self.latched_truth = sample_id, truth
 
-    def forget(self) -> None:  # power-on: no sample latched; the counts stay
-        self.latched = self.last_read = self.latched_truth = self.last_data = None
+    def forget(self) -> None:
+        """Power-on: no sample latched; the counts stay, and so does which sample the host read
+        last: that is the host's, not the chip's. Until the I2C master's next round the
+        EXT_SLV_SENS_DATA copy still holds that sample (an AK09916 soft reset leaves the
+        ICM-20948's registers alone), and a host reading it again reads no new sample. Its data
+        are forgotten: a driver that re-initialises forgets them too, so a first sample equal to
+        it is not one that no driver can tell."""
+        self.latched = self.latched_truth = self.last_data = None
         self.bytes_read = 0
 
     def bytes_of(self, mask: int) -> None:
