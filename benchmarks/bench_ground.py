@@ -55,7 +55,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from mag_calibrator_ros.calibration.live.jobs import JobOutcome
-from mag_calibrator_ros.calibration.live.turning import INPUT_TIMEOUT_S  # noqa: E402
+from mag_calibrator_ros.calibration.live.turning import INPUT_HOLD_S  # noqa: E402
 from mag_calibrator_ros.calibration.live.worker import InlineRunner  # noqa: E402
 from mag_calibrator_ros.nodes.mag_calibrator import MagCalibratorNode  # noqa: E402
 from mag_calibrator_ros.nodes.runtime import NodeThreads, wait_until  # noqa: E402
@@ -321,7 +321,7 @@ def one_stop(bench: Bench, path: str, attempt: int) -> tuple[float, bool] | None
             wait(lambda: rotation.state != 'turning', 30.0, 0.005)
         elif path == 'no_input':
             bench.remove(driver)
-            cause = time.monotonic() + INPUT_TIMEOUT_S  # the last reading came before this
+            cause = time.monotonic() + INPUT_HOLD_S  # the last reading came before this
             driver = None
         elif path == 'conflict':
             cause = time.monotonic()

@@ -204,6 +204,38 @@ def test_a_stall_of_the_calibrator_is_no_loss_of_input(ros, tmp_path):
     remove_all(ros, commander, calibrator, driver)
 
 
+def test_a_pause_of_the_driver_holds_the_turn_until_readings_come_back(ros, tmp_path):
+    """On a loaded computer the driver's thread waited 0.3-0.8 s for a core while the
+    calibrator's ran on (docs/BENCHMARKS.md, "A pause of the driver holds a turn"): 0.5 s of
+    punctual looks without a reading stopped the turn for 'no_input'. A pause now holds the
+    robot still (zero) until readings come back, then the turn ramps up again."""
+    driver, calibrator, commander = turning_robot(ros, tmp_path, 'ground_pause')
+    supervisor, rotation = driver.supervisor, calibrator._rotation
+    step, paused = supervisor.step, threading.Event()
+
+    def paused_once():
+        if not paused.is_set():
+            paused.set()  # this thread gets no core: nothing is read until the turn holds
+            wait_for(lambda: rotation.holding, timeout_s=60.0)
+        return step()
+
+    supervisor.step = paused_once
+    assert paused.wait(timeout=30.0)
+    moment = time.monotonic()
+
+    def zero_then_turning() -> bool:
+        after = commander.twists_since(moment)
+        return 0.0 in after and any(z > 0.0 for z in after[after.index(0.0):])
+
+    assert wait_for(zero_then_turning, timeout_s=60.0), commander.twists_since(moment)[-5:]
+    assert rotation.last_stop is None, rotation.last_stop
+    assert rotation.state == 'turning' and not rotation.holding
+    moment = time.monotonic()
+    assert commander.call('mag_calibrator/stop_rotation').success
+    brought_to_rest(commander, driver, moment)
+    remove_all(ros, commander, calibrator, driver)
+
+
 class FailingRequests(InlineRunner):
     """Fits inline, but every requested fit fails with an error (as if the worker died)."""
 

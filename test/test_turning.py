@@ -8,6 +8,7 @@ import pytest
 from mag_calibrator_ros.calibration.fit.coverage import Coverage
 from mag_calibrator_ros.calibration.live.turning import (
     COMMAND_PERIOD_S,
+    INPUT_HOLD_S,
     INPUT_TIMEOUT_S,
     RETRY_S,
     STOP_REASONS,
@@ -54,7 +55,7 @@ def test_refuses_without_fresh_input_beside_another_commander_or_twice():
     robot.input_age = None
     started, message = robot.start()
     assert not started and 'no input on /imu/mag' in message
-    robot.input_age = INPUT_TIMEOUT_S + 0.1
+    robot.input_age = INPUT_HOLD_S + 0.1
     started, message = robot.start()
     assert not started and 'for 0.6 s' in message
     robot.input_age, robot.others = 0.01, 1
@@ -129,12 +130,47 @@ def test_a_failed_gate_is_retried_after_more_turning_and_an_error_stops():
     stopped(robot, 'fit_error')
 
 
-def test_stops_when_input_stops():
+def test_holds_still_while_the_input_is_silent_and_ramps_up_again_when_it_returns():
+    robot = Robot(speed=0.3, acceleration=0.5)
+    robot.start()
+    robot.tick(3.0)
+    robot.input_age = INPUT_HOLD_S - 0.01  # not yet: readings come at 100 Hz, a pause is short
+    assert robot.tick()[-1].command == pytest.approx(0.3)
+    robot.input_age = INPUT_HOLD_S + 0.01
+    step = robot.tick()[-1]
+    controller = robot.controller
+    assert step.command == 0.0 and controller.state == 'turning' and controller.holding
+    assert 'holding still: nothing on /imu/mag for 0.5 s' in step.messages[0]
+    assert 'holding still' in controller.progress_text(robot.now)
+    assert controller.diagnostic_values(robot.now)['rotation_holding_s'] == 0.5
+    robot.fraction, looks = 1.0, robot.looks
+    robot.tick(2.0)
+    assert set(robot.commands[-40:]) == {0.0}
+    assert robot.looks == looks and robot.fits == 0  # nothing new to look at or fit while silent
+    robot.input_age = 0.01
+    step = robot.tick()[-1]
+    assert 'readings on /imu/mag again after 0.5 s; turning on' in step.messages[0]
+    assert not controller.holding and step.command == 0.0  # a new ramp from standstill
+    assert robot.fits == 1  # the circle, seen before the pause, is asked for at once
+    robot.tick()
+    assert 0.0 < robot.commands[-1] < 0.1
+    robot.tick(1.0)
+    assert robot.commands[-1] == pytest.approx(0.3)
+    assert controller.last_stop is None
+
+
+def test_stops_when_the_input_stays_silent():
     robot = Robot()
     robot.start()
     robot.tick(1.0)
-    robot.input_age = INPUT_TIMEOUT_S + 0.01
+    robot.input_age = INPUT_HOLD_S + 0.01
     robot.tick()
+    robot.input_age = INPUT_TIMEOUT_S
+    robot.tick()
+    assert robot.controller.state == 'turning' and robot.commands[-1] == 0.0
+    robot.input_age = INPUT_TIMEOUT_S + 0.01
+    step = robot.tick()[-1]
+    assert 'no magnetometer input (nothing on /imu/mag for 5 s)' in step.messages[0]
     stopped(robot, 'no_input')
 
 

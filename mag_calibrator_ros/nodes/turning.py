@@ -89,7 +89,7 @@ class TurnInPlace:
         executor (a loaded computer): the readings of that time wait in the subscription's
         queue, and rclpy runs a ready timer before them, so wall time would call a stall of the
         calibrator silence of the magnetometer and stop a turn for 'no input'. A magnetometer
-        that stops is still seen within INPUT_TIMEOUT_S of punctual looks."""
+        that stops is still seen within INPUT_HOLD_S of punctual looks."""
         step = 0.0 if self._looked_at is None else min(max(now - self._looked_at, 0.0),
                                                        MAX_TICK_STEP_S)
         self._looked_at = now

@@ -12,12 +12,18 @@ is covered and the planar fit passes its gates, and every way out ends in a zero
 - ``done``: a requested fit passed and is in force;
 - ``requested``: ``~/stop_rotation``;
 - ``timeout``: ``timeout_s`` of turning without a calibration;
-- ``no_input``: no magnetometer reading for INPUT_TIMEOUT_S (the fit would be blind);
+- ``no_input``: no magnetometer reading for INPUT_TIMEOUT_S (the sensor or its driver is gone);
 - ``fit_error``: the fit itself failed (an exception, the worker died), not merely its gates;
 - ``conflict``: another node started publishing on the command topic;
 - ``parameters``: a parameter changed (the settings it started with no longer hold);
 - ``shutdown``: the node is going down (Ctrl-C, SIGTERM, destroy);
 - ``error``: an unexpected error in the node's own turning code (logged with its traceback).
+
+A shorter silence holds the turn instead: after INPUT_HOLD_S without a reading the command is
+zero (the robot does not turn blind), and once readings come back the turn ramps up again from
+standstill. On a loaded computer the driver is not always given a core in time while the
+calibrator runs on (docs/BENCHMARKS.md, "A pause of the driver holds a turn"): stopping then
+would throw a calibration turn away for a pause.
 
 After a stop the zero is repeated for ZERO_HOLD_S, so a base that missed one message (a best
 effort subscriber, a late match) still stops; while turning the command is re-sent every
@@ -44,8 +50,13 @@ diff_drive_controller: 0.5 s)."""
 ZERO_HOLD_S = 0.5
 """After a stop, zero is re-sent this long, then nothing (the topic is left to others)."""
 
-INPUT_TIMEOUT_S = 0.5
-"""No magnetometer reading for this long stops the turn (and refuses a start)."""
+INPUT_HOLD_S = 0.5
+"""No magnetometer reading for this long holds the turn (zero commanded, and refuses a start)
+until readings come back."""
+
+INPUT_TIMEOUT_S = 5.0
+"""No magnetometer reading for this long stops the turn: a pause lasts less, a driver that
+re-initialises after an I2C fault included."""
 
 COVERAGE_PERIOD_S = 0.5
 """Heading coverage is looked at twice a second while turning (not every tick: it scans the
@@ -129,6 +140,10 @@ class TurnController:
         self.result: str = ''
         """The latest fit's answer while turning (or the calibration that ended it)."""
         self._started = self._stopped = 0.0
+        self._ramp_from = 0.0  # the start, or the end of the latest hold
+        self.holding = False
+        """Turning, but holding still (zero commanded) until magnetometer readings come back."""
+        self._silent_s = 0.0
         self._next_look = self._next_progress = 0.0
         self._waiting_fit = False
         self._retry_at = -math.inf
@@ -143,7 +158,7 @@ class TurnController:
                            f'{self.settings.timeout_s:.0f} s); call ~/stop_rotation first')
         if input_age is None:
             return False, f'no input on {self.input_topic} yet: start the magnetometer first'
-        if input_age > INPUT_TIMEOUT_S:
+        if input_age > INPUT_HOLD_S:
             return False, (f'no input on {self.input_topic} for {input_age:.1f} s: the '
                            'magnetometer stopped')
         if other_publishers > 0:
@@ -151,7 +166,8 @@ class TurnController:
                            '(teleop, navigation?): two commanders would fight over the robot; '
                            'stop them first')
         self.state = 'turning'
-        self._started = now
+        self._started = self._ramp_from = now
+        self.holding = False
         self._next_look = now
         self._next_progress = now + PROGRESS_PERIOD_S
         self._waiting_fit = False
@@ -172,6 +188,7 @@ class TurnController:
             return None
         self.state = 'stopping'
         self._stopped = now
+        self.holding = False
         message = f'rotation stopped after {now - self._started:.1f} s: {STOP_REASONS[reason]}'
         if detail:
             message += f' ({detail})'
@@ -196,10 +213,13 @@ class TurnController:
     # -- every COMMAND_PERIOD_S ------------------------------------------------------------------
 
     def command(self, now: float) -> float | None:
-        """The yaw rate to publish now (rad/s); 0.0 while stopping; None when idle."""
+        """The yaw rate to publish now (rad/s); 0.0 while holding or stopping; None when
+        idle."""
         if self.state == 'turning':
+            if self.holding:
+                return 0.0
             s = self.settings
-            return min(s.speed, s.acceleration * max(now - self._started, 0.0))
+            return min(s.speed, s.acceleration * max(now - self._ramp_from, 0.0))
         if self.state == 'stopping':
             if now - self._stopped < ZERO_HOLD_S:
                 return 0.0
@@ -217,14 +237,29 @@ class TurnController:
             if now - self._started >= self.settings.timeout_s:
                 stop = 'timeout', f'{self.settings.timeout_s:.0f} s'
             elif input_age is None or input_age > INPUT_TIMEOUT_S:
-                stop = 'no_input', f'nothing on {self.input_topic} for {INPUT_TIMEOUT_S} s'
+                stop = 'no_input', f'nothing on {self.input_topic} for {INPUT_TIMEOUT_S:g} s'
             elif other_publishers > 0:
                 stop = 'conflict', f'{other_publishers} on {self.command_topic}'
             if stop is not None:
                 messages.append(self.stop(now, *stop))
-            else:
+            elif not self._hold(now, input_age, messages):
                 calibrate = self._look(now, heading_coverage, messages)
         return TurnStep(self.command(now), calibrate, tuple(messages))
+
+    def _hold(self, now: float, input_age: float, messages: list[str]) -> bool:
+        """Hold still while the input is silent for more than INPUT_HOLD_S; True while
+        holding. Readings back: ramp up again from standstill."""
+        silent = input_age > INPUT_HOLD_S
+        if silent and not self.holding:
+            messages.append(f'rotation holding still: nothing on {self.input_topic} for '
+                            f'{input_age:.1f} s (zero until readings come back; it stops after '
+                            f'{INPUT_TIMEOUT_S:.0f} s without)')
+        elif self.holding and not silent:
+            messages.append(f'rotation: readings on {self.input_topic} again after '
+                            f'{self._silent_s:.1f} s; turning on')
+            self._ramp_from = now
+        self.holding, self._silent_s = silent, input_age
+        return silent
 
     def _look(self, now: float, heading_coverage: Callable[[], Coverage],
               messages: list[str]) -> bool:
@@ -248,6 +283,9 @@ class TurnController:
         if self.state != 'turning':
             return self.last_stop[1] if self.last_stop else 'not rotating'
         text = f'rotating {now - self._started:.0f} s'
+        if self.holding:
+            text += (f', holding still: nothing on {self.input_topic} for '
+                     f'{self._silent_s:.1f} s')
         coverage = self.coverage
         if coverage is not None:
             text += f', heading coverage {100.0 * coverage.fraction:.0f} %'
@@ -264,6 +302,8 @@ class TurnController:
         if self.state == 'turning':
             values['rotation_elapsed_s'] = round(now - self._started, 1)
             values['rotation_command'] = round(self.command(now) or 0.0, 3)
+            if self.holding:
+                values['rotation_holding_s'] = round(self._silent_s, 1)
             if self.coverage is not None:
                 values['rotation_heading_coverage_pct'] = round(100 * self.coverage.fraction, 1)
         if self.last_stop is not None:
@@ -273,6 +313,7 @@ class TurnController:
 
 __all__ = [
     'COMMAND_PERIOD_S',
+    'INPUT_HOLD_S',
     'INPUT_TIMEOUT_S',
     'STOP_REASONS',
     'ZERO_HOLD_S',
