@@ -43,8 +43,25 @@ def start(ros, namespace, **parameters):
     node = ros.calibrator(namespace, auto_calibrate=False, progress_log_period=0.0,
                           **parameters)
     probe = Probe(ros, namespace)
+    probe.outcomes = watch_outcomes(node)  # what lockstep waits for
     assert wait_for(lambda: probe.connected_to(node))
     return node, probe
+
+
+def watch_outcomes(node) -> dict[int, bool]:
+    """For each stamp (seconds) the node has processed: whether it publishes an output for it,
+    recorded on the node's own thread as ``_on_mag`` decides."""
+    outcomes: dict[int, bool] = {}
+    process = node.session.process
+
+    def recorded(stamp_ns, frame_id, field):
+        processed = process(stamp_ns, frame_id, field)
+        outcomes[stamp_ns // 1_000_000_000] = processed.corrected is not None or (
+            processed.accepted and node.get_parameter('publish_uncalibrated').value)
+        return processed
+
+    node.session.process = recorded
+    return outcomes
 
 
 def stop(ros, *nodes):
@@ -57,12 +74,19 @@ def values_of(status: DiagnosticStatus) -> dict[str, str]:
 
 
 def lockstep(probe, stamps, frame='imu_link', field=GOOD, covariance=None):
-    """Send one message per stamp, each once the previous one's output arrived (or was clearly
-    not coming): nothing is lost to best effort, so every count below is exact."""
+    """Send one message per stamp, each once the node has processed the previous one and its
+    output, if it publishes one, arrived: nothing is lost to best effort and no time decides
+    (a loaded computer's pause used to count an output as not coming), so every count below is
+    exact. The stamps returned are those whose output arrived."""
     published = []
     for sec in stamps:
+        probe.outcomes.pop(sec, None)
         probe.send(field, sec, frame_id=frame, covariance=covariance)
-        if wait_for(lambda stamp=sec: stamp in stamps_of(probe), timeout_s=0.5, step_s=0.005):
+        assert wait_for(lambda stamp=sec: stamp in probe.outcomes, step_s=0.005), (
+            f'the node never processed stamp {sec}')
+        if probe.outcomes[sec]:
+            assert wait_for(lambda stamp=sec: stamp in stamps_of(probe), step_s=0.005), (
+                f'the output of stamp {sec} never arrived')
             published.append(sec)
     return published
 
