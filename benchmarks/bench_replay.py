@@ -60,6 +60,7 @@ from std_srvs.srv import Trigger  # noqa: E402
 
 from mag_calibrator_ros.calibration.fit.calibration import Calibration  # noqa: E402
 from mag_calibrator_ros.calibration.fit.fitting import FitOptions, fit_calibration  # noqa: E402
+from mag_calibrator_ros.calibration.fit.robust import mad_sigma  # noqa: E402
 from mag_calibrator_ros.calibration.live.session import CalibrationSession  # noqa: E402
 from mag_calibrator_ros.calibration.live.settings import SessionSettings  # noqa: E402
 from mag_calibrator_ros.calibration.store.calibration_file import save_calibration  # noqa: E402
@@ -133,7 +134,7 @@ def robust_spread_pct(corrected: np.ndarray) -> float:
     if not len(magnitudes):
         return np.nan
     median = float(np.median(magnitudes))
-    return float(100.0 * 1.4826 * np.median(np.abs(magnitudes - median)) / median)
+    return 100.0 * mad_sigma(magnitudes) / median
 
 
 class Feeder(Node):

@@ -31,6 +31,7 @@ import math
 import numpy as np
 
 from mag_calibrator_ros.calibration.fit.calibration import Calibration, Compensation
+from mag_calibrator_ros.calibration.fit.robust import mad_sigma
 
 DETERMINED_PCT = 1.0
 """An axis of a term is determined once 1 sigma of its field over the range its input took (5th
@@ -315,7 +316,7 @@ def _solve(raw: np.ndarray, columns: np.ndarray, spans: list[float], base: Calib
                                                                             sigmas[0])
         magnitude = np.linalg.norm(corrected, axis=1)
         residuals = magnitude - strength
-        mad = 1.4826 * float(np.median(np.abs(residuals - np.median(residuals))))
+        mad = mad_sigma(residuals)
         noise2 = max(mad, 1e-9 * strength) ** 2
         if iteration >= 2:  # robust after the first steps: readings far out weigh little
             limit = 4.0 * math.sqrt(noise2)
@@ -328,7 +329,7 @@ def _solve(raw: np.ndarray, columns: np.ndarray, spans: list[float], base: Calib
         if len(pairs):
             ci, cj = y[pairs.first] - zi @ w.T, y[pairs.second] - zj @ w.T
             differences = cj @ correction.T - np.einsum('pab,pb->pa', mapped, ci)
-            spread = 1.4826 * float(np.median(np.abs(differences)))
+            spread = mad_sigma(differences, about_median=False)  # expected zero
             pair_noise2 = max(spread, 1e-9 * strength) ** 2
             if iteration >= 2:
                 limit = 4.0 * math.sqrt(3.0 * pair_noise2)
@@ -399,7 +400,7 @@ def _anchored(raw: np.ndarray, columns: np.ndarray, gains: np.ndarray, base: Cal
         corrected = (without + anchor @ gains.T) @ matrix.T
         magnitude = np.linalg.norm(corrected, axis=1)
         residuals = magnitude - strength
-        mad = 1.4826 * float(np.median(np.abs(residuals - np.median(residuals))))
+        mad = mad_sigma(residuals)
         noise2 = max(mad, 1e-9 * strength) ** 2
         weights = np.ones(len(raw)) if iteration < 2 else np.minimum(
             1.0, 4.0 * math.sqrt(noise2) / np.maximum(np.abs(residuals), 1e-300))
@@ -420,7 +421,7 @@ def _offset_precision(corrected: np.ndarray, sigma: float) -> np.ndarray:
     others (held where the calibration in force puts it)."""
     magnitude = np.linalg.norm(corrected, axis=1)
     directions = corrected / np.maximum(magnitude, 1e-300)[:, None]
-    noise = 1.4826 * float(np.median(np.abs(magnitude - np.median(magnitude))))
+    noise = mad_sigma(magnitude)
     noise /= max(float(np.median(magnitude)), 1e-300)
     spread, axes = np.linalg.eigh(np.cov(directions.T, bias=True).reshape(3, 3))
     seen = spread >= math.sin(math.radians(OFFSET_SEEN_DEG)) ** 2 + 4.0 * noise ** 2

@@ -66,6 +66,8 @@ from statistics import NormalDist
 
 import numpy as np
 
+from mag_calibrator_ros.calibration.fit.robust import mad_sigma
+
 FIT_MODELS = ('sphere', 'axis', 'full', 'planar')
 PARAMETER_COUNTS = {'sphere': 4, 'axis': 6, 'full': 9, 'planar': 5}
 
@@ -108,7 +110,6 @@ EXACT_CONDITION = 1e6
 """Above this condition number the normal equations (which square it) lose the smallest singular
 value to rounding; the condition and parameter errors are then taken from a QR factorisation."""
 
-_MAD_TO_SIGMA = 1.4826
 _LEAST_SQUARES_ITERATIONS = 100
 _LEAST_SQUARES_TOLERANCE = 1e-12
 _ROBUST_ITERATIONS = 50
@@ -644,8 +645,7 @@ def robust_sigma(
     """
     if floor is not None and residuals.size == 0:
         return floor
-    deviations = residuals - np.median(residuals) if about_median else residuals
-    sigma = _MAD_TO_SIGMA * float(np.median(np.abs(deviations)))
+    sigma = mad_sigma(residuals, about_median=about_median)
     return sigma if floor is None else max(sigma, floor)
 
 

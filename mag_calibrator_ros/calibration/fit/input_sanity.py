@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from mag_calibrator_ros.calibration.fit.earth_field import TESLA_PER_UNIT
+from mag_calibrator_ros.calibration.fit.robust import mad_sigma
 
 MAX_TESLA = 1e-3
 """A median |B| above this is no field a magnetometer reads on Earth in tesla (the Earth's is
@@ -116,7 +117,7 @@ def magnitude_spread(readings: ArrayLike) -> float:
     if len(norms) < MIN_READINGS:
         return math.nan
     median = float(np.median(norms))
-    return 1.4826 * float(np.median(np.abs(norms - median))) / median
+    return mad_sigma(norms) / median
 
 
 def normalised_problem(readings: ArrayLike) -> str | None:
@@ -132,7 +133,7 @@ def normalised_problem(readings: ArrayLike) -> str | None:
         if len(norms) < MIN_READINGS:
             return None
         median = float(np.median(norms))
-        spread = 1.4826 * float(np.median(np.abs(norms - median))) / median
+        spread = mad_sigma(norms) / median
         units = points / norms[:, None]
         mean = units.mean(axis=0)
         mean /= np.linalg.norm(mean) or 1.0
