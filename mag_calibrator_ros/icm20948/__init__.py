@@ -1,1 +1,4 @@
-"""Hardware layer: ICM-20948 / AK09916 registers, driver and register-level simulator; no rclpy."""
+"""The real chip: ICM-20948 / AK09916 registers, units, I2C bus, driver and supervisor; no rclpy.
+
+Its register-level simulator lives a room above, in ``sim/`` (``sim/simulator.py``).
+"""
