@@ -2,7 +2,10 @@
 
 Wiring only: parameters -> ``Icm20948Supervisor`` (bring-up, polling, fault recovery, rates;
 ``icm20948/supervisor.py``) on its own thread -> publishers and diagnostics. With
-``backend: sim`` the bus is the register-level ``SimulatedIcm20948Bus`` (tests, demo, no hardware).
+``backend: sim`` the bus is the register-level ``SimulatedIcm20948Bus`` (tests, demo, no hardware)
+and ``nodes/sim_backend.py`` holds what only it needs: the ``sim.*`` parameters, the
+``SimConfig`` they make and, with ``sim.motion: cmd_vel``, the simulated robot's wiring
+(``sim/robot.py``).
 
 Why a thread and not a timer: at kHz poll rates the executor's per-tick overhead alone would take
 a large share of a core (docs/ARCHITECTURE.md, "Threads and processes"); the
@@ -20,7 +23,7 @@ remapped into it; every stamp from the node's clock, taken at the read):
 - ``/diagnostics`` (diagnostic_msgs/DiagnosticArray): one status per stream, once a second;
   ``resyncs``: IMU reads so slow a newer sample may have landed (data-ready re-armed; bus busy?).
 
-With ``sim.motion: cmd_vel`` (the simulated ground robot), also:
+With ``sim.motion: cmd_vel`` (the simulated ground robot; ``nodes/sim_backend.py``), also:
 
 - ``battery_state`` (sensor_msgs/BatteryState), at most 20 Hz, with an imu/mag reading's
   stamp: the battery current the robot draws (``current``, negative: discharging, as the
@@ -31,7 +34,7 @@ TwistStamped when only that is published): the simulated robot drives at its lin
 at its angular z.
 
 Services: none. Timers: diagnostics every second; with ``sim.motion: cmd_vel``, the check of
-cmd_vel's message type every CMD_VEL_CHECK_S.
+cmd_vel's message type every ``sim_backend.CMD_VEL_CHECK_S``.
 
 Parameters, ``name`` (default): meaning; read-only but for frame_id and the noise figures.
 The chip:
@@ -52,7 +55,7 @@ The messages (settable while running):
 - ``magnetic_field_stddev`` (0.0): tesla per axis for the covariance; 0: unknown.
 - ``accel_noise_density``, ``gyro_noise_density`` (0.0): per sqrt(Hz) for the covariances.
 
-The simulator (``backend: sim`` only):
+The simulator (``backend: sim`` only; declared with every backend, in ``nodes/sim_backend.py``):
 
 - ``sim.field_ut`` (50.0), ``sim.inclination_deg`` (60.0): the earth field.
 - ``sim.latitude``, ``sim.longitude`` (NaN), ``sim.altitude`` (0.0): or the World Magnetic
@@ -91,18 +94,11 @@ import re
 import sys
 import threading
 
-from geometry_msgs.msg import Twist, TwistStamped
-from rcl_interfaces.msg import (
-    FloatingPointRange,
-    IntegerRange,
-    ParameterDescriptor,
-    SetParametersResult,
-)
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
-from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import BatteryState, Imu, MagneticField, Temperature
+from sensor_msgs.msg import Imu, MagneticField, Temperature
 
 from mag_calibrator_ros.icm20948 import registers as reg
 from mag_calibrator_ros.icm20948.driver import ImuSettings
@@ -116,26 +112,18 @@ from mag_calibrator_ros.icm20948.supervisor import (
     Sample,
     TemperatureSample,
 )
-from mag_calibrator_ros.nodes import diagnostics
+from mag_calibrator_ros.nodes import diagnostics, sim_backend
+from mag_calibrator_ros.nodes.parameters import descriptor as _descriptor
 from mag_calibrator_ros.nodes.runtime import spin_node
 from mag_calibrator_ros.sim import motion
-from mag_calibrator_ros.sim.config import (
-    ACCEL_NOISE_DENSITY,
-    GYRO_NOISE_DENSITY,
-    IDENTITY,
-    SimConfig,
-)
+from mag_calibrator_ros.sim.config import SimConfig
+from mag_calibrator_ros.sim.robot import SimulatedRobot
 from mag_calibrator_ros.sim.simulator import SimulatedIcm20948Bus
 
 NODE_NAME = 'icm20948_driver'
 TOPIC = 'imu/mag'
 IMU_TOPIC = 'imu/data_raw'
 TEMPERATURE_TOPIC = 'imu/temperature'
-BATTERY_TOPIC = 'battery_state'
-BATTERY_PERIOD_NS = 50_000_000
-"""The simulated robot's battery current goes out with the first imu/mag message at least this
-long after the last (20 Hz at the default rate: a battery monitor's), stamped as it: the
-current when the field was read, and no timer waking the executor twenty times a second."""
 BACKENDS = ('smbus2', 'sim')
 LEVELS = {OK: diagnostics.OK, WARN: diagnostics.WARN, ERROR: diagnostics.ERROR}
 
@@ -169,28 +157,6 @@ class DriverSettings:
     sim: SimConfig | None
     cmd_vel: motion.CmdVelTrajectory | None = None
     """The simulated robot following cmd_vel (sim.motion cmd_vel), else None."""
-
-
-def _descriptor(
-    description: str,
-    *,
-    read_only: bool = True,
-    integer_range: tuple[int, int] | None = None,
-    float_range: tuple[float, float] | None = None,
-    constraints: str = '',
-) -> ParameterDescriptor:
-    descriptor = ParameterDescriptor(
-        description=description, read_only=read_only, additional_constraints=constraints
-    )
-    if integer_range is not None:
-        descriptor.integer_range = [
-            IntegerRange(from_value=integer_range[0], to_value=integer_range[1], step=0)
-        ]
-    if float_range is not None:
-        descriptor.floating_point_range = [
-            FloatingPointRange(from_value=float_range[0], to_value=float_range[1], step=0.0)
-        ]
-    return descriptor
 
 
 _IMU = ImuSettings()
@@ -236,107 +202,10 @@ PARAMETERS: dict[str, tuple[object, ParameterDescriptor]] = {
     'gyro_noise_density': (0.0, _descriptor(
         'Gyroscope noise density in (rad/s)/sqrt(Hz) for the covariance diagonal; 0 = unknown. '
         'ICM-20948 typical: 2.6e-4.', read_only=False, float_range=(0.0, 1.0))),
-    'sim.field_ut': (50.0, _descriptor(
-        'Simulator: earth field strength in microtesla.', float_range=(1.0, 4900.0))),
-    'sim.inclination_deg': (60.0, _descriptor(
-        'Simulator: field inclination (dip) in degrees, positive pointing down.',
-        float_range=(-90.0, 90.0))),
-    'sim.hard_iron_ut': ([0.0, 0.0, 0.0], _descriptor(
-        'Simulator: hard-iron offset [x, y, z] in microtesla, chip frame.',
-        constraints='3 finite doubles')),
-    'sim.soft_iron': (list(IDENTITY), _descriptor(
-        'Simulator: soft-iron matrix, 9 doubles row-major, symmetric positive definite.',
-        constraints='9 doubles, symmetric positive definite')),
-    'sim.noise_ut': (0.3, _descriptor(
-        'Simulator: white noise per axis (1 sigma) in microtesla.', float_range=(0.0, 100.0))),
-    'sim.motion': ('tumble', _descriptor(
-        'Simulator: how the board moves: tumble (hand), yaw (ground robot turning), still, or '
-        'poses (held still at one tilt after another: what aligning to the IMU needs), or '
-        'cmd_vel (a ground robot driving and turning only as commanded on cmd_vel).',
-        constraints=' | '.join(motion.TRAJECTORY_KINDS))),
-    'sim.i2c_error_rate': (0.0, _descriptor(
-        'Simulator: probability that an I2C transaction fails with EREMOTEIO.',
-        float_range=(0.0, 0.99))),
-    'sim.seed': (0, _descriptor(
-        'Simulator: random seed (motion, noise, faults).', integer_range=(0, 2**31 - 1))),
-    'sim.accel_bias_mps2': ([0.0, 0.0, 0.0], _descriptor(
-        'Simulator: accelerometer bias [x, y, z] in m/s^2, chip frame.',
-        constraints='3 finite doubles within ±156.9 (16 g)')),
-    'sim.gyro_bias_dps': ([0.0, 0.0, 0.0], _descriptor(
-        'Simulator: gyroscope bias [x, y, z] in deg/s, chip frame.',
-        constraints='3 finite doubles within ±2000')),
-    'sim.accel_noise_density': (ACCEL_NOISE_DENSITY, _descriptor(
-        'Simulator: accelerometer noise density in (m/s^2)/sqrt(Hz).', float_range=(0.0, 1.0))),
-    'sim.gyro_noise_density': (GYRO_NOISE_DENSITY, _descriptor(
-        'Simulator: gyroscope noise density in (rad/s)/sqrt(Hz).', float_range=(0.0, 1.0))),
-    'sim.temperature_c': (25.0, _descriptor(
-        'Simulator: die temperature at power-on in degC.', float_range=(-40.0, 85.0))),
-    'sim.temperature_rise_c': (2.0, _descriptor(
-        'Simulator: warm-up of the die after power-on in degC (sim.temperature_time_constant_s).',
-        float_range=(-50.0, 50.0))),
-    'sim.temperature_time_constant_s': (600.0, _descriptor(
-        "Simulator: time constant of the die's first-order warm-up, seconds.",
-        float_range=(0.01, 86400.0))),
-    'sim.hard_iron_drift_ut_per_c': ([0.0, 0.0, 0.0], _descriptor(
-        'Simulator: drift of the hard iron [x, y, z], uT per degC of die temperature above '
-        'sim.temperature_c.', constraints='3 finite doubles, each within ±50')),
-    'sim.current_field_ut_per_a': ([0.0, 0.0, 0.0], _descriptor(
-        'Simulator (motion cmd_vel): field of the battery current at the sensor [x, y, z], uT '
-        'per ampere.', constraints='3 finite doubles, each within ±100')),
-    'sim.mag_misalignment_deg': ([0.0, 0.0, 0.0], _descriptor(
-        'Simulator: rotation vector [x, y, z] in degrees of the magnetometer axes against the '
-        'accel/gyro frame (what aligning to the IMU recovers).',
-        constraints='3 finite doubles, at most 180 deg')),
-    'sim.latitude': (math.nan, _descriptor(
-        'Simulator: latitude in degrees; with sim.longitude the field is the World Magnetic '
-        "Model's there (sim.field_ut and sim.inclination_deg unused). NaN: no location.",
-        constraints='-90..90 or NaN')),
-    'sim.longitude': (math.nan, _descriptor(
-        'Simulator: longitude in degrees (-180..360) or NaN.', constraints='-180..360 or NaN')),
-    'sim.altitude': (0.0, _descriptor(
-        'Simulator: altitude in metres above the WGS84 ellipsoid (with a location).',
-        float_range=(-1000.0, 850000.0))),
-    'sim.field_scale': (1.0, _descriptor(
-        'Simulator: a disturbed place: the field strength times this (against the model).',
-        float_range=(0.01, 10.0))),
-    'sim.inclination_offset_deg': (0.0, _descriptor(
-        'Simulator: a disturbed place: the dip moved by this many degrees.',
-        float_range=(-90.0, 90.0))),
-    # sim.motion cmd_vel: a ground robot following cmd_vel's linear x and angular z
-    'sim.max_yaw_rate': (1.0, _descriptor(
-        'Simulator (motion cmd_vel): largest yaw rate the robot turns at, rad/s.',
-        float_range=(0.01, 10.0))),
-    'sim.max_yaw_acceleration': (1.0, _descriptor(
-        'Simulator (motion cmd_vel): largest yaw acceleration, rad/s^2.',
-        float_range=(0.01, 100.0))),
-    'sim.tilt_wobble_deg': (2.0, _descriptor(
-        'Simulator (motion cmd_vel): peak tilt while turning (an uneven floor: roll and pitch '
-        'follow the heading), degrees.', float_range=(0.0, 20.0))),
-    'sim.cmd_vel_timeout': (0.5, _descriptor(
-        'Simulator (motion cmd_vel): the robot stops by itself when no command came for this '
-        "long, seconds (as a base controller's command timeout).", float_range=(0.01, 60.0))),
-    'sim.max_speed': (0.5, _descriptor(
-        'Simulator (motion cmd_vel): top forward speed, m/s.', float_range=(0.01, 20.0))),
-    'sim.max_linear_acceleration': (1.0, _descriptor(
-        'Simulator (motion cmd_vel): largest forward acceleration, m/s^2.',
-        float_range=(0.01, 100.0))),
-    'sim.track_width': (0.3, _descriptor(
-        'Simulator (motion cmd_vel): distance between the wheels, m (a turn in place spins '
-        'them at yaw rate x half of it).', float_range=(0.01, 10.0))),
-    'sim.idle_current_a': (0.5, _descriptor(
-        'Simulator (motion cmd_vel): battery current with the wheels still, A.',
-        float_range=(0.0, 1000.0))),
-    'sim.full_current_a': (5.0, _descriptor(
-        'Simulator (motion cmd_vel): battery current with both wheels at sim.max_speed, A '
-        '(idle included).', float_range=(0.0, 1000.0))),
+    **sim_backend.PARAMETERS,  # declared on every backend
 }
-CMD_VEL_TOPIC = 'cmd_vel'
-CMD_VEL_TYPES = {'geometry_msgs/msg/Twist': Twist, 'geometry_msgs/msg/TwistStamped': TwistStamped}
-RCLError = rclpy_implementation.RCLError
 FRAME_ID_MAX_LENGTH = 128
 FRAME_ID_PATTERN = re.compile(r'[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*')
-CMD_VEL_CHECK_S = 0.25
-"""How often the sim's cmd_vel subscription checks which type the publishers use."""
 
 
 def settings_problems(values: dict[str, object]) -> list[str]:
@@ -352,23 +221,7 @@ def settings_problems(values: dict[str, object]) -> list[str]:
     problems += frame_id_problems(values['frame_id'])
     for name in ('magnetic_field_stddev', 'accel_noise_density', 'gyro_noise_density'):
         problems += non_negative_problems(name, values[name])
-    if values['sim.motion'] not in motion.TRAJECTORY_KINDS:
-        problems.append(
-            f"sim.motion must be one of {', '.join(motion.TRAJECTORY_KINDS)}, "
-            f"got {values['sim.motion']!r}"
-        )
-    problems += [f'sim.{problem}' for problem in motion.cmd_vel_problems(*cmd_vel_limits(values))]
-    return problems
-
-
-def cmd_vel_limits(values: dict[str, object]) -> tuple:
-    """(max rate, max acceleration, wobble, command timeout, max speed, max linear
-    acceleration, drive current) of a sim cmd_vel robot."""
-    drive = motion.DriveCurrent(values['sim.idle_current_a'], values['sim.full_current_a'],
-                                values['sim.track_width'])
-    return (values['sim.max_yaw_rate'], values['sim.max_yaw_acceleration'],
-            values['sim.tilt_wobble_deg'], values['sim.cmd_vel_timeout'],
-            values['sim.max_speed'], values['sim.max_linear_acceleration'], drive)
+    return problems + sim_backend.problems(values)
 
 
 def imu_settings(values: dict[str, object]) -> ImuSettings:
@@ -446,7 +299,7 @@ class Icm20948DriverNode(Node):
         self._temperature_publisher = (
             self.create_publisher(Temperature, TEMPERATURE_TOPIC, DRIVER_QOS)
             if s.publish_temperature else None)
-        self._battery_publisher = None  # the simulated robot's, set by _follow_cmd_vel_wiring
+        self._sim_robot: sim_backend.SimRobotWiring | None = None  # set last: the pump reads it
         self._diagnostics = diagnostics.DiagnosticsPublisher(self)
         clock = self.get_clock()
         inertial = s.publish_imu or s.publish_temperature
@@ -473,7 +326,9 @@ class Icm20948DriverNode(Node):
         self._pump = threading.Thread(target=self.supervisor.run, args=(self._stop, self._deliver),
                                       daemon=True, name=f'{NODE_NAME} I2C')
         self._pump.start()
-        self._follow_cmd_vel_wiring()
+        if s.cmd_vel is not None:  # the simulated robot: cmd_vel in, battery_state out
+            self._sim_robot = sim_backend.SimRobotWiring(
+                self, SimulatedRobot(s.cmd_vel, lambda: self.simulator.sim_time_s), DRIVER_QOS)
 
     # --- counters the tests, the demo and the benchmark read -------------------------------------
 
@@ -518,37 +373,12 @@ class Icm20948DriverNode(Node):
         sim = None
         if values['backend'] == 'sim':
             try:
-                sim = SimConfig(
-                    field_ut=values['sim.field_ut'],
-                    inclination_deg=values['sim.inclination_deg'],
-                    hard_iron_ut=tuple(values['sim.hard_iron_ut']),
-                    soft_iron=tuple(values['sim.soft_iron']),
-                    noise_ut=values['sim.noise_ut'],
-                    motion=values['sim.motion'],
-                    i2c_error_rate=values['sim.i2c_error_rate'],
-                    seed=values['sim.seed'],
-                    address=values['address'],
-                    accel_bias_mps2=tuple(values['sim.accel_bias_mps2']),
-                    gyro_bias_dps=tuple(values['sim.gyro_bias_dps']),
-                    accel_noise_density=values['sim.accel_noise_density'],
-                    gyro_noise_density=values['sim.gyro_noise_density'],
-                    temperature_c=values['sim.temperature_c'],
-                    temperature_rise_c=values['sim.temperature_rise_c'],
-                    temperature_time_constant_s=values['sim.temperature_time_constant_s'],
-                    current_field_ut_per_a=tuple(values['sim.current_field_ut_per_a']),
-                    hard_iron_drift_ut_per_c=tuple(values['sim.hard_iron_drift_ut_per_c']),
-                    mag_misalignment_deg=tuple(values['sim.mag_misalignment_deg']),
-                    latitude=values['sim.latitude'],
-                    longitude=values['sim.longitude'],
-                    altitude_m=values['sim.altitude'],
-                    field_scale=values['sim.field_scale'],
-                    inclination_offset_deg=values['sim.inclination_offset_deg'],
-                )
+                sim = sim_backend.sim_config(values)
             except ValueError as error:
                 problems.append(f'sim.*: {error}')
         cmd_vel = None
-        if sim is not None and sim.motion == 'cmd_vel' and not problems:
-            cmd_vel = motion.CmdVelTrajectory(sim.seed, *cmd_vel_limits(values))
+        if sim is not None and not problems:
+            cmd_vel = sim_backend.cmd_vel_trajectory(sim, values)
         if problems:
             message = 'refusing to start, invalid parameters:\n  ' + '\n  '.join(problems)
             self.get_logger().fatal(message)
@@ -645,8 +475,8 @@ class Icm20948DriverNode(Node):
         message.magnetic_field_covariance = self._mag_covariance
         self._publisher.publish(message)
         self.published += 1
-        if self._battery_publisher is not None:
-            self._publish_battery(sample.stamp)
+        if self._sim_robot is not None:
+            self._sim_robot.publish_battery(sample.stamp, self._frame_id)
 
     def _publish_imu(self, sample: ImuSample) -> None:
         reading = sample.reading
@@ -681,71 +511,6 @@ class Icm20948DriverNode(Node):
             )
             for status in self.supervisor.status()
         ])
-
-    # --- sim.motion cmd_vel: the simulated robot drives as commanded -------------------------
-
-    def _follow_cmd_vel_wiring(self) -> None:
-        """With the cmd_vel motion: subscribe to cmd_vel in the type its publishers use (Twist,
-        or TwistStamped when only that is published: one topic has one type in DDS)."""
-        self.cmd_vel_received = 0
-        self._cmd_vel_subscription = None
-        self._cmd_vel_type = None
-        if self.settings.cmd_vel is None:
-            return
-        self._follow_cmd_vel_type()
-        self.create_timer(CMD_VEL_CHECK_S, self._follow_cmd_vel_type)
-        self._battery_due_ns = 0
-        self._battery_message = message = BatteryState()
-        message.temperature = message.charge = message.capacity = math.nan  # unmeasured
-        message.design_capacity = message.percentage = math.nan
-        message.power_supply_status = BatteryState.POWER_SUPPLY_STATUS_DISCHARGING
-        message.present = True
-        # last: the supervisor's thread publishes once this is set
-        self._battery_publisher = self.create_publisher(BatteryState, BATTERY_TOPIC, DRIVER_QOS)
-
-    def _follow_cmd_vel_type(self) -> None:
-        topic = self.resolve_topic_name(CMD_VEL_TOPIC)
-        offered = {info.topic_type for info in self.get_publishers_info_by_topic(topic)}
-        wanted = ('geometry_msgs/msg/TwistStamped'
-                  if offered == {'geometry_msgs/msg/TwistStamped'} else 'geometry_msgs/msg/Twist')
-        if wanted == self._cmd_vel_type:
-            return
-        if self._cmd_vel_subscription is not None:
-            # the old type's topic goes with its last user: subscribe anew at the next check
-            self.destroy_subscription(self._cmd_vel_subscription)
-            self._cmd_vel_subscription = self._cmd_vel_type = None
-            return
-        try:
-            self._cmd_vel_subscription = self.create_subscription(
-                CMD_VEL_TYPES[wanted], CMD_VEL_TOPIC, self._on_cmd_vel, QoSProfile(depth=10))
-        except RCLError as error:  # the old type still held by DDS: the next check retries
-            self.get_logger().debug(f'subscribing {topic} as {wanted} failed: {error}')
-            return
-        self._cmd_vel_type = wanted
-
-    def _on_cmd_vel(self, message: Twist | TwistStamped) -> None:
-        """Drive at the commanded forward speed and yaw rate (a differential drive: linear y,
-        z and angular x, y are ignored)."""
-        twist = message.twist if isinstance(message, TwistStamped) else message
-        self.settings.cmd_vel.command(twist.angular.z, self.simulator.sim_time_s,
-                                      speed=twist.linear.x)
-        self.cmd_vel_received += 1
-
-    def _publish_battery(self, stamp) -> None:
-        """The simulated robot's battery: the current its motion draws now, with the stamp of
-        the imu/mag reading just published (on the supervisor's thread; one message, refilled),
-        at most every BATTERY_PERIOD_NS."""
-        stamp_ns = stamp.sec * 1_000_000_000 + stamp.nanosec
-        if stamp_ns < self._battery_due_ns:
-            return
-        self._battery_due_ns = stamp_ns + BATTERY_PERIOD_NS
-        robot, message = self.settings.cmd_vel, self._battery_message
-        amperes = robot.battery_current(self.simulator.sim_time_s)
-        message.header.stamp = stamp
-        message.header.frame_id = self._frame_id
-        message.voltage = float(robot.drive.voltage(amperes))
-        message.current = -float(amperes)  # negative when discharging (BatteryState.msg)
-        self._battery_publisher.publish(message)
 
     def destroy_node(self) -> None:
         self._stop.set()

@@ -3,7 +3,7 @@ command line's ``--log-level <node name>:=...`` followed in a namespace too."""
 
 from __future__ import annotations
 
-from rcl_interfaces.msg import ParameterDescriptor
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy import logging
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.node import Node
@@ -12,6 +12,30 @@ from rclpy.parameter import Parameter
 
 class ConfigurationError(ValueError):
     """A node refuses to start: its parameters cannot work (already logged as FATAL)."""
+
+
+def descriptor(
+    description: str,
+    *,
+    read_only: bool = True,
+    integer_range: tuple[int, int] | None = None,
+    float_range: tuple[float, float] | None = None,
+    constraints: str = '',
+) -> ParameterDescriptor:
+    """A parameter's descriptor in one call: read-only unless said, its range where it has one,
+    so `ros2 param describe` tells users what rcl will refuse."""
+    result = ParameterDescriptor(
+        description=description, read_only=read_only, additional_constraints=constraints
+    )
+    if integer_range is not None:
+        result.integer_range = [
+            IntegerRange(from_value=integer_range[0], to_value=integer_range[1], step=0)
+        ]
+    if float_range is not None:
+        result.floating_point_range = [
+            FloatingPointRange(from_value=float_range[0], to_value=float_range[1], step=0.0)
+        ]
+    return result
 
 
 def declare_checked(node: Node, name: str, default: object, descriptor: ParameterDescriptor,
