@@ -79,8 +79,9 @@ def stream(name: str, rows: np.ndarray, passes: int = 3, calibration: Calibratio
             if index % POLL_EVERY == 0:
                 session.poll()
             _print_events(session, index)
-    print(f'  final state {session.state}; adoptions {sorted(session.adoptions.items())}; '
-          f'jobs {sorted(session.jobs_run.items())}')
+    final = session.report(measure_coverage=True)
+    print(f'  final state {final.state}; adoptions {sorted(final.counts.adoptions.items())}; '
+          f'jobs {sorted(final.counts.fits.items())}')
     _print_calibration(session.calibration)
     session.close()
 
@@ -101,10 +102,10 @@ def board_stream(kind: str, seconds: float = 60.0, rate_hz: float = 50.0) -> Non
         if index % POLL_EVERY == 0:
             session.poll()
         _print_events(session, index)
-    print(f'  final state {session.state}; adoptions {sorted(session.adoptions.items())}')
-    values = session.diagnostic_values(0.0)
-    print('  diagnostics', sorted((k, v) for k, v in values.items() if 'rate' not in k))
-    print('  progress', session.progress_text())
+    final = session.report(0.0, measure_coverage=True)
+    print(f'  final state {final.state}; adoptions {sorted(final.counts.adoptions.items())}')
+    print('  diagnostics', sorted((k, v) for k, v in final.values.items() if 'rate' not in k))
+    print('  progress', final.progress)
     _print_calibration(session.calibration)
     session.close()
 

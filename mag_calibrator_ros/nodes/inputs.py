@@ -17,6 +17,7 @@ from sensor_msgs.msg import Temperature
 
 from mag_calibrator_ros.calibration.live.inputs import InputSpec, parse_input
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
+from mag_calibrator_ros.calibration.live.settings import SessionSettings
 from mag_calibrator_ros.nodes.runtime import guarded
 
 TEMPERATURE_TOPIC = 'imu/temperature'
@@ -45,8 +46,10 @@ def message_class(type_name: str) -> type:
 class InputSubscriptions:
     """Subscribes the temperature and the interference inputs the settings name."""
 
-    def __init__(self, node: Node, session: CalibrationSession, qos: object) -> None:
+    def __init__(self, node: Node, session: CalibrationSession,
+                 settings: Callable[[], SessionSettings], qos: object) -> None:
         self._node, self._session, self._qos = node, session, qos
+        self._settings = settings  # the settings the session has now (the node keeps them)
         self._temperature = None
         self._inputs: list[object] = []
         self._wanted: tuple[tuple[str, ...], bool] | None = None
@@ -57,7 +60,7 @@ class InputSubscriptions:
 
     def sync(self) -> None:
         """Subscribe what the session's settings name now (after a parameter change too)."""
-        settings = self._session.settings
+        settings = self._settings()
         wanted = (tuple(settings.interference_inputs), settings.use_temperature)
         if wanted == self._wanted:
             return
@@ -91,11 +94,11 @@ class InputSubscriptions:
             node.get_logger().error(problem)
 
     def _on_temperature(self, message: Temperature) -> None:
-        self._session.compensation.temperature(_stamp_ns(message), message.temperature)
+        self._session.process_temperature(_stamp_ns(message), message.temperature)
 
     def _on_input(self, index: int, spec: InputSpec) -> Callable[[object], None]:
         def on_message(message: object) -> None:
-            self._session.compensation.input(index, _stamp_ns(message), spec.value(message))
+            self._session.process_input(index, _stamp_ns(message), spec.value(message))
         return on_message
 
 

@@ -128,7 +128,6 @@ from mag_calibrator_ros.calibration.fit.calibration import (
     transform_covariance,
     with_uncertainty,
 )
-from mag_calibrator_ros.calibration.fit.coverage import Coverage
 from mag_calibrator_ros.calibration.fit.earth_field import (
     EarthField,
     EarthFieldError,
@@ -136,12 +135,14 @@ from mag_calibrator_ros.calibration.fit.earth_field import (
     import_model,
 )
 from mag_calibrator_ros.calibration.live.report import (
+    NodeStatus,
+    SessionReport,
     calibration_summary,
     no_input_text,
     no_message_text,
 )
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
-from mag_calibrator_ros.calibration.live.worker import ProcessRunner
+from mag_calibrator_ros.calibration.live.worker import FitRunner, ProcessRunner
 from mag_calibrator_ros.calibration.store.calibration_file import (
     CalibrationFileError,
     CalibrationFileMissingError,
@@ -202,7 +203,9 @@ INPUT_QOS = QoSProfile(
 class MagCalibratorNode(Node):
     """Live magnetometer calibration; ``.session`` exposes the engine state (demo, tests)."""
 
-    def __init__(self, **node_kwargs) -> None:
+    def __init__(self, *, runner: FitRunner | None = None, **node_kwargs) -> None:
+        """``runner``: where fits run (a ``ProcessRunner`` of its own by default; tests and
+        benchmarks give one that fails on demand); ``node_kwargs`` go to rclpy's ``Node``."""
         node_kwargs.setdefault('node_name', NODE_NAME)
         super().__init__(**node_kwargs)
         follow_bare_log_level(self)
@@ -218,10 +221,11 @@ class MagCalibratorNode(Node):
             Node.destroy_node(self)  # nothing else was created yet
             refuse_to_start(self, problems)
         self._calibration_parameters = CalibrationParameters(self)
-        runner = ProcessRunner()
-        runner.start()  # the worker imports the fitting stack while the node starts up
-        self.session = CalibrationSession(session_settings(self._current_values()),
-                                          runner=runner)
+        if runner is None:
+            runner = ProcessRunner()
+            runner.start()  # the worker imports the fitting stack while the node starts up
+        self._settings = session_settings(self._current_values())  # as the session has them
+        self.session = CalibrationSession(self._settings, runner=runner)
         self._io = ThreadPoolExecutor(max_workers=1, thread_name_prefix='mag_calibrator_io')
         self._io_results: SimpleQueue = SimpleQueue()  # (rclpy Future, result) from the I/O thread
         self._requests: dict[int, Future] = {}  # session tickets waiting for their answer
@@ -249,7 +253,8 @@ class MagCalibratorNode(Node):
         self._sync_imu_subscription()
         self.create_subscription(NavSatFix, 'gps/fix', guarded(self, 'gps/fix', self._on_fix),
                                  INPUT_QOS)
-        self._inputs = InputSubscriptions(self, self.session, INPUT_QOS)  # imu/temperature ...
+        self._inputs = InputSubscriptions(self, self.session, lambda: self._settings,
+                                          INPUT_QOS)  # imu/temperature ...
         self._relocate()
         # The services wait for the fit worker and the I/O thread without blocking the executor;
         # a waiting service must not hold the default (mutually exclusive) group, or the poll
@@ -294,7 +299,8 @@ class MagCalibratorNode(Node):
 
     def _apply_parameters(self, parameters: list[Parameter]) -> None:
         if any(parameter.name in PARAMETERS for parameter in parameters):
-            self.session.reconfigure(session_settings(self._current_values()))
+            self._settings = session_settings(self._current_values())
+            self.session.reconfigure(self._settings)
         names = {parameter.name for parameter in parameters}
         in_force = self.session.calibration
         if ('auto_save' in names and self.get_parameter('auto_save').value
@@ -344,7 +350,8 @@ class MagCalibratorNode(Node):
         """Put a calibration read from ``path`` in force, or report why it could not be."""
         if isinstance(loaded, Exception):
             return False, self._report_problem(
-                f'{loaded}; the calibration in force is unchanged (state {self.session.state})')
+                f'{loaded}; the calibration in force is unchanged '
+                f'(state {self.session.report().state})')
         for note in loaded.notes:
             self.get_logger().warning(f'{loaded.path}: {note}')
         self.session.apply_calibration(loaded.calibration, 'file')
@@ -378,8 +385,9 @@ class MagCalibratorNode(Node):
             self._publisher.publish(out)
         elif processed.accepted and self.get_parameter('publish_uncalibrated').value:
             self._publisher.publish(msg)
-        if self.session.has_events:
-            self._handle_events()
+        if processed.accepted:
+            self._turning.reading_accepted()
+        self._handle_events()
 
     def _on_imu(self, msg: Imu) -> None:
         """O(1): the session keeps the sample to pair magnetometer readings with."""
@@ -460,8 +468,7 @@ class MagCalibratorNode(Node):
         while not self._io_results.empty():
             future, result = self._io_results.get()
             future.set_result(result)
-        if self.session.has_events:
-            self._handle_events()
+        self._handle_events()
         if self.session.calibration is not self._calibration_parameters.shown:
             self._calibration_parameters.show(self.session.calibration)
         if self._auto_save.start(time.monotonic()):
@@ -579,7 +586,7 @@ class MagCalibratorNode(Node):
         self._relocate()
         response.success = True
         response.message = (f'buffer emptied; the calibration in force is unchanged '
-                            f'(state {self.session.state})')
+                            f'(state {self.session.report().state})')
         if forgot:
             response.message += '; the location from gps/fix is forgotten (the next fix locates)'
         self.get_logger().info(response.message)
@@ -599,28 +606,39 @@ class MagCalibratorNode(Node):
     # -- once per second -------------------------------------------------------------------------
 
     def _on_tick(self) -> None:
+        """Once a diagnostics period: one report of the session, for the progress line,
+        /diagnostics (with what the node adds: the file, the turn, the location) and RViz."""
         now = time.monotonic()
-        coverage = self.session.reported_coverage()
-        self._log_progress(now, coverage)
-        self._publish_diagnostics(now, coverage)
-        self._publish_view(now)
+        topic = self.resolve_topic_name('imu/mag')
+        values: dict[str, object] = {'calibration_file': str(self._calibration_file()),
+                                     **self._rotation.diagnostic_values(now)}
+        if self._location_source:
+            values['location_source'] = self._location_source
+        if self._location.waiting:
+            values['location_waiting'] = self._location.waiting
+        if self._location.refused:
+            values['gps_fixes_refused'] = self._location.refused_text()
+        report = self.session.report(now, NodeStatus(self._problem, no_input_text(topic), values))
+        self._log_progress(now, report)
+        self._publish_diagnostics(topic, report)
+        self._publish_view(now, report)
 
-    def _publish_view(self, now: float) -> None:
+    def _publish_view(self, now: float, report: SessionReport) -> None:
         if not self._view.due(now, float(self.get_parameter('view_period').value)):
             return
-        self._view.publish(self.session.view(), self.session.frame_id or 'imu_link',
+        self._view.publish(self.session.view(), report.frame_id or 'imu_link',
                            float(self.get_parameter('view_scale').value))
 
-    def _log_progress(self, now: float, coverage: Coverage) -> None:
+    def _log_progress(self, now: float, report: SessionReport) -> None:
         period = float(self.get_parameter('progress_log_period').value)
-        if period <= 0.0 or self.session.calibration is not None:
+        if period <= 0.0 or report.calibration is not None:
             return
         if self._rotation.state == 'turning':
             return  # the rotation logs its own progress
         if now - self._last_progress_log < period:
             return
-        received = self.session.messages_received
-        text = self.session.progress_text(coverage)
+        received = report.counts.received
+        text = report.progress
         if received == self._received_at_log:  # no message since the last line (or start)
             topic = self.resolve_topic_name('imu/mag')
             text = no_message_text(topic, self.count_publishers(topic), received == 0,
@@ -630,25 +648,13 @@ class MagCalibratorNode(Node):
         self._last_progress_log, self._received_at_log = now, received
         self.get_logger().info(text)
 
-    def _publish_diagnostics(self, now: float, coverage: Coverage) -> None:
-        values = self.session.diagnostic_values(now, coverage)
-        values['calibration_file'] = str(self._calibration_file())
-        values.update(self._rotation.diagnostic_values(now))
-        if self._location_source:
-            values['location_source'] = self._location_source
-        if self._location.waiting:
-            values['location_waiting'] = self._location.waiting
-        if self._location.refused:
-            values['gps_fixes_refused'] = self._location.refused_text()
+    def _publish_diagnostics(self, topic: str, report: SessionReport) -> None:
         # Names and hardware ids carry the namespace: robots on one host stay apart.
-        topic = self.resolve_topic_name('imu/mag')
-        level, message = self.session.diagnostics_level(
-            coverage, values['input_rate_hz'], self._problem, no_input_text(topic))
-        frame = self.session.frame_id
-        hardware_id = f'{topic} ({frame})' if frame else topic
+        hardware_id = f'{topic} ({report.frame_id})' if report.frame_id else topic
         self._diagnostics.publish([
             diagnostic_status(f'{self.get_fully_qualified_name()}: calibration', hardware_id,
-                              {'OK': OK, 'WARN': WARN, 'ERROR': ERROR}[level], message, values)
+                              {'OK': OK, 'WARN': WARN, 'ERROR': ERROR}[report.level],
+                              report.message, dict(report.values))
         ])
 
 

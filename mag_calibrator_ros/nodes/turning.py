@@ -69,7 +69,8 @@ class TurnInPlace:
             command_topic=node.resolve_topic_name(COMMAND_TOPIC))
         self._publisher = None
         self._stamped = False
-        self._accepted_seen = session.accepted
+        self._accepted = 0  # readings accepted (``reading_accepted``) ...
+        self._accepted_seen = 0  # ... and as the previous look saw them
         self._input_age_s: float | None = None  # executor time since the count last grew
         self._looked_at: float | None = None  # monotonic time of the previous look
         for name, callback in (('~/rotate_and_calibrate', self._on_rotate),
@@ -77,6 +78,10 @@ class TurnInPlace:
             node.create_service(Trigger, name, answering(name, callback))
         node.add_post_set_parameters_callback(self._parameters_changed)
         node.create_timer(COMMAND_PERIOD_S, guarded(node, 'rotation', self._on_timer))
+
+    def reading_accepted(self) -> None:
+        """The node's message callback: the session accepted a reading (O(1))."""
+        self._accepted += 1
 
     def _parameter_values(self) -> dict[str, object]:
         return {name: self._node.get_parameter(name).value for name in TURN_PARAMETERS}
@@ -93,8 +98,8 @@ class TurnInPlace:
         step = 0.0 if self._looked_at is None else min(max(now - self._looked_at, 0.0),
                                                        MAX_TICK_STEP_S)
         self._looked_at = now
-        if self._session.accepted != self._accepted_seen:
-            self._accepted_seen = self._session.accepted
+        if self._accepted != self._accepted_seen:
+            self._accepted_seen = self._accepted
             self._input_age_s = 0.0
         elif self._input_age_s is not None:
             self._input_age_s += step
@@ -117,7 +122,7 @@ class TurnInPlace:
         if self.controller.state == 'idle' and self._publisher is None:
             return
         step = self.controller.update(now, input_age, self._other_commanders(),
-                                      lambda: self._session.heading_coverage().coverage)
+                                      self._session.heading_coverage)
         self._log(step.messages)
         if step.calibrate:
             self._request_calibration(self._fit_answered)  # may already have stopped the turn

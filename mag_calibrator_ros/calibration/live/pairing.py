@@ -120,14 +120,16 @@ class ImuPairing:
     """The accelerometer ring, its refusals by reason and the pairing's health, for
     /diagnostics and the log."""
 
-    def __init__(self, force_range: tuple[float, float] | None = SPECIFIC_FORCE_RANGE) -> None:
+    def __init__(self, force_range: tuple[float, float] | None = SPECIFIC_FORCE_RANGE,
+                 gravity: GravityTracker | None = None) -> None:
         self.force_range = force_range
         """Plausible |specific force| (SPECIFIC_FORCE_RANGE, m/s^2); None when the unit is
         unknown (``mag_calibrator_fit`` reads logs in counts or g)."""
         self._ring: deque[tuple[int, float, float, float, Vector | None, str, Vector | None]
                           ] = deque(maxlen=IMU_RING)
-        self.gravity = GravityTracker()
-        """Gravity's direction from the samples kept, and how many measured none."""
+        self.gravity = gravity if gravity is not None else GravityTracker()
+        """Gravity's direction from the samples kept, and how many measured none (a benchmark
+        gives another tracker to compare with)."""
         self.rate = RateMeter()
         self.accepted = 0
         self.refusals = dict.fromkeys(IMU_REASONS, 0)

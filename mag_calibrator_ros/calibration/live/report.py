@@ -7,8 +7,8 @@ wording is changed in one place (tests and users match on these texts: change th
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
-from typing import Literal, Protocol
+from dataclasses import dataclass, field
+from typing import Literal, NamedTuple
 
 from mag_calibrator_ros.calibration.fit.alignment import (
     Alignment,
@@ -17,7 +17,7 @@ from mag_calibrator_ros.calibration.fit.alignment import (
 )
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
 from mag_calibrator_ros.calibration.fit.coverage import HEADING_SECTORS, Coverage
-from mag_calibrator_ros.calibration.fit.earth_field import EarthField, EarthReference
+from mag_calibrator_ros.calibration.fit.earth_field import EarthCheck, EarthField, EarthReference
 from mag_calibrator_ros.calibration.fit.heading import COMPLETE_HEADING_COVERAGE
 from mag_calibrator_ros.calibration.live.buffer import SampleBuffer
 from mag_calibrator_ros.calibration.live.evidence import (
@@ -278,91 +278,258 @@ def diagnostics_level(state: str, progress: str, input_rate_hz: float, no_input:
     return 'WARN', f'{state}: {progress}'
 
 
-class ReportedSession(Protocol):
-    """What /diagnostics reads of a ``CalibrationSession`` (which imports this module)."""
+@dataclass(frozen=True)
+class NodeStatus:
+    """What the node adds to a report: its own problem (a file or parameter error, shown as
+    ERROR), the 'no input' text in its topic's words, and its /diagnostics values (the file,
+    the turn, the location), after the session's."""
+
+    problem: str | None = None
+    no_input: str = ''
+    values: Mapping[str, object] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class BufferReport:
+    """The uniqueness buffer: how full, what it has seen and merged, what it screens by."""
+
+    fill: int
+    capacity: int
+    k: int
+    seen: int
+    """Readings offered to the buffer (the rest of those accepted were held out)."""
+    merged: int
+    evicted: int
+    readings_held: float
+    """Readings the samples stand for (the sum of their merge counts)."""
+    merging: bool
+    screened_by: str | None
+    """What the buffer screens readings by: 'fit' (its own), 'calibration' (the one in force)
+    or None."""
+
+
+@dataclass(frozen=True)
+class ImuReport:
+    """The accelerometer and gyroscope stream the readings are paired with."""
+
+    received: int
+    """Samples given to ``process_imu``, refused ones included."""
+    accepted: int
+    refusals: Mapping[str, int]
+    """Samples refused, by reason (``pairing.IMU_REASONS``)."""
+    paired: int
+    """Magnetometer readings paired with an accelerometer sample."""
+    waiting: int
+    """Readings waiting for a later sample to pair with."""
+    accelerating: int
+    """Samples that measured no gravity (the robot accelerating)."""
+    static_attitudes: int
+    warning: str
+    gyro_problem: str
+    """Why the gyroscope does not turn with the accelerometer ('' when it does)."""
+    gyro_in_degrees: bool
+
+    @property
+    def refused(self) -> int:
+        return sum(self.refusals.values())
+
+
+@dataclass(frozen=True)
+class SessionCounts:
+    """Messages and decisions counted since the session began."""
+
+    received: int
+    """Messages given to ``process``, refused ones included."""
+    accepted: int
+    rejects: Mapping[str, int]
+    """Every refusal by reason: screening, then duplicates and magnitude outliers."""
+    adoptions: Mapping[str, int]
+    """How often a calibration went in force, by source (auto, refine, request, file ...)."""
+    fits: Mapping[str, int]
+    """Fits run, by kind (calibrate, refine, check, reference, compensate, request)."""
+    held: int
+    """Readings received while a fit ran, not yet learnt from (fed in order, later)."""
+    hold_overflows: int
+    held_out: int
+    """Held-out readings kept to judge calibrations on."""
+    stale_dropped: int
+    """Readings dropped unlearnt: compensated by a compensation no longer in force."""
+    tracked_updates: int
+
+
+@dataclass(frozen=True)
+class SessionReport:
+    """The session for people and tools at one moment: a frozen value, built here from the
+    session's parts (``CalibrationSession.report``), read once per diagnostics period by the
+    node and whenever a tool or test asks."""
+
+    state: str
+    calibration: Calibration | None
+    progress: str
+    """What to do next, e.g. 'coverage 63 % - keep rotating about the pitch axis (y)'."""
+    level: Level
+    message: str
+    """/diagnostics' level and message: the first problem that applies, else the progress."""
+    values: Mapping[str, object]
+    """/diagnostics' key/values (the node's after the session's)."""
+    coverage: Coverage
+    frame_id: str
+    """The stream's frame, '' while unknown."""
+    input_rate_hz: float
+    counts: SessionCounts
+    buffer: BufferReport
+    imu: ImuReport
+    misfit: str
+    """Why the calibration in force does not fit ('' unless judged so)."""
+    earth_warning: str
+    alignment_warning: str
+    input_problem: str
+    """Input no calibration can fix (a wrong unit, a normalised stream: ``sanity.py``)."""
+    earth: EarthField | None
+    """The World Magnetic Model's field here (``set_earth_field``), None while unknown."""
+    alignment: Alignment | None
+    """The latest alignment to the IMU a fit that passed its gates found."""
+    earth_check: EarthCheck | None
+    """The latest such fit against the World Magnetic Model."""
+    last_attempt: CalibrationAttempt | None
+    compensation_needs: str
+    """What motion or wait the latest own-field fit needed ('' if none)."""
+    tracking: bool
+    """Whether online tracking follows the calibration in force."""
+    waiting_for_alignment: bool
+
+
+class ReportInputs(NamedTuple):
+    """The session's parts a report reads, handed over by ``CalibrationSession.report`` (the
+    session imports this module; its parts stay its own)."""
 
     settings: SessionSettings
     units: str
+    state: str
     calibration: Calibration | None
     buffer: SampleBuffer
+    screened_by: str | None
     evidence: HeldOutEvidence
     misfit: MisfitMonitor
     input_rate: RateMeter
     pairing: ImuPairing
     attitudes: StaticAttitudes
-    accepted: int
+    counts: SessionCounts
     last_attempt: CalibrationAttempt | None
-    jobs_run: dict[str, int]
-    adoptions: dict[str, int]
     tracker: OnlineTracker | None
-    tracked_updates: int
-    hold_overflows: int
     findings: Findings
+    earth_reference: EarthReference | None
+    compensation_values: Mapping[str, object]
+    compensation_needs: str
     runner: FitRunner
-
-    @property
-    def state(self) -> str: ...
-    @property
-    def held(self) -> int: ...
-    @property
-    def frame_id(self) -> str: ...
-    @property
-    def last_residual_pct(self) -> float | None: ...
-    def rejects(self) -> dict[str, int]: ...
-    def earth_reference(self) -> EarthReference | None: ...
+    input_values: Mapping[str, object]
+    """The input checks' and the alignment wait's /diagnostics values."""
+    input_problem: str
+    waiting_for_alignment: bool
+    frame_id: str
+    progress: str
+    earth_warning: str
 
 
-def diagnostic_values(session: ReportedSession, now: float, coverage: Coverage
+def session_report(parts: ReportInputs, now: float | None, coverage: Coverage,
+                   node: NodeStatus | None, refused: Mapping[str, int] | None
+                   ) -> SessionReport:
+    """The report of ``parts``; ``now`` (the node's clock, seconds) measures the input rates
+    since the previous report that had one, None keeps the latest measured. ``refused``:
+    messages refused by screening since the previous such report."""
+    node = node or NodeStatus()
+    values = {**diagnostic_values(parts, now, coverage), **parts.input_values, **node.values}
+    input_rate_hz = float(values['input_rate_hz'])
+    pairing, input_problem = parts.pairing, parts.input_problem
+    misfit = misfit_text(parts.misfit.last, parts.units, parts.settings.auto_calibrate)
+    problem = '; '.join(text for text in (node.problem, parts.runner.problem) if text) or None
+    level, message = diagnostics_level(
+        parts.state, parts.progress, input_rate_hz, node.no_input, problem=problem,
+        refused=refused if problem is None else None, misfit=misfit,
+        earth_warning=parts.earth_warning,
+        alignment_warning=parts.findings.alignment_warning, imu_warning=pairing.warning(),
+        input_problem=input_problem)
+    buffer = parts.buffer
+    rates = pairing.gravity.rates
+    return SessionReport(
+        state=parts.state, calibration=parts.calibration, progress=parts.progress,
+        level=level, message=message, values=values, coverage=coverage,
+        frame_id=parts.frame_id, input_rate_hz=input_rate_hz, counts=parts.counts,
+        buffer=BufferReport(
+            fill=int(buffer.fill), capacity=int(buffer.capacity), k=int(buffer.k),
+            seen=int(buffer.seen), merged=int(buffer.merged), evicted=int(buffer.evicted),
+            readings_held=float(buffer.counts.sum()), merging=bool(buffer.merging),
+            screened_by=parts.screened_by),
+        imu=ImuReport(
+            received=int(pairing.rate.count), accepted=int(pairing.accepted),
+            refusals=dict(pairing.refusals),
+            paired=int(pairing.paired), waiting=int(pairing.waiting),
+            accelerating=int(pairing.gravity.rejected),
+            static_attitudes=int(parts.attitudes.fill), warning=pairing.warning(),
+            gyro_problem=rates.problem(), gyro_in_degrees=bool(rates.looks_like_degrees)),
+        misfit=misfit, earth_warning=parts.earth_warning,
+        alignment_warning=parts.findings.alignment_warning, input_problem=input_problem,
+        earth=parts.findings.earth, alignment=parts.findings.alignment,
+        earth_check=parts.findings.earth_check,
+        last_attempt=parts.last_attempt, compensation_needs=parts.compensation_needs,
+        tracking=parts.tracker is not None, waiting_for_alignment=parts.waiting_for_alignment)
+
+
+def diagnostic_values(parts: ReportInputs, now: float | None, coverage: Coverage
                       ) -> dict[str, object]:
-    """Key/values for /diagnostics, plain numbers and strings; read once per diagnostics
-    period (updates the input rates)."""
-    calibration = session.calibration
-    buffer = session.buffer
+    """Key/values for /diagnostics, plain numbers and strings (``session_report``'s ``now``)."""
+    calibration = parts.calibration
+    buffer = parts.buffer
+    counts = parts.counts
+    residual = None if calibration is None else calibration.metadata_number('residual_rms_pct')
     values: dict[str, object] = {
-        'state': session.state,
+        'state': parts.state,
         'coverage_pct': round(100.0 * float(coverage.fraction), 1),
         'coverage_kind': 'heading' if coverage.cells == HEADING_SECTORS else 'direction',
         'coverage_hint': coverage.hint,
         'buffer_fill': int(buffer.fill),
         'buffer_capacity': int(buffer.capacity),
         'relative_knn_distance': round(float(buffer.relative_knn_distance), 5),
-        'held_out_readings': len(session.evidence),
-        'waiting_readings': session.held,
-        'input_rate_hz': round(session.input_rate.read(now), 2),
-        'messages_accepted': int(session.accepted),
-        'frame_id': session.frame_id,
-        'last_residual_pct': ('' if session.last_residual_pct is None
-                              else round(session.last_residual_pct, 3)),
-        'last_calibrate': '' if session.last_attempt is None else session.last_attempt.message,
-        'fits': ', '.join(f'{kind} {count}' for kind, count in sorted(session.jobs_run.items())),
+        'held_out_readings': counts.held_out,
+        'waiting_readings': counts.held,
+        'input_rate_hz': round(_rate(parts.input_rate, now), 2),
+        'messages_accepted': int(counts.accepted),
+        'frame_id': parts.frame_id,
+        'last_residual_pct': '' if residual is None else round(residual, 3),
+        'last_calibrate': '' if parts.last_attempt is None else parts.last_attempt.message,
+        'fits': ', '.join(f'{kind} {count}' for kind, count in sorted(counts.fits.items())),
         'adopted': ', '.join(f'{source} {count}'
-                             for source, count in sorted(session.adoptions.items())),
+                             for source, count in sorted(counts.adoptions.items())),
     }
-    values.update({f'rejected_{k}': int(v) for k, v in session.rejects().items()})
-    headroom = could_be_better(session.findings, calibration)
+    values.update({f'rejected_{k}': int(v) for k, v in counts.rejects.items()})
+    headroom = could_be_better(parts.findings, calibration)
     if headroom is not None:
         values['could_be_better_pct'] = round(headroom[0], 2)
         values['could_be_better'] = headroom[1]
-    check = session.misfit.last
+    check = parts.misfit.last
     if check is not None and check.judged:
         values['live_median_error_pct'] = round(check.median_error_pct, 2)
     if calibration is not None:
-        scale = TESLA_TO_MICROTESLA if session.units == 'T' else 1.0
-        unit = display_units(session.units)
+        scale = TESLA_TO_MICROTESLA if parts.units == 'T' else 1.0
+        unit = display_units(parts.units)
         values['model'] = calibration.model
         values[f'offset_{unit}'] = [round(float(v) * scale, 3) for v in calibration.offset]
         values[f'field_strength_{unit}'] = round(float(calibration.field_strength) * scale, 3)
-    values.update(session.compensation.diagnostic_values(calibration, session.units,
-                                                           session.clock.now))
-    if session.tracker is not None:
-        values['tracked_updates'] = session.tracked_updates
-    if session.hold_overflows:
-        values['hold_overflows'] = session.hold_overflows
-    if session.runner.restarts:
-        values['fit_worker_restarts'] = int(session.runner.restarts)
-        values['fit_worker_last_restart'] = session.runner.last_restart
-    values.update(_reference_values(session, now))
+    values.update(parts.compensation_values)
+    if parts.tracker is not None:
+        values['tracked_updates'] = counts.tracked_updates
+    if counts.hold_overflows:
+        values['hold_overflows'] = counts.hold_overflows
+    if parts.runner.restarts:
+        values['fit_worker_restarts'] = int(parts.runner.restarts)
+        values['fit_worker_last_restart'] = parts.runner.last_restart
+    values.update(_reference_values(parts, now))
     return values
+
+
+def _rate(meter: RateMeter, now: float | None) -> float:
+    """Messages per second since the previous reading of ``meter`` (``now``), or the latest."""
+    return meter.rate if now is None else meter.read(now)
 
 
 def could_be_better(findings: Findings, calibration: Calibration | None
@@ -392,12 +559,12 @@ def could_be_better(findings: Findings, calibration: Calibration | None
                   'it in force now, or keep turning the sensor for refinement to prove it')
 
 
-def _reference_values(session: ReportedSession, now: float) -> dict[str, object]:
+def _reference_values(parts: ReportInputs, now: float | None) -> dict[str, object]:
     """The IMU alignment and the model's field, for /diagnostics."""
     values: dict[str, object] = {}
-    pairing = session.pairing
+    pairing = parts.pairing
     if pairing.rate.count or pairing.accepted:
-        values['imu_rate_hz'] = round(pairing.rate.read(now), 2)
+        values['imu_rate_hz'] = round(_rate(pairing.rate, now), 2)
         values['imu_messages_accepted'] = int(pairing.accepted)
         values['imu_messages_refused'] = int(pairing.refused)
         values.update({f'imu_rejected_{k}': int(v) for k, v in pairing.refusals.items()})
@@ -406,25 +573,25 @@ def _reference_values(session: ReportedSession, now: float) -> dict[str, object]
         if pairing.gravity.rates.scale is not None:
             values['imu_turning_share'] = round(pairing.gravity.rates.scale, 3)
         values['imu_warning'] = pairing.warning()
-        values['static_attitudes'] = int(session.attitudes.fill)
-    calibration = session.calibration
+        values['static_attitudes'] = int(parts.attitudes.fill)
+    calibration = parts.calibration
     if calibration is not None and calibration.aligned:
         for key in ('alignment_angle_deg', 'dip_deg', 'dip_std_deg', 'static_samples'):
             number = calibration.metadata_number(key)
             if number is not None:
                 values[key] = round(number, 3)
-    alignment = session.findings.alignment
+    alignment = parts.findings.alignment
     if alignment is not None:
         model = '' if calibration is None else calibration.model
         values['last_alignment'] = ('applied' if alignment.success
                                     else alignment_reason(alignment, model))
-    earth = session.findings.earth
+    earth = parts.findings.earth
     if earth is not None:
         values['earth_model'] = earth.model
         values['model_intensity_uT'] = round(earth.intensity_nt / 1000.0, 3)
         values['model_inclination_deg'] = round(earth.inclination_deg, 3)
         values['declination_deg'] = round(earth.declination_deg, 3)
-        reference = session.earth_reference()
+        reference = parts.earth_reference
         if calibration is not None and reference is not None:
             check = reference.check(calibration.field_radius(),
                                     calibration.metadata_number('dip_deg'))
@@ -442,13 +609,19 @@ __all__ = [
     'CalibrationAttempt',
     'NO_INPUT_GRACE_S',
     'Level',
-    'ReportedSession',
+    'BufferReport',
+    'ImuReport',
+    'NodeStatus',
+    'ReportInputs',
+    'SessionCounts',
+    'SessionReport',
     'alignment_reason',
     'alignment_text',
     'calibration_summary',
     'could_be_better',
     'coverage_pct',
     'diagnostic_values',
+    'session_report',
     'diagnostics_level',
     'display_units',
     'format_field',

@@ -17,7 +17,6 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 import math
 import random
-import time
 from typing import NamedTuple
 
 import numpy as np
@@ -124,39 +123,48 @@ class CalibrationSession:
         calibration: Calibration | None = None,
         runner: FitRunner | None = None,
         metadata: Mapping[str, object] | None = None,
+        *,
+        pairing: ImuPairing | None = None,
+        attitudes: StaticAttitudes | None = None,
+        input_names: Sequence[str] | None = None,
     ) -> None:
-        self.settings = settings or SessionSettings()
-        problems = self.settings.problems()
+        """``runner``: where fits run (inline by default; the node's is a process).
+        ``metadata``: stamped on every fitted calibration ('units' the input's, tesla by
+        default). A recording read offline brings its own ``pairing`` (an accelerometer in g or
+        counts has no plausible range), ``attitudes`` (a log without stamps has no clock) and
+        ``input_names`` (the own field's inputs it logged, fed by ``process_input``)."""
+        self._settings = settings or SessionSettings()
+        problems = self._settings.problems()
         if problems:
             raise ValueError('; '.join(problems))
-        self.runner = runner or InlineRunner()
-        self.metadata = {'units': 'T', **(metadata or {})}
+        self._runner = runner or InlineRunner()
+        self._metadata = {'units': 'T', **(metadata or {})}
         """Stamped on every fitted calibration (units, source ...)."""
-        self.units = str(self.metadata['units'])
-        self.buffer = SampleBuffer(self.settings.buffer_size, self.settings.k)
-        self.screen = ReadingScreen(self.settings.full_scale_limit)
-        self.evidence = HeldOutEvidence()
-        self.scheduler = FitScheduler(self.settings.buffer_size)
-        self.misfit = MisfitMonitor()
-        self.clock = StreamClock()
-        self.refusals = dict.fromkeys(REFUSAL_REASONS[len(SCREEN_REASONS):], 0)
-        self.accepted = 0
+        self._units = str(self._metadata['units'])
+        self._buffer = SampleBuffer(self._settings.buffer_size, self._settings.k)
+        self._screen = ReadingScreen(self._settings.full_scale_limit)
+        self._evidence = HeldOutEvidence()
+        self._scheduler = FitScheduler(self._settings.buffer_size)
+        self._misfit = MisfitMonitor()
+        self._clock = StreamClock()
+        self._refusals = dict.fromkeys(REFUSAL_REASONS[len(SCREEN_REASONS):], 0)
+        self._accepted = 0
         self._accepted_at_poll = 0  # accepted messages at the previous poll(): is the stream idle?
-        self.input_rate = RateMeter()
-        self.calibration: Calibration | None = None
+        self._input_rate = RateMeter()
+        self._calibration: Calibration | None = None
         """The calibration in force; only ``_put_in_force`` changes it."""
-        self.last_attempt: CalibrationAttempt | None = None
-        self.adoptions: dict[str, int] = {}
+        self._last_attempt: CalibrationAttempt | None = None
+        self._adoptions: dict[str, int] = {}
         """How often a calibration went in force, by source (auto, refine, request, file ...)."""
-        self.jobs_run: dict[str, int] = {}
-        self.stale_dropped = 0
+        self._jobs_run: dict[str, int] = {}
+        self._stale_dropped = 0
         """Readings dropped unlearnt: compensated by a compensation no longer in force."""
-        self.tracker: OnlineTracker | None = None
-        self.tracked_updates = 0
+        self._tracker: OnlineTracker | None = None
+        self._tracked_updates = 0
         self._last_taught: np.ndarray | None = None  # corrected direction last fed to the tracker
         self._last_tracking_check: float | None = None
-        self.buffer_reference = BufferReference(self.buffer)
-        self.backlog = Backlog()  # (reading, stamp, epochs, state, pair) while a fit runs
+        self._buffer_reference = BufferReference(self._buffer)
+        self._backlog = Backlog()  # (reading, stamp, epochs, state, pair) while a fit runs
         self._compensation_epoch = 0  # bumped by each compensation put in force
         self._state_specs: tuple | None = None  # the own-field inputs the states are made of
         self._state_epoch = 0  # bumped when they change: states made before mean nothing
@@ -168,16 +176,18 @@ class CalibrationSession:
         self._hold_out = random.Random(0)
         self._next_periodic = 0.0
         self._events: deque[SessionEvent] = deque(maxlen=MAX_EVENTS)
-        self._reported_rejects = dict(self.screen.counts)
-        self.hints = MotionHints()  # the kind of hint, judged at stream points (hints.py)
-        self.input_watch = InputWatch(self.units == 'T')  # wrong units, normalised input
-        self.alignment_wait = AlignmentWait()  # the first calibration waits to be aligned
-        self.attitudes = StaticAttitudes()
+        self._reported_rejects = dict(self._screen.counts)
+        self._hints = MotionHints()  # the kind of hint, judged at stream points (hints.py)
+        self._input_watch = InputWatch(self._units == 'T')  # wrong units, normalised input
+        self._alignment_wait = AlignmentWait()  # the first calibration waits to be aligned
+        self._attitudes = attitudes if attitudes is not None else StaticAttitudes()
         """Quasi-static (field, accel) attitudes paired from the IMU, for the alignment."""
-        self.pairing = ImuPairing()
-        self.findings = Findings()
+        self._pairing = pairing if pairing is not None else ImuPairing()
+        self._findings = Findings()
         """The model's field here, the latest alignment and model check (``findings.py``)."""
-        self.compensation = CompensationLearner(*self.settings.compensation)  # K u + c (T - T0)
+        self._compensation = CompensationLearner(*self._settings.compensation)  # K u + c (T - T0)
+        if input_names is not None:
+            self._compensation.name_inputs(tuple(input_names))
         if calibration is not None:
             self.apply_calibration(calibration, 'given')
 
@@ -188,19 +198,19 @@ class CalibrationSession:
         problems = settings.problems()
         if problems:
             raise ValueError('; '.join(problems))
-        old, self.settings = self.settings, settings
+        old, self._settings = self._settings, settings
         if (settings.buffer_size, settings.k) != (old.buffer_size, old.k):
-            self.buffer.resize(settings.buffer_size, settings.k)
-            self.scheduler.capacity = settings.buffer_size
+            self._buffer.resize(settings.buffer_size, settings.k)
+            self._scheduler.capacity = settings.buffer_size
         self._measured_coverage = None  # measured with the old settings (model, buffer)
-        self.screen.full_scale = settings.full_scale_limit
+        self._screen.full_scale = settings.full_scale_limit
         if settings.online_tracking != old.online_tracking:
             self._restart_tracker()
-        self.compensation.configure(*settings.compensation)
+        self._compensation.configure(*settings.compensation)
 
     def close(self) -> None:
         """Stop the fit worker (the node calls this on shutdown)."""
-        self.runner.close()
+        self._runner.close()
 
     # -- per message ---------------------------------------------------------------------------
     # The path of one reading, a call of ``process``:
@@ -224,82 +234,96 @@ class CalibrationSession:
 
     def process(self, stamp_ns: int, frame_id: str, field: Sequence[float]) -> Processed:
         """Screen one message, learn from it, and correct it with the calibration in force."""
-        self.input_rate.count += 1
+        self._input_rate.count += 1
         try:
             x0, x1, x2 = (float(value) for value in field)
         except (TypeError, ValueError):
             x0 = x1 = x2 = math.nan
-        for problem in self.input_watch.offer(stamp_ns, (x0, x1, x2)):  # each said once
+        for problem in self._input_watch.offer(stamp_ns, (x0, x1, x2)):  # each said once
             self._event('warning', problem)
-        reason = self.screen.screen(stamp_ns, frame_id, x0, x1, x2)
-        if self.screen.changes:
-            for change in self.screen.take_changes():
+        reason = self._screen.screen(stamp_ns, frame_id, x0, x1, x2)
+        if self._screen.changes:
+            for change in self._screen.take_changes():
                 self._event('warning' if change.kind == 'frame' else 'info', change.message)
         if reason is not None:
             return _REFUSED
-        self.accepted += 1
+        self._accepted += 1
         self._sync_states()
-        reading, state = self.compensation.observe(stamp_ns, np.array((x0, x1, x2)),
-                                                   self.calibration)
+        reading, state = self._compensation.observe(stamp_ns, np.array((x0, x1, x2)),
+                                                   self._calibration)
         epochs = (self._compensation_epoch, self._state_epoch)
-        decided = self.pairing.settle(stamp_ns, frame_id, (reading, stamp_ns, epochs, state))
-        if self.pairing.has_warnings:
+        decided = self._pairing.settle(stamp_ns, frame_id, (reading, stamp_ns, epochs, state))
+        if self._pairing.has_warnings:
             self._imu_warnings()
         self._advance()
         for item, pair in decided:  # arrival order, each once its IMU sample could be there
-            (self._hold if self._job is not None or len(self.backlog) else self._ingest)(
+            (self._hold if self._job is not None or len(self._backlog) else self._ingest)(
                 *item, pair)
-        calibration = self.calibration
+        calibration = self._calibration
         if calibration is None:
             return Processed(True, None, None)
-        return Processed(True, calibration.apply(reading), calibration, self.misfit.uncertainty)
+        return Processed(True, calibration.apply(reading), calibration, self._misfit.uncertainty)
 
     def process_imu(self, stamp_ns: int, frame_id: str, accel: Sequence[float],
                     gyro: Sequence[float] | None = None) -> bool:
         """Keep one accelerometer (m/s^2) and gyroscope (rad/s) sample to pair magnetometer
         readings with (``ImuPairing.add``); False when refused, counted by reason: no plausible
         specific force, or ``frame_id`` not the magnetometer stream's (said once a frame)."""
-        self.input_watch.offer_imu(accel)
-        kept = self.pairing.add(stamp_ns, accel, gyro, frame_id, self.screen.frame_id)
-        if kept and gyro is not None and self.compensation.learning:
-            self.compensation.gyro(stamp_ns, gyro)
-        if self.pairing.has_warnings:
+        self._input_watch.offer_imu(accel)
+        kept = self._pairing.add(stamp_ns, accel, gyro, frame_id, self._screen.frame_id)
+        if kept and gyro is not None and self._compensation.learning:
+            self._compensation.gyro(stamp_ns, gyro)
+        if self._pairing.has_warnings:
             self._imu_warnings()
         return kept
 
+    def process_temperature(self, stamp_ns: int | None, celsius: float) -> None:
+        """One sensor temperature (degrees Celsius, ``imu/temperature``) for the own field's
+        drift with temperature; implausible ones dropped (``CompensationLearner.temperature``)."""
+        self._compensation.temperature(stamp_ns, celsius)
+
+    def process_input(self, index: int, stamp_ns: int | None, value: float) -> None:
+        """One sample of own-field input ``index`` (``interference_inputs``' order, or the
+        ``input_names`` a recording gave), paired with readings by stamp."""
+        self._compensation.input(index, stamp_ns, value)
+
+    def finish(self) -> None:
+        """The recording ends (offline): its last still stretch counts as an attitude too."""
+        self._attitudes.finish()
+
     def _imu_warnings(self) -> None:
-        for warning in self.pairing.take_warnings():
+        for warning in self._pairing.take_warnings():
             self._event('warning', warning)
 
     def set_earth_field(self, field: EarthField | None) -> None:
         """The World Magnetic Model's field here (None: unknown); used by the next fits."""
-        self.findings.earth = field
+        self._findings.earth = field
 
     def poll(self) -> None:
         """Take a finished fit's outcome and feed held readings (``Backlog.budget``: a few while
         messages flow, more while a request waits, all once none came since the last poll);
         the node calls this on a timer (messages call it too), so answers arrive even when no
         message does."""
-        flowing = self.accepted != self._accepted_at_poll
-        self._accepted_at_poll = self.accepted
-        self._advance(budget=self.backlog.budget(flowing))
+        flowing = self._accepted != self._accepted_at_poll
+        self._accepted_at_poll = self._accepted
+        self._advance(budget=self._backlog.budget(flowing))
 
     def _advance(self, budget: int = DRAIN_PER_MESSAGE) -> None:
         if self._job is not None:
-            outcome = self.runner.poll()
+            outcome = self._runner.poll()
             if outcome is None:
                 return
             self._job = None
             self._complete(outcome)
-        while len(self.backlog) and self._job is None and budget > 0:
-            self._ingest(*self.backlog.next())
+        while len(self._backlog) and self._job is None and budget > 0:
+            self._ingest(*self._backlog.next())
             budget -= 1
-        if self._job is None and not len(self.backlog) and self.backlog.waiting:
+        if self._job is None and not len(self._backlog) and self._backlog.waiting:
             self._submit('request')
 
     def _hold(self, reading: np.ndarray, stamp_ns: int, epochs: tuple[int, int],
               state: tuple[float, ...], pair: Pair | None = None) -> None:
-        overflow = self.backlog.hold((reading, stamp_ns, epochs, state, pair))
+        overflow = self._backlog.hold((reading, stamp_ns, epochs, state, pair))
         if overflow is not None:  # the backlog is full: its oldest is fed now
             self._ingest(*overflow)
 
@@ -315,121 +339,121 @@ class CalibrationSession:
         and on a loaded computer a backlog of them, some not compensated at all, went into the
         buffer and failed the next fit (a residual of 5.9 %, issue #22). A state of other
         inputs than today's is unknown."""
-        now = self.clock.advance(stamp_ns)
-        self.backlog.ingested += 1
+        now = self._clock.advance(stamp_ns)
+        self._backlog.ingested += 1
         if epochs[0] != self._compensation_epoch:
-            self.stale_dropped += 1
+            self._stale_dropped += 1
             return
         if epochs[1] != self._state_epoch:
             state = None
-        if pair is not None and self.settings.align:
-            self.attitudes.add(now, reading, pair[0], pair[1])
+        if pair is not None and self._settings.align:
+            self._attitudes.add(now, reading, pair[0], pair[1])
         # Evidence judges a calibration: none yet, none needed. The draw is pseudo-random (and
         # deterministic), so a recording replayed again holds out other readings.
-        if self.calibration is not None and self._hold_out.random() * HOLD_OUT_EVERY < 1.0:
-            self.evidence.add(reading, self.buffer_reference.direction(reading), now, state)
+        if self._calibration is not None and self._hold_out.random() * HOLD_OUT_EVERY < 1.0:
+            self._evidence.add(reading, self._buffer_reference.direction(reading), now, state)
         else:
-            if self.buffer_reference.left_plane(reading):
+            if self._buffer_reference.left_plane(reading):
                 self._leave_plane()
-            outcome = self.buffer.add(reading, None if pair is None else pair[2], state)
-            if outcome in self.refusals:
-                self.refusals[outcome] += 1
+            outcome = self._buffer.add(reading, None if pair is None else pair[2], state)
+            if outcome in self._refusals:
+                self._refusals[outcome] += 1
             else:
-                self.scheduler.sample_added(self.buffer.fill == self.buffer.capacity)
-            if self.buffer_reference.source is not None:
+                self._scheduler.sample_added(self._buffer.fill == self._buffer.capacity)
+            if self._buffer_reference.source is not None:
                 self._check_reference()
-            if self.tracker is not None:
-                direction = new_direction(self.calibration.apply(reading), self._last_taught)
+            if self._tracker is not None:
+                direction = new_direction(self._calibration.apply(reading), self._last_taught)
                 if direction is not None:
                     self._last_taught = direction
-                    self.tracker.update(reading)
+                    self._tracker.update(reading)
         if now >= self._next_periodic:
             self._next_periodic = now + PERIODIC_S
             self._update_centre()
-            self._answer(self.compensation.window_answer(now, self.calibration))
-        self.hints.learnt(now, self.buffer, reading)  # the kind of hint (hints.py)
+            self._answer(self._compensation.window_answer(now, self._calibration))
+        self._hints.learnt(now, self._buffer, reading)  # the kind of hint (hints.py)
         if self._job is None:
-            kind = (self.scheduler.due(self._situation(now))
-                    or self.compensation.due(now, self.calibration))  # 'compensate' or None
+            kind = (self._scheduler.due(self._situation(now))
+                    or self._compensation.due(now, self._calibration))  # 'compensate' or None
             if kind is not None:
                 self._submit(kind)
 
     def _update_centre(self) -> None:
         radius = 0.0
-        if self.calibration is not None:
-            radius = self.calibration.field_radius()
-        elif self.buffer.fill >= 10:
-            radius = self.buffer.field_radius()
-        self.attitudes.field_scale = radius if radius > 0.0 else None
-        self.buffer_reference.update_centre()
+        if self._calibration is not None:
+            radius = self._calibration.field_radius()
+        elif self._buffer.fill >= 10:
+            radius = self._buffer.field_radius()
+        self._attitudes.field_scale = radius if radius > 0.0 else None
+        self._buffer_reference.update_centre()
 
     def _situation(self, now: float) -> Situation:
-        return Situation.of(now, self.settings, self.buffer.fill, self.buffer.capacity,
-                            self.calibration is not None, self.misfit.misfit,
-                            self.backlog.request_ready)
+        return Situation.of(now, self._settings, self._buffer.fill, self._buffer.capacity,
+                            self._calibration is not None, self._misfit.misfit,
+                            self._backlog.request_ready)
 
     # -- fits ----------------------------------------------------------------------------------
 
     def _submit(self, kind: str) -> None:
-        ticket = self.backlog.take_request() if kind == 'request' else None
-        if self.input_watch.refusal(kind):  # wrong units or normalised: nothing to put in force
-            return self._refuse_fit(kind, ticket, self.input_watch.problem)
+        ticket = self._backlog.take_request() if kind == 'request' else None
+        if self._input_watch.refusal(kind):  # wrong units or normalised: nothing to put in force
+            return self._refuse_fit(kind, ticket, self._input_watch.problem)
         job = self._make_job(kind, ticket)
-        self.jobs_run[job.kind] = self.jobs_run.get(job.kind, 0) + 1
+        self._jobs_run[job.kind] = self._jobs_run.get(job.kind, 0) + 1
         self._job, self._job_epoch = job, (self._epoch, self._compensation_epoch)
-        self.runner.submit(job)
-        outcome = self.runner.poll()  # an inline runner has it already
+        self._runner.submit(job)
+        outcome = self._runner.poll()  # an inline runner has it already
         if outcome is not None:
             self._job = None
             self._complete(outcome)
 
     def _refuse_fit(self, kind: str, ticket: int | None, problem: str) -> None:
-        now, period = self.clock.now, self.settings.auto_calibrate_period
+        now, period = self._clock.now, self._settings.auto_calibrate_period
         if kind == 'calibrate':  # tried again a period later: the input may be fixed by then
-            self.scheduler.calibrate_done(now, True, period)
+            self._scheduler.calibrate_done(now, True, period)
         if ticket is not None:
             attempt = CalibrationAttempt(False, f'calibration refused: {problem}')
             self._event('warning', attempt.message, ticket=ticket, attempt=attempt)
 
     def _make_job(self, kind: str, ticket: int | None) -> FitJob:
-        buffer = self.buffer
+        buffer = self._buffer
         samples, weights, readings = buffer.samples, buffer.counts, buffer.readings
         if kind == 'compensate':  # the robot's own field: live/compensation.py
-            return self.compensation.job(self.calibration)
+            return self._compensation.job(self._calibration)
         if kind == 'reference':
             return FitJob('reference', samples, weights, readings, REFERENCE_OPTIONS,
-                          previous=self.buffer_reference.provisional)
+                          previous=self._buffer_reference.provisional)
         if kind == 'check':
-            recent = self.evidence.readings(since_s=self.clock.now - MISFIT_WINDOW_S)
-            plane = self.buffer_reference.calibration_plane
+            recent = self._evidence.readings(since_s=self._clock.now - MISFIT_WINDOW_S)
+            plane = self._buffer_reference.calibration_plane
             if plane is not None:  # a planar one knows nothing off its plane
                 recent = recent[plane.near(recent)]
-            tracked = None if self.tracker is None else self.tracker.calibration
-            return FitJob('check', samples, weights, readings, self.settings.fit_options(),
-                          current=self.calibration, evidence=self.evidence.readings(),
+            tracked = None if self._tracker is None else self._tracker.calibration
+            return FitJob('check', samples, weights, readings, self._settings.fit_options(),
+                          current=self._calibration, evidence=self._evidence.readings(),
                           recent=recent, tracked=tracked, reference=buffer.reference)
-        metadata = {**self.metadata, 'frame_id': self.frame_id}
-        evidence = self.evidence.readings() if self.calibration is not None else None
-        attitudes = self.attitudes.snapshot() if self.settings.align else None
+        metadata = {**self._metadata, 'frame_id': self._frame_id}
+        evidence = self._evidence.readings() if self._calibration is not None else None
+        attitudes = self._attitudes.snapshot() if self._settings.align else None
         return FitJob(
             'refine' if kind == 'refine' else 'calibrate', samples, weights, readings,
-            self.findings.fit_options(self.settings, self.units), metadata=metadata,
-            current=self.calibration,
+            self._findings.fit_options(self._settings, self._units), metadata=metadata,
+            current=self._calibration,
             evidence=evidence, ticket=ticket,
-            ready_coverage=self.settings.min_coverage if kind == 'calibrate' else None,
+            ready_coverage=self._settings.min_coverage if kind == 'calibrate' else None,
             reference=buffer.reference,
             attitudes=attitudes if attitudes is not None and (len(attitudes)
-                                                              or self.pairing.paired)
+                                                              or self._pairing.paired)
             else None,
-            alignment=self.settings.alignment_options(self.findings.earth),
-            earth=self.earth_reference(),
+            alignment=self._settings.alignment_options(self._findings.earth),
+            earth=self._earth_reference(),
             ups=buffer.ups if buffer.paired else None,
             paired=buffer.paired_readings if buffer.paired else None,
         )
 
-    def earth_reference(self) -> EarthReference | None:
+    def _earth_reference(self) -> EarthReference | None:
         """The World Magnetic Model's field here with the tolerances a fit is checked by."""
-        return self.findings.earth_reference(self.settings, self.units)
+        return self._findings.earth_reference(self._settings, self._units)
 
     # -- a fit's outcome -----------------------------------------------------------------------
 
@@ -454,30 +478,30 @@ class CalibrationSession:
                 self._event('warning', attempt.message, ticket=job.ticket, attempt=attempt)
             return
         if outcome.coverage is not None:
-            self._measured_coverage = (self.clock.now, outcome.coverage)
-        current = self.calibration
+            self._measured_coverage = (self._clock.now, outcome.coverage)
+        current = self._calibration
         if job.kind == 'reference':
             self._reference_done(outcome)
         elif job.kind == 'check':
             self._check_done(outcome)
         elif job.kind == 'compensate':
-            verdict = self.compensation.judged(outcome, current)
+            verdict = self._compensation.judged(outcome, current)
             self._apply(verdict)
-            self._answer(self.compensation.window_answer(self.clock.now, self.calibration,
+            self._answer(self._compensation.window_answer(self._clock.now, self._calibration,
                                                          verdict))
         elif job.ticket is not None:
             self._note_reference(outcome)
-            verdict = request_verdict(outcome, current, self.units, self.findings.earth)
+            verdict = request_verdict(outcome, current, self._units, self._findings.earth)
             self._apply(verdict, job.ticket)
         elif job.kind == 'calibrate':
-            self.scheduler.calibrate_done(self.clock.now, outcome.fitted or bool(outcome.error),
-                                          self.settings.auto_calibrate_period)
+            self._scheduler.calibrate_done(self._clock.now, outcome.fitted or bool(outcome.error),
+                                          self._settings.auto_calibrate_period)
             if outcome.result is not None and not outcome.error:
                 self._note_reference(outcome)
-            self._apply(self.alignment_wait.judge(
-                automatic_verdict(outcome, current, self.misfit.misfit, self.units,
-                                  self.findings.earth),
-                outcome, self.clock.now, self.pairing.paired > 0, self.settings.align))
+            self._apply(self._alignment_wait.judge(
+                automatic_verdict(outcome, current, self._misfit.misfit, self._units,
+                                  self._findings.earth),
+                outcome, self._clock.now, self._pairing.paired > 0, self._settings.align))
         else:
             verdict = refinement_verdict(outcome, current)
             self._apply(verdict)
@@ -485,14 +509,14 @@ class CalibrationSession:
                 self._note_reference(outcome)
             if verdict.adopt is None:
                 self._apply(realign_verdict(outcome, current))
-            self.scheduler.refine_done(judged_on_evidence(outcome.comparison),
+            self._scheduler.refine_done(judged_on_evidence(outcome.comparison),
                                        verdict.adopt is not None)
 
     def _apply(self, verdict: Verdict, ticket: int | None = None) -> None:
         """Record a verdict's attempt, put its calibration in force and log it. The event
         carries the attempt when it answers a request or puts the fit in force."""
         if verdict.attempt is not None:
-            self.last_attempt = verdict.attempt
+            self._last_attempt = verdict.attempt
         adopted = verdict.adopt is not None
         if adopted:
             self._put_in_force(verdict.adopt, verdict.source)
@@ -503,23 +527,23 @@ class CalibrationSession:
 
     def _reference_done(self, outcome: JobOutcome) -> None:
         fit = outcome.reference
-        self.scheduler.reference_done(fit is not None and fit.settled)
+        self._scheduler.reference_done(fit is not None and fit.settled)
         if fit is None:
             return
-        self.buffer_reference.provisional = fit.calibration
-        self.buffer_reference.set(fit.calibration, fit.tolerance, 'fit')
+        self._buffer_reference.provisional = fit.calibration
+        self._buffer_reference.set(fit.calibration, fit.tolerance, 'fit')
 
     def _check_done(self, outcome: JobOutcome) -> None:
         """The calibration in force judged on recent evidence: misfit, and online tracking."""
-        now = self.clock.now
+        now = self._clock.now
         misfit_change = since_last_check_s = None
-        if not outcome.error and outcome.job.current is self.calibration:
-            misfit_change = self.misfit.update(now, outcome.fit_check)
+        if not outcome.error and outcome.job.current is self._calibration:
+            misfit_change = self._misfit.update(now, outcome.fit_check)
             if outcome.comparison is not None:
                 last, self._last_tracking_check = self._last_tracking_check, now
                 since_last_check_s = None if last is None else now - last
-        verdict = check_verdict(outcome, self.calibration, misfit_change, since_last_check_s,
-                                self.settings, self.units)
+        verdict = check_verdict(outcome, self._calibration, misfit_change, since_last_check_s,
+                                self._settings, self._units)
         if verdict.message:
             self._event(verdict.level, verdict.message)
         if verdict.collect_anew:
@@ -529,16 +553,12 @@ class CalibrationSession:
 
     def _note_reference(self, outcome: JobOutcome) -> None:
         """Only a fit that passed its own gates (the model's aside) tells about the place."""
-        for warning in self.findings.note(outcome) if passed_own_gates(outcome) else ():
+        for warning in self._findings.note(outcome) if passed_own_gates(outcome) else ():
             self._event('warning', warning)
 
-    def alignment_warning(self) -> str:
-        """A mounting error the latest alignment found, for a diagnostics WARN ('' if none)."""
-        return self.findings.alignment_warning
-
-    def earth_warning(self) -> str:
+    def _earth_warning(self) -> str:
         """The calibration in force against the model, for a diagnostics WARN ('' if fine)."""
-        return self.findings.earth_warning(self.calibration, self.settings, self.units)
+        return self._findings.earth_warning(self._calibration, self._settings, self._units)
 
     def request_calibration(self) -> int:
         """Ask for a fit of the buffer (``~/calibrate``) once every reading received so far is
@@ -546,24 +566,11 @@ class CalibrationSession:
         ticket. A fit that passes the gates goes in force."""
         ticket = self._next_ticket
         self._next_ticket += 1
-        self.backlog.request(ticket, self.accepted)  # after every reading received so far
-        for item, pair in self.pairing.flush():  # those waiting for an IMU sample decided now
+        self._backlog.request(ticket, self._accepted)  # after every reading received so far
+        for item, pair in self._pairing.flush():  # those waiting for an IMU sample decided now
             self._hold(*item, pair)
         self._advance()
         return ticket
-
-    def calibrate_now(self, timeout_s: float = 60.0) -> CalibrationAttempt:
-        """Request a fit and wait for it (offline use: ``mag_calibrator_fit``, tests)."""
-        ticket = self.request_calibration()
-        deadline = time.monotonic() + timeout_s
-        while True:
-            for event in self._events:
-                if event.ticket == ticket and event.attempt is not None:
-                    return event.attempt
-            if time.monotonic() > deadline:
-                return CalibrationAttempt(False, f'calibration did not finish in {timeout_s} s')
-            time.sleep(0.001)
-            self.poll()
 
     def request_compensation(self, timeout_s: float) -> int:
         """Learn the robot's own field now (``~/learn_compensation``): fits every few seconds
@@ -572,8 +579,8 @@ class CalibrationSession:
         as an event with this ticket."""
         ticket = self._next_ticket
         self._next_ticket += 1
-        problem = self.compensation.open_window(ticket, self.clock.now, timeout_s,
-                                                self.calibration, self.units)
+        problem = self._compensation.open_window(ticket, self._clock.now, timeout_s,
+                                                self._calibration, self._units)
         if problem:
             self._answer((ticket, CalibrationAttempt(False, problem)))
         return ticket
@@ -581,7 +588,7 @@ class CalibrationSession:
     def end_compensation_window(self, reason: str) -> None:
         """Answer an open ``request_compensation`` now with ``reason`` (the node's own deadline:
         stream time stands still while no reading comes)."""
-        self._answer(self.compensation.close_window(reason))
+        self._answer(self._compensation.close_window(reason))
 
     def _answer(self, answer: tuple[int, CalibrationAttempt] | None) -> None:
         if answer is not None:  # a success was logged when its compensation went in force
@@ -604,31 +611,31 @@ class CalibrationSession:
         rotates the one in force into the IMU frame (only the tracker restarts); 'tracking'
         steps it towards the tracker's (counted in ``tracked_updates``; the buffer's reference
         follows when it is the calibration in force; a static fit keeps the compensation)."""
-        calibration = self.compensation.carry(calibration, self.calibration, source)
+        calibration = self._compensation.carry(calibration, self._calibration, source)
         self._sync_states()
-        reference = self.buffer_reference
+        reference = self._buffer_reference
         if source == 'tracking':
-            self.tracked_updates += 1
+            self._tracked_updates += 1
             if reference.source == 'calibration':
                 reference.set(calibration, None, 'calibration')
-            self.calibration = calibration
+            self._calibration = calibration
             return
         if source != 'realign':
             new = calibration.compensation
-            in_force = None if self.calibration is None else self.calibration.compensation
+            in_force = None if self._calibration is None else self._calibration.compensation
             moved = not (new is in_force or (new is not None and new.same_field(in_force)))
             if moved:  # learned, or a file's
                 self._recompensate(calibration)
             reference.calibration_plane = None
             if calibration.model == 'planar':
                 reference.calibration_plane = PlaneWatch.of(
-                    calibration.metadata.get('plane_normal'), self.buffer.samples)
-            self.adoptions[source] = self.adoptions.get(source, 0) + 1
-            self.misfit.reset()
-            self.scheduler.calibration_changed()
+                    calibration.metadata.get('plane_normal'), self._buffer.samples)
+            self._adoptions[source] = self._adoptions.get(source, 0) + 1
+            self._misfit.reset()
+            self._scheduler.calibration_changed()
             if reference.source != 'fit' or moved:
                 reference.set(calibration, None, 'calibration')
-        self.calibration = calibration  # last: whoever sees it in force sees it counted
+        self._calibration = calibration  # last: whoever sees it in force sees it counted
         self._restart_tracker()
 
     def _recompensate(self, calibration: Calibration) -> None:
@@ -638,33 +645,33 @@ class CalibrationSession:
         again before ``~/calibrate`` could fit). The buffer's own fit described the old
         readings: the caller screens by the new calibration until the next reference fit, and
         a fit made of the old ones is abandoned (``_complete``)."""
-        learner = self.compensation
-        old = None if self.calibration is None else self.calibration.compensation
+        learner = self._compensation
+        old = None if self._calibration is None else self._calibration.compensation
 
         def change(states: np.ndarray) -> np.ndarray:
             return learner.field_of(old, states) - learner.field_of(calibration.compensation,
                                                                     states)
-        self.buffer.shift(change)
-        self.evidence.shift(change)
-        self.buffer_reference.provisional = None
-        self.scheduler.reference_done(False)
+        self._buffer.shift(change)
+        self._evidence.shift(change)
+        self._buffer_reference.provisional = None
+        self._scheduler.reference_done(False)
         self._compensation_epoch += 1  # what waits to be learned is dropped (``_ingest``)
 
     def _sync_states(self) -> None:
         """The learner's inputs changed (parameters, a recording's columns): the states held
         were made of the old ones and are unknown from now on (``forget_states``)."""
-        if self.compensation.specs is not self._state_specs:
-            self._state_specs = self.compensation.specs
+        if self._compensation.specs is not self._state_specs:
+            self._state_specs = self._compensation.specs
             self._state_epoch += 1
-            for part in (self.buffer, self.evidence):
-                part.forget_states(self.compensation.state_size)
+            for part in (self._buffer, self._evidence):
+                part.forget_states(self._compensation.state_size)
 
     def _leave_plane(self) -> None:
         """The sensor left the plane its planar calibration was turned in: stop screening the
         buffer by it (it knows nothing off the plane) and refine from the first interval, so a
         full calibration is collected and judged at once. The planar one stays in force."""
-        self.buffer_reference.set(None, None, None)
-        self.scheduler.calibration_changed()
+        self._buffer_reference.set(None, None, None)
+        self._scheduler.calibration_changed()
         self._event('info', 'the sensor moved out of the plane it was calibrated turning in: '
                             'collecting in 3-D for a full calibration (keep turning it through '
                             'every orientation); the planar calibration stays in force until a '
@@ -672,12 +679,12 @@ class CalibrationSession:
 
     def _check_reference(self) -> None:
         """Set the buffer's reference aside once it refuses most of a window of readings."""
-        stale = self.buffer_reference.stale()
+        stale = self._buffer_reference.stale()
         if stale is None:
             return
         source, refused, window = stale
         if source == 'fit':
-            self.scheduler.reference_done(False)
+            self._scheduler.reference_done(False)
         what = 'its own fit' if source == 'fit' else 'the calibration in force'
         self._event('info', f'the buffer stopped screening by {what}: it refused {refused} of '
                             f'the last {window} readings, so it no longer describes the sensor; '
@@ -685,79 +692,48 @@ class CalibrationSession:
 
     def _collect_anew(self, now: float) -> None:
         """After a misfit: forget samples and evidence from before it, keep the calibration."""
-        self.buffer.clear()
-        self.compensation.restart_mean()
+        self._buffer.clear()
+        self._compensation.restart_mean()
         self._measured_coverage = None
-        self.evidence.forget_before(now - MISFIT_WINDOW_S)
-        self.scheduler.reset()
-        self.buffer_reference.provisional = None
-        self.buffer_reference.set(None, None, None)
-        self.attitudes.clear()
+        self._evidence.forget_before(now - MISFIT_WINDOW_S)
+        self._scheduler.reset()
+        self._buffer_reference.provisional = None
+        self._buffer_reference.set(None, None, None)
+        self._attitudes.clear()
 
     # -- online tracking -----------------------------------------------------------------------
 
     def _restart_tracker(self) -> None:
         self._last_taught = None
         self._last_tracking_check = None
-        if self.settings.online_tracking and self.calibration is not None:
-            self.tracker = OnlineTracker(self.calibration)
+        if self._settings.online_tracking and self._calibration is not None:
+            self._tracker = OnlineTracker(self._calibration)
         else:
-            self.tracker = None
+            self._tracker = None
 
     # -- state, reset --------------------------------------------------------------------------
-
-    @property
-    def state(self) -> str:
-        if self.calibration is None:
-            return 'collecting' if self.buffer.fill > 0 else 'uncalibrated'
-        if self.misfit.misfit:
-            return 'calibrated-misfit'
-        if not self.settings.refine:
-            return 'calibrated'
-        return 'calibrated-converged' if self.scheduler.converged else 'calibrated-refining'
-
-    @property
-    def last_residual_pct(self) -> float | None:
-        if self.calibration is None:
-            return None
-        return self.calibration.metadata_number('residual_rms_pct')
 
     def reset(self) -> None:
         """Empty the buffer and evidence, forget the stream's frame and stamps (a new sensor may
         follow); the calibration in force stays. A fit running now is abandoned."""
-        self.buffer.clear()
+        self._buffer.clear()
         self._measured_coverage = None
-        self.evidence.clear()
-        self.screen.reset()
-        self.scheduler.reset()
-        self.misfit.reset()
-        self.backlog.drop_held(self.accepted)
+        self._evidence.clear()
+        self._screen.reset()
+        self._scheduler.reset()
+        self._misfit.reset()
+        self._backlog.drop_held(self._accepted)
         self._epoch += 1
-        self.buffer_reference.provisional = None
-        self.buffer_reference.set(self.calibration, None,
-                                  'calibration' if self.calibration else None)
+        self._buffer_reference.provisional = None
+        self._buffer_reference.set(self._calibration, None,
+                                  'calibration' if self._calibration else None)
         self._restart_tracker()
-        self.attitudes.clear()
-        self.pairing.clear()
+        self._attitudes.clear()
+        self._pairing.clear()
         self.end_compensation_window('~/reset emptied what it was learning from')
-        self.compensation.reset()
-        for part in (self.hints, self.input_watch, self.alignment_wait):
+        self._compensation.reset()
+        for part in (self._hints, self._input_watch, self._alignment_wait):
             part.clear()
-    def feed(self, samples: np.ndarray, rate_hz: float = 100.0, start_ns: int = 0,
-             frame_id: str = '', accel: np.ndarray | None = None,
-             gyro: np.ndarray | None = None) -> None:
-        """Stream recorded rows through ``process`` stamped at ``rate_hz`` (offline use); ``accel``
-        (and ``gyro``, rad/s) rows go through ``process_imu`` first with the same stamps."""
-        step = 1e9 / rate_hz
-        accel_rows = None if accel is None else np.asarray(accel, dtype=float).tolist()
-        gyro_rows = None if gyro is None else np.asarray(gyro, dtype=float).tolist()
-        for index, row in enumerate(np.asarray(samples, dtype=float).tolist()):
-            stamp = start_ns + round(index * step)
-            if accel_rows is not None:
-                self.process_imu(stamp, frame_id, accel_rows[index],
-                                 None if gyro_rows is None else gyro_rows[index])
-            self.process(stamp, frame_id, row)
-
     # -- reporting -----------------------------------------------------------------------------
 
     def take_events(self) -> list[SessionEvent]:
@@ -770,110 +746,114 @@ class CalibrationSession:
         self._events.append(SessionEvent(level, message, **kwargs))
 
     @property
-    def has_events(self) -> bool:
-        return bool(self._events)
+    def calibration(self) -> Calibration | None:
+        """The calibration in force (None: uncalibrated); only ``_put_in_force`` changes it."""
+        return self._calibration
 
-    def rejects(self) -> dict[str, int]:
-        """Every refusal by reason: screening, then duplicates and magnitude outliers."""
-        return {**self.screen.counts, **self.refusals}
-
-    def coverage(self) -> Coverage:
-        """The buffer's coverage now: of the heading circle if ``yaw_only``, else of the sphere."""
-        if self.yaw_only():
-            return self.heading_coverage().coverage
-        return self.hints.dress(self.buffer.coverage())
-
-    @property
-    def held(self) -> int:
-        """Readings received while a fit ran, not yet fed to the buffer (in order, later)."""
-        return len(self.backlog)
-
-    @property
-    def hold_overflows(self) -> int:
-        """Held readings fed at once because the backlog was full (``backlog.HOLD_LIMIT``)."""
-        return self.backlog.overflows
-
-    def reported_coverage(self) -> Coverage:
-        """``coverage()`` for reports (diagnostics, the progress log), without its milliseconds
-        on the caller's thread: what the fit worker measured with its latest check or readiness
-        test (jobs.buffer_coverage), while no older than REPORTED_COVERAGE_AGE_S of stream and of
-        the kind the buffer is now (a robot that starts turning); measured here otherwise.
-        Heading coverage is looked at here, so its hint knows which way the robot turns."""
-        measured = self._measured_coverage
-        if (measured is None or self.clock.now - measured[0] > REPORTED_COVERAGE_AGE_S
-                or (measured[1].cells == HEADING_SECTORS) != self.yaw_only()):
-            return self.coverage()
-        if measured[1].cells == HEADING_SECTORS:
-            return self.heading_coverage().coverage
-        return self.hints.dress(measured[1])
-
-    def yaw_only(self) -> bool:
-        """Whether coverage and hints are about the heading circle: model ``planar``, or
-        ``auto`` with the buffer's samples round a ring when last judged (``hints.py``)."""
-        return self.settings.model == 'planar' or (
-            self.settings.model == 'auto' and self.hints.yaw_only)
-
-    def heading_coverage(self) -> HeadingCoverage:
-        """The buffer's heading coverage and the turn still needed, which way (milliseconds)."""
-        return self.hints.heading(self.buffer.samples, self.buffer.readings)
-
-    @property
-    def frame_id(self) -> str:
-        """The stream's frame, '' while unknown."""
-        return self.screen.frame_id or ''
-
-    @property
-    def messages_received(self) -> int:
-        """Messages given to ``process`` so far, refused ones included."""
-        return self.input_rate.count
-
-    @property
-    def input_rate_hz(self) -> float:
-        """Input messages per second, as the latest ``diagnostic_values`` measured them."""
-        return self.input_rate.rate
+    def report(self, now: float | None = None, node: report.NodeStatus | None = None, *,
+               measure_coverage: bool = False) -> report.SessionReport:
+        """The session as people and tools see it (``report.SessionReport``). ``now`` (the
+        caller's clock, seconds) marks a diagnostics period: the input rates are measured since
+        the previous report that gave one, and the messages refused by screening since then
+        can be the /diagnostics message; without it nothing is measured or consumed. ``node``:
+        what the node adds (its problem, its values). Coverage costs no milliseconds here while
+        the fit worker's latest measurement stands (``_reported_coverage``); offline callers
+        that want it measured now (milliseconds) ask with ``measure_coverage``."""
+        coverage = self._coverage() if measure_coverage else self._reported_coverage()
+        state = self._state()
+        counts = report.SessionCounts(
+            received=self._input_rate.count, accepted=self._accepted,
+            rejects={**self._screen.counts, **self._refusals}, adoptions=dict(self._adoptions),
+            fits=dict(self._jobs_run), held=len(self._backlog),
+            hold_overflows=self._backlog.overflows, held_out=len(self._evidence),
+            stale_dropped=self._stale_dropped, tracked_updates=self._tracked_updates)
+        watch = self._input_watch
+        parts = report.ReportInputs(
+            settings=self._settings, units=self._units, state=state,
+            calibration=self._calibration, buffer=self._buffer,
+            screened_by=self._buffer_reference.source, evidence=self._evidence,
+            misfit=self._misfit, input_rate=self._input_rate, pairing=self._pairing,
+            attitudes=self._attitudes, counts=counts, last_attempt=self._last_attempt,
+            tracker=self._tracker, findings=self._findings,
+            earth_reference=self._earth_reference(),
+            compensation_values=self._compensation.diagnostic_values(
+                self._calibration, self._units, self._clock.now),
+            compensation_needs=self._compensation.needs(), runner=self._runner,
+            input_values={**watch.values(), **self._alignment_wait.values()},
+            input_problem=watch.problem or watch.imu_problem,
+            waiting_for_alignment=self._alignment_wait.waiting, frame_id=self._frame_id,
+            progress=self._progress_text(state, coverage), earth_warning=self._earth_warning())
+        problem = (node is not None and node.problem) or self._runner.problem
+        refused = self._new_screen_rejects() if now is not None and not problem else None
+        return report.session_report(parts, now, coverage, node, refused)
 
     def view(self) -> CalibrationView:
         """The buffer's samples as the calibration in force sees them, for RViz."""
-        return calibration_view(self.buffer.samples, self.buffer.counts, self.calibration)
+        return calibration_view(self._buffer.samples, self._buffer.counts, self._calibration)
 
-    def progress_text(self, coverage: Coverage | None = None) -> str:
+    def heading_coverage(self) -> Coverage:
+        """The buffer's heading coverage and the turn still needed, which way (milliseconds:
+        ``~/rotate_and_calibrate`` looks twice a second)."""
+        return self._heading_coverage().coverage
+
+    def _state(self) -> str:
+        if self._calibration is None:
+            return 'collecting' if self._buffer.fill > 0 else 'uncalibrated'
+        if self._misfit.misfit:
+            return 'calibrated-misfit'
+        if not self._settings.refine:
+            return 'calibrated'
+        return 'calibrated-converged' if self._scheduler.converged else 'calibrated-refining'
+
+    def _coverage(self) -> Coverage:
+        """The buffer's coverage now: of the heading circle if ``yaw_only``, else of the sphere."""
+        if self._yaw_only():
+            return self._heading_coverage().coverage
+        return self._hints.dress(self._buffer.coverage())
+
+    def _reported_coverage(self) -> Coverage:
+        """``_coverage()`` without its milliseconds on the caller's thread: what the fit worker
+        measured with its latest check or readiness test (jobs.buffer_coverage), while no older
+        than REPORTED_COVERAGE_AGE_S of stream and of the kind the buffer is now (a robot that
+        starts turning); measured here otherwise. Heading coverage is looked at here, so its
+        hint knows which way the robot turns."""
+        measured = self._measured_coverage
+        if (measured is None or self._clock.now - measured[0] > REPORTED_COVERAGE_AGE_S
+                or (measured[1].cells == HEADING_SECTORS) != self._yaw_only()):
+            return self._coverage()
+        if measured[1].cells == HEADING_SECTORS:
+            return self._heading_coverage().coverage
+        return self._hints.dress(measured[1])
+
+    def _yaw_only(self) -> bool:
+        """Whether coverage and hints are about the heading circle: model ``planar``, or
+        ``auto`` with the buffer's samples round a ring when last judged (``hints.py``)."""
+        return self._settings.model == 'planar' or (
+            self._settings.model == 'auto' and self._hints.yaw_only)
+
+    def _heading_coverage(self) -> HeadingCoverage:
+        return self._hints.heading(self._buffer.samples, self._buffer.readings)
+
+    @property
+    def _frame_id(self) -> str:
+        """The stream's frame, '' while unknown."""
+        return self._screen.frame_id or ''
+
+    def _progress_text(self, state: str, coverage: Coverage) -> str:
         """What to do next, e.g. 'coverage 63 % - keep rotating about the pitch axis (y)'."""
-        if self.calibration is None and (self.input_watch.problem or self.alignment_wait.waiting):
-            return self.input_watch.problem or self.alignment_wait.progress()
-        return report.progress_text(self.state, self.calibration, coverage or self.coverage(),
-                                    self.buffer, self.settings)
+        if self._calibration is None and (self._input_watch.problem
+                                          or self._alignment_wait.waiting):
+            return self._input_watch.problem or self._alignment_wait.progress()
+        return report.progress_text(state, self._calibration, coverage, self._buffer,
+                                    self._settings)
 
-    def misfit_text(self) -> str:
-        """Why the calibration in force does not fit, and what happens about it."""
-        return report.misfit_text(self.misfit.last, self.units, self.settings.auto_calibrate)
-
-    def new_screen_rejects(self) -> dict[str, int]:
+    def _new_screen_rejects(self) -> dict[str, int]:
         """Messages refused by screening since the previous call, by the reasons that occurred."""
-        counts = self.screen.counts
+        counts = self._screen.counts
         new = {reason: count - self._reported_rejects[reason]
                for reason, count in counts.items() if count > self._reported_rejects[reason]}
         self._reported_rejects = dict(counts)
         return new
-
-    def diagnostic_values(self, now: float, coverage: Coverage | None = None
-                          ) -> dict[str, object]:
-        """Key/values for /diagnostics (report.diagnostic_values); read once per diagnostics
-        period (updates the input rate)."""
-        return {**report.diagnostic_values(self, now, coverage or self.coverage()),
-                **self.input_watch.values(), **self.alignment_wait.values()}
-
-    def diagnostics_level(self, coverage: Coverage, input_rate_hz: float,
-                          problem: str | None = None, no_input: str = ''
-                          ) -> tuple[report.Level, str]:
-        """/diagnostics' level and message (report.diagnostics_level), the node's ``problem`` and
-        the fit worker's first; refused messages are taken only when no problem outranks them."""
-        problem = '; '.join(text for text in (problem, self.runner.problem) if text) or None
-        return report.diagnostics_level(
-            self.state, self.progress_text(coverage), input_rate_hz, no_input, problem=problem,
-            refused=self.new_screen_rejects() if problem is None else None,
-            misfit=self.misfit_text(), earth_warning=self.earth_warning(),
-            alignment_warning=self.alignment_warning(), imu_warning=self.pairing.warning(),
-            input_problem=self.input_watch.problem or self.input_watch.imu_problem)
 
 
 __all__ = ['REFUSAL_REASONS', 'SCREEN_REASONS', 'STATES', 'CalibrationAttempt',
