@@ -65,6 +65,11 @@ class FitOptions:
       the offset along them is extrapolated; the reason names the rotation.
     - ``max_residual_pct=5.0``: RMS of ``|corrected| - F`` in % of F. ArduPilot accepts ~3 %;
       cheap noisy sensors (BNO055) show ~2 % noise alone; a disturbed field gives far more.
+      One bound, three uses, each named where it stands: the *gate* here (a fit's RMS residual
+      over its samples); the live *misfit check* (``evidence.check_fit``: the median error of
+      recent held-out readings against the calibration in force, beyond ``MISFIT_FLOOR`` times
+      it); and ``mag_calibrator_fit --calibration``'s *verdict* on a saved calibration, which is
+      that same misfit check run over a recording (``tools/fit_start.py``).
     - ``max_condition=15``: of the fit's normalised Jacobian. It grows as the covered share of
       the sphere shrinks: about 2 all round, 5 at three quarters, 10 at 60 %, 20 for a hemisphere
       (whose unseen half is then off by over 1°), 1e5 and more for motion about one axis.

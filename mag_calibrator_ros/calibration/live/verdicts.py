@@ -6,6 +6,13 @@ few facts it needs, and returns a :class:`Verdict`; ``CalibrationSession._comple
 the function here: :func:`automatic_verdict` for automatic calibration, :func:`refinement_verdict`
 for refinement, :func:`request_verdict` for ``~/calibrate``, :func:`realign_verdict` for a new
 rotation into the IMU frame and :func:`check_verdict` for misfit and online tracking.
+
+One verdict has state, and so lives beside stream time rather than here:
+``alignment_wait.AlignmentWait.judge`` takes :func:`automatic_verdict`'s verdict on the first
+automatic calibration and holds it back (bounded) until it can be aligned to the IMU. It is the
+only rule outside this file that changes what goes in force; the session applies its verdict
+as it applies these. The compensation's verdict is :func:`compensation_verdict`, asked through
+``CompensationLearner.judged`` (which keeps the fit for reports).
 """
 
 from __future__ import annotations
