@@ -319,7 +319,6 @@ class Alignment:
     attitudes: int = 0
     outliers: int = 0
     rotation_std_deg: float = math.nan
-    spread_deg: float = math.nan
     handedness: str = 'unknown'
     """'right', 'left' (a reflection: no rotation fixes it) or 'unknown' (no expected dip)."""
     remap: str = ''
@@ -456,8 +455,7 @@ def estimate_alignment(attitudes: np.ndarray, calibration: Calibration,
         return Alignment(False, f'gravity directions too close (the static attitudes spread '
                          f'{spread:.1f} deg, {options.min_spread_deg:g} deg needed): tilt the '
                          'sensor (roll it, stand it on its sides) and hold it still each time',
-                         attitudes=offered, static_samples=count, spread_deg=spread,
-                         dip_std_before_deg=before)
+                         attitudes=offered, static_samples=count, dip_std_before_deg=before)
     start, _ = _linear_rotation(accel_units, field_units)
     floor = math.radians(MIN_SCALE_DEG)
     start_dips = _dips(accel_units, field_units, start)
@@ -487,7 +485,7 @@ def estimate_alignment(attitudes: np.ndarray, calibration: Calibration,
     angle = rotation_angle_deg(rotation)
     common = dict(rotation=rotation, angle_deg=angle, dip_deg=dip, dip_std_deg=dip_std,
                   dip_std_before_deg=before, static_samples=used, attitudes=offered,
-                  outliers=count - used, rotation_std_deg=rotation_std, spread_deg=spread)
+                  outliers=count - used, rotation_std_deg=rotation_std)
     handedness, note = _handedness(dip, options.expected_inclination_deg, rotation)
     if handedness == 'left':
         remap, residual = nearest_remap(-rotation)

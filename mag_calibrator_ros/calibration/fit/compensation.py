@@ -164,7 +164,6 @@ class CompensationFit:
     held_candidate_pct: float = math.nan
     """Spread of ``|corrected|`` on the held-out readings (RMS about its median, % of F): the
     calibration in force and the candidate."""
-    held_readings: int = 0
     removed_pct: float = 0.0
     """RMS of the compensation's field over the readings, % of F: the share it removes."""
     reason: str = ''
@@ -575,9 +574,8 @@ def fit_compensation(data: CompensationData, base: Calibration) -> CompensationF
             held_pair_errors = pair_evidence(base, candidate, data.held_raw, held_inputs,
                                              data.held_temperatures, held_pairs)
     return CompensationFit(candidate, tuple(reports), len(raw), residual_pct, current_pct,
-                           candidate_pct, 0 if not held else len(data.held_raw), removed,
-                           kept=tuple(labels[i] for i in kept), pairs=len(pairs),
-                           held_pair_errors=held_pair_errors)
+                           candidate_pct, removed, kept=tuple(labels[i] for i in kept),
+                           pairs=len(pairs), held_pair_errors=held_pair_errors)
 
 
 def _need(label: str, span: float, varied: bool) -> str:

@@ -195,8 +195,6 @@ class CompensationLearner:
         self.configure(inputs, use_temperature, learn)
         self.last_fit = None
         """The latest CompensationFit (reports: what each term needs)."""
-        self.last_learned = ''
-        """What the latest adopted compensation changed, for the log and /diagnostics."""
 
     def configure(self, inputs: tuple[str, ...], use_temperature: bool, learn: bool) -> None:
         """New inputs forget what was kept (its columns no longer match)."""
