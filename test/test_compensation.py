@@ -25,13 +25,16 @@ from mag_calibrator_ros.calibration.live.compensation import _Rows
 from mag_calibrator_ros.calibration.live.evidence import compare_on_evidence
 from mag_calibrator_ros.calibration.live.inputs import parse_input
 from mag_calibrator_ros.calibration.live.jobs import run_job
+from mag_calibrator_ros.calibration.live.offline import calibrate_now
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
+from mag_calibrator_ros.calibration.live.worker import InlineRunner
 from mag_calibrator_ros.calibration.store.calibration_file import (
     CalibrationFileError,
     load_calibration,
     save_calibration,
 )
+from mag_calibrator_ros.icm20948 import registers as reg
 
 F = 50e-6
 DIP = math.radians(60.0)
@@ -181,8 +184,8 @@ def _stream(session: CalibrationSession, run: dict[str, np.ndarray],
     for index, when in enumerate(run['t']):
         stamp = int(round(when * 1e9)) + 1
         if index % 5 == 0:
-            session.compensation.temperature(stamp, float(run['temperature'][index]))
-        session.compensation.input(0, stamp, float(run['current'][index]))
+            session.process_temperature(stamp, float(run['temperature'][index]))
+        session.process_input(0, stamp, float(run['current'][index]))
         reading = run['raw'][index]
         if corrupt is not None and corrupt.start <= index < corrupt.stop:
             reading = reading + 1.0  # a tesla: refused by screening (beyond full scale)
@@ -200,13 +203,27 @@ def _heading_rms_deg(corrected: np.ndarray, heading: np.ndarray) -> float:
     return float(np.sqrt(np.mean(error ** 2)))
 
 
+class _Recording(InlineRunner):
+    """The inline runner, keeping what each compensation fit was given: the readings the
+    session kept to learn from (and held out), with their stamps and inputs."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.learned_from: list[CompensationData] = []
+
+    def submit(self, job) -> None:
+        if job.kind == 'compensate':
+            self.learned_from.append(job.compensation)
+        super().submit(job)
+
+
 def test_the_session_learns_the_current_and_temperature_live_and_adopts_them_on_evidence():
     run = drive(seconds=150.0)
     static = _static(run)
     session = CalibrationSession(SessionSettings(interference_inputs=(BATTERY,)),
                                  calibration=static)
     corrected = np.array(_stream(session, run))
-    assert session.adoptions.get('compensation', 0) >= 1
+    assert session.report().counts.adoptions.get('compensation', 0) >= 1
     compensation = session.calibration.compensation
     assert compensation.interference[0, 0] == pytest.approx(0.8e-6, rel=0.1)
     assert compensation.temperature_coefficient[0] == pytest.approx(0.2e-6, rel=0.1)
@@ -214,24 +231,33 @@ def test_the_session_learns_the_current_and_temperature_live_and_adopts_them_on_
     before = _heading_rms_deg(static.apply(run['raw'][last]), run['heading'][last])
     after = _heading_rms_deg(corrected[last], run['heading'][last])
     assert after < 0.25 * before
-    values = session.diagnostic_values(0.0)
+    values = session.report(0.0, measure_coverage=True).values
     assert values['interference_uT_per_unit[' + BATTERY + ']'][0] == pytest.approx(0.8, rel=0.1)
     assert 'compensation_time' in values
     session.reset()  # ~/reset forgets what was kept to learn from; the one in force stays
-    assert session.diagnostic_values(0.0)['compensation_readings_kept'] == 0
+    assert session.report(0.0, measure_coverage=True).values['compensation_readings_kept'] == 0
 
 
 def test_the_session_never_learns_from_nothing_or_from_refused_readings():
     run = drive(seconds=120.0, gain=0.0, drift=0.0)
     static = Calibration(OFFSET, np.eye(3), F)
-    session = CalibrationSession(SessionSettings(interference_inputs=(BATTERY,)),
-                                 calibration=static)
+    runner = _Recording()
+    full_scale = reg.MEASUREMENT_LIMIT * reg.TESLA_PER_LSB  # the node's AK09916 limit
+    session = CalibrationSession(SessionSettings(interference_inputs=(BATTERY,),
+                                                 full_scale=full_scale),
+                                 calibration=static, runner=runner)
     _stream(session, run, corrupt=slice(100, 400))
     assert session.calibration.compensation is None
-    assert 'compensation' not in session.adoptions
-    assert session.rejects()['out_of_range'] + session.rejects().get('saturated', 0) >= 300
-    kept = session.compensation._kept.copy()
-    assert len(kept) and np.all(np.abs(kept[:, 1]) < 1e-3)  # no refused reading among them
+    counts = session.report().counts
+    assert 'compensation' not in counts.adoptions
+    assert counts.rejects['out_of_range'] + counts.rejects.get('saturated', 0) >= 300
+    # a fit is given every reading kept so far (a ring of 4000 rows, not filled in 120 s): the
+    # last one, long after the corrupt stretch, every one kept before it
+    last = runner.learned_from[-1]
+    assert last.times[0] < 4.0 < 16.0 < last.times[-1]
+    for data in runner.learned_from:  # no refused reading among them, kept or held out
+        assert len(data.raw) and np.all(np.abs(data.raw) < 1e-3)
+        assert np.all(np.abs(data.held_raw) < 1e-3)
 
 
 def test_a_reading_before_the_first_temperature_sample_does_not_keep_the_temperature_out():
@@ -244,9 +270,9 @@ def test_a_reading_before_the_first_temperature_sample_does_not_keep_the_tempera
                                  calibration=_static(run))
     for index, when in enumerate(run['t']):
         stamp = int(round(when * 1e9)) + 1
-        session.compensation.input(0, stamp, float(run['current'][index]))
+        session.process_input(0, stamp, float(run['current'][index]))
         if index % 4 == 1:  # the first temperature sample after the first reading
-            session.compensation.temperature(stamp, float(run['temperature'][index]))
+            session.process_temperature(stamp, float(run['temperature'][index]))
         session.process(stamp, 'imu', run['raw'][index])
     compensation = session.calibration.compensation
     assert compensation.temperature_coefficient[0] == pytest.approx(0.2e-6, rel=0.1)
@@ -297,11 +323,12 @@ def test_readings_held_while_a_compensation_was_learned_never_refill_the_buffer(
     later = drive(seconds=100.0, rate=20.0)
     later['t'] = later['t'] + run['t'][-1] + 1.0
     _stream(session, later)
-    assert session.adoptions.get('compensation', 0) >= 1
-    assert session.stale_dropped > 0
-    attempt = session.calibrate_now()
+    counts = session.report().counts
+    assert counts.adoptions.get('compensation', 0) >= 1
+    assert counts.stale_dropped > 0
+    attempt = calibrate_now(session)
     assert attempt.success, attempt.message
-    assert session.last_residual_pct < 2.0
+    assert session.calibration.metadata_number('residual_rms_pct') < 2.0
 
 
 def test_a_compensation_put_in_force_moves_what_the_buffer_holds_instead_of_emptying_it():
@@ -321,18 +348,18 @@ def test_a_compensation_put_in_force_moves_what_the_buffer_holds_instead_of_empt
     def spread(samples: np.ndarray) -> float:
         return float(np.std(np.linalg.norm(exact.apply(samples), axis=1) / F))
 
-    before, held = session.buffer.samples, len(session.evidence)
+    before, held = session.view().raw, session.report().counts.held_out
     true = Compensation(('current',), np.array([[0.8e-6], [0.0], [0.0]]),
                         np.array([0.2e-6, 0.0, 0.0]), 25.0)
     session.apply_calibration(exact.with_compensation(true), 'file')
-    after = session.buffer.samples
-    assert len(after) == len(before) and len(session.evidence) == held
+    after = session.view().raw
+    assert len(after) == len(before) and session.report().counts.held_out == held
     assert spread(after) < 0.2 * spread(before)  # on the static sphere once compensated
-    attempt = session.calibrate_now()  # no turn since
+    attempt = calibrate_now(session)  # no turn since
     assert attempt.success, attempt.message
-    assert session.last_residual_pct < 1.0
+    assert session.calibration.metadata_number('residual_rms_pct') < 1.0
     session.apply_calibration(static, 'file')  # and back: the own field is in them again
-    assert spread(session.buffer.samples) == pytest.approx(spread(before), rel=0.05)
+    assert spread(session.view().raw) == pytest.approx(spread(before), rel=0.05)
 
 
 def test_new_inputs_make_the_states_held_unknown_wherever_they_wait():
@@ -346,24 +373,27 @@ def test_new_inputs_make_the_states_held_unknown_wherever_they_wait():
                           learn_compensation=False)
     two = replace(one, interference_inputs=(
         BATTERY, 'motor_state:sensor_msgs/msg/BatteryState:current'))
-    session = CalibrationSession(one, calibration=_static(run), runner=_SlowRunner(50))
+    runner = _SlowRunner(50)
+    session = CalibrationSession(one, calibration=_static(run), runner=runner)
     _stream(session, run)
-    assert len(session.backlog) > 0 and session.buffer.fill > 0  # fits ran: readings wait
+    report = session.report()
+    assert report.counts.held > 0 and report.buffer.fill > 0  # fits ran: readings wait
     session.reconfigure(two)
     both = Compensation(two.interference_inputs, np.array([[0.8e-6, 0.0], [0.0] * 2, [0.0] * 2]))
     session.apply_calibration(Calibration(OFFSET, np.eye(3), F).with_compensation(both), 'file')
-    assert session.buffer.fill == 0 and len(session.evidence) == 0  # nothing could be moved
+    report = session.report()
+    assert report.buffer.fill == 0 and report.counts.held_out == 0  # nothing could be moved
     later = drive(seconds=30.0, rate=20.0)
     later['t'] = later['t'] + run['t'][-1] + 1.0
     _stream(session, later)
-    assert len(session.backlog) > 0
+    assert session.report().counts.held > 0
     session.reconfigure(one)  # what waits was made of two inputs
-    while len(session.backlog) or session._job is not None:
+    while session.report().counts.held or runner.busy:
         session.poll()
-    assert session.buffer.fill > 0  # in, their states unknown
+    assert session.report().buffer.fill > 0  # in, their states unknown
     session.apply_calibration(_static(run).with_compensation(
         Compensation((BATTERY,), np.array([[0.8e-6], [0.0], [0.0]]))), 'file')
-    assert session.buffer.fill == 0
+    assert session.report().buffer.fill == 0
 
 
 def test_a_fit_made_before_a_compensation_went_in_force_is_abandoned():
@@ -372,12 +402,13 @@ def test_a_fit_made_before_a_compensation_went_in_force_is_abandoned():
     run = drive(seconds=60.0, rate=20.0)
     settings = SessionSettings(interference_inputs=(BATTERY,), auto_calibrate=False,
                                refine=False, learn_compensation=False)
-    session = CalibrationSession(settings, calibration=_static(run), runner=_SlowRunner(5))
+    runner = _SlowRunner(5)
+    session = CalibrationSession(settings, calibration=_static(run), runner=runner)
     _stream(session, run)
-    while len(session.backlog) or session._job is not None:
+    while session.report().counts.held or runner.busy:
         session.poll()
     ticket = session.request_calibration()  # its fit runs now
-    assert session._job is not None and session._job.ticket == ticket
+    assert runner.job is not None and runner.job.ticket == ticket
     true = Compensation(('current',), np.array([[0.8e-6], [0.0], [0.0]]))
     session.apply_calibration(Calibration(OFFSET, np.eye(3), F).with_compensation(true), 'file')
     later = drive(seconds=2.0, rate=20.0)
@@ -416,11 +447,11 @@ def test_a_calibration_naming_inputs_this_node_lacks_is_applied_without_them(inp
     for index, when in enumerate(run['t'][:50]):
         stamp = int(round(when * 1e9)) + 1
         for j in range(len(inputs)):
-            session.compensation.input(j, stamp, float(run['current'][index]))
+            session.process_input(j, stamp, float(run['current'][index]))
         processed = session.process(stamp, 'imu', run['raw'][index])
         np.testing.assert_allclose(processed.corrected, static.apply(run['raw'][index]))
-    assert 'interference_inputs does not list' in session.diagnostic_values(0.0)[
-        'interference_unmatched']
+    assert 'interference_inputs does not list' in session.report(
+        0.0, measure_coverage=True).values['interference_unmatched']
 
 
 def test_inputs_whose_callbacks_run_after_the_readings_are_paired_by_stamp():
@@ -428,20 +459,22 @@ def test_inputs_whose_callbacks_run_after_the_readings_are_paired_by_stamp():
     the kept reading waits for its input's sample instead of taking an older one (which, at a
     current step, teaches a fraction of K)."""
     run = drive(seconds=150.0)
+    runner = _Recording()
     session = CalibrationSession(SessionSettings(interference_inputs=(BATTERY,)),
-                                 calibration=_static(run))
+                                 calibration=_static(run), runner=runner)
     late = 6  # each current sample handed over six readings (0.24 s) after its own reading
     stamps = [int(round(when * 1e9)) + 1 for when in run['t']]
     for index, stamp in enumerate(stamps):
         if index % 5 == 0:
-            session.compensation.temperature(stamp, float(run['temperature'][index]))
+            session.process_temperature(stamp, float(run['temperature'][index]))
         if index >= late:
-            session.compensation.input(0, stamps[index - late],
-                                       float(run['current'][index - late]))
+            session.process_input(0, stamps[index - late], float(run['current'][index - late]))
         session.process(stamp, 'imu', run['raw'][index])
-    kept = session.compensation._kept.copy()
-    truth = np.interp(kept[:, 0], run['t'] + 1e-9, run['current'])
-    assert np.abs(kept[:, -1] - truth).max() < 1e-9  # every kept reading with its own sample
+    assert runner.learned_from and runner.learned_from[-1].times[-1] > 140.0
+    for data in runner.learned_from:  # every reading a fit learned from, kept or held out
+        for times, inputs in ((data.times, data.inputs), (data.held_times, data.held_inputs)):
+            truth = np.interp(times, run['t'] + 1e-9, run['current'])
+            assert len(times) and np.abs(inputs[:, -1] - truth).max() < 1e-9  # its own sample
     assert session.calibration.compensation.interference[0, 0] == pytest.approx(0.8e-6, rel=0.1)
 
 

@@ -20,6 +20,7 @@ from mag_calibrator_ros.calibration.fit.compensation import (
     fit_compensation,
     gyro_pairs,
 )
+from mag_calibrator_ros.calibration.live.compensation import CompensationLearner
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
 
@@ -115,12 +116,12 @@ def test_the_session_learns_a_standing_robot_through_its_gyroscope_and_adopts_on
                                  calibration=static)
     for index, when in enumerate(run['t']):
         stamp = int(round(when * 1e9)) + 1
-        session.compensation.input(0, stamp, float(run['current'][index]))
+        session.process_input(0, stamp, float(run['current'][index]))
         session.process_imu(stamp, 'imu', (0.0, 0.0, 9.81), run['gyro'][index])
         session.process(stamp, 'imu', run['raw'][index])
         session.poll()
     compensation = session.calibration.compensation
-    assert session.adoptions.get('compensation', 0) >= 1
+    assert session.report().counts.adoptions.get('compensation', 0) >= 1
     assert compensation.interference[:, 0] == pytest.approx(GAIN, abs=0.08e-6)
     before = np.linalg.norm(static.apply(run['raw'][-500:]) - EARTH, axis=1).mean()
     after = np.linalg.norm(session.calibration.apply(
@@ -128,18 +129,23 @@ def test_the_session_learns_a_standing_robot_through_its_gyroscope_and_adopts_on
     assert after < 0.25 * before
 
 
+def _learner(calibration: Calibration) -> tuple[CompensationLearner, Calibration]:
+    """The session's learner on its own (live/compensation.py), told of ``calibration`` put in
+    force as the session tells it; the calibration in force it gives back."""
+    learner = CompensationLearner((BATTERY,))
+    return learner, learner.carry(calibration, None, 'given')
+
+
 def test_the_learner_integrates_the_gyroscope_and_restarts_after_a_gap():
-    session = CalibrationSession(SessionSettings(interference_inputs=(BATTERY,)),
-                                 calibration=Calibration(OFFSET, np.eye(3), F))
-    learner = session.compensation
+    learner, calibration = _learner(Calibration(OFFSET, np.eye(3), F))
     rate = 0.5  # rad/s about z
     for index in range(400):  # 4 s at 100 Hz, then a 1 s gap, then 1 s more
         when = index * 0.01 if index < 300 else 1.0 + index * 0.01
         stamp = int(round(when * 1e9)) + 1
         learner.input(0, stamp, 1.0 + index % 7)
-        session.process_imu(stamp, 'imu', (0.0, 0.0, 9.81), (0.0, 0.0, rate))
-        session.process(stamp, 'imu', EARTH + OFFSET)
-    data = learner.data(session.calibration)
+        learner.gyro(stamp, (0.0, 0.0, rate))  # as process_imu hands it on
+        learner.observe(stamp, EARTH + OFFSET, calibration)  # as process does
+    data = learner.data(calibration)
     rows = np.vstack([np.column_stack([data.times, data.attitudes]),
                       np.column_stack([data.held_times, data.held_attitudes])])
     rows = rows[np.argsort(rows[:, 0])]
@@ -154,16 +160,14 @@ def test_a_log_s_ten_hertz_imu_rows_with_jitter_are_one_stretch():
     """A flight log's rows come 100 ms apart give or take a millisecond (ArduPilot's MAG rate,
     the IMU resampled to it): each of them must continue the integrated attitude. With a
     100 ms limit a real hover log broke every fourth step and made no pair at all."""
-    session = CalibrationSession(SessionSettings(interference_inputs=(BATTERY,)),
-                                 calibration=Calibration(OFFSET, np.eye(3), F))
-    learner = session.compensation
+    learner, calibration = _learner(Calibration(OFFSET, np.eye(3), F))
     jitter = np.random.default_rng(4).uniform(-0.001, 0.001, 300)
     for index in range(300):  # 30 s at 10 Hz
         stamp = int(round((index * 0.1 + jitter[index]) * 1e9)) + 10**9
         learner.input(0, stamp, 1.0 + index % 7)
-        session.process_imu(stamp, 'imu', (0.0, 0.0, 9.81), (0.0, 0.0, 0.02))
-        session.process(stamp, 'imu', EARTH + OFFSET)
-    data = learner.data(session.calibration)
+        learner.gyro(stamp, (0.0, 0.0, 0.02))
+        learner.observe(stamp, EARTH + OFFSET, calibration)
+    data = learner.data(calibration)
     assert len(data.attitudes) > 100 and len(set(data.attitudes[:, 0])) == 1
 
 
@@ -177,7 +181,7 @@ def _stand(session: CalibrationSession, run: dict[str, np.ndarray], ticket: int,
     answers = []
     for index, when in enumerate(run['t']):
         stamp = int(round((start + when) * 1e9)) + 1
-        session.compensation.input(0, stamp, float(run['current'][index]))
+        session.process_input(0, stamp, float(run['current'][index]))
         session.process_imu(stamp, 'imu', (0.0, 0.0, 9.81), run['gyro'][index])
         session.process(stamp, 'imu', run['raw'][index])
         session.poll()
@@ -193,18 +197,17 @@ def test_learn_compensation_answers_once_what_the_motors_currents_tell_is_in_for
     session = CalibrationSession(SessionSettings(interference_inputs=(BATTERY,),
                                                  learn_compensation=False), calibration=static)
     before = _stand(session, standing(seconds=20.0, seed=1), -1)
-    assert not before and 'compensation_readings_kept' not in \
-        session.compensation.diagnostic_values(session.calibration)
+    assert not before and 'compensation_readings_kept' not in session.report().values
     ticket = session.request_compensation(60.0)
-    assert 'compensation_learning' in session.compensation.diagnostic_values(
-        session.calibration, now=session.clock.now)
+    assert 'compensation_learning' in session.report().values
     answers = _stand(session, run, ticket, start=20.0)
     assert len(answers) == 1 and answers[0].success, answers
     assert answers[0].message.startswith('learned in ')
     assert "compensating the robot's own field" in answers[0].message
     compensation = session.calibration.compensation
     assert compensation.interference[:, 0] == pytest.approx(GAIN, abs=0.08e-6)
-    assert not session.compensation.learning  # the window closed with its answer
+    values = session.report().values  # the window closed with its answer: nothing is kept
+    assert 'compensation_learning' not in values and 'compensation_readings_kept' not in values
 
 
 def test_learn_compensation_at_a_constant_current_says_what_it_needs_at_its_end():
@@ -326,47 +329,53 @@ def test_k_is_what_the_readings_tell_not_the_calibrations_error_where_the_offset
 
 
 def test_the_learner_anchors_a_static_fit_at_the_mean_inputs_since_the_buffer_was_emptied():
-    session = CalibrationSession(SessionSettings(interference_inputs=(BATTERY,)))
-    learner = session.compensation
+    """The learner as the session drives it: ``observe`` for each reading, ``carry`` for each
+    calibration put in force (what it returns is in force), ``reset`` on ~/reset."""
+    learner = CompensationLearner((BATTERY,))
+    in_force = None
+
+    def put(calibration: Calibration, source: str) -> None:
+        nonlocal in_force
+        in_force = learner.carry(calibration, in_force, source)
+
     for index in range(200):
         stamp = index * 10_000_000 + 1
         learner.input(0, stamp, 2.0 if index < 100 else 4.0)
         learner.temperature(stamp, 30.0)
-        session.process(stamp, 'imu', EARTH + OFFSET)
-    session.apply_calibration(Calibration(OFFSET, np.eye(3), F), 'refine')
+        learner.observe(stamp, EARTH + OFFSET, in_force)
+    put(Calibration(OFFSET, np.eye(3), F), 'refine')
     assert learner.anchor == pytest.approx([3.0, 30.0], abs=0.05)
     assert not learner.anchor_unknown
     static = Calibration(OFFSET, np.eye(3), F)
-    session.apply_calibration(static, 'file')
+    put(static, 'file')
     assert np.isnan(learner.anchor).all()  # a file does not say where it was right
-    assert learner.anchor_unknown and learner.data(session.calibration).anchor_unknown
-    session.apply_calibration(static, 'realign')
+    assert learner.anchor_unknown and learner.data(in_force).anchor_unknown
+    put(static, 'realign')
     assert learner.anchor_unknown  # rotated into the IMU frame, still the file's offset
-    session.apply_calibration(static.with_compensation(
-        Compensation(('current',), GAIN[:, None])), 'file')
+    put(static.with_compensation(Compensation(('current',), GAIN[:, None])), 'file')
     assert learner.anchor[0] == 0.0 and np.isnan(learner.anchor[1])  # its K: right at 0 A
     assert learner.anchor_unknown  # the temperature's is not known
-    live = learner.data(session.calibration).anchor  # live fits hold the known one too
+    live = learner.data(in_force).anchor  # live fits hold the known one too
     assert live[0] == 0.0 and np.isnan(live[1])
     drift_only = Compensation(('current',), np.zeros((3, 1)), np.array([0.0, 0.2e-6, 0.0]), 25.0)
-    session.apply_calibration(static.with_compensation(drift_only), 'compensation')
+    put(static.with_compensation(drift_only), 'compensation')
     assert learner.anchor[0] == 0.0 and learner.anchor[1] == 25.0  # current: as before
     for index in range(200, 300):  # the buffer kept its readings, moved: 5 A since
         stamp = index * 10_000_000 + 1
         learner.input(0, stamp, 5.0)
         learner.temperature(stamp, 30.0)
-        session.process(stamp, 'imu', EARTH + OFFSET)
-    session.apply_calibration(static, 'refine')  # the drift carried; the current at its mean
+        learner.observe(stamp, EARTH + OFFSET, in_force)
+    put(static, 'refine')  # the drift carried; the current at its mean
     assert learner.anchor == pytest.approx([11.0 / 3.0, 25.0], abs=0.05)
-    session.reset()  # emptied: the mean starts again
+    learner.reset()  # emptied: the mean starts again
     for index in range(300, 400):
         stamp = index * 10_000_000 + 1
         learner.input(0, stamp, 5.0)
-        session.process(stamp, 'imu', EARTH + OFFSET)
-    session.apply_calibration(static, 'refine')
+        learner.observe(stamp, EARTH + OFFSET, in_force)
+    put(static, 'refine')
     assert learner.anchor[0] == pytest.approx(5.0)
     assert not learner.anchor_unknown
-    assert np.isnan(learner.data(session.calibration).anchor[0])  # live: the readings' mean
+    assert np.isnan(learner.data(in_force).anchor[0])  # live: the readings' mean
 
 
 def test_learn_compensation_learns_k_and_keeps_the_drift_in_force():
@@ -384,8 +393,8 @@ def test_learn_compensation_learns_k_and_keeps_the_drift_in_force():
     answers = []
     for index, when in enumerate(run['t']):
         stamp = int(round(when * 1e9)) + 1
-        session.compensation.input(0, stamp, float(run['current'][index]))
-        session.compensation.temperature(stamp, float(warming[index]))
+        session.process_input(0, stamp, float(run['current'][index]))
+        session.process_temperature(stamp, float(warming[index]))
         session.process_imu(stamp, 'imu', (0.0, 0.0, 9.81), run['gyro'][index])
         session.process(stamp, 'imu', run['raw'][index])
         session.poll()
