@@ -10,6 +10,11 @@ fits every reading received before the call, so it waits here until they are all
 from __future__ import annotations
 
 from collections import deque
+from typing import NamedTuple
+
+import numpy as np
+
+from mag_calibrator_ros.calibration.live.pairing import Pair
 
 HOLD_LIMIT = 5000
 """Readings held while a fit runs; beyond this (a worker far too slow for the rate) the oldest
@@ -25,11 +30,27 @@ DRAIN_FOR_REQUEST = 64
 received before the call): a user waits, so the backlog of a slow worker goes first."""
 
 
+class Reading(NamedTuple):
+    """One accepted reading on its way to what it teaches (``CalibrationSession._ingest``):
+    through the IMU pairing's wait and, while a fit runs, this backlog."""
+
+    field: np.ndarray
+    """Compensated by the compensation in force when it arrived."""
+    stamp_ns: int
+    epochs: tuple[int, int]
+    """(compensation, inputs) epochs on arrival: a newer compensation makes it stale, newer
+    inputs make its ``state`` unknown."""
+    state: tuple[float, ...] | None
+    """The own field's inputs and temperature with it (``CompensationLearner.observe``)."""
+    pair: Pair | None = None
+    """The accelerometer (and gyroscope) sample paired with it, once decided."""
+
+
 class Backlog:
-    """The held readings (opaque items, oldest first) and the requests waiting for them."""
+    """The held readings (oldest first) and the requests waiting for them."""
 
     def __init__(self) -> None:
-        self._held: deque[tuple] = deque()
+        self._held: deque[Reading] = deque()
         self._requests: deque[tuple[int, int]] = deque()  # (ticket, readings accepted before)
         self.ingested = 0
         """Accepted readings fed to the buffer or the evidence so far (the session counts)."""
@@ -38,7 +59,7 @@ class Backlog:
     def __len__(self) -> int:
         return len(self._held)
 
-    def hold(self, item: tuple) -> tuple | None:
+    def hold(self, item: Reading) -> Reading | None:
         """Hold ``item``; the oldest held one when the backlog is full (feed it now)."""
         overflow = None
         if len(self._held) >= HOLD_LIMIT:
@@ -47,7 +68,7 @@ class Backlog:
         self._held.append(item)
         return overflow
 
-    def next(self) -> tuple:
+    def next(self) -> Reading:
         return self._held.popleft()
 
     def budget(self, flowing: bool) -> int:
@@ -81,4 +102,4 @@ class Backlog:
         self.ingested = accepted
 
 
-__all__ = ['DRAIN_FOR_REQUEST', 'DRAIN_PER_MESSAGE', 'HOLD_LIMIT', 'Backlog']
+__all__ = ['DRAIN_FOR_REQUEST', 'DRAIN_PER_MESSAGE', 'HOLD_LIMIT', 'Backlog', 'Reading']

@@ -27,6 +27,7 @@ from mag_calibrator_ros.calibration.fit.heading import (
     motion_shape,
 )
 from mag_calibrator_ros.calibration.live.buffer import SampleBuffer
+from mag_calibrator_ros.calibration.live.scheduler import CHECK_FIT_PERIOD_S
 
 UNDECIDED_HINT = ('keep turning (a robot: in place; a sensor in the hand: through every '
                   'orientation)')
@@ -47,6 +48,11 @@ RING_CONFIRM_S = 2.5
 hand's tumble turns about one axis for a second or two before it leaves the plane (1.5 s at
 most over 40 simulated tumbles), a robot turning in place stays on its ring."""
 
+REPORTED_COVERAGE_AGE_S = 2.0 * CHECK_FIT_PERIOD_S
+"""Stream seconds a coverage measured by the fit worker stands for the buffer's in reports: a
+check measures it every CHECK_FIT_PERIOD_S while calibrated, a readiness test every
+CHECK_PERIOD_S while calibrating automatically."""
+
 DIRECTION_PERIOD_S = 1.0
 """Stream seconds between the readings whose headings say which way a robot turns: far enough
 apart for a slow turn to move by more than ``heading.TURNING_MIN_STEP_DEG``."""
@@ -64,6 +70,7 @@ class MotionHints:
         self._reading: np.ndarray | None = None  # the reading at the latest direction point
         self._previous: np.ndarray | None = None  # ... at the one before
         self._turning = 0  # the way the heading moved between the last two (+1 / -1)
+        self._measured: tuple[float, Coverage] | None = None  # (stream s, the worker's)
 
     def learnt(self, now: float, buffer: SampleBuffer, reading: np.ndarray) -> None:
         """One reading learnt at stream time ``now`` (O(1) unless a judgement is due). Leaving
@@ -106,5 +113,38 @@ class MotionHints:
         """The buffer was emptied: judge afresh."""
         self.__init__()
 
+    # -- coverage for reports ------------------------------------------------------------------
 
-__all__ = ['UNDECIDED_HINT', 'UNDECIDED_STILL_HINT', 'MotionHints']
+    def measured(self, now: float | None, coverage: Coverage | None = None) -> None:
+        """The fit worker measured the buffer's ``coverage`` at stream time ``now`` (None: what
+        it measured no longer holds: other settings, an emptied buffer)."""
+        self._measured = None if now is None or coverage is None else (now, coverage)
+
+    def yaw_only_for(self, model: str) -> bool:
+        """Whether coverage and hints are about the heading circle: model ``planar``, or
+        ``auto`` with the buffer's samples round a ring when last judged."""
+        return model == 'planar' or (model == 'auto' and self.yaw_only)
+
+    def coverage(self, buffer: SampleBuffer, model: str) -> Coverage:
+        """The buffer's coverage now (milliseconds): of the heading circle when yaw-only, else
+        of the sphere."""
+        if self.yaw_only_for(model):
+            return self.heading(buffer.samples, buffer.readings).coverage
+        return self.dress(buffer.coverage())
+
+    def reported(self, now: float, buffer: SampleBuffer, model: str) -> Coverage:
+        """``coverage`` without its milliseconds on the caller's thread: what the fit worker
+        measured with its latest check or readiness test (jobs.buffer_coverage), while no older
+        than REPORTED_COVERAGE_AGE_S of stream and of the kind the buffer is now (a robot that
+        starts turning); measured here otherwise. Heading coverage is looked at here, so its
+        hint knows which way the robot turns."""
+        measured = self._measured
+        if (measured is None or now - measured[0] > REPORTED_COVERAGE_AGE_S
+                or (measured[1].cells == HEADING_SECTORS) != self.yaw_only_for(model)):
+            return self.coverage(buffer, model)
+        if measured[1].cells == HEADING_SECTORS:
+            return self.heading(buffer.samples, buffer.readings).coverage
+        return self.dress(measured[1])
+
+
+__all__ = ['REPORTED_COVERAGE_AGE_S', 'UNDECIDED_HINT', 'UNDECIDED_STILL_HINT', 'MotionHints']

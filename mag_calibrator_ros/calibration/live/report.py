@@ -203,6 +203,18 @@ def misfit_text(check: FitCheck | None, units: str, auto_calibrate: bool) -> str
             f'sensor, new payload, or a magnet nearby? {action}')
 
 
+LEFT_PLANE_TEXT = ('the sensor moved out of the plane it was calibrated turning in: collecting '
+                   'in 3-D for a full calibration (keep turning it through every orientation); '
+                   'the planar calibration stays in force until a better one is found')
+
+
+def set_aside_text(source: str, refused: int, window: int) -> str:
+    """Why the buffer stopped screening by its reference (``BufferReference.stale``)."""
+    what = 'its own fit' if source == 'fit' else 'the calibration in force'
+    return (f'the buffer stopped screening by {what}: it refused {refused} of the last {window} '
+            'readings, so it no longer describes the sensor; collecting without it')
+
+
 NO_INPUT_GRACE_S = 3.0
 """No 'no input' line before this long (nor a progress period) without message or publisher:
 discovering a driver that is already running takes a moment."""
@@ -227,8 +239,12 @@ def no_message_text(topic: str, publishers: int, first: bool, waited_s: float,
 
 
 def progress_text(state: str, calibration: Calibration | None, coverage: Coverage,
-                  buffer: SampleBuffer, settings: SessionSettings) -> str:
-    """What to do next, e.g. 'coverage 63 % - keep rotating about the pitch axis (y)'."""
+                  buffer: SampleBuffer, settings: SessionSettings, held_back: str = '') -> str:
+    """What to do next, e.g. 'coverage 63 % - keep rotating about the pitch axis (y)';
+    ``held_back``, said instead while uncalibrated: why nothing can go in force yet (input no
+    fit can fix, or the first calibration waiting to be aligned to the IMU)."""
+    if calibration is None and held_back:
+        return held_back
     fill = f'buffer {buffer.fill}/{buffer.capacity}'
     heading = coverage.cells == HEADING_SECTORS
     text = f'{"heading " if heading else ""}coverage {100.0 * coverage.fraction:.0f} %'
@@ -607,6 +623,7 @@ __all__ = [
     'TESLA_TO_MICROTESLA',
     'UNOBSERVED_WORDS',
     'CalibrationAttempt',
+    'LEFT_PLANE_TEXT',
     'NO_INPUT_GRACE_S',
     'Level',
     'BufferReport',
@@ -622,6 +639,7 @@ __all__ = [
     'coverage_pct',
     'diagnostic_values',
     'session_report',
+    'set_aside_text',
     'diagnostics_level',
     'display_units',
     'format_field',

@@ -80,11 +80,19 @@ class ReadingScreen:
     def __init__(self, full_scale: float | None = None) -> None:
         self.full_scale = full_scale
         self.counts = dict.fromkeys(SCREEN_REASONS, 0)
+        self._reported = dict(self.counts)  # the counts at the latest ``new_refusals``
         self.frame_id: str | None = None
         self.last_stamp_ns: int | None = None
         self.changes: list[StreamChange] = []
         self._pending_stamp: _Pending | None = None
         self._pending_frame: _Pending | None = None
+
+    def new_refusals(self) -> dict[str, int]:
+        """Messages refused since the previous call, by the reasons that occurred (reports)."""
+        new = {reason: count - self._reported[reason]
+               for reason, count in self.counts.items() if count > self._reported[reason]}
+        self._reported = dict(self.counts)
+        return new
 
     def reset(self) -> None:
         """Forget the stream's frame and stamps (a new sensor or bag may follow); keeps counts."""

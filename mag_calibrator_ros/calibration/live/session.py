@@ -14,23 +14,29 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 import math
 import random
-from typing import NamedTuple
 
 import numpy as np
 
 from mag_calibrator_ros.calibration.fit.alignment import StaticAttitudes
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
-from mag_calibrator_ros.calibration.fit.coverage import HEADING_SECTORS, Coverage
+from mag_calibrator_ros.calibration.fit.coverage import Coverage
 from mag_calibrator_ros.calibration.fit.earth_field import EarthField, EarthReference
-from mag_calibrator_ros.calibration.fit.heading import HeadingCoverage, PlaneWatch
+from mag_calibrator_ros.calibration.fit.heading import PlaneWatch
 from mag_calibrator_ros.calibration.live import report
 from mag_calibrator_ros.calibration.live.alignment_wait import AlignmentWait
-from mag_calibrator_ros.calibration.live.backlog import DRAIN_PER_MESSAGE, Backlog
+from mag_calibrator_ros.calibration.live.backlog import DRAIN_PER_MESSAGE, Backlog, Reading
 from mag_calibrator_ros.calibration.live.buffer import SampleBuffer
 from mag_calibrator_ros.calibration.live.compensation import CompensationLearner
+from mag_calibrator_ros.calibration.live.events import (
+    MAX_EVENTS,
+    REFUSAL_REASONS,
+    REFUSED,
+    STATES,
+    Processed,
+    SessionEvent,
+)
 from mag_calibrator_ros.calibration.live.evidence import (
     HOLD_OUT_EVERY,
     MISFIT_WINDOW_S,
@@ -40,12 +46,11 @@ from mag_calibrator_ros.calibration.live.evidence import (
 from mag_calibrator_ros.calibration.live.findings import Findings
 from mag_calibrator_ros.calibration.live.hints import MotionHints
 from mag_calibrator_ros.calibration.live.jobs import REFERENCE_OPTIONS, FitJob, JobOutcome
-from mag_calibrator_ros.calibration.live.pairing import ImuPairing, Pair, RateMeter
+from mag_calibrator_ros.calibration.live.pairing import ImuPairing, RateMeter
 from mag_calibrator_ros.calibration.live.reference import BufferReference
 from mag_calibrator_ros.calibration.live.report import CalibrationAttempt
 from mag_calibrator_ros.calibration.live.sanity import InputWatch
 from mag_calibrator_ros.calibration.live.scheduler import (
-    CHECK_FIT_PERIOD_S,
     FitScheduler,
     Situation,
     StreamClock,
@@ -66,53 +71,8 @@ from mag_calibrator_ros.calibration.live.verdicts import (
 from mag_calibrator_ros.calibration.live.view import CalibrationView, calibration_view
 from mag_calibrator_ros.calibration.live.worker import FitRunner, InlineRunner
 
-REFUSAL_REASONS = (*SCREEN_REASONS, 'duplicate', 'magnitude_outlier')
-"""Every reason a reading is not used: screening, then the buffer's own two."""
-
-STATES = ('uncalibrated', 'collecting', 'calibrated', 'calibrated-refining',
-          'calibrated-converged', 'calibrated-misfit')
-
-REPORTED_COVERAGE_AGE_S = 2.0 * CHECK_FIT_PERIOD_S
-"""Stream seconds a coverage measured by the fit worker stands for the buffer's in reports: a
-check measures it every CHECK_FIT_PERIOD_S while calibrated, a readiness test every
-CHECK_PERIOD_S while calibrating automatically."""
-
 PERIODIC_S = 1.0
 """Stream seconds between updates of the field's centre (for filing evidence by direction)."""
-
-MAX_EVENTS = 1000
-
-
-class Processed(NamedTuple):
-    """What ``process`` made of one message."""
-
-    accepted: bool
-    corrected: np.ndarray | None
-    """The corrected field, None while uncalibrated (or when refused)."""
-    calibration: Calibration | None
-    """The calibration that corrected it (for the covariance)."""
-    uncertainty: float = 0.0
-    """While the calibration in force is judged not to fit (calibrated-misfit), the median |B|
-    error measured (``MisfitMonitor.uncertainty``): the node marks the message with it."""
-
-
-_REFUSED = Processed(False, None, None)
-
-
-@dataclass(frozen=True)
-class SessionEvent:
-    """Something the session decided, for the log (``level``: 'info', 'warning' or 'debug').
-
-    ``adopted``: a new calibration is in force (auto_save applies); ``ticket``: the answer to
-    ``request_calibration``.
-    """
-
-    level: str
-    message: str
-    adopted: bool = False
-    ticket: int | None = None
-    attempt: CalibrationAttempt | None = None
-
 
 class CalibrationSession:
     """The calibrator's state between messages: buffer, evidence, calibration in force, fits."""
@@ -138,8 +98,7 @@ class CalibrationSession:
         if problems:
             raise ValueError('; '.join(problems))
         self._runner = runner or InlineRunner()
-        self._metadata = {'units': 'T', **(metadata or {})}
-        """Stamped on every fitted calibration (units, source ...)."""
+        self._metadata = {'units': 'T', **(metadata or {})}  # stamped on every fit
         self._units = str(self._metadata['units'])
         self._buffer = SampleBuffer(self._settings.buffer_size, self._settings.k)
         self._screen = ReadingScreen(self._settings.full_scale_limit)
@@ -151,40 +110,33 @@ class CalibrationSession:
         self._accepted = 0
         self._accepted_at_poll = 0  # accepted messages at the previous poll(): is the stream idle?
         self._input_rate = RateMeter()
-        self._calibration: Calibration | None = None
-        """The calibration in force; only ``_put_in_force`` changes it."""
+        self._calibration: Calibration | None = None  # only ``_put_in_force`` changes it
         self._last_attempt: CalibrationAttempt | None = None
-        self._adoptions: dict[str, int] = {}
-        """How often a calibration went in force, by source (auto, refine, request, file ...)."""
+        self._adoptions: dict[str, int] = {}  # these counts: ``report.SessionCounts``
         self._jobs_run: dict[str, int] = {}
         self._stale_dropped = 0
-        """Readings dropped unlearnt: compensated by a compensation no longer in force."""
         self._tracker: OnlineTracker | None = None
         self._tracked_updates = 0
         self._last_taught: np.ndarray | None = None  # corrected direction last fed to the tracker
         self._last_tracking_check: float | None = None
         self._buffer_reference = BufferReference(self._buffer)
-        self._backlog = Backlog()  # (reading, stamp, epochs, state, pair) while a fit runs
+        self._backlog = Backlog()  # the readings that arrive while a fit runs
         self._compensation_epoch = 0  # bumped by each compensation put in force
         self._state_specs: tuple | None = None  # the own-field inputs the states are made of
         self._state_epoch = 0  # bumped when they change: states made before mean nothing
         self._job: FitJob | None = None
         self._job_epoch = (0, 0)  # (_epoch, _compensation_epoch) when the job was made
-        self._measured_coverage: tuple[float, Coverage] | None = None  # (stream s, coverage)
         self._epoch = 0  # bumped by reset(): outcomes of older jobs are stale
         self._next_ticket = 1
         self._hold_out = random.Random(0)
         self._next_periodic = 0.0
         self._events: deque[SessionEvent] = deque(maxlen=MAX_EVENTS)
-        self._reported_rejects = dict(self._screen.counts)
         self._hints = MotionHints()  # the kind of hint, judged at stream points (hints.py)
         self._input_watch = InputWatch(self._units == 'T')  # wrong units, normalised input
         self._alignment_wait = AlignmentWait()  # the first calibration waits to be aligned
-        self._attitudes = attitudes if attitudes is not None else StaticAttitudes()
-        """Quasi-static (field, accel) attitudes paired from the IMU, for the alignment."""
-        self._pairing = pairing if pairing is not None else ImuPairing()
-        self._findings = Findings()
-        """The model's field here, the latest alignment and model check (``findings.py``)."""
+        self._attitudes = attitudes or StaticAttitudes()  # still ones paired, for alignment
+        self._pairing = pairing or ImuPairing()
+        self._findings = Findings()  # the model's field here, the latest alignment and check
         self._compensation = CompensationLearner(*self._settings.compensation)  # K u + c (T - T0)
         if input_names is not None:
             self._compensation.name_inputs(tuple(input_names))
@@ -202,7 +154,7 @@ class CalibrationSession:
         if (settings.buffer_size, settings.k) != (old.buffer_size, old.k):
             self._buffer.resize(settings.buffer_size, settings.k)
             self._scheduler.capacity = settings.buffer_size
-        self._measured_coverage = None  # measured with the old settings (model, buffer)
+        self._hints.measured(None)  # measured with the old settings (model, buffer)
         self._screen.full_scale = settings.full_scale_limit
         if settings.online_tracking != old.online_tracking:
             self._restart_tracker()
@@ -221,9 +173,9 @@ class CalibrationSession:
     # 3. learn:    ``_ingest``: a held-out share goes to evidence.HeldOutEvidence (to judge
     #              calibrations on), the rest to buffer.SampleBuffer (screened by
     #              reference.BufferReference) and the tracker, a paired still one to
-    #              alignment.StaticAttitudes. While a fit runs, readings wait in
-    #              ``_hold`` and are fed afterwards in order (``_advance``), so the result does not
-    #              depend on how long the fit took.
+    #              alignment.StaticAttitudes. While a fit runs, readings (backlog.Reading)
+    #              wait in ``_hold`` and are fed afterwards in order (``_advance``), so the result
+    #              does not depend on how long the fit took.
     # 4. correct:  the calibration in force (``Calibration.apply``) corrects it.
     # 5. publish:  ``Processed`` goes back to the caller: the node publishes it (with
     #              ``transform_covariance``), ``mag_calibrator_fit`` reports on the run.
@@ -246,19 +198,20 @@ class CalibrationSession:
             for change in self._screen.take_changes():
                 self._event('warning' if change.kind == 'frame' else 'info', change.message)
         if reason is not None:
-            return _REFUSED
+            return REFUSED
         self._accepted += 1
         self._sync_states()
         reading, state = self._compensation.observe(stamp_ns, np.array((x0, x1, x2)),
                                                    self._calibration)
         epochs = (self._compensation_epoch, self._state_epoch)
-        decided = self._pairing.settle(stamp_ns, frame_id, (reading, stamp_ns, epochs, state))
+        decided = self._pairing.settle(stamp_ns, frame_id,
+                                       Reading(reading, stamp_ns, epochs, state))
         if self._pairing.has_warnings:
             self._imu_warnings()
         self._advance()
         for item, pair in decided:  # arrival order, each once its IMU sample could be there
             (self._hold if self._job is not None or len(self._backlog) else self._ingest)(
-                *item, pair)
+                item._replace(pair=pair))
         calibration = self._calibration
         if calibration is None:
             return Processed(True, None, None)
@@ -278,8 +231,7 @@ class CalibrationSession:
         return kept
 
     def process_temperature(self, stamp_ns: int | None, celsius: float) -> None:
-        """One sensor temperature (degrees Celsius, ``imu/temperature``) for the own field's
-        drift with temperature; implausible ones dropped (``CompensationLearner.temperature``)."""
+        """One sensor temperature (degC, ``imu/temperature``) for the own field's drift."""
         self._compensation.temperature(stamp_ns, celsius)
 
     def process_input(self, index: int, stamp_ns: int | None, value: float) -> None:
@@ -300,10 +252,8 @@ class CalibrationSession:
         self._findings.earth = field
 
     def poll(self) -> None:
-        """Take a finished fit's outcome and feed held readings (``Backlog.budget``: a few while
-        messages flow, more while a request waits, all once none came since the last poll);
-        the node calls this on a timer (messages call it too), so answers arrive even when no
-        message does."""
+        """Take a finished fit's outcome and feed held readings (``Backlog.budget``); the node
+        calls this on a timer (messages call it too): answers arrive when no message does."""
         flowing = self._accepted != self._accepted_at_poll
         self._accepted_at_poll = self._accepted
         self._advance(budget=self._backlog.budget(flowing))
@@ -316,19 +266,17 @@ class CalibrationSession:
             self._job = None
             self._complete(outcome)
         while len(self._backlog) and self._job is None and budget > 0:
-            self._ingest(*self._backlog.next())
+            self._ingest(self._backlog.next())
             budget -= 1
         if self._job is None and not len(self._backlog) and self._backlog.waiting:
             self._submit('request')
 
-    def _hold(self, reading: np.ndarray, stamp_ns: int, epochs: tuple[int, int],
-              state: tuple[float, ...], pair: Pair | None = None) -> None:
-        overflow = self._backlog.hold((reading, stamp_ns, epochs, state, pair))
+    def _hold(self, item: Reading) -> None:
+        overflow = self._backlog.hold(item)
         if overflow is not None:  # the backlog is full: its oldest is fed now
-            self._ingest(*overflow)
+            self._ingest(overflow)
 
-    def _ingest(self, reading: np.ndarray, stamp_ns: int, epochs: tuple[int, int],
-                state: tuple[float, ...] | None, pair: Pair | None = None) -> None:
+    def _ingest(self, item: Reading) -> None:
         """Everything a reading teaches, in stream order (the held ones after the fit).
 
         ``epochs``: the compensation the reading was compensated by on arrival, and the inputs
@@ -339,6 +287,7 @@ class CalibrationSession:
         and on a loaded computer a backlog of them, some not compensated at all, went into the
         buffer and failed the next fit (a residual of 5.9 %, issue #22). A state of other
         inputs than today's is unknown."""
+        reading, stamp_ns, epochs, state, pair = item
         now = self._clock.advance(stamp_ns)
         self._backlog.ingested += 1
         if epochs[0] != self._compensation_epoch:
@@ -373,7 +322,10 @@ class CalibrationSession:
             self._answer(self._compensation.window_answer(now, self._calibration))
         self._hints.learnt(now, self._buffer, reading)  # the kind of hint (hints.py)
         if self._job is None:
-            kind = (self._scheduler.due(self._situation(now))
+            situation = Situation.of(now, self._settings, self._buffer.fill,
+                                     self._buffer.capacity, self._calibration is not None,
+                                     self._misfit.misfit, self._backlog.request_ready)
+            kind = (self._scheduler.due(situation)
                     or self._compensation.due(now, self._calibration))  # 'compensate' or None
             if kind is not None:
                 self._submit(kind)
@@ -386,11 +338,6 @@ class CalibrationSession:
             radius = self._buffer.field_radius()
         self._attitudes.field_scale = radius if radius > 0.0 else None
         self._buffer_reference.update_centre()
-
-    def _situation(self, now: float) -> Situation:
-        return Situation.of(now, self._settings, self._buffer.fill, self._buffer.capacity,
-                            self._calibration is not None, self._misfit.misfit,
-                            self._backlog.request_ready)
 
     # -- fits ----------------------------------------------------------------------------------
 
@@ -472,13 +419,13 @@ class CalibrationSession:
         around it (the scheduler, the latest alignment and model check)."""
         job = outcome.job
         stale = self._stale(job)
+        if stale is not None and job.ticket is not None:
+            attempt = CalibrationAttempt(False, f'calibration abandoned: {stale}', outcome)
+            self._event('warning', attempt.message, ticket=job.ticket, attempt=attempt)
         if stale is not None:
-            if job.ticket is not None:
-                attempt = CalibrationAttempt(False, f'calibration abandoned: {stale}', outcome)
-                self._event('warning', attempt.message, ticket=job.ticket, attempt=attempt)
             return
         if outcome.coverage is not None:
-            self._measured_coverage = (self._clock.now, outcome.coverage)
+            self._hints.measured(self._clock.now, outcome.coverage)
         current = self._calibration
         if job.kind == 'reference':
             self._reference_done(outcome)
@@ -528,10 +475,9 @@ class CalibrationSession:
     def _reference_done(self, outcome: JobOutcome) -> None:
         fit = outcome.reference
         self._scheduler.reference_done(fit is not None and fit.settled)
-        if fit is None:
-            return
-        self._buffer_reference.provisional = fit.calibration
-        self._buffer_reference.set(fit.calibration, fit.tolerance, 'fit')
+        if fit is not None:
+            self._buffer_reference.provisional = fit.calibration
+            self._buffer_reference.set(fit.calibration, fit.tolerance, 'fit')
 
     def _check_done(self, outcome: JobOutcome) -> None:
         """The calibration in force judged on recent evidence: misfit, and online tracking."""
@@ -556,10 +502,6 @@ class CalibrationSession:
         for warning in self._findings.note(outcome) if passed_own_gates(outcome) else ():
             self._event('warning', warning)
 
-    def _earth_warning(self) -> str:
-        """The calibration in force against the model, for a diagnostics WARN ('' if fine)."""
-        return self._findings.earth_warning(self._calibration, self._settings, self._units)
-
     def request_calibration(self) -> int:
         """Ask for a fit of the buffer (``~/calibrate``) once every reading received so far is
         in it (some may wait while another fit runs); the answer comes as an event with this
@@ -568,7 +510,7 @@ class CalibrationSession:
         self._next_ticket += 1
         self._backlog.request(ticket, self._accepted)  # after every reading received so far
         for item, pair in self._pairing.flush():  # those waiting for an IMU sample decided now
-            self._hold(*item, pair)
+            self._hold(item._replace(pair=pair))
         self._advance()
         return ticket
 
@@ -672,10 +614,7 @@ class CalibrationSession:
         full calibration is collected and judged at once. The planar one stays in force."""
         self._buffer_reference.set(None, None, None)
         self._scheduler.calibration_changed()
-        self._event('info', 'the sensor moved out of the plane it was calibrated turning in: '
-                            'collecting in 3-D for a full calibration (keep turning it through '
-                            'every orientation); the planar calibration stays in force until a '
-                            'better one is found')
+        self._event('info', report.LEFT_PLANE_TEXT)
 
     def _check_reference(self) -> None:
         """Set the buffer's reference aside once it refuses most of a window of readings."""
@@ -685,16 +624,13 @@ class CalibrationSession:
         source, refused, window = stale
         if source == 'fit':
             self._scheduler.reference_done(False)
-        what = 'its own fit' if source == 'fit' else 'the calibration in force'
-        self._event('info', f'the buffer stopped screening by {what}: it refused {refused} of '
-                            f'the last {window} readings, so it no longer describes the sensor; '
-                            'collecting without it')
+        self._event('info', report.set_aside_text(source, refused, window))
 
     def _collect_anew(self, now: float) -> None:
         """After a misfit: forget samples and evidence from before it, keep the calibration."""
         self._buffer.clear()
         self._compensation.restart_mean()
-        self._measured_coverage = None
+        self._hints.measured(None)
         self._evidence.forget_before(now - MISFIT_WINDOW_S)
         self._scheduler.reset()
         self._buffer_reference.provisional = None
@@ -717,7 +653,7 @@ class CalibrationSession:
         """Empty the buffer and evidence, forget the stream's frame and stamps (a new sensor may
         follow); the calibration in force stays. A fit running now is abandoned."""
         self._buffer.clear()
-        self._measured_coverage = None
+        self._hints.measured(None)
         self._evidence.clear()
         self._screen.reset()
         self._scheduler.reset()
@@ -757,9 +693,11 @@ class CalibrationSession:
         the previous report that gave one, and the messages refused by screening since then
         can be the /diagnostics message; without it nothing is measured or consumed. ``node``:
         what the node adds (its problem, its values). Coverage costs no milliseconds here while
-        the fit worker's latest measurement stands (``_reported_coverage``); offline callers
+        the fit worker's latest measurement stands (``MotionHints.reported``); offline callers
         that want it measured now (milliseconds) ask with ``measure_coverage``."""
-        coverage = self._coverage() if measure_coverage else self._reported_coverage()
+        hints, buffer, model = self._hints, self._buffer, self._settings.model
+        coverage = (hints.coverage(buffer, model) if measure_coverage
+                    else hints.reported(self._clock.now, buffer, model))
         state = self._state()
         counts = report.SessionCounts(
             received=self._input_rate.count, accepted=self._accepted,
@@ -782,9 +720,11 @@ class CalibrationSession:
             input_values={**watch.values(), **self._alignment_wait.values()},
             input_problem=watch.problem or watch.imu_problem,
             waiting_for_alignment=self._alignment_wait.waiting, frame_id=self._frame_id,
-            progress=self._progress_text(state, coverage), earth_warning=self._earth_warning())
+            progress=self._progress_text(state, coverage),
+            earth_warning=self._findings.earth_warning(self._calibration, self._settings,
+                                                       self._units))
         problem = (node is not None and node.problem) or self._runner.problem
-        refused = self._new_screen_rejects() if now is not None and not problem else None
+        refused = self._screen.new_refusals() if now is not None and not problem else None
         return report.session_report(parts, now, coverage, node, refused)
 
     def view(self) -> CalibrationView:
@@ -792,9 +732,8 @@ class CalibrationSession:
         return calibration_view(self._buffer.samples, self._buffer.counts, self._calibration)
 
     def heading_coverage(self) -> Coverage:
-        """The buffer's heading coverage and the turn still needed, which way (milliseconds:
-        ``~/rotate_and_calibrate`` looks twice a second)."""
-        return self._heading_coverage().coverage
+        """Heading coverage and the turn still needed (ms: the turn in place asks 2/s)."""
+        return self._hints.heading(self._buffer.samples, self._buffer.readings).coverage
 
     def _state(self) -> str:
         if self._calibration is None:
@@ -805,55 +744,16 @@ class CalibrationSession:
             return 'calibrated'
         return 'calibrated-converged' if self._scheduler.converged else 'calibrated-refining'
 
-    def _coverage(self) -> Coverage:
-        """The buffer's coverage now: of the heading circle if ``yaw_only``, else of the sphere."""
-        if self._yaw_only():
-            return self._heading_coverage().coverage
-        return self._hints.dress(self._buffer.coverage())
-
-    def _reported_coverage(self) -> Coverage:
-        """``_coverage()`` without its milliseconds on the caller's thread: what the fit worker
-        measured with its latest check or readiness test (jobs.buffer_coverage), while no older
-        than REPORTED_COVERAGE_AGE_S of stream and of the kind the buffer is now (a robot that
-        starts turning); measured here otherwise. Heading coverage is looked at here, so its
-        hint knows which way the robot turns."""
-        measured = self._measured_coverage
-        if (measured is None or self._clock.now - measured[0] > REPORTED_COVERAGE_AGE_S
-                or (measured[1].cells == HEADING_SECTORS) != self._yaw_only()):
-            return self._coverage()
-        if measured[1].cells == HEADING_SECTORS:
-            return self._heading_coverage().coverage
-        return self._hints.dress(measured[1])
-
-    def _yaw_only(self) -> bool:
-        """Whether coverage and hints are about the heading circle: model ``planar``, or
-        ``auto`` with the buffer's samples round a ring when last judged (``hints.py``)."""
-        return self._settings.model == 'planar' or (
-            self._settings.model == 'auto' and self._hints.yaw_only)
-
-    def _heading_coverage(self) -> HeadingCoverage:
-        return self._hints.heading(self._buffer.samples, self._buffer.readings)
-
     @property
     def _frame_id(self) -> str:
         """The stream's frame, '' while unknown."""
         return self._screen.frame_id or ''
 
     def _progress_text(self, state: str, coverage: Coverage) -> str:
-        """What to do next, e.g. 'coverage 63 % - keep rotating about the pitch axis (y)'."""
-        if self._calibration is None and (self._input_watch.problem
-                                          or self._alignment_wait.waiting):
-            return self._input_watch.problem or self._alignment_wait.progress()
+        wait = self._alignment_wait
         return report.progress_text(state, self._calibration, coverage, self._buffer,
-                                    self._settings)
-
-    def _new_screen_rejects(self) -> dict[str, int]:
-        """Messages refused by screening since the previous call, by the reasons that occurred."""
-        counts = self._screen.counts
-        new = {reason: count - self._reported_rejects[reason]
-               for reason, count in counts.items() if count > self._reported_rejects[reason]}
-        self._reported_rejects = dict(counts)
-        return new
+                                    self._settings, self._input_watch.problem
+                                    or (wait.progress() if wait.waiting else ''))
 
 
 __all__ = ['REFUSAL_REASONS', 'SCREEN_REASONS', 'STATES', 'CalibrationAttempt',

@@ -1,0 +1,58 @@
+"""What a session hands back: the outcome of each message (``Processed``) and each decision
+(``SessionEvent``), and the vocabulary both use (the reasons a reading is refused, the states).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.live.report import CalibrationAttempt
+from mag_calibrator_ros.calibration.live.screening import SCREEN_REASONS
+
+REFUSAL_REASONS = (*SCREEN_REASONS, 'duplicate', 'magnitude_outlier')
+"""Every reason a reading is not used: screening, then the buffer's own two."""
+
+STATES = ('uncalibrated', 'collecting', 'calibrated', 'calibrated-refining',
+          'calibrated-converged', 'calibrated-misfit')
+
+MAX_EVENTS = 1000
+"""Events kept for ``take_events`` at the most (the oldest go first)."""
+
+
+class Processed(NamedTuple):
+    """What ``process`` made of one message."""
+
+    accepted: bool
+    corrected: np.ndarray | None
+    """The corrected field, None while uncalibrated (or when refused)."""
+    calibration: Calibration | None
+    """The calibration that corrected it (for the covariance)."""
+    uncertainty: float = 0.0
+    """While the calibration in force is judged not to fit (calibrated-misfit), the median |B|
+    error measured (``MisfitMonitor.uncertainty``): the node marks the message with it."""
+
+
+REFUSED = Processed(False, None, None)
+"""A message no fit may see (``REFUSAL_REASONS``)."""
+
+
+@dataclass(frozen=True)
+class SessionEvent:
+    """Something the session decided, for the log (``level``: 'info', 'warning' or 'debug').
+
+    ``adopted``: a new calibration is in force (auto_save applies); ``ticket``: the answer to
+    ``request_calibration``.
+    """
+
+    level: str
+    message: str
+    adopted: bool = False
+    ticket: int | None = None
+    attempt: CalibrationAttempt | None = None
+
+
+__all__ = ['MAX_EVENTS', 'REFUSAL_REASONS', 'REFUSED', 'STATES', 'Processed', 'SessionEvent']
