@@ -44,7 +44,7 @@ from mag_calibrator_ros.calibration.live.settings import SessionSettings
 from mag_calibrator_ros.sim.board import BoardModel, board_readings
 from mag_calibrator_ros.sim.config import SimConfig
 from mag_calibrator_ros.tools import fit
-from mag_calibrator_ros.tools.recordings import read_paired_recording
+from mag_calibrator_ros.tools.recording_text import read_paired_recording
 
 RATE_HZ = 100.0
 SOFT_IRON = (1.15, 0.10, -0.08, 0.10, 0.85, 0.12, -0.08, 0.12, 1.00)

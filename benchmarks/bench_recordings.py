@@ -39,7 +39,8 @@ from mag_calibrator_ros.calibration.fit.alignment import (
 )
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
 from mag_calibrator_ros.tools import fit
-from mag_calibrator_ros.tools.recordings import read_paired_recording, read_recording
+from mag_calibrator_ros.tools.recording_text import read_paired_recording
+from mag_calibrator_ros.tools.recordings import read_recording
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_alignment import best_rotation_std  # noqa: E402

@@ -19,12 +19,9 @@ from mag_calibrator_ros.calibration.store.calibration_file import load_calibrati
 from mag_calibrator_ros.sim.board import course_recording
 from mag_calibrator_ros.tools import fit
 from mag_calibrator_ros.tools.fit_compensation import without_own_field
-from mag_calibrator_ros.tools.recordings import (
-    Recording,
-    RecordingError,
-    compensation_columns,
-    read_recording,
-)
+from mag_calibrator_ros.tools.recording_inputs import compensation_columns
+from mag_calibrator_ros.tools.recording_value import Recording, RecordingError
+from mag_calibrator_ros.tools.recordings import read_recording
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'benchmarks'))
 from bench_interference import robot  # noqa: E402 - the benchmark's simulated ground robot

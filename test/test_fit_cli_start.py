@@ -22,7 +22,7 @@ from mag_calibrator_ros.sim import motion
 from mag_calibrator_ros.sim.board import course_recording
 from mag_calibrator_ros.tools import fit, fit_start
 from mag_calibrator_ros.tools.fit_compensation import without_own_field
-from mag_calibrator_ros.tools.recordings import Recording
+from mag_calibrator_ros.tools.recording_value import Recording
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'benchmarks'))

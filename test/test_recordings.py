@@ -12,16 +12,11 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from mag_calibrator_ros.calibration.live.screening import MAX_READING
-from mag_calibrator_ros.tools import recordings
-from mag_calibrator_ros.tools.recordings import (
-    MAGNETIC_FIELD,
-    Recording,
-    RecordingError,
-    column_roles,
-    parse_columns,
-    read_recording,
-    sensor_columns,
-)
+from mag_calibrator_ros.tools import recording_columns, recording_lines, recording_text
+from mag_calibrator_ros.tools.recording_bags import MAGNETIC_FIELD
+from mag_calibrator_ros.tools.recording_columns import column_roles, parse_columns, sensor_columns
+from mag_calibrator_ros.tools.recording_value import Recording, RecordingError
+from mag_calibrator_ros.tools.recordings import read_recording
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 ROWS = np.array([[144.0, -270.0, 415.0], [-12.5, 0.0, 3.25], [1e-6, -2e-6, 3e-6]])
@@ -183,11 +178,11 @@ def test_numpy_blocks_read_exactly_as_line_by_line(rows, separator, seen_rows):
     counts the line-by-line parser gives."""
     block = [separator.join(tokens) + '\n' for tokens in rows]
     for fields in (3, 4):
-        layout = recordings.TextLayout((0, 1, 2), fields, 'fields 0,1,2', (),
+        layout = recording_columns.TextLayout((0, 1, 2), fields, 'fields 0,1,2', (),
                                     None if separator == ' ' else separator.strip() or None,
                                     fields)
-        fast, fast_skipped = recordings._parse_block(block, layout, seen_rows)
-        slow, slow_skipped = recordings._parse_block(
+        fast, fast_skipped = recording_text._parse_block(block, layout, seen_rows)
+        slow, slow_skipped = recording_text._parse_block(
             block, dataclasses.replace(layout, numpy_fields=None), seen_rows)
         np.testing.assert_array_equal(fast, slow)
         assert +fast_skipped == +slow_skipped
@@ -195,7 +190,7 @@ def test_numpy_blocks_read_exactly_as_line_by_line(rows, separator, seen_rows):
 
 def test_large_files_are_read_a_block_at_a_time(tmp_path):
     rng = np.random.default_rng(3)
-    rows = rng.normal(size=(3 * recordings.BLOCK_LINES + 17, 3)).round(6)
+    rows = rng.normal(size=(3 * recording_lines.BLOCK_LINES + 17, 3)).round(6)
     text = 'mx,my,mz\n' + ''.join(f'{x!r},{y!r},{z!r}\n' for x, y, z in rows.tolist())
     text = text.replace('\n', '\nnan,1,2\n', 1)  # a NaN row in the first block
     recording = read(tmp_path, text, name='big.csv')

@@ -15,13 +15,10 @@ from rosbags.typesys import Stores, get_typestore
 from mag_calibrator_ros.sim.board import BoardModel, board_readings
 from mag_calibrator_ros.sim.config import SimConfig
 from mag_calibrator_ros.tools import fit
-from mag_calibrator_ros.tools.recordings import (
-    IMU,
-    MAGNETIC_FIELD,
-    RecordingError,
-    pair_by_stamp,
-    read_recording,
-)
+from mag_calibrator_ros.tools.recording_bags import IMU, MAGNETIC_FIELD
+from mag_calibrator_ros.tools.recording_pairing import pair_by_stamp
+from mag_calibrator_ros.tools.recording_value import RecordingError
+from mag_calibrator_ros.tools.recordings import read_recording
 
 TEST_DATA = Path(__file__).resolve().parent / 'data'
 

@@ -10,14 +10,11 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from mag_calibrator_ros.tools import recordings
+from mag_calibrator_ros.tools import recording_lines
 from mag_calibrator_ros.tools.fit import main
-from mag_calibrator_ros.tools.recordings import (
-    RecordingError,
-    read_paired_recording,
-    read_recording,
-    read_text,
-)
+from mag_calibrator_ros.tools.recording_text import read_paired_recording, read_text
+from mag_calibrator_ros.tools.recording_value import RecordingError
+from mag_calibrator_ros.tools.recordings import read_recording
 
 ERROR_PREFIX = 'mag_calibrator_fit: error: '
 
@@ -220,7 +217,7 @@ def test_a_nul_tail_is_refused_without_reading_it_whole(tmp_path):
         tracemalloc.stop()
     message = str(error.value)
     assert 'line 401' in message and 'NUL' in message and 'not a text recording' in message
-    assert peak < 4 * recordings.MAX_LINE_CHARS + (2 << 20)  # never the 8 MiB line
+    assert peak < 4 * recording_lines.MAX_LINE_CHARS + (2 << 20)  # never the 8 MiB line
 
 
 def test_a_nul_tail_on_stdin_and_in_the_cli_is_exit_2_with_one_line(tmp_path, capsys,
@@ -241,7 +238,7 @@ def test_a_nul_tail_on_stdin_and_in_the_cli_is_exit_2_with_one_line(tmp_path, ca
 
 def test_a_long_but_bounded_line_is_still_read(tmp_path):
     path = tmp_path / 'wide.txt'
-    padding = ' ' * (recordings.MAX_LINE_CHARS - 20)
+    padding = ' ' * (recording_lines.MAX_LINE_CHARS - 20)
     path.write_text(''.join(f'{i} {-i} {i + 1}{padding}\n' for i in range(40)))
     assert read_recording(path).rows == 40
 

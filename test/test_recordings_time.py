@@ -10,12 +10,9 @@ import numpy as np
 import pytest
 
 from mag_calibrator_ros.tools import fit
-from mag_calibrator_ros.tools.recordings import (
-    read_paired_recording,
-    read_recording,
-    read_text,
-    time_unit,
-)
+from mag_calibrator_ros.tools.recording_text import read_paired_recording, read_text
+from mag_calibrator_ros.tools.recording_time import time_unit
+from mag_calibrator_ros.tools.recordings import read_recording
 
 ROWS = [(20.0 + i, -30.0 + 0.5 * i, 40.0 - i) for i in range(30)]
 

@@ -79,15 +79,10 @@ from mag_calibrator_ros.calibration.store.calibration_file import (
 )
 from mag_calibrator_ros.tools import fit_compensation as own_field
 from mag_calibrator_ros.tools import fit_start
-from mag_calibrator_ros.tools.recordings import (
-    RATE_UNITS,
-    Recording,
-    RecordingError,
-    describe_skips,
-    is_rosbag,
-    read_paired_recording,
-    read_recording,
-)
+from mag_calibrator_ros.tools.recording_bags import is_rosbag
+from mag_calibrator_ros.tools.recording_text import RATE_UNITS, read_paired_recording
+from mag_calibrator_ros.tools.recording_value import Recording, RecordingError, describe_skips
+from mag_calibrator_ros.tools.recordings import read_recording
 
 PROG = 'mag_calibrator_fit'
 EXIT_CALIBRATED = 0

@@ -24,7 +24,7 @@ import numpy as np
 from mag_calibrator_ros.calibration.fit.calibration import Calibration, Compensation
 from mag_calibrator_ros.calibration.live.compensation import input_columns
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
-from mag_calibrator_ros.tools.recordings import Recording
+from mag_calibrator_ros.tools.recording_value import Recording
 
 HELP = (
     'Learn the field the robot makes itself: K per unit of each current and c per degree of '

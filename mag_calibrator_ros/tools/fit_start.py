@@ -48,7 +48,7 @@ from mag_calibrator_ros.calibration.store.calibration_file import (
     read_calibration_file,
 )
 from mag_calibrator_ros.tools import fit_compensation as own_field
-from mag_calibrator_ros.tools.recordings import Recording
+from mag_calibrator_ros.tools.recording_value import Recording
 
 HELP = ("start from a saved calibration (a node's calibration_file, or an earlier --output), "
         "as the node does: the answer is the buffer's fit when it passes its gates, else the "
