@@ -31,7 +31,12 @@ from mag_calibrator_ros.calibration.fit.compensation import (
     CompensationData,
 )
 from mag_calibrator_ros.calibration.live.inputs import InputSpec, parse_input
-from mag_calibrator_ros.calibration.live.jobs import REFERENCE_OPTIONS, FitJob, JobOutcome
+from mag_calibrator_ros.calibration.live.jobs import (
+    REFERENCE_OPTIONS,
+    FitJob,
+    JobOutcome,
+    kept_compensation,
+)
 from mag_calibrator_ros.calibration.live.report import CalibrationAttempt
 from mag_calibrator_ros.calibration.live.verdicts import Verdict, compensation_verdict
 
@@ -465,12 +470,8 @@ class CompensationLearner:
         buffer was last emptied, a learned compensation's where the one before it was, a
         static file's or parameters' unknown (``anchor_unknown``: the next fits find it).
         'realign' and 'tracking' keep the offset, and so the anchor."""
-        if (source not in ('file', 'parameters', 'given', 'compensation')
-                and previous is not None and previous.compensation is not None
-                and calibration.compensation is None):
-            learned = {key: previous.metadata[key] for key in LEARNED
-                       if key in previous.metadata}
-            calibration = calibration.with_compensation(previous.compensation, **learned)
+        if source not in ('file', 'parameters', 'given', 'compensation'):
+            calibration = kept_compensation(calibration, previous)
         if source in ('realign', 'tracking'):
             return calibration
         terms = len(self.series) + 1
