@@ -46,71 +46,35 @@ Timers: POLL_PERIOD_S (finished fits and file operations, waiting service answer
 ``calibration.*``), DIAGNOSTICS_PERIOD_S (progress log line, /diagnostics, RViz view),
 COMMAND_PERIOD_S (the turn's command). ``--log-level mag_calibrator:=debug`` logs decisions.
 
-Parameters, ``name`` (default): meaning. The fit and its gates:
+Parameters, by what they set; each one's default, range and meaning are in
+``mag_calibrator_parameters.PARAMETERS`` (what ``ros2 param describe`` shows), in
+config/mag_calibrator.yaml and in the README's table:
 
-- ``buffer_size`` (100): readings kept by the uniqueness buffer (the fit input).
-- ``k`` (6): neighbours in the uniqueness score (< buffer_size).
-- ``model`` (auto): sphere, axis, full, planar, or auto (the data decide).
-- ``field_strength`` (0.0): tesla the corrected magnitude should be; 0: the fitted radius.
-- ``min_coverage`` (0.5): share of direction cells covered before a fit is accepted.
-- ``max_residual_pct`` (5.0): largest accepted RMS magnitude residual, % of the field.
-- ``full_scale`` (0.0049128): tesla; a component at or beyond it is refused (0: no check).
-
-When to calibrate:
-
-- ``auto_calibrate`` (true): calibrate while uncalibrated, and anew on a misfit.
-- ``auto_calibrate_period`` (2.0): seconds between automatic fits that failed their gates.
-- ``refine`` (true): keep fitting; adopt only a fit better on held-out readings.
-- ``refine_period`` (10.0): seconds between refinement fits (up to 8x once converged).
-- ``online_tracking`` (false): follow slow drift, by bounded steps.
-- ``tracking_improvement`` (0.8): a tracked fit's residual must be below this share.
-- ``tracking_max_change_rate`` (0.01): largest tracked change per second.
-- ``learn_compensation``, ``use_temperature`` (true), ``interference_inputs`` ([]): README;
-  ``compensation_timeout`` (60.0): seconds ``~/learn_compensation`` learns for at most.
-
-Output, file and views:
-
-- ``publish_uncalibrated`` (false): publish the raw field while uncalibrated.
-- ``auto_save`` (false): save each calibration put in force (throttled), and an unsaved one
-  in force when it is turned on.
-- ``calibration_file`` ($ROS_HOME/mag_calibrator/<namespace>__<name>.yaml): loaded at
-  start-up and by ~/load, written by ~/save.
-- ``progress_log_period`` (5.0): seconds between progress lines while uncalibrated (0: none).
-- ``view_period`` (1.0): seconds between RViz views (0: never); ``view_scale`` (1e4): m/T.
-
-Alignment to the IMU and the Earth's field here:
-
-- ``use_imu`` (true): subscribe imu/data_raw and align each calibration to it.
-- ``max_alignment_deg`` (15.0): a larger rotation is reported as a mounting error, not applied.
-- ``latitude``, ``longitude`` (NaN: unknown), ``altitude`` (0.0): the World Magnetic Model's
-  location, degrees and metres (WGS84); one set alone waits for the other.
-- ``use_gps`` (true): without latitude/longitude, locate from a plausible fix on gps/fix.
-- ``max_field_error_pct`` (15.0), ``max_dip_error_deg`` (5.0): the fit against the model.
-- ``earth_field_gate`` (true): a fit off the model fails (true) or is warned about (false).
-
-Turning in place (``~/rotate_and_calibrate``):
-
-- ``rotation_speed`` (0.3): rad/s, positive left; ``rotation_acceleration`` (0.5): rad/s^2.
-- ``rotation_timeout`` (120.0): seconds of turning before it gives up.
-- ``cmd_vel_stamped`` (false): TwistStamped; ``cmd_vel_frame_id`` (base_link): its frame.
-
-The calibration in force (set by the node only; given with --params-file at start-up):
-
-- ``calibration.offset``, ``calibration.matrix``, ``calibration.field_strength``,
-  ``calibration.model``, ``calibration.rotation``; with the metadata a file carries
-  (``calibration.residual_rms_pct``, ``calibration.coverage``, ...).
+- the fit and its gates: ``buffer_size``, ``k``, ``model``, ``field_strength``,
+  ``min_coverage``, ``max_residual_pct``, ``full_scale``;
+- when to calibrate: ``auto_calibrate``, ``auto_calibrate_period``, ``refine``,
+  ``refine_period``, ``online_tracking``, ``tracking_improvement``,
+  ``tracking_max_change_rate``; the robot's own field: ``learn_compensation``,
+  ``use_temperature``, ``interference_inputs``, ``compensation_timeout``;
+- output, file and views: ``publish_uncalibrated``, ``auto_save``, ``calibration_file``
+  ($ROS_HOME/mag_calibrator/<namespace>__<name>.yaml: loaded at start-up and by ~/load,
+  written by ~/save), ``progress_log_period``, ``view_period``, ``view_scale``;
+- alignment to the IMU and the Earth's field here: ``use_imu``, ``max_alignment_deg``,
+  ``latitude``, ``longitude``, ``altitude`` (NaN: unknown; one alone waits for the other),
+  ``use_gps``, ``max_field_error_pct``, ``max_dip_error_deg``, ``earth_field_gate``;
+- turning in place (``~/rotate_and_calibrate``): ``rotation_speed``,
+  ``rotation_acceleration``, ``rotation_timeout``, ``cmd_vel_stamped``, ``cmd_vel_frame_id``;
+- the calibration in force (set by the node only; given with --params-file at start-up):
+  ``calibration.offset``, ``.matrix``, ``.field_strength``, ``.model``, ``.rotation`` and the
+  metadata a file carries (``calibration.residual_rms_pct``, ``calibration.coverage`` ...).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
-import inspect
 import math
 from pathlib import Path
-from queue import SimpleQueue
 import time
-import traceback
 
 import numpy.ma  # noqa: F401 - np.median imports it on first use: at start-up, not in a callback
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
@@ -144,14 +108,13 @@ from mag_calibrator_ros.calibration.live.report import (
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.calibration.live.worker import FitRunner, ProcessRunner
 from mag_calibrator_ros.calibration.store.calibration_file import (
-    CalibrationFileError,
-    CalibrationFileMissingError,
     LoadedCalibration,
     default_calibration_path,
-    read_calibration_file,
     resolve_calibration_path,
     save_calibration,
+    try_read_calibration_file,
 )
+from mag_calibrator_ros.nodes.answers import IoThread, answering
 from mag_calibrator_ros.nodes.auto_save import AutoSaveThrottle
 from mag_calibrator_ros.nodes.calibration_parameters import (
     CalibrationParameters,
@@ -226,8 +189,7 @@ class MagCalibratorNode(Node):
             runner.start()  # the worker imports the fitting stack while the node starts up
         self._settings = session_settings(self._current_values())  # as the session has them
         self.session = CalibrationSession(self._settings, runner=runner)
-        self._io = ThreadPoolExecutor(max_workers=1, thread_name_prefix='mag_calibrator_io')
-        self._io_results: SimpleQueue = SimpleQueue()  # (rclpy Future, result) from the I/O thread
+        self._io = IoThread('mag_calibrator_io')  # file loads, saves, the model
         self._requests: dict[int, Future] = {}  # session tickets waiting for their answer
         self._learning: dict[int, float] = {}  # ~/learn_compensation tickets: wall deadline
         self._problem: str | None = None  # a calibration file/parameter error, shown as ERROR
@@ -263,20 +225,20 @@ class MagCalibratorNode(Node):
         for name, callback in (('~/calibrate', self._on_calibrate), ('~/save', self._on_save),
                                ('~/reset', self._on_reset), ('~/load', self._on_load),
                                ('~/learn_compensation', self._on_learn_compensation)):
-            self.create_service(Trigger, name, self._answering(name, callback),
+            self.create_service(Trigger, name, answering(self, name, callback),
                                 callback_group=waiting)
         self._diagnostics = DiagnosticsPublisher(self)
         self._view = ViewPublisher(self, DIAGNOSTICS_PERIOD_S)
         self.create_timer(POLL_PERIOD_S, guarded(self, 'poll', self._on_poll))
         self.create_timer(DIAGNOSTICS_PERIOD_S, guarded(self, 'diagnostics', self._on_tick))
         self._turning = TurnInPlace(self, self.session, self._request_calibration,
-                                    self._answering)
+                                    lambda name, callback: answering(self, name, callback))
         self._rotation = self._turning.controller  # its state: diagnostics, the progress log
 
     def destroy_node(self) -> None:
         self._turning.stop_for_shutdown()
         self.session.close()
-        self._io.shutdown(wait=True)
+        self._io.shutdown()
         super().destroy_node()
 
     # -- parameters ------------------------------------------------------------------------------
@@ -321,7 +283,7 @@ class MagCalibratorNode(Node):
         is named); else the file; else run uncalibrated."""
         name = self.get_fully_qualified_name()
         path = startup_load_path(self._calibration_file(), self._default_file, name)
-        loaded = _read_calibration(path, name)
+        loaded = try_read_calibration_file(path, name)
         if parameters_given(given):
             try:
                 calibration = calibration_from(given)
@@ -426,7 +388,7 @@ class MagCalibratorNode(Node):
             self.session.set_earth_field(None)
             return
         where, source_name = wanted
-        self._run_io(lambda: earth_field(*where)).add_done_callback(
+        self._io.run(lambda: earth_field(*where)).add_done_callback(
             lambda future: self._located(where, source_name, future.result()))
 
     def _on_fix(self, msg: NavSatFix) -> None:
@@ -465,14 +427,12 @@ class MagCalibratorNode(Node):
         if any(time.monotonic() > deadline for deadline in self._learning.values()):
             self.session.end_compensation_window(  # stream time stands still without readings
                 'too few magnetometer readings arrived to learn from (is imu/mag published?)')
-        while not self._io_results.empty():
-            future, result = self._io_results.get()
-            future.set_result(result)
+        self._io.collect()
         self._handle_events()
         if self.session.calibration is not self._calibration_parameters.shown:
             self._calibration_parameters.show(self.session.calibration)
         if self._auto_save.start(time.monotonic()):
-            self._run_io(self._save_file).add_done_callback(
+            self._io.run(self._save_file).add_done_callback(
                 lambda future: self._auto_saved(future.result()))
 
     def _handle_events(self) -> None:
@@ -503,38 +463,7 @@ class MagCalibratorNode(Node):
         self._handle_events()  # an immediate answer (nothing to wait for)
         return waiting
 
-    def _run_io(self, work: Callable[[], object]) -> Future:
-        """Run ``work`` on the I/O thread; the Future completes on the executor thread (from the
-        poll timer) with its result, or with the exception it raised."""
-        future = Future()
-
-        def run() -> None:
-            try:
-                result = work()
-            except Exception as error:  # noqa: BLE001 - reported, never raised into the executor
-                result = error
-            self._io_results.put((future, result))
-
-        self._io.submit(run)
-        return future
-
     # -- services --------------------------------------------------------------------------------
-
-    def _answering(self, name: str, callback: Callable) -> Callable:
-        """A service callback that always answers: an unexpected error fails the call with its
-        text (and the traceback in the log) instead of leaving the client waiting forever."""
-
-        async def answer(request: Trigger.Request, response: Trigger.Response):
-            try:
-                result = callback(request, response)
-                return await result if inspect.isawaitable(result) else result
-            except Exception as error:  # noqa: BLE001 - reported to the caller and the log
-                self.get_logger().error(f'{name} failed:\n{traceback.format_exc()}')
-                response.success = False
-                response.message = f'{name} failed: {type(error).__name__}: {error}'
-                return response
-
-        return answer
 
     async def _on_calibrate(self, request: Trigger.Request, response: Trigger.Response):
         attempt = await self._request_calibration()
@@ -571,7 +500,7 @@ class MagCalibratorNode(Node):
             self.get_logger().info(f'auto_save: {result}')
 
     async def _on_save(self, request: Trigger.Request, response: Trigger.Response):
-        result = await self._run_io(self._save_file)
+        result = await self._io.run(self._save_file)
         response.success = not isinstance(result, Exception)
         response.message = str(result)
         if response.success:  # one call site per severity (rclpy refuses a change at one)
@@ -595,7 +524,7 @@ class MagCalibratorNode(Node):
     async def _on_load(self, request: Trigger.Request, response: Trigger.Response):
         path = self._calibration_file()
         name = self.get_fully_qualified_name()
-        loaded = await self._run_io(lambda: _read_calibration(path, name))
+        loaded = await self._io.run(lambda: try_read_calibration_file(path, name))
         if loaded is None:
             response.success = False
             response.message = f'no calibration file at {path}; the calibration in force stays'
@@ -656,17 +585,6 @@ class MagCalibratorNode(Node):
                               {'OK': OK, 'WARN': WARN, 'ERROR': ERROR}[report.level],
                               report.message, dict(report.values))
         ])
-
-
-def _read_calibration(path: Path, node_name: str) -> LoadedCalibration | Exception | None:
-    """Read a calibration file for ``node_name``: None when there is none, any failure as the
-    exception (reported, never raised)."""
-    try:
-        return read_calibration_file(path, node_name)
-    except CalibrationFileMissingError:
-        return None
-    except (CalibrationFileError, CalibrationError) as error:
-        return error
 
 
 def main(args: Sequence[str] | None = None) -> int:

@@ -111,6 +111,7 @@ __all__ = [
     'calibration_from_parameters', 'calibration_yaml', 'default_calibration_path',
     'default_load_path', 'load_calibration', 'read_calibration_file', 'remove_stale_temporaries',
     'resolve_calibration_path', 'save_calibration', 'section_matches', 'tesla_per_unit',
+    'try_read_calibration_file',
 ]
 
 
@@ -529,6 +530,18 @@ def read_calibration_file(
     calibration, sections, notes = _section_calibration(_parse(text, shown), fully_qualified,
                                                         shown)
     return LoadedCalibration(calibration, resolved, sections, notes)
+
+
+def try_read_calibration_file(path: str | os.PathLike[str], node_name: str = DEFAULT_NODE_NAME
+                              ) -> LoadedCalibration | Exception | None:
+    """:func:`read_calibration_file` for a node, which reports and never raises: None when
+    there is no file, any failure (of the file or of the calibration in it) as the exception."""
+    try:
+        return read_calibration_file(path, node_name)
+    except CalibrationFileMissingError:
+        return None
+    except (CalibrationFileError, CalibrationError) as error:
+        return error
 
 
 def _parse(text: str, shown: str) -> Any:
