@@ -1,6 +1,8 @@
 # One-command set-up and entry points. Every target sets up the venv first (idempotent).
 #   make demo   - set up and run the live demo on a simulated ICM-20948
-#   make test   - set up and run lint + all tests (one pytest-xdist worker per core)
+#   make test   - set up and run lint + all tests, both tiers (one pytest-xdist worker per core)
+#   make test-core - lint + the fast tier: every test that starts no ROS graph (for an edit)
+#   make test-ros  - the ros tier alone: the tests that start DDS nodes or ros2 launch
 #   make bench  - set up and run the benchmarks (not part of the tests)
 #   make fetch-recordings - the public recordings some tests use, outside the repository
 #   make stress - the tests RUNS times in a row with every core kept busy (RUNS=20)
@@ -11,7 +13,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 SHARED_DATA ?= ../shared/data
 
-.PHONY: setup demo test lint stress bench bench-engine bench-replay bench-node \
+.PHONY: setup demo test test-core test-ros lint stress bench bench-engine bench-replay bench-node \
 	bench-recordings fetch-recordings colcon-build clean
 
 setup: $(STAMP)
@@ -31,6 +33,12 @@ lint: setup
 
 test: setup lint
 	$(PY) -m pytest -q -n auto --dist loadfile test
+
+test-core: setup lint
+	$(PY) -m pytest -q -n auto --dist loadfile -m "not ros" test
+
+test-ros: setup
+	$(PY) -m pytest -q -n auto --dist loadfile -m ros test
 
 RUNS ?= 20
 stress: setup lint

@@ -30,6 +30,39 @@ settings.register_profile('ci', derandomize=True, deadline=None, print_blob=True
 settings.register_profile('dev', deadline=None, print_blob=True)
 settings.load_profile('ci' if os.environ.get('CI') else 'dev')
 
+ROS_FILES = frozenset({
+    'test_calibration_file.py',  # rclpy --params-file: what rcl applies to which node
+    'test_calibrator_node.py',
+    'test_calibrator_node_aligned_first.py',
+    'test_calibrator_node_first_day.py',
+    'test_calibrator_node_imu.py',
+    'test_calibrator_node_location.py',
+    'test_calibrator_robustness.py',
+    'test_compensation_node.py',
+    'test_demo.py',  # the demo's nodes over DDS
+    'test_driver_node.py',
+    'test_ground_node.py',
+    'test_launch.py',
+    'test_launch_configs.py',
+    'test_launch_shutdown.py',
+    'test_view.py',
+})
+"""The test files that start a ROS graph (rclpy over DDS, ros2 launch): the ``ros`` tier.
+``make test-core`` runs the rest, the default for an edit; ``make test`` runs both (CI).
+test_house.py checks that every file that starts one is listed here."""
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    for item in items:
+        if item.path.name in ROS_FILES:
+            item.add_marker(pytest.mark.ros)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line('markers', 'ros: starts a ROS graph (rclpy over DDS, ros2 launch); '
+                                       'deselect with -m "not ros" (make test-core)')
+
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get('MAG_SHARED_DATA', REPO_ROOT.parent / 'shared' / 'data'))
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import ast
 from pathlib import Path
+import re
 
 PACKAGE = Path(__file__).resolve().parents[1] / 'mag_calibrator_ros'
 
@@ -106,3 +107,110 @@ def test_the_checks_see_an_upward_import_and_a_circle():
         'mag_calibrator_ros.calibration.fit.fitting']
     assert 'mag_calibrator_ros.calibration.live.jobs' in graph[
         'mag_calibrator_ros.calibration.live.worker']
+
+
+# -- the session's face (issue #43) --------------------------------------------------------------
+
+SESSION = PACKAGE / 'calibration' / 'live' / 'session.py'
+FACE_BOUND = 19
+"""Public names of ``CalibrationSession`` at the most: its methods, properties and attributes."""
+REACH = re.compile(r'\bsession\.([A-Za-z_]\w*)')
+"""``session.<name>`` or ``.session.<name>``: how code outside the engine uses a session."""
+
+
+def public_names(source: str, class_name: str) -> set[str]:
+    """A class's public methods and properties, and every public ``self.<name>`` it assigns."""
+    tree = ast.parse(source)
+    cls = next(node for node in tree.body
+               if isinstance(node, ast.ClassDef) and node.name == class_name)
+    names = {node.name for node in cls.body
+             if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef)}
+    for node in ast.walk(cls):
+        targets = (node.targets if isinstance(node, ast.Assign)
+                   else [node.target] if isinstance(node, ast.AnnAssign | ast.AugAssign)
+                   else [])
+        names |= {target.attr for target in targets if isinstance(target, ast.Attribute)
+                  and isinstance(target.value, ast.Name) and target.value.id == 'self'}
+    return {name for name in names if not name.startswith('_')}
+
+
+def _face() -> set[str]:
+    return public_names(SESSION.read_text(), 'CalibrationSession')
+
+
+def _reaches() -> list[str]:
+    """Every ``session.<name>`` outside ``calibration/live/`` that is not on the face."""
+    face = _face()
+    paths = [path for path in (*PACKAGE.rglob('*.py'), *(PACKAGE.parent / 'test').rglob('*.py'),
+                               *(PACKAGE.parent / 'benchmarks').rglob('*.py'))
+             if 'calibration/live' not in path.as_posix()]
+    found = []
+    for path in paths:
+        for number, line in enumerate(path.read_text().splitlines(), 1):
+            found += [f'{path.relative_to(PACKAGE.parent)}:{number}: session.{name}'
+                      for name in REACH.findall(line) if name not in face]
+    return found
+
+
+def test_the_session_has_a_one_screen_face():
+    face = _face()
+    assert len(face) <= FACE_BOUND, sorted(face)
+
+
+def test_nothing_outside_the_engine_reaches_into_the_session():
+    assert _reaches() == []
+
+
+def test_the_face_checks_see_a_grown_face_and_a_reach():
+    grown = ('class CalibrationSession:\n    def __init__(self):\n'
+             + ''.join(f'        self.part{i} = {i}\n' for i in range(FACE_BOUND))
+             + '        self._private = 0\n    def process(self): ...\n'
+             + '    @property\n    def state(self): ...\n')
+    assert len(public_names(grown, 'CalibrationSession')) == FACE_BOUND + 2
+    assert REACH.findall('x = node.session.buffer.fill + session._job') == ['buffer', '_job']
+    assert {'process', 'report', 'calibration'} <= _face()
+
+
+# -- the two tiers (conftest.ROS_FILES) ----------------------------------------------------------
+
+ROS_MODULES = ('rclpy', 'launch', 'launch_ros', 'node_helpers', 'mag_calibrator_ros.tools.demo',
+               'mag_calibrator_ros.nodes.mag_calibrator',
+               'mag_calibrator_ros.nodes.icm20948_driver')
+"""Importing one of these (or asking for it with importorskip) is starting a ROS graph."""
+
+
+def starts_ros(source: str) -> bool:
+    """Whether a test file's source starts a ROS graph: it imports rclpy, launch or a node
+    (anywhere: in a test function too), or a test takes the ``ros`` fixture."""
+    for node in ast.walk(ast.parse(source)):
+        names = []
+        if isinstance(node, ast.Import):
+            names = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            names = [node.module] + [f'{node.module}.{alias.name}' for alias in node.names]
+        elif (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+              and node.func.attr == 'importorskip' and node.args
+              and isinstance(node.args[0], ast.Constant)):
+            names = [str(node.args[0].value)]
+        elif isinstance(node, ast.FunctionDef) and node.name.startswith('test'):
+            if 'ros' in {argument.arg for argument in node.args.args}:
+                return True
+        if any(name == module or name.startswith(module + '.')
+               for name in names for module in ROS_MODULES):
+            return True
+    return False
+
+
+def test_the_ros_tier_lists_every_file_that_starts_ros_and_only_those():
+    from conftest import ROS_FILES
+
+    tests = PACKAGE.parent / 'test'
+    starting = {path.name for path in tests.glob('test_*.py') if starts_ros(path.read_text())}
+    assert starting == set(ROS_FILES)
+
+
+def test_the_tier_check_sees_ros_in_a_function_and_a_fixture():
+    assert starts_ros('def test_a():\n    import rclpy\n')
+    assert starts_ros('def test_b(ros, tmp_path):\n    pass\n')
+    assert starts_ros("rclpy = pytest.importorskip('rclpy')\n")
+    assert not starts_ros('import numpy\n# rclpy in a comment\n')
