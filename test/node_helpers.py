@@ -21,6 +21,7 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import MagneticField
 from std_srvs.srv import Trigger
 
+from mag_calibrator_ros.calibration.live.worker import FitRunner
 from mag_calibrator_ros.nodes.icm20948_driver import Icm20948DriverNode
 from mag_calibrator_ros.nodes.mag_calibrator import MagCalibratorNode
 from mag_calibrator_ros.nodes.runtime import NodeThreads, wait_until
@@ -48,10 +49,14 @@ class Ros:
     def remove(self, node: Node) -> None:
         self.spinning.remove(node)
 
-    def calibrator(self, namespace: str, **parameters) -> MagCalibratorNode:
+    def calibrator(self, namespace: str, runner: FitRunner | None = None, **parameters
+                   ) -> MagCalibratorNode:
+        """A calibrator node with these parameters; ``runner``: where its fits run (the node's
+        own fit worker process by default)."""
         overrides = [Parameter(name, value=value) for name, value in parameters.items()]
         return self.add(MagCalibratorNode(
-            namespace=namespace, context=self.context, parameter_overrides=overrides))
+            namespace=namespace, context=self.context, parameter_overrides=overrides,
+            runner=runner))
 
     def driver(self, namespace: str, **parameters) -> Icm20948DriverNode:
         values = {'backend': 'sim', 'rate_hz': 100, **parameters}
@@ -130,6 +135,12 @@ class Probe(Node):
                     calibrator.resolve_topic_name('imu/mag_corrected')) >= 1)
 
 
+def accepted(calibrator: MagCalibratorNode) -> int:
+    """Readings the calibrator's session accepted so far (its report, read from the test's
+    thread: counts only, for waiting on)."""
+    return calibrator.session.report().counts.accepted
+
+
 def vector(msg: MagneticField) -> np.ndarray:
     return np.array([msg.magnetic_field.x, msg.magnetic_field.y, msg.magnetic_field.z])
 
@@ -137,7 +148,6 @@ def vector(msg: MagneticField) -> np.ndarray:
 def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     cosine = float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)))
     return math.degrees(math.acos(min(1.0, max(-1.0, cosine))))
-
 
 
 def call_trigger(node: Node, service: str, timeout_s: float = WAIT_S) -> Trigger.Response:
