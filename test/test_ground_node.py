@@ -1,13 +1,14 @@
 """Ground robots over real rclpy/DDS: the simulated robot follows cmd_vel (sim.motion cmd_vel),
 the calibrator turns it with ~/rotate_and_calibrate, and every way a rotation ends commands zero
--- seen by a subscriber and by the simulated robot coming to rest (the loop closed)."""
+-- seen by a subscriber and by the simulated robot coming to rest (the loop closed). A robot
+turned by other means calibrating by itself is replayed without a graph in
+test_ground_replays.py."""
 
 from __future__ import annotations
 
 import math
 import os
 from pathlib import Path
-import re
 import signal
 import subprocess
 import sys
@@ -18,23 +19,24 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Twist, TwistStamped
 import pytest
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from std_srvs.srv import Trigger
 
 from mag_calibrator_ros.calibration.live.jobs import JobOutcome
+from mag_calibrator_ros.calibration.live.session import SessionEvent
 from mag_calibrator_ros.calibration.live.worker import InlineRunner
 from mag_calibrator_ros.nodes.mag_calibrator import MagCalibratorNode
 
 sys.path.insert(0, str(Path(__file__).parent))
 from node_helpers import (  # noqa: E402  (the DDS helpers, one place)
     Ros,
+    accepted,
     call_trigger,
     set_parameter_over_service,
     try_trigger,
     wait_for,
 )
 from test_ground_session import heading_error_deg  # noqa: E402
-from test_heading import HARD_IRON_UT, ROTATION_WORDS, SOFT_IRON  # noqa: E402
+from test_heading import HARD_IRON_UT, SOFT_IRON  # noqa: E402
 
 SIM_SEED = 9  # heading_error_deg evaluates the same floor on another turn
 CALIBRATION_S = 120.0  # bound on waiting for a whole turn under load (not a timing assertion)
@@ -121,7 +123,7 @@ def turning_robot(ros: Ros, tmp_path: Path, namespace: str, **calibrator_paramet
     calibrator = ros.calibrator(namespace, calibration_file=str(tmp_path / 'c.yaml'),
                                 progress_log_period=0.0, **calibrator_parameters)
     commander = Commander(ros, namespace, calibrator=calibrator)
-    assert wait_for(lambda: calibrator.session.accepted > 20)
+    assert wait_for(lambda: accepted(calibrator) > 20)
     response = commander.call('mag_calibrator/rotate_and_calibrate')
     assert response.success, response.message
     assert wait_for(lambda: yaw_rate(driver) > 0.05), 'the simulated robot never turned'
@@ -217,15 +219,15 @@ def test_a_stall_of_the_calibrator_is_no_loss_of_input(ros, tmp_path):
         if not stalled.is_set():
             # As seen under load: the look before the stall had taken in every reading
             # processed so far (rclpy then ran no subscription before stalling), ...
-            turning._accepted_seen = calibrator.session.accepted
+            turning._accepted_seen = turning._accepted
             time.sleep(0.8)  # ... and the executor ran nothing for 0.8 s: readings queue up
             stalled.set()
         tick()  # the timer runs before the queued readings
 
     turning._tick = stalled_once
     assert stalled.wait(timeout=30.0)
-    seen = calibrator.session.accepted
-    assert wait_for(lambda: calibrator.session.accepted > seen + 50)
+    seen = accepted(calibrator)
+    assert wait_for(lambda: accepted(calibrator) > seen + 50)
     assert calibrator._rotation.last_stop is None, calibrator._rotation.last_stop
     assert calibrator._rotation.state == 'turning'
     moment = time.monotonic()
@@ -278,14 +280,13 @@ class FailingRequests(InlineRunner):
 
 def test_a_fit_error_commands_zero(ros, tmp_path):
     driver = sim_robot(ros, 'ground_error')
-    calibrator = ros.add(MagCalibratorNode(
-        namespace='ground_error', context=ros.context, parameter_overrides=[
-            Parameter('calibration_file', value=str(tmp_path / 'c.yaml')),
-            Parameter('auto_calibrate', value=False)]))
-    calibrator.session.runner.close()
-    calibrator.session.runner = FailingRequests()
+    # A quicker turn than the default (the circle is what the fit waits for): the stop is
+    # the same at any speed.
+    calibrator = ros.calibrator('ground_error', runner=FailingRequests(),
+                                calibration_file=str(tmp_path / 'c.yaml'),
+                                auto_calibrate=False, rotation_speed=0.8)
     commander = Commander(ros, 'ground_error', calibrator=calibrator)
-    assert wait_for(lambda: calibrator.session.accepted > 20)
+    assert wait_for(lambda: accepted(calibrator) > 20)
     assert commander.call('mag_calibrator/rotate_and_calibrate').success
     assert wait_for(lambda: yaw_rate(driver) > 0.05)
     moment = time.monotonic()
@@ -315,13 +316,22 @@ def test_an_unexpected_error_in_the_rotation_commands_zero(ros, tmp_path):
 def test_session_events_of_every_level_are_logged_from_one_node(ros, tmp_path):
     """rclpy refuses a severity change at one logging call site: an info event, then a warning
     (a calibration, then a failed rotation fit) once crashed the node's event handling."""
-    calibrator = ros.add(MagCalibratorNode(
-        namespace='ground_events', context=ros.context, parameter_overrides=[
-            Parameter('calibration_file', value=str(tmp_path / 'c.yaml'))]))
-    for level in ('info', 'warning', 'debug', 'info', 'warning'):
-        calibrator.session._event(level, f'a {level} event')
+    calibrator = ros.calibrator('ground_events', runner=InlineRunner(),  # no fit here
+                                calibration_file=str(tmp_path / 'c.yaml'))
+    session, handed = calibrator.session, []
+
+    def events_of(level: str):
+        def take() -> list[SessionEvent]:
+            handed.append(level)
+            return [SessionEvent(level, f'a {level} event')]
+        return take
+
+    levels = ('info', 'warning', 'debug', 'info', 'warning')
+    for level in levels:
+        session.take_events = events_of(level)  # what the session decided, one level a time
         calibrator._handle_events()  # raised ValueError on the second level before the fix
-    assert not calibrator.session.has_events
+    del session.take_events  # the session's own again
+    assert set(handed) == set(levels) and handed[-1] == 'warning'
     ros.remove(calibrator)
 
 
@@ -361,7 +371,7 @@ def test_refusals_say_why(ros, tmp_path):
     refused = commander.call('mag_calibrator/rotate_and_calibrate')
     assert not refused.success and 'no input on /ground_refuse/imu/mag' in refused.message
     driver = sim_robot(ros, namespace)
-    assert wait_for(lambda: calibrator.session.accepted > 20)
+    assert wait_for(lambda: accepted(calibrator) > 20)
     teleop = commander.create_publisher(Twist, 'cmd_vel', 10)
     assert wait_for(lambda: calibrator.count_publishers('/ground_refuse/cmd_vel') == 1)
     refused = commander.call('mag_calibrator/rotate_and_calibrate')
@@ -391,7 +401,7 @@ def test_a_turn_restarted_after_cmd_vel_stamped_changed_commands_the_new_type(ro
         caller = ros.add(Node('caller', namespace=namespace, context=ros.context))
         twist_base = Commander(twist_side, namespace)
         stamped_base = Commander(stamped_side, namespace, stamped=True)
-        assert wait_for(lambda: calibrator.session.accepted > 20)
+        assert wait_for(lambda: accepted(calibrator) > 20)
         assert call_trigger(caller, 'mag_calibrator/rotate_and_calibrate').success
         assert wait_for(lambda: (twist_base.last_twist() or 0.0) > 0.0)
         # The change stops the turn: its zero goes out as Twist, what the base listens to.
@@ -422,7 +432,7 @@ def test_twist_stamped_for_nav2_style_bases(ros, tmp_path):
         calibrator = ros.calibrator(namespace, calibration_file=str(tmp_path / 'c.yaml'),
                                     cmd_vel_stamped=True, cmd_vel_frame_id='base_footprint')
         commander = Commander(ros, namespace, stamped=True, calibrator=calibrator)
-        assert wait_for(lambda: calibrator.session.accepted > 20)
+        assert wait_for(lambda: accepted(calibrator) > 20)
         assert commander.call('mag_calibrator/rotate_and_calibrate').success
         assert wait_for(lambda: yaw_rate(driver) > 0.2), 'the sim did not follow TwistStamped'
         moment = time.monotonic()
@@ -431,56 +441,6 @@ def test_twist_stamped_for_nav2_style_bases(ros, tmp_path):
         remove_all(ros, commander, calibrator)
     finally:
         robot.close()
-
-
-def test_turning_by_any_means_calibrates_with_the_defaults_and_hints_speak_of_turning(
-        ros, tmp_path):
-    """No service: a teleop turns the sim robot; the calibrator (default parameters) calibrates
-    by itself (planar), and its diagnostics never ask a ground robot to roll."""
-    namespace = 'ground_teleop'
-    driver = sim_robot(ros, namespace)
-    calibrator = ros.calibrator(namespace, calibration_file=str(tmp_path / 'c.yaml'))
-    commander = Commander(ros, namespace)
-    teleop = commander.create_publisher(Twist, 'cmd_vel', 10)
-
-    def turn() -> bool:
-        twist = Twist()
-        twist.angular.z = -0.4  # clockwise: a right turn
-        teleop.publish(twist)
-        # counted once in force: the session sets the calibration first, on the node's thread
-        return bool(calibrator.session.adoptions)
-
-    assert wait_for(turn, timeout_s=CALIBRATION_S, step_s=0.1), commander.diagnostics[-1:]
-    teleop.publish(Twist())
-    assert calibrator.session.calibration.model == 'planar'
-    assert calibrator.session.adoptions.get('auto') == 1
-    assert wait_for(lambda: any(line.startswith('calibrated') for line in commander.diagnostics))
-    lines = list(commander.diagnostics)
-    assert any('to the right' in line for line in lines), lines
-    for line in lines:
-        assert not any(word in line for word in ROTATION_WORDS), line
-    # Calibrated, it still reports the heading circle (not ~7 % of the 3-D directions), nearly
-    # all of it: the gate waited for 35 of 36 sectors, and the buffer keeps changing afterwards.
-    calibrated = [line for line in lines if line.startswith('calibrated')]
-    covered = [int(found) for line in calibrated
-               for found in re.findall(r'heading coverage (\d+) %', line)]
-    assert covered and max(covered) >= 80, calibrated
-    assert all(re.search(r'(?<!heading )coverage \d', line) is None for line in calibrated)
-    commander.destroy_publisher(teleop)
-    remove_all(ros, commander, calibrator, driver)
-
-
-def test_yaw_motion_calibrates_with_the_defaults(ros, tmp_path):
-    """The older time-driven 'yaw' motion (tilting with time) calibrates by itself as well."""
-    namespace = 'ground_yaw'
-    driver = ros.driver(namespace, **{'sim.motion': 'yaw', 'sim.hard_iron_ut': list(HARD_IRON_UT),
-                                      'sim.soft_iron': SOFT_IRON.reshape(-1).tolist()})
-    calibrator = ros.calibrator(namespace, calibration_file=str(tmp_path / 'c.yaml'))
-    assert wait_for(lambda: calibrator.session.calibration is not None,
-                    timeout_s=CALIBRATION_S), calibrator.session.progress_text()
-    assert calibrator.session.calibration.model == 'planar'
-    assert 'heading coverage' in calibrator.session.progress_text()
-    remove_all(ros, calibrator, driver)
 
 
 # -- the process: Ctrl-C and SIGTERM --------------------------------------------------------------
