@@ -707,7 +707,8 @@ def test_the_old_shared_default_is_read_only_by_the_root_namespace_node(monkeypa
     assert default_load_path('/mag_calibrator') == default_calibration_path('/mag_calibrator')
 
 
-# what rcl (Jazzy) applies to which node: measured with rclpy, checked again below
+# what rcl (Jazzy) applies to which node: measured with rclpy, checked again on every run
+# (test_calibration_file_rclpy.py)
 RCL_MATCHES = {
     'mag_calibrator': {'/mag_calibrator'},
     '/mag_calibrator': {'/mag_calibrator'},
@@ -781,91 +782,6 @@ def test_a_section_without_calibration_is_skipped(tmp_path):
                     + calibration_yaml(fitted_calibration(), '/**'))
     loaded = read_calibration_file(path, '/robot1/mag_calibrator')
     assert loaded.sections == ('/**',) and loaded.notes == ()
-
-
-# -- rclpy --params-file --------------------------------------------------------------------------
-
-
-def rclpy_parameters(path, node_name, declared):
-    """The ``calibration.*`` values a real rclpy node gets from ``--params-file path``."""
-    rclpy = pytest.importorskip('rclpy')
-    from rclpy.context import Context
-    from rclpy.node import Node
-
-    namespace, _, name = node_name.rpartition('/')
-    context = Context()
-    rclpy.init(args=['--ros-args', '--params-file', str(path)], context=context)
-    try:
-        node = Node(name, namespace=namespace or '/', context=context)
-        try:
-            return {key: node.declare_parameter(f'calibration.{key}', kind).value
-                    for key, kind in declared.items()}
-        finally:
-            node.destroy_node()
-    finally:
-        rclpy.shutdown(context=context)
-
-
-@pytest.mark.parametrize(('key', 'node_name'), [
-    ('mag_calibrator', '/mag_calibrator'),  # the key older versions wrote: root namespace only
-    ('/robot1/mag_calibrator', '/robot1/mag_calibrator'),  # what the node writes now
-    ('/**', '/robot1/sub/mag_calibrator'),
-])
-def test_rclpy_loads_the_file_as_a_params_file(tmp_path, key, node_name):
-    """rcl's own YAML parser must type every value as the node declares it."""
-    pytest.importorskip('rclpy')
-    from rclpy.parameter import Parameter
-
-    calibration = Calibration(  # integral values: the int-vs-double trap
-        np.array([1.0, -2.0, 0.0]), np.diag([2.0, 1.0, 1.0]), 50.0, 'full',
-        {**METADATA, 'frame_id': 'on', 'condition_number': 1.0},
-        rotation=[[0, -1, 0], [1, 0, 0], [0, 0, 1]],
-    )
-    path = tmp_path / 'calibration.yaml'
-    save_calibration(path, calibration, node_name=key)
-    values = rclpy_parameters(path, node_name, {
-        'offset': Parameter.Type.DOUBLE_ARRAY,
-        'matrix': Parameter.Type.DOUBLE_ARRAY,
-        'rotation': Parameter.Type.DOUBLE_ARRAY,
-        'field_strength': Parameter.Type.DOUBLE,
-        'model': Parameter.Type.STRING,
-        'samples': Parameter.Type.INTEGER,
-        'time': Parameter.Type.STRING,
-        'frame_id': Parameter.Type.STRING,
-        'condition_number': Parameter.Type.DOUBLE,
-    })
-    assert values['frame_id'] == 'on' and values['samples'] == 100
-    rebuilt = calibration_from_parameters(
-        values['offset'], values['matrix'], values['field_strength'], values['model'],
-        {'rotation': values['rotation']},
-    )
-    np.testing.assert_array_equal(rebuilt.offset, calibration.offset)
-    np.testing.assert_array_equal(rebuilt.matrix, calibration.matrix)
-    assert rebuilt.field_strength == 50.0
-    assert rebuilt.rotation.reshape(9).tolist() == [0.0, -1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0]
-    assert read_calibration_file(path, node_name).notes == ()  # it is this node's section
-
-
-def test_rclpy_applies_sections_exactly_as_section_matches_says(tmp_path):
-    """The evidence behind RCL_MATCHES and the merge order, re-measured on every run."""
-    pytest.importorskip('rclpy')
-    from rclpy.parameter import Parameter
-
-    double = {'field_strength': Parameter.Type.DOUBLE}
-    for key, expected in RCL_MATCHES.items():
-        path = tmp_path / 'key.yaml'
-        save_calibration(path, fitted_calibration(), node_name=key)
-        applied = {node for node in NODES
-                   if rclpy_parameters(path, node, double)['field_strength'] is not None}
-        assert applied == expected, key
-    for order in ((('/**', 1.0), ('/robot1/mag_calibrator', 2.0)),
-                  (('/robot1/mag_calibrator', 2.0), ('/**', 1.0))):
-        path = tmp_path / 'merged.yaml'
-        path.write_text(''.join(
-            calibration_yaml(Calibration(np.zeros(3), np.eye(3), strength), key)
-            for key, strength in order))
-        ours = load_calibration(path, '/robot1/mag_calibrator').field_strength
-        assert ours == rclpy_parameters(path, '/robot1/mag_calibrator', double)['field_strength']
 
 
 @pytest.mark.parametrize('module', [calibration_file, params_yaml, safe_file])
