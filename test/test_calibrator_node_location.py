@@ -25,7 +25,7 @@ def latest_values(probe: Probe, node: Node) -> dict[str, str]:
 
 
 def earth_latitude(node) -> float | None:
-    earth = node.session.findings.earth
+    earth = node.session.report().earth
     return None if earth is None else earth.latitude_deg
 
 
@@ -52,18 +52,18 @@ def test_gps_fixes_are_screened_replaced_when_far_forgotten_on_reset_and_overrid
         publisher.publish(a_fix(10.0, 10.0, status=NavSatStatus.STATUS_NO_FIX))
         assert wait_for(lambda: 'null island' in latest_values(probe, calibrator).get(
             'gps_fixes_refused', '')), 'the null-island fix was not refused'
-        assert calibrator.session.findings.earth is None
+        assert calibrator.session.report().earth is None
         publisher.publish(a_fix(-33.0, 109.0))
         assert wait_for(lambda: earth_latitude(calibrator) is not None)
         assert earth_latitude(calibrator) == -33.0  # not 0.0: the bad fix did not stick
         # A good fix far from the one in force replaces it (a near one would not: unit tests).
         publisher.publish(a_fix(52.0, 13.4, 40.0))
         assert wait_for(lambda: earth_latitude(calibrator) == 52.0)
-        assert calibrator.session.findings.earth.altitude_m == 40.0
+        assert calibrator.session.report().earth.altitude_m == 40.0
         # ~/reset forgets a fix's location; the next plausible fix locates again.
         response = call_trigger(probe, 'mag_calibrator/reset')
         assert response.success and 'gps/fix is forgotten' in response.message
-        assert wait_for(lambda: calibrator.session.findings.earth is None)
+        assert wait_for(lambda: calibrator.session.report().earth is None)
         publisher.publish(a_fix(48.0, 11.0))
         assert wait_for(lambda: earth_latitude(calibrator) == 48.0)
         # The parameters override fixes; clearing them hands back to the fixes.
@@ -73,7 +73,7 @@ def test_gps_fixes_are_screened_replaced_when_far_forgotten_on_reset_and_overrid
         assert wait_for(lambda: (publisher.publish(a_fix(10.0, 10.0)),
                                  calibrator._location.fix == (10.0, 10.0, 0.0))[1])
         assert calibrator._location_asked[1] == 'parameters'  # the fix did not take over
-        assert calibrator.session.findings.earth.latitude_deg == 45.5
+        assert calibrator.session.report().earth.latitude_deg == 45.5
         for name in ('latitude', 'longitude'):
             assert set_parameter_over_service(probe, calibrator, name, math.nan)[0]
         assert wait_for(lambda: earth_latitude(calibrator) == 10.0)
@@ -106,7 +106,7 @@ def test_latitude_and_longitude_set_one_at_a_time_atomically_from_a_file_and_cle
         assert ok, reason
         assert wait_for(lambda: 'waiting for longitude' in latest_values(probe, calibrator).get(
             'location_waiting', ''))
-        assert calibrator.session.findings.earth is None
+        assert calibrator.session.report().earth is None
         ok, reason = set_parameter_over_service(probe, calibrator, 'longitude', 13.40)
         assert ok, reason
         assert wait_for(lambda: earth_latitude(calibrator) == 52.52)
@@ -127,7 +127,7 @@ def test_latitude_and_longitude_set_one_at_a_time_atomically_from_a_file_and_cle
         assert all(ok for ok, _ in parameter_results(client.load_parameter_file(
             str(params_file))))
         assert wait_for(lambda: earth_latitude(calibrator) == 45.5)
-        assert calibrator.session.findings.earth.longitude_deg == -122.7
+        assert calibrator.session.report().earth.longitude_deg == -122.7
         # A bad value alone is still refused, with the reason.
         ok, reason = set_parameter_over_service(probe, calibrator, 'latitude', 95.0)
         assert not ok and 'latitude must be within' in reason
@@ -135,9 +135,9 @@ def test_latitude_and_longitude_set_one_at_a_time_atomically_from_a_file_and_cle
         assert set_parameter_over_service(probe, calibrator, 'latitude', math.nan)[0]
         assert wait_for(lambda: 'waiting for latitude' in latest_values(probe, calibrator).get(
             'location_waiting', ''))
-        assert calibrator.session.findings.earth.latitude_deg == 45.5
+        assert calibrator.session.report().earth.latitude_deg == 45.5
         assert set_parameter_over_service(probe, calibrator, 'longitude', math.nan)[0]
-        assert wait_for(lambda: calibrator.session.findings.earth is None)
+        assert wait_for(lambda: calibrator.session.report().earth is None)
     finally:
         for node in (probe, calibrator):
             ros.remove(node)

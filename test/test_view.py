@@ -17,6 +17,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
 from mag_calibrator_ros.calibration.fit.coverage import CELL_COUNT
 from mag_calibrator_ros.calibration.live.view import calibration_surface, calibration_view
+from mag_calibrator_ros.calibration.store.calibration_file import calibration_parameters
 from mag_calibrator_ros.nodes.mag_calibrator import MagCalibratorNode
 from mag_calibrator_ros.nodes.view_publisher import ViewCadence, point_cloud, quaternion
 
@@ -107,16 +108,20 @@ def test_the_node_draws_its_buffer_for_rviz_while_watched(tmp_path):
     try:
         ros.driver('view', **{'sim.hard_iron_ut': HARD_IRON_UT, 'sim.soft_iron': SOFT_IRON,
                               'sim.motion': 'tumble', 'sim.seed': 2})
+        # The board's own calibration given as parameters: a calibrated view at once (that
+        # the node calibrates by itself: test_calibrator_replays.py).
+        given = Calibration(np.array(HARD_IRON_UT) * 1e-6,
+                            np.linalg.inv(np.reshape(SOFT_IRON, (3, 3))), 50e-6, 'full')
         node = ros.calibrator('view', view_period=0.5, progress_log_period=0.0,
-                              calibration_file=str(tmp_path / 'c.yaml'))
+                              calibration_file=str(tmp_path / 'c.yaml'),
+                              **calibration_parameters(given))
         watcher = ros.add(Node('view_watcher', context=ros.context))
         received: dict[str, list] = {'raw': [], 'corrected': [], 'markers': []}
         for name, kind in (('raw', PointCloud2), ('corrected', PointCloud2),
                            ('markers', MarkerArray)):
             watcher.create_subscription(kind, f'/view/mag_calibrator/view/{name}',
                                         received[name].append, latched)
-        assert wait_for(lambda: received['corrected'], timeout_s=60.0), (
-            node.session.progress_text())
+        assert wait_for(lambda: received['corrected']), node.session.report().progress
         # A view is three messages on three topics, delivered in no set order: wait for the
         # markers of a calibrated view too.
         assert wait_for(lambda: received['markers'] and any(
@@ -124,12 +129,20 @@ def test_the_node_draws_its_buffer_for_rviz_while_watched(tmp_path):
         raw = decode(received['raw'][-1])
         scale = node.get_parameter('view_scale').value
         assert len(raw) > 10 and np.all(raw[:, 3] >= 1.0)  # weights: readings per point
-        centre = raw[:, :3].mean(axis=0) / scale
-        assert np.linalg.norm(centre - np.array(HARD_IRON_UT) * 1e-6) < 40e-6
+        # raw readings, each on the board's raw ellipsoid round its hard iron (however little
+        # of it the buffer covers yet), and the same corrected onto the 50 uT sphere
+        np.testing.assert_allclose(np.linalg.norm(given.apply(raw[:, :3] / scale), axis=1),
+                                   50e-6, rtol=0.05)
+        corrected = decode(received['corrected'][-1])
+        np.testing.assert_allclose(np.linalg.norm(corrected[:, :3], axis=1) / scale, 50e-6,
+                                   rtol=0.05)
         markers = received['markers'][-1].markers
         assert markers[0].action == Marker.DELETEALL
         kinds = {marker.ns: marker for marker in markers[1:]}
         assert {'raw ellipsoid', 'corrected sphere', 'coverage cells'} <= set(kinds)
+        centre = kinds['raw ellipsoid'].pose.position
+        np.testing.assert_allclose([centre.x, centre.y, centre.z],
+                                   np.array(HARD_IRON_UT) * 1e-6 * scale, rtol=1e-9)
         assert len(kinds['coverage cells'].points) == CELL_COUNT
         assert received['raw'][-1].header.frame_id == 'imu_link'
     finally:
@@ -194,7 +207,7 @@ def test_the_view_is_published_every_tick_with_view_period_equal_to_the_tick(ros
         assert wait_for(lambda: calibrator._view.watched)
         jitter = [0.0, -0.003, 0.004, -0.002, 0.001, -0.004, 0.002, 0.0, -0.001, 0.003]
         for tick, early_or_late in enumerate(jitter):
-            calibrator._publish_view(100.0 + tick + early_or_late)
+            calibrator._publish_view(100.0 + tick + early_or_late, calibrator.session.report())
         assert calibrator._view.published == len(jitter)
     finally:
         ros.remove(watcher)
