@@ -39,6 +39,7 @@ from mag_calibrator_ros.calibration.fit.alignment import (
 )
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
 from mag_calibrator_ros.calibration.fit.earth_field import EarthField
+from mag_calibrator_ros.calibration.live.offline import calibrate_now, feed
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
 from mag_calibrator_ros.sim.board import BoardModel, board_readings
@@ -71,8 +72,8 @@ def board_stream(seconds: float, seed: int, remap: np.ndarray | None = None, **c
 def session_calibrate(mag, accel, gyro, earth=None, **settings):
     session = CalibrationSession(SessionSettings(auto_calibrate=False, **settings))
     session.set_earth_field(earth)
-    session.feed(mag, RATE_HZ, frame_id='imu_link', accel=accel, gyro=gyro)
-    return session, session.calibrate_now()
+    feed(session, mag, RATE_HZ, frame_id='imu_link', accel=accel, gyro=gyro)
+    return session, calibrate_now(session)
 
 
 def simulated(seeds: int) -> list[dict]:
@@ -184,7 +185,7 @@ def disturbed() -> list[dict]:
         mag, accel, gyro, _ = board_stream(40.0, 5, **config)
         for gate in (True, False):
             session, attempt = session_calibrate(mag, accel, gyro, MODEL, earth_field_gate=gate)
-            text = attempt.message if not attempt.success else session.earth_warning()
+            text = attempt.message if not attempt.success else session.report().earth_warning
             rows.append({'case': name, 'gate': gate, 'calibrated': attempt.success,
                          'said': text.split('(')[0].removeprefix('calibration failed: ')})
     return rows

@@ -56,7 +56,8 @@ from bench_interference import RATE_HZ, robot  # noqa: E402  (one robot for both
 
 from mag_calibrator_ros.calibration.fit.fitting import FitOptions, fit_calibration  # noqa: E402
 from mag_calibrator_ros.calibration.live.gravity import GravityTracker  # noqa: E402
-from mag_calibrator_ros.calibration.live.pairing import force_problem  # noqa: E402
+from mag_calibrator_ros.calibration.live.offline import calibrate_now, feed  # noqa: E402
+from mag_calibrator_ros.calibration.live.pairing import ImuPairing, force_problem  # noqa: E402
 from mag_calibrator_ros.calibration.live.session import CalibrationSession  # noqa: E402
 from mag_calibrator_ros.sim import motion  # noqa: E402
 from mag_calibrator_ros.sim.board import BoardModel, course_recording  # noqa: E402
@@ -146,12 +147,11 @@ def calibrate(seed: int, tracked: bool, ramp_s: float = 0.0) -> tuple[str, np.nd
     """(b): the answer, its offset (uT) and its heading RMS over a noise-free full turn."""
     driver, period = course(ramp_s)
     recording = course_recording(board(seed), driver, rate_hz=RATE_HZ, command_period_s=period)
-    session = CalibrationSession()
-    if not tracked:
-        session.pairing.gravity = AccelerometerAsGravity()
-    session.feed(recording.mag, RATE_HZ, frame_id='imu_link', accel=recording.accel,
-                 gyro=recording.gyro)
-    attempt = session.calibrate_now()
+    session = CalibrationSession(
+        pairing=None if tracked else ImuPairing(gravity=AccelerometerAsGravity()))
+    feed(session, recording.mag, RATE_HZ, frame_id='imu_link', accel=recording.accel,
+         gyro=recording.gyro)
+    attempt = calibrate_now(session)
     calibration = session.calibration
     session.close()
     turn = course_recording(board(seed, noise_ut=0.0), motion.CourseDriver(COURSE[:2]),

@@ -129,14 +129,16 @@ class Bench:
             self.context, 'cmd_vel', GROUND_HARD_IRON_UT, seed, namespace,
             tilt_wobble_deg=float(wobble_deg)))
 
-    def calibrator(self, namespace: str, **parameters) -> MagCalibratorNode:
+    def calibrator(self, namespace: str, runner=None, **parameters) -> MagCalibratorNode:
+        """``runner``: where its fits run (the node's own process by default)."""
         self.count += 1
         overrides = [Parameter('calibration_file',
                                value=str(self.workdir / f'{self.count}.yaml')),
                      Parameter('progress_log_period', value=0.0)]
         overrides += [Parameter(name, value=value) for name, value in parameters.items()]
         return self.spinning.add(MagCalibratorNode(
-            namespace=namespace, context=self.context, parameter_overrides=overrides))
+            namespace=namespace, context=self.context, parameter_overrides=overrides,
+            runner=runner))
 
     def station(self, namespace: str) -> Station:
         return self.spinning.add(Station(self.context, namespace))
@@ -256,7 +258,7 @@ def one_teleop(bench: Bench, seed: int) -> float:
     station = bench.station(namespace)
     session = calibrator.session
     try:
-        wait(lambda: session.accepted > 20, 20.0)
+        wait(lambda: session.report().counts.accepted > 20, 20.0)
         started = time.monotonic()
 
         def turned() -> bool:
@@ -297,11 +299,9 @@ def one_stop(bench: Bench, path: str, attempt: int) -> tuple[float, bool] | None
     namespace = f'stop_{path}_{attempt}'
     driver = bench.robot(namespace, attempt)
     parameters = {'rotation_timeout': TIMEOUT_S} if path == 'timeout' else {}
-    calibrator = bench.calibrator(namespace, **parameters)
+    runner = FailingRequests() if path == 'fit_error' else None
+    calibrator = bench.calibrator(namespace, runner, **parameters)
     rotation = calibrator._rotation
-    if path == 'fit_error':
-        calibrator.session.runner.close()
-        calibrator.session.runner = FailingRequests()
     station = bench.station(namespace)
     try:
         response = start_rotation(station)

@@ -112,8 +112,8 @@ def feed(session: CalibrationSession, recording: CourseRecording, index: int,
     imu/temperature and battery_state subscriptions hand them over."""
     stamp = round(recording.times[index] * 1e9)
     if inputs:
-        session.compensation.temperature(stamp, float(recording.temperature_c[index]))
-        session.compensation.input(0, stamp, float(recording.current_a[index]))
+        session.process_temperature(stamp, float(recording.temperature_c[index]))
+        session.process_input(0, stamp, float(recording.current_a[index]))
     session.process_imu(stamp, FRAME_ID, recording.accel[index], recording.gyro[index])
     processed = session.process(stamp, FRAME_ID, recording.mag[index])
     if index % POLL_EVERY == 0:
@@ -123,13 +123,13 @@ def feed(session: CalibrationSession, recording: CourseRecording, index: int,
 
 def live(recording: CourseRecording, clean: CourseRecording,
          settings: SessionSettings | None = None, inputs: bool = False
-         ) -> tuple[np.ndarray, np.ndarray, float | None, CalibrationSession]:
+         ) -> tuple[np.ndarray, np.ndarray, float | None, CalibrationSession, float | None]:
     """(corrected rows, NaN until calibrated; the same calibrations applied to the noise-free
-    ``clean`` twin's rows; stream seconds of the first calibration; the session) of the live
-    calibrator over the course. ``session.compensated_from``: stream seconds from which a
-    learned compensation was in force (None: never)."""
+    ``clean`` twin's rows; stream seconds of the first calibration; the session; stream seconds
+    from which a learned compensation was in force, None: never) of the live calibrator over
+    the course."""
     session = CalibrationSession(settings or SessionSettings())
-    session.compensated_from = None
+    compensated_from = None
     corrected = np.full_like(recording.mag, math.nan)
     noise_free = np.full_like(recording.mag, math.nan)
     first = None
@@ -141,10 +141,10 @@ def live(recording: CourseRecording, clean: CourseRecording,
                 clean.mag[index], [recording.current_a[index]], recording.temperature_c[index])
             if first is None:
                 first = float(recording.times[index])
-            if session.compensated_from is None and processed.calibration.compensation:
-                session.compensated_from = float(recording.times[index])
+            if compensated_from is None and processed.calibration.compensation:
+                compensated_from = float(recording.times[index])
     session.close()
-    return corrected, noise_free, first, session
+    return corrected, noise_free, first, session, compensated_from
 
 
 def quick(seed: int) -> tuple[CourseRecording, CourseRecording, np.ndarray, np.ndarray,
@@ -242,17 +242,17 @@ def one_seed(seed: int) -> dict[str, tuple[float, float, int, float]]:
                 course_recording(robot(seed, noise_ut=0.0, **kwargs), rate_hz=RATE_HZ))
 
     _, quiet, clean = record(interference=False)
-    corrected, noise_free, _, _ = live(quiet, clean)
+    corrected, noise_free, _, _, _ = live(quiet, clean)
     results['no interference, live calibrator'] = (*heading(corrected, quiet),
                                                    heading(noise_free, clean)[0])
-    compensating, noise_free, _, session = live(quiet, clean, COMPENSATING, inputs=True)
+    compensating, noise_free, _, session, _ = live(quiet, clean, COMPENSATING, inputs=True)
     results['no interference, compensating'] = (*heading(compensating, quiet),
                                                 heading(noise_free, clean)[0])
     both = np.all(np.isfinite(corrected) & np.isfinite(compensating), axis=1) & quiet.moving
     difference = azimuth_errors_deg(compensating[both], corrected[both]) if both.any() else []
     learned = session.calibration.compensation if session.calibration else None
     print(f'seed {seed}: no interference: compensation in force {learned}; adoptions '
-          f'{session.adoptions}; heading difference to the floor '
+          f'{session.report().counts.adoptions}; heading difference to the floor '
           f'{float(np.sqrt(np.mean(np.square(difference)))):.3f}° RMS', flush=True)
     for name, kind in (('current', {'temperature': False}), ('temperature', {'current': False}),
                        ('both', {})):
@@ -260,14 +260,14 @@ def one_seed(seed: int) -> dict[str, tuple[float, float, int, float]]:
         results[f'static, perfect, {name}'] = (
             *heading(static_perfect(board, recording), recording),
             heading(static_perfect(board, clean), clean)[0])
-    corrected, noise_free, first, session = live(recording, clean)
+    corrected, noise_free, first, session, _ = live(recording, clean)
     results['live calibrator, today'] = (*heading(corrected, recording),
                                          heading(noise_free, clean)[0])
     truth = board.interference_truth()
-    corrected, noise_free, _, learning = live(recording, clean, COMPENSATING, inputs=True)
+    corrected, noise_free, _, learning, since = live(recording, clean, COMPENSATING,
+                                                    inputs=True)
     results['live calibrator, compensating'] = (*heading(corrected, recording),
                                                 heading(noise_free, clean)[0])
-    since = learning.compensated_from
     if since is not None:
         results['  the same, once compensating'] = (*heading(corrected, recording, since),
                                                    heading(noise_free, clean, since)[0])
@@ -286,24 +286,25 @@ def one_seed(seed: int) -> dict[str, tuple[float, float, int, float]]:
     print(f'seed {seed}: quick procedure answered after {took} s: {answer}; K = '
           f'{None if learned_q is None else learned_q.interference[:, 0] * 1e6} uT/A, c = '
           f'{None if learned_q is None else learned_q.temperature_coefficient * 1e6} uT/°C '
-          f'at the end; adoptions {session_q.adoptions}', flush=True)
+          f'at the end; adoptions {session_q.report().counts.adoptions}', flush=True)
     learned_answer, calibrated, asked = calibrate_after_learning(seed)
     _, twin, _ = calibrate_after_learning(seed, current=False, ask_at=asked)
     print(f'seed {seed}: ~/calibrate as ~/learn_compensation answered ({learned_answer[:60]}'
           f"...) at {asked:.1f} s: {calibrated}\n  the twin without the current's field, "
           f'asked then: {twin}', flush=True)
     learned = learning.calibration.compensation if learning.calibration else None
+    report = learning.report()
     if learned is not None:
         print(f'seed {seed}: learned K = {learned.interference[:, 0] * 1e6} uT/A, c = '
               f'{learned.temperature_coefficient * 1e6} uT/°C around '
-              f'{learned.reference_temperature} °C; adoptions {learning.adoptions}, the '
-              f'first at {since} s; needs: {learning.compensation.needs() or "nothing"}',
+              f'{learned.reference_temperature} °C; adoptions {report.counts.adoptions}, the '
+              f'first at {since} s; needs: {report.compensation_needs or "nothing"}',
               flush=True)
     else:
-        print(f'seed {seed}: nothing learned: {learning.compensation.needs()}', flush=True)
+        print(f'seed {seed}: nothing learned: {report.compensation_needs}', flush=True)
     print(f'seed {seed}: first calibration at {first} s of the course '
           f'({session.calibration.model if session.calibration else "none"}, adoptions '
-          f'{session.adoptions}); current {recording.current_a.min():.2f}-'
+          f'{session.report().counts.adoptions}); current {recording.current_a.min():.2f}-'
           f'{recording.current_a.max():.2f} A, die {recording.temperature_c[0]:.1f}-'
           f'{recording.temperature_c[-1]:.1f} °C; truth K = {truth.current_field * 1e6} uT/A, '
           f'c = {truth.temperature_drift * 1e6} uT/°C, T0 = {truth.reference_temperature_c} °C',

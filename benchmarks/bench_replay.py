@@ -61,6 +61,7 @@ from std_srvs.srv import Trigger  # noqa: E402
 from mag_calibrator_ros.calibration.fit.calibration import Calibration  # noqa: E402
 from mag_calibrator_ros.calibration.fit.fitting import FitOptions, fit_calibration  # noqa: E402
 from mag_calibrator_ros.calibration.fit.robust import mad_sigma  # noqa: E402
+from mag_calibrator_ros.calibration.live.offline import calibrate_now  # noqa: E402
 from mag_calibrator_ros.calibration.live.session import CalibrationSession  # noqa: E402
 from mag_calibrator_ros.calibration.live.settings import SessionSettings  # noqa: E402
 from mag_calibrator_ros.calibration.store.calibration_file import save_calibration  # noqa: E402
@@ -204,8 +205,8 @@ def replay(threads: NodeThreads, context: Context, directory: Path, number: int,
     converged: list[int] = []
 
     def watch(index: int) -> None:
-        state = getattr(node.session, 'state', '')
-        if not converged and state == 'calibrated-converged':
+        if not converged and node.session.calibration is not None \
+                and node.session.report().state == 'calibrated-converged':
             converged.append(index)
 
     rows = passes[-1]
@@ -216,13 +217,14 @@ def replay(threads: NodeThreads, context: Context, directory: Path, number: int,
     with feeder._lock:
         corrected = dict(feeder.corrected)
     session = node.session
+    report = session.report()
     result = {
         'rows': len(rows),
         'first': min(corrected) if corrected else None,
         'converged': converged[0] if converged else None,
         'received': len(corrected),
-        'adoptions': dict(getattr(session, 'adoptions', {})),
-        'state': getattr(session, 'state', '?'),
+        'adoptions': dict(report.counts.adoptions),
+        'state': report.state,
     }
     last_pass = np.array([corrected[i] for i in range(total - len(rows), total)
                           if i in corrected])
@@ -261,16 +263,17 @@ def offline_replay(spec: Replay, passes: list[np.ndarray], args: argparse.Namesp
             index += 1
             if index % 50 == 0:
                 session.poll()
-            if converged is None and session.state == 'calibrated-converged':
+            if converged is None and session.calibration is not None \
+                    and session.report().state == 'calibrated-converged':
                 converged = index
             session.take_events()
     live = np.array(last_pass)
-    adoptions = dict(session.adoptions)
-    attempt = session.calibrate_now()
+    adoptions = dict(session.report().counts.adoptions)
+    attempt = calibrate_now(session)
     result = {
         'rows': len(rows), 'first': first, 'converged': converged, 'received': index,
         'adoptions': adoptions,
-        'state': session.state,
+        'state': session.report().state,
         'live_spread': spread_pct(live) if len(live) else np.nan,
         'live_robust': robust_spread_pct(live) if len(live) else np.nan,
         'calibrate_spread': (spread_pct(session.calibration.apply(rows))
@@ -345,15 +348,15 @@ def wrong_file_section(threads, context, directory, args) -> tuple[list[list[str
                                              parameter_overrides=[
             Parameter('calibration_file', value=str(path)),
             Parameter('progress_log_period', value=0.0)]))
-        wait(lambda calibrator=node: calibrator.session.accepted > 0, 30.0)
+        wait(lambda calibrator=node: calibrator.session.report().counts.accepted > 0, 30.0)
         first = time.monotonic()
         warned = recalibrated = None
         deadline = first + 90.0
         while time.monotonic() < deadline and recalibrated is None:
-            state = node.session.state
-            if warned is None and state == 'calibrated-misfit':
+            report = node.session.report()
+            if warned is None and report.state == 'calibrated-misfit':
                 warned = time.monotonic() - first
-            if node.session.adoptions.get('auto'):
+            if report.counts.adoptions.get('auto'):
                 recalibrated = time.monotonic() - first
             time.sleep(0.02)
         ok = (warned is not None and warned <= WARN_TARGET_S and recalibrated is not None
