@@ -18,6 +18,7 @@ from test_recordings import write_bag
 import yaml
 
 from mag_calibrator_ros.calibration.fit.fitting import FitOptions, fit_calibration
+from mag_calibrator_ros.calibration.live.offline import calibrate_now, feed
 from mag_calibrator_ros.calibration.live.screening import reading_problem
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
@@ -125,19 +126,20 @@ def test_buffer_mode_streams_through_the_live_session_as_the_node_does(shared_da
                                          '--rate', str(rate)])
     session = CalibrationSession(SessionSettings(buffer_size=60, k=5, full_scale=0.0),
                                  metadata={'units': 'input'})  # as the CLI: unit not stated
-    session.feed(read_recording(path).samples, rate_hz=rate)
-    expected = session.calibrate_now()
+    feed(session, read_recording(path).samples, rate_hz=rate)
+    expected = calibrate_now(session)
+    live = session.report()
     assert code == 0
     assert expected.success
     calibration = expected.outcome.result.calibration
     np.testing.assert_array_equal(summary['offset'], calibration.offset)
     np.testing.assert_array_equal(summary['matrix'], calibration.matrix)
     info = summary['buffer']
-    assert (info['capacity'], info['k'], info['fill']) == (60, 5, session.buffer.fill)
-    assert info['accepted'] == 324 and info['held_out'] == 324 - session.buffer.seen
+    assert (info['capacity'], info['k'], info['fill']) == (60, 5, live.buffer.fill)
+    assert info['accepted'] == 324 and info['held_out'] == 324 - live.buffer.seen
     assert 0 < info['held_out'] < 324 // 3  # only once calibrated (automatically, live)
-    assert info['fits'] == session.jobs_run and info['live_state'] == session.state
-    assert summary['metrics']['n_samples'] == session.buffer.fill
+    assert info['fits'] == live.counts.fits and info['live_state'] == live.state
+    assert summary['metrics']['n_samples'] == live.buffer.fill
 
 
 def test_all_mode_fits_every_sample(shared_data, capsys):

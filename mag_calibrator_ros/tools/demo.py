@@ -260,14 +260,14 @@ def collect(calibrator: MagCalibratorNode, target: float, timeout_s: float) -> f
     start = time.monotonic()
     last_line = -math.inf
     coverage = 0.0
+    capacity = int(calibrator.get_parameter('buffer_size').value)  # the session's buffer size
     while True:
         elapsed = time.monotonic() - start
-        buffer = calibrator.session.buffer
-        samples = buffer.samples  # a copy: safe while the executor keeps adding
+        samples = calibrator.session.view().raw  # a copy: safe while the executor keeps adding
         coverage = direction_coverage(samples).fraction if len(samples) >= 10 else 0.0
-        full = len(samples) >= buffer.capacity
+        full = len(samples) >= capacity
         if interactive or elapsed - last_line >= 2.0 or (coverage >= target and full):
-            line = progress_bar(coverage, len(samples), buffer.capacity, elapsed)
+            line = progress_bar(coverage, len(samples), capacity, elapsed)
             print(line if interactive else line.strip(), end='' if interactive else '\n',
                   flush=True)
             last_line = elapsed

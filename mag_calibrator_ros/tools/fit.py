@@ -67,7 +67,8 @@ from mag_calibrator_ros.calibration.fit.input_sanity import field_unit_problem, 
 from mag_calibrator_ros.calibration.live.buffer import DEFAULT_CAPACITY, DEFAULT_K
 from mag_calibrator_ros.calibration.live.gravity import GravityTracker, RateCheck
 from mag_calibrator_ros.calibration.live.jobs import FitJob, run_job
-from mag_calibrator_ros.calibration.live.pairing import force_problem
+from mag_calibrator_ros.calibration.live.offline import calibrate_now
+from mag_calibrator_ros.calibration.live.pairing import ImuPairing, force_problem
 from mag_calibrator_ros.calibration.live.screening import VALUE_REASONS, reading_problem
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
@@ -380,7 +381,7 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
             fitted = own_field.without_own_field(recording, learned)
             session = streamed(settings, metadata, recording, fitted, clock, earth, progress,
                                start=None if start is None else fit_start.second_start(learner))
-        attempt = session.calibrate_now()
+        attempt = calibrate_now(session)
         if attempt.outcome is None or attempt.outcome.result is None:
             raise UsageError(attempt.message)
         outcome = attempt.outcome
@@ -404,11 +405,14 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     result = outcome.result
     progress.finish()
     if session is not None:
-        rates = session.pairing.gravity.rates
-    gyro_problem = '' if rates is None else rates.problem()
+        imu = session.report().imu
+        gyro_problem, in_degrees = imu.gyro_problem, imu.gyro_in_degrees
+    else:
+        gyro_problem = '' if rates is None else rates.problem()
+        in_degrees = rates is not None and rates.looks_like_degrees
     if gyro_problem:
         text = recording.kind == 'text'
-        hint = ' (--gyro-units gives their unit)' if rates.looks_like_degrees and text else ''
+        hint = ' (--gyro-units gives their unit)' if in_degrees and text else ''
         what = 'the gyroscope columns' if text else "the Imu messages' angular_velocity"
         recording = replace(recording, notes=(*recording.notes, f'{what}: {gyro_problem}{hint}'))
 
@@ -435,8 +439,9 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
                             written, plotted)
     summary['compensation'] = _finite(own_field.summary(recording, calibration, learner))
     if learner is not session and learner is not None:  # what the first pass did, learning
-        summary['buffer']['learning_pass'] = {'fits': dict(learner.jobs_run),
-                                              'live_adoptions': dict(learner.adoptions)}
+        counts = learner.report().counts
+        summary['buffer']['learning_pass'] = {'fits': dict(counts.fits),
+                                              'live_adoptions': dict(counts.adoptions)}
     alignment, earth_check = outcome.alignment, outcome.earth_check
     if answer is not None and answer['answer'] == 'in force':
         alignment, earth_check = fit_start.in_force_reference(session, calibration, reference)
@@ -683,18 +688,18 @@ def streamed(settings: SessionSettings, metadata: dict[str, Any], recording: Rec
     """A live session that has seen ``samples`` (the recording's, or them without the robot's
     own field) with the recording's clock and IMU, and with its own-field inputs when
     ``learn_own_field``; ``start`` in force from the first (as the node's calibration_file)."""
-    session = CalibrationSession(settings, metadata=metadata)
-    if recording.kind == 'text':
-        session.pairing.force_range = None  # a log's accelerometer may be in g or counts
-    session.attitudes = StaticAttitudes(clock=clock.stamped)
+    text = recording.kind == 'text'  # a log's accelerometer may be in g or counts
+    session = CalibrationSession(
+        own_field.learning_settings(settings, recording) if learn_own_field else settings,
+        metadata=metadata, pairing=ImuPairing(force_range=None) if text else None,
+        attitudes=StaticAttitudes(clock=clock.stamped),
+        input_names=recording.input_names if learn_own_field else None)
     session.set_earth_field(earth)
-    if learn_own_field:
-        own_field.configure(session, recording)
     if start is not None:  # once the inputs are named: where it is right depends on them
         session.apply_calibration(start, 'file')
     stream(session, samples, clock.stamps_ns, progress, recording.accel, recording.gyro,
            recording if learn_own_field else None)
-    session.attitudes.finish()  # the recording ends: its last still stretch too
+    session.finish()  # the recording ends: its last still stretch too
     return session
 
 
@@ -836,22 +841,23 @@ def build_summary(
         'outputs': {'calibration': written, 'plot': plotted},
     }
     if session is not None:
-        buffer = session.buffer
+        live = session.report(measure_coverage=True)
+        buffer, counts = live.buffer, live.counts
         summary['buffer'] = {
             'capacity': buffer.capacity,
             'k': buffer.k,
             'fill': buffer.fill,
             'seen': buffer.seen,
-            'accepted': session.accepted,
-            'held_out': session.accepted - buffer.seen,
-            'readings_held': int(round(float(np.sum(buffer.counts)))),
+            'accepted': counts.accepted,
+            'held_out': counts.accepted - buffer.seen,
+            'readings_held': int(round(buffer.readings_held)),
             'merged': buffer.merged,
             'evicted': buffer.evicted,
-            'fits': dict(session.jobs_run),
-            'live_state': session.state,
-            'live_adoptions': dict(session.adoptions),
+            'fits': dict(counts.fits),
+            'live_state': live.state,
+            'live_adoptions': dict(counts.adoptions),
         }
-        summary['rejects'] = session.rejects()
+        summary['rejects'] = dict(counts.rejects)
     else:
         summary['rejects'] = {reason: (screening or {}).get(reason, 0)
                               for reason in (*VALUE_REASONS, 'duplicate', 'magnitude_outlier')}

@@ -16,6 +16,7 @@ learned (each compensation put in force moves them, but chose none of them).
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 import math
 from typing import Any
 
@@ -23,7 +24,9 @@ import numpy as np
 
 from mag_calibrator_ros.calibration.fit.calibration import Calibration, Compensation
 from mag_calibrator_ros.calibration.live.compensation import input_columns
+from mag_calibrator_ros.calibration.live.jobs import kept_compensation
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
+from mag_calibrator_ros.calibration.live.settings import SessionSettings
 from mag_calibrator_ros.tools.recording_value import Recording
 
 HELP = (
@@ -82,10 +85,10 @@ def bag_options(args: argparse.Namespace) -> list[str]:
             if value is not None]
 
 
-def configure(session: CalibrationSession, recording: Recording) -> None:
-    """Name the recording's inputs to the session's learner, the temperature on when logged."""
-    session.compensation.name_inputs(recording.input_names)
-    session.compensation.use_temperature = recording.temperature is not None
+def learning_settings(settings: SessionSettings, recording: Recording) -> SessionSettings:
+    """``settings`` for a session that learns the recording's own field: the temperature on
+    when logged (its inputs are the session's ``input_names``: ``recording.input_names``)."""
+    return replace(settings, use_temperature=recording.temperature is not None)
 
 
 def feed(session: CalibrationSession, recording: Recording, index: int, stamp_ns: int) -> None:
@@ -94,11 +97,11 @@ def feed(session: CalibrationSession, recording: Recording, index: int, stamp_ns
     if recording.temperature is not None:
         celsius = float(recording.temperature[index])
         if math.isfinite(celsius):
-            session.compensation.temperature(stamp_ns, celsius)
+            session.process_temperature(stamp_ns, celsius)
     if recording.inputs is not None:
         for column, value in enumerate(recording.inputs[index].tolist()):
             if math.isfinite(value):
-                session.compensation.input(column, stamp_ns, value)
+                session.process_input(column, stamp_ns, value)
 
 
 def with_learned(calibration: Calibration | None, session: CalibrationSession | None
@@ -107,13 +110,13 @@ def with_learned(calibration: Calibration | None, session: CalibrationSession | 
     compensated by it, so it belongs with it)."""
     if calibration is None or session is None or session.calibration is None:
         return calibration
-    return session.compensation.carry(calibration, session.calibration, 'calibrate')
+    return kept_compensation(calibration, session.calibration)
 
 
 def learned(session: CalibrationSession) -> Compensation | None:
     """The compensation the session learned and holds in force at the recording's end (None
     when it learned none: a calibration it started from may bring its own)."""
-    if session.calibration is None or not session.adoptions.get('compensation'):
+    if session.calibration is None or not session.report().counts.adoptions.get('compensation'):
         return None
     return session.calibration.compensation
 
@@ -174,7 +177,7 @@ def summary(recording: Recording, calibration: Calibration | None,
         found['needs'] = ('the compensation is learned by the buffer as the node does; drop '
                           '--all to learn it')
     else:
-        found['needs'] = session.compensation.needs() or (
+        found['needs'] = session.report().compensation_needs or (
             '' if found['learned'] else 'no compensation fit ran: the recording needs a '
             'calibration in force first and at least 200 readings with the inputs after it')
     return found
@@ -212,5 +215,5 @@ def lines(found: dict[str, Any] | None, units: str) -> list[str]:
     return out
 
 
-__all__ = ['add_arguments', 'bag_options', 'configure', 'feed', 'learned', 'lines',
+__all__ = ['add_arguments', 'bag_options', 'feed', 'learned', 'learning_settings', 'lines',
            'reader_option', 'summary', 'text_options', 'with_learned', 'without_own_field']

@@ -59,7 +59,7 @@ HELP = ("start from a saved calibration (a node's calibration_file, or an earlie
 
 CHANGES = {'compensation': 'own field learned', 'refine': 'refined', 'auto': 'recalibrated',
            'realign': 'realigned to the IMU', 'tracking': 'tracked'}
-"""What each ``CalibrationSession.adoptions`` source did to the calibration in force."""
+"""What each source of ``SessionCounts.adoptions`` did to the calibration in force."""
 
 
 class StartError(ValueError):
@@ -180,7 +180,7 @@ def answer(loaded: LoadedCalibration, sessions: tuple[CalibrationSession, Calibr
                 else own_field.without_own_field(recording, calibration.compensation))
     changes: dict[str, int] = {}
     for each in {id(each): each for each in sessions}.values():  # one, or two passes
-        for source, count in each.adoptions.items():
+        for source, count in each.report().counts.adoptions.items():
             if source not in ('file', 'request'):
                 changes[source] = changes.get(source, 0) + count
     found = {'file': str(loaded.path), 'notes': list(loaded.notes),
@@ -200,7 +200,7 @@ def in_force_reference(session: CalibrationSession, calibration: Calibration,
     model."""
     earth_check = None if reference is None else reference.check(
         calibration.field_radius(), calibration.metadata_number('dip_deg'))
-    return session.findings.alignment, earth_check
+    return session.report().alignment, earth_check
 
 
 def reason(found: dict[str, Any], gate_pct: float) -> str:
