@@ -14,6 +14,7 @@ from mag_calibrator_ros.calibration.fit.input_sanity import (
 )
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
+from mag_calibrator_ros.nodes.mag_calibrator_parameters import AK09916_FULL_SCALE_T
 from mag_calibrator_ros.sim.board import BoardModel, board_readings
 from mag_calibrator_ros.sim.config import SimConfig
 from mag_calibrator_ros.tools.fit import EXIT_USAGE, main
@@ -82,7 +83,7 @@ def stream(session: CalibrationSession, mag, accel=None, gyro=None) -> list:
 @pytest.mark.parametrize('factor', [1e4, 1e6])  # gauss, µT published in a tesla field
 def test_a_wrong_unit_is_said_within_a_second_and_never_fitted(factor):
     mag, _, _ = raw_tumble(12.0)
-    session = CalibrationSession()
+    session = CalibrationSession(SessionSettings(full_scale=AK09916_FULL_SCALE_T))  # the node's
     said = stream(session, mag * factor)
     warnings = [(t, e.message) for t, e in said if 'cannot be tesla' in e.message]
     assert len(warnings) == 1 and warnings[0][0] < 1.0

@@ -15,8 +15,9 @@ from mag_calibrator_ros.calibration.live.backlog import DRAIN_FOR_REQUEST, DRAIN
 from mag_calibrator_ros.calibration.live.evidence import HOLD_OUT_EVERY, magnitude_residual_pct
 from mag_calibrator_ros.calibration.live.jobs import FitJob, JobOutcome, run_job
 from mag_calibrator_ros.calibration.live.session import REFUSAL_REASONS, CalibrationSession
-from mag_calibrator_ros.calibration.live.settings import AK09916_FULL_SCALE_T, SessionSettings
+from mag_calibrator_ros.calibration.live.settings import SessionSettings
 from mag_calibrator_ros.calibration.live.verdicts import bounded_step, coverage_kept
+from mag_calibrator_ros.nodes.mag_calibrator_parameters import AK09916_FULL_SCALE_T
 from mag_calibrator_ros.sim import motion
 
 FIELD_T = 50e-6
@@ -104,7 +105,8 @@ def settle(session, runner):
 
 
 def test_every_refusal_is_counted_once_and_nothing_refused_is_corrected():
-    session = CalibrationSession(calibration=EXACT)
+    session = CalibrationSession(SessionSettings(full_scale=AK09916_FULL_SCALE_T),
+                                 calibration=EXACT)  # the node's limit: the engine has none
     good = (20e-6, 30e-6, -10e-6)
     assert session.process(100, 'imu_link', good).accepted
     cases = [(math.nan, 0.0, 1e-6), (0.0, 0.0, 0.0), (AK09916_FULL_SCALE_T, 0.0, 0.0),

@@ -24,11 +24,16 @@ from mag_calibrator_ros.calibration.store.calibration_file import (
     CalibrationFileError,
     resolve_calibration_path,
 )
+from mag_calibrator_ros.icm20948 import registers as reg
 from mag_calibrator_ros.nodes.location import parameter_location_problems
 from mag_calibrator_ros.nodes.turning import turn_settings_from
 
 DEFAULTS = SessionSettings()
 TURN_DEFAULTS = TurnSettings()
+
+AK09916_FULL_SCALE_T = reg.MEASUREMENT_LIMIT * reg.TESLA_PER_LSB
+"""The AK09916 saturates at its measurement limit (ST2 HOFL beyond it), in tesla: the
+``full_scale`` default (the engine's own is 0, no check: it knows no chip)."""
 
 
 def _float_range(low: float, high: float) -> list[FloatingPointRange]:
@@ -58,7 +63,7 @@ PARAMETERS: dict[str, tuple[object, str, dict]] = {
     'max_residual_pct': (DEFAULTS.max_residual_pct,
                          'Largest accepted RMS magnitude residual, % of the field.',
                          {'floating_point_range': _float_range(0.01, 100.0)}),
-    'full_scale': (DEFAULTS.full_scale,
+    'full_scale': (AK09916_FULL_SCALE_T,
                    'Tesla; a component at or beyond it is saturated and refused (0 = no check).',
                    {'floating_point_range': _float_range(0.0, 1.0)}),
     'auto_calibrate': (DEFAULTS.auto_calibrate,

@@ -19,10 +19,6 @@ from mag_calibrator_ros.calibration.fit.earth_field import (
 from mag_calibrator_ros.calibration.fit.fitting import FitOptions
 from mag_calibrator_ros.calibration.live.buffer import DEFAULT_CAPACITY, DEFAULT_K
 from mag_calibrator_ros.calibration.live.inputs import input_problems
-from mag_calibrator_ros.icm20948 import registers as reg
-
-AK09916_FULL_SCALE_T = reg.MEASUREMENT_LIMIT * reg.TESLA_PER_LSB
-"""The AK09916 saturates at its measurement limit (ST2 HOFL beyond it), in tesla."""
 
 FITTABLE_MODELS = tuple(MODELS)
 
@@ -41,8 +37,9 @@ class SessionSettings:
     """Input units (tesla in the node); 0 keeps the fitted mean radius (magnitude preserved)."""
     min_coverage: float = float(DEFAULT_FIT.min_coverage)
     max_residual_pct: float = float(DEFAULT_FIT.max_residual_pct)
-    full_scale: float = AK09916_FULL_SCALE_T
-    """A component at or beyond it is saturated. 0 disables the check."""
+    full_scale: float = 0.0
+    """A component at or beyond it is saturated. 0 (the default: the engine knows no chip)
+    disables the check; the node passes its magnetometer's limit."""
     auto_calibrate: bool = True
     auto_calibrate_period: float = 2.0
     """Stream seconds between automatic fits that failed, so a failing fit does not run on
@@ -147,4 +144,4 @@ class SessionSettings:
             expected_inclination_deg=None if earth is None else earth.inclination_deg)
 
 
-__all__ = ['AK09916_FULL_SCALE_T', 'DEFAULT_FIT', 'FITTABLE_MODELS', 'SessionSettings']
+__all__ = ['DEFAULT_FIT', 'FITTABLE_MODELS', 'SessionSettings']
