@@ -48,7 +48,7 @@ def run(mag, accel, gyro, imu: bool = True):
         if first is None and any(event.adopted for event in new):
             first_s, first = index / RATE_HZ, session.calibration
         if index % int(RATE_HZ) == 0 and session.calibration is None:
-            progress.append(session.progress_text())
+            progress.append(session.report(measure_coverage=True).progress)
     return session, first_s, first, events, progress
 
 
@@ -68,7 +68,7 @@ def test_the_first_calibration_waits_for_still_tilts_and_goes_in_force_aligned(
     waiting = [line for line in progress if 'waiting for still tilts' in line]
     assert waiting and 'hold the sensor still' in waiting[0]
     assert sum('waiting for still tilts' in e.message for e in events if e.level == 'info') == 1
-    assert session.adoptions.get('auto') == 1
+    assert session.report().counts.adoptions.get('auto') == 1
 
 
 def test_a_sensor_never_held_still_is_calibrated_unaligned_after_the_bound():
@@ -89,4 +89,4 @@ def test_without_an_imu_nothing_waits():
     session, first_s, first, events, progress = run(mag, accel, gyro, imu=False)
     assert first is not None and first_s < 12.0
     assert not any('still tilts' in line for line in progress)
-    assert 'alignment_wait_s' not in session.diagnostic_values(12.0)
+    assert 'alignment_wait_s' not in session.report(12.0, measure_coverage=True).values

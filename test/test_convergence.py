@@ -16,6 +16,7 @@ import pytest
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
 from mag_calibrator_ros.calibration.live.evidence import Comparison
 from mag_calibrator_ros.calibration.live.findings import Findings
+from mag_calibrator_ros.calibration.live.offline import calibrate_now
 from mag_calibrator_ros.calibration.live.report import could_be_better
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.calibration.live.verdicts import COVERAGE_SLACK, coverage_kept
@@ -72,8 +73,8 @@ def test_the_calibration_in_force_ends_as_good_as_a_requested_fit(seed):
         last = with_noise(raw, 0.02, rng)
         index = feed(session, last, index)
     live = session.calibration
-    assert live is not None and session.adoptions.get('auto') == 1
-    attempt = session.calibrate_now()
+    assert live is not None and session.report().counts.adoptions.get('auto') == 1
+    attempt = calibrate_now(session)
     assert attempt.success, attempt.message
     requested = session.calibration
     assert requested is not live
@@ -117,7 +118,8 @@ def test_no_adoption_is_worse_on_the_true_field_with_spikes_disturbances_and_a_m
             if session.calibration is not in_force:
                 in_force = session.calibration
                 errors.append(truth_error(in_force, raw))
-    assert session.adoptions.get('auto') == 1, session.adoptions
+    adoptions = session.report().counts.adoptions
+    assert adoptions.get('auto') == 1, adoptions
     assert errors
     for before, after in zip(errors, errors[1:], strict=False):
         assert after <= 1.1 * before, errors
@@ -152,13 +154,14 @@ def test_diagnostics_report_the_headroom_of_the_calibration_in_force_until_it_ch
     index = 0
     for _ in range(4):
         index = feed(session, with_noise(raw, 0.02, rng), index)
-    values = session.diagnostic_values(0.0)
-    assert session.jobs_run.get('refine', 0) >= 2
+    report = session.report(0.0, measure_coverage=True)
+    values = report.values
+    assert report.counts.fits.get('refine', 0) >= 2
     assert values['could_be_better_pct'] >= 0.0
     assert values['could_be_better']
-    attempt = session.calibrate_now()
+    attempt = calibrate_now(session)
     assert attempt.success
-    assert 'could_be_better_pct' not in session.diagnostic_values(0.0)  # judged the old one
+    assert 'could_be_better_pct' not in session.report(0.0).values  # judged the old one
 
 
 def test_a_fit_one_or_two_cells_narrower_may_replace_the_calibration_in_force():

@@ -2,6 +2,7 @@
 
 from pathlib import Path
 import sys
+from typing import NamedTuple
 
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -29,6 +30,7 @@ from mag_calibrator_ros.calibration.fit.coverage import (
 )
 from mag_calibrator_ros.calibration.fit.heading import TURN_STILL_HINT
 from mag_calibrator_ros.calibration.live.hints import UNDECIDED_STILL_HINT
+from mag_calibrator_ros.calibration.live.offline import calibrate_now, feed
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
 from mag_calibrator_ros.sim.motion import body_field_samples
@@ -353,13 +355,34 @@ def test_fitting_still_data_fails_even_without_the_coverage_gate():
     assert not result.success
 
 
+class StreamedBuffer(NamedTuple):
+    """The live session's buffer as a fit of it gets it (the job ``~/calibrate`` runs)."""
+
+    samples: np.ndarray
+    counts: np.ndarray
+    readings: np.ndarray
+    reference: Calibration | None
+
+    def coverage(self) -> Coverage:
+        """As SampleBuffer.coverage: through the buffer's reference, the shell checked against
+        the readings."""
+        return direction_coverage(self.samples, self.reference, self.readings)
+
+
 def streamed_buffer(raw, capacity=100):
     """The buffer as the live session keeps it: its own reference fits, merging, held-out
-    readings (the session never calibrates here, so the buffer is all there is)."""
+    readings (the session never calibrates here, so the buffer is all there is). Its units are
+    not tesla's: nothing refuses the request that shows the buffer (only fits that could go in
+    force are refused for a unit, so the buffer learns the same in any)."""
     settings = SessionSettings(buffer_size=capacity, auto_calibrate=False, full_scale=0.0)
-    session = CalibrationSession(settings)
-    session.feed(raw, rate_hz=50.0)
-    return session.buffer
+    session = CalibrationSession(settings, metadata={'units': 'x'})
+    feed(session, raw, rate_hz=50.0)
+    reported = session.report(measure_coverage=True).coverage
+    job = calibrate_now(session).outcome.job
+    buffer = StreamedBuffer(job.samples, job.weights, job.readings, job.reference)
+    if reported.cells == CELL_COUNT:  # the session reports this coverage (with its own hint)
+        assert reported.fraction == buffer.coverage().fraction
+    return buffer
 
 
 @pytest.mark.parametrize('unit', sorted(UNITS))
@@ -479,10 +502,11 @@ def test_session_calibrates_a_tumble_with_a_large_offset(case):
     """The node's logic (tesla): auto-calibration starts and succeeds."""
     field, offset = STRONG_OFFSETS[case]
     session = CalibrationSession()
-    session.feed(sensor_readings('tumble', field, offset) * 1e-6, rate_hz=50.0)
-    assert 'rotate' not in session.progress_text()
-    assert session.adoptions.get('auto') == 1, [e.message for e in session.take_events()]
-    assert session.state.startswith('calibrated')
+    feed(session, sensor_readings('tumble', field, offset) * 1e-6, rate_hz=50.0)
+    report = session.report(measure_coverage=True)
+    assert 'rotate' not in report.progress
+    assert report.counts.adoptions.get('auto') == 1, [e.message for e in session.take_events()]
+    assert report.state.startswith('calibrated')
     np.testing.assert_allclose(
         session.calibration.offset, offset * 1e-6 * OFFSET_DIRECTION, atol=0.02 * field * 1e-6
     )
@@ -492,12 +516,12 @@ def test_session_calibrates_a_tumble_with_a_large_offset(case):
 def test_session_fed_a_still_sensor_says_rotate_and_does_not_calibrate(case):
     field, offset = STRONG_OFFSETS[case]
     session = CalibrationSession()
-    session.feed(sensor_readings('still', field, offset) * 1e-6, rate_hz=50.0)
+    feed(session, sensor_readings('still', field, offset) * 1e-6, rate_hz=50.0)
     # still, a robot or a hand alike: said, with no rotation a robot could not make (issue 24)
-    assert UNDECIDED_STILL_HINT in session.progress_text()
+    assert UNDECIDED_STILL_HINT in session.report(measure_coverage=True).progress
     assert session.calibration is None
-    assert not session.calibrate_now().success
-    assert session.state == 'collecting'
+    assert not calibrate_now(session).success
+    assert session.report().state == 'collecting'
 
 
 @pytest.mark.parametrize('offset_fields', [0.0, 5.0, 15.0])

@@ -20,6 +20,7 @@ from mag_calibrator_ros.calibration.live.gravity import (
     GravityTracker,
     RateCheck,
 )
+from mag_calibrator_ros.calibration.live.offline import calibrate_now, feed
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
 from mag_calibrator_ros.sim import motion
@@ -175,9 +176,9 @@ def test_a_planar_fit_after_a_straight_leg_is_not_tilted_by_its_start_and_stop()
     board = robot()
     recording = course_recording(board, motion.CourseDriver(TURN_AND_DRIVE), rate_hz=RATE_HZ)
     session = CalibrationSession(SessionSettings())
-    session.feed(recording.mag, RATE_HZ, frame_id='imu_link', accel=recording.accel,
-                 gyro=recording.gyro)
-    attempt = session.calibrate_now()
+    feed(session, recording.mag, RATE_HZ, frame_id='imu_link', accel=recording.accel,
+         gyro=recording.gyro)
+    attempt = calibrate_now(session)
     assert attempt.success, attempt.message
     assert 'levelled by gravity' in attempt.message
     calibration = session.calibration
@@ -216,11 +217,11 @@ def test_the_session_levels_only_by_what_was_gravity():
     board = robot()
     recording = course_recording(board, motion.CourseDriver(TURN_AND_DRIVE), rate_hz=RATE_HZ)
     session = CalibrationSession(SessionSettings(auto_calibrate=False))
-    session.feed(recording.mag, RATE_HZ, frame_id='imu_link', accel=recording.accel,
-                 gyro=recording.gyro)
-    assert session.pairing.gravity.rejected > 50
-    assert session.diagnostic_values(0.0)['imu_samples_accelerating'] \
-        == session.pairing.gravity.rejected
+    feed(session, recording.mag, RATE_HZ, frame_id='imu_link', accel=recording.accel,
+         gyro=recording.gyro)
+    report = session.report(0.0, measure_coverage=True)
+    assert report.imu.accelerating > 50
+    assert report.values['imu_samples_accelerating'] == report.imu.accelerating
 
 
 def test_a_gyroscope_that_does_not_turn_with_the_accelerometer_is_named():
@@ -296,9 +297,9 @@ def test_the_check_follows_a_gyroscope_that_changes_and_forgets_on_a_restart():
                                   strict=True):
         session.process_imu(stamp, 'imu_link', force, rate)
     said = [event for event in session.take_events() if 'angular_velocity' in event.message]
-    assert len(said) == 1
-    session.pairing.clear()
-    assert session.pairing.warning() == ''
+    assert len(said) == 1 and 'angular_velocity' in session.report().imu.warning
+    session.reset()  # another sensor may follow: the check starts anew
+    assert session.report().imu.warning == ''
     for stamp, force, rate in zip(stamps.tolist(), accel.tolist(), np.degrees(gyro).tolist(),
                                   strict=True):
         session.process_imu(stamp + stamps[-1] + 10**9, 'imu_link', force, rate)
@@ -313,17 +314,17 @@ def test_a_ground_robot_is_warned_of_a_gyroscope_in_degrees_once():
     recording = course_recording(robot(), motion.CourseDriver(motion.GROUND_COURSE[:8]),
                                  rate_hz=RATE_HZ)
     session = CalibrationSession(SessionSettings(auto_calibrate=False))
-    session.feed(recording.mag, RATE_HZ, frame_id='imu_link', accel=recording.accel,
-                 gyro=np.degrees(recording.gyro))
-    values = session.diagnostic_values(0.0)
+    feed(session, recording.mag, RATE_HZ, frame_id='imu_link', accel=recording.accel,
+         gyro=np.degrees(recording.gyro))
+    values = session.report(0.0, measure_coverage=True).values
     assert values['imu_turning_share'] < RATE_DISAGREE
     assert 'angular_velocity' in values['imu_warning'] and 'deg/s' in values['imu_warning']
     said = [event for event in session.take_events() if 'angular_velocity' in event.message]
     assert len(said) == 1 and said[0].level == 'warning'
     right = CalibrationSession(SessionSettings(auto_calibrate=False))
-    right.feed(recording.mag, RATE_HZ, frame_id='imu_link', accel=recording.accel,
-               gyro=recording.gyro)
-    values = right.diagnostic_values(0.0)
+    feed(right, recording.mag, RATE_HZ, frame_id='imu_link', accel=recording.accel,
+         gyro=recording.gyro)
+    values = right.report(0.0, measure_coverage=True).values
     assert values['imu_warning'] == '' and values.get('imu_turning_share', 1.0) > 0.5
     session.close()
     right.close()

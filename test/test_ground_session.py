@@ -13,6 +13,7 @@ import pytest
 from mag_calibrator_ros.calibration.fit.coverage import HEADING_SECTORS
 from mag_calibrator_ros.calibration.fit.fitting import FitOptions
 from mag_calibrator_ros.calibration.live.jobs import FitJob, readiness, run_job
+from mag_calibrator_ros.calibration.live.offline import feed
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
 from mag_calibrator_ros.sim import motion
@@ -31,7 +32,17 @@ UT = 1e-6
 
 
 def stream(session: CalibrationSession, raw_ut: np.ndarray, start_s: float = 0.0) -> None:
-    session.feed(raw_ut * UT, RATE_HZ, start_ns=round(start_s * 1e9), frame_id='imu_link')
+    feed(session, raw_ut * UT, RATE_HZ, start_ns=round(start_s * 1e9), frame_id='imu_link')
+
+
+def measured(session: CalibrationSession):
+    """The session's report with the coverage measured now."""
+    return session.report(measure_coverage=True)
+
+
+def yaw_only(session: CalibrationSession) -> bool:
+    """Whether coverage and hints are about the heading circle."""
+    return measured(session).values['coverage_kind'] == 'heading'
 
 
 def heading_error_deg(calibration, seed: int = 9, wobble_deg: float = 2.0) -> float:
@@ -55,14 +66,15 @@ def test_turning_in_place_calibrates_by_itself_with_the_defaults_after_a_full_tu
         stream(session, raw[chunk], start_s=second)
         if session.calibration is not None and turned_at_calibration is None:
             turned_at_calibration = math.degrees(abs(yaw[chunk.stop - 1] - yaw[0]))
-    assert session.calibration is not None, session.progress_text()
+    report = session.report(0.0, measure_coverage=True)
+    assert session.calibration is not None, report.progress
     assert session.calibration.model == 'planar'
-    assert session.adoptions.get('auto') == 1
+    assert report.counts.adoptions.get('auto') == 1
     assert 330.0 <= turned_at_calibration <= 420.0  # the whole circle, not half of it
     assert heading_error_deg(session.calibration) < 3.0  # mag alone: wobble limits it
-    values = session.diagnostic_values(0.0)
+    values = report.values
     assert values['coverage_kind'] == 'heading' and values['coverage_pct'] >= 97.0
-    assert 'heading coverage' in session.progress_text()
+    assert 'heading coverage' in report.progress
 
 
 def test_a_level_turn_calibrates_heading_within_half_a_degree():
@@ -80,21 +92,22 @@ def test_hints_speak_of_turning_and_nothing_is_adopted_before_the_circle_closes(
     texts = []
     for second in range(int(half / RATE_HZ)):
         stream(session, raw[int(second * RATE_HZ):int((second + 1) * RATE_HZ)], second)
-        texts.append(session.progress_text())
-        texts.append(str(session.diagnostic_values(float(second))['coverage_hint']))
+        report = session.report(float(second), measure_coverage=True)
+        texts.append(report.progress)
+        texts.append(str(report.values['coverage_hint']))
     assert session.calibration is None
     assert any('turn another' in text and 'to the left' in text for text in texts), texts
     for text in texts:
         assert not any(word in text for word in ROTATION_WORDS), text
-    assert session.yaw_only()
+    assert yaw_only(session)
 
 
 def test_model_planar_uses_heading_coverage_whatever_the_motion():
     session = CalibrationSession(SessionSettings(model='planar'))
     raw, _ = turning(4.0)
     stream(session, raw)
-    assert session.yaw_only()
-    assert session.coverage().cells == 36
+    assert yaw_only(session)
+    assert measured(session).coverage.cells == 36
 
 
 def planar_job(raw_ut: np.ndarray, model: str = 'auto') -> FitJob:
@@ -135,7 +148,7 @@ def tumbling_raw(seconds: float, seed: int = 1) -> np.ndarray:
 def test_a_planar_calibration_gives_way_to_a_full_one_once_the_sensor_tumbles(with_imu):
     raw, _, up, _ = turning_imu(30.0, seed=1)
     session = CalibrationSession()
-    session.feed(raw * UT, RATE_HZ, frame_id='imu_link', accel=up * 9.81 if with_imu else None)
+    feed(session, raw * UT, RATE_HZ, frame_id='imu_link', accel=up * 9.81 if with_imu else None)
     assert session.calibration.model == 'planar'
     session.take_events()
     stream(session, tumbling_raw(40.0), start_s=30.0)
@@ -145,19 +158,19 @@ def test_a_planar_calibration_gives_way_to_a_full_one_once_the_sensor_tumbles(wi
     # Not taken for a wrong calibration: the planar one is judged in its plane only.
     assert not any(event.level == 'warning' for event in events), messages
     assert session.calibration.model == 'full'
-    assert session.adoptions.get('refine', 0) >= 1
+    assert session.report().counts.adoptions.get('refine', 0) >= 1
 
 
 def test_a_bump_in_the_floor_does_not_leave_the_plane():
     raw, _, up, _ = turning_imu(30.0, seed=1)
     session = CalibrationSession()
-    session.feed(raw * UT, RATE_HZ, frame_id='imu_link', accel=up * 9.81)
+    feed(session, raw * UT, RATE_HZ, frame_id='imu_link', accel=up * 9.81)
     session.take_events()
     bump = tumbling_raw(1.0, seed=2)  # a second of wild tilts
     stream(session, bump, start_s=30.0)
     more, _, more_up, _ = turning_imu(20.0, seed=1)
-    session.feed(more * UT, RATE_HZ, start_ns=int(31e9), frame_id='imu_link',
-                 accel=more_up * 9.81)
+    feed(session, more * UT, RATE_HZ, start_ns=int(31e9), frame_id='imu_link',
+         accel=more_up * 9.81)
     messages = [event.message for event in session.take_events()]
     assert not any('moved out of the plane' in message for message in messages)
     assert session.calibration.model == 'planar'
@@ -185,9 +198,9 @@ def test_a_ground_robot_is_never_told_to_tilt():
     the robot's terms, without advice to tilt what cannot tilt."""
     raw, _, up, _ = turning_imu(40.0, seed=1)
     session = CalibrationSession()
-    session.feed(raw * UT, RATE_HZ, frame_id='imu_link', accel=up * 9.81)
-    texts = event_texts(session) + [session.progress_text(),
-                                    str(session.diagnostic_values(0.0).get('last_alignment'))]
+    feed(session, raw * UT, RATE_HZ, frame_id='imu_link', accel=up * 9.81)
+    report = session.report(0.0, measure_coverage=True)
+    texts = event_texts(session) + [report.progress, str(report.values.get('last_alignment'))]
     assert session.calibration is not None and session.calibration.model == 'planar'
     assert any('alignment to the IMU not determined: turning in place' in text
                for text in texts), texts
@@ -203,9 +216,9 @@ def test_no_still_attitude_at_all_says_nothing_about_the_alignment():
     raw = tumbling_raw(40.0)
     moving = rng.normal(size=raw.shape)  # gravity's direction never the same twice: not still
     session = CalibrationSession()
-    session.feed(raw * UT, RATE_HZ, frame_id='imu_link',
-                 accel=9.81 * moving / np.linalg.norm(moving, axis=1)[:, None])
-    assert session.pairing.paired > 0 and session.calibration is not None
+    feed(session, raw * UT, RATE_HZ, frame_id='imu_link',
+         accel=9.81 * moving / np.linalg.norm(moving, axis=1)[:, None])
+    assert session.report().imu.paired > 0 and session.calibration is not None
     (adopted,) = [text for text in event_texts(session) if 'calibrated automatically' in text]
     assert 'alignment' not in adopted and '0 of 0' not in adopted
 
@@ -240,11 +253,11 @@ def test_a_robot_that_starts_turning_is_reported_on_the_heading_circle_at_once()
                         rotation.T @ field + hard_iron + rng.normal(0.0, 0.3e-6, 3))
         if index % 25 == 0:
             session.poll()
-            if session.yaw_only():
+            if yaw_only(session):
                 turned_at = t
                 break
     assert turned_at is not None, 'the buffer never became yaw-only'
-    reported = session.reported_coverage()
-    assert reported.cells == HEADING_SECTORS, session.progress_text(reported)
+    report = session.report()
+    assert report.coverage.cells == HEADING_SECTORS, report.progress
     for word in ROTATION_WORDS:
-        assert word not in session.progress_text(reported)
+        assert word not in report.progress

@@ -36,9 +36,9 @@ def lines(raw_t: np.ndarray, look_every: int, show_every: int = 50) -> list[str]
     for index, row in enumerate(raw_t):
         session.process(round(index * 1e9 / RATE_HZ), 'imu_link', row)
         if index % look_every == 0:
-            session.reported_coverage()
+            session.report()
         if index % show_every == show_every - 1:
-            shown.append(session.progress_text(session.reported_coverage()))
+            shown.append(session.report().progress)
     return shown
 
 

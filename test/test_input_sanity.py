@@ -87,12 +87,12 @@ def test_a_wrong_unit_is_said_within_a_second_and_never_fitted(factor):
     said = stream(session, mag * factor)
     warnings = [(t, e.message) for t, e in said if 'cannot be tesla' in e.message]
     assert len(warnings) == 1 and warnings[0][0] < 1.0
-    assert session.calibration is None and not session.jobs_run.get('calibrate')
-    values = session.diagnostic_values(12.0)
+    report = session.report(12.0, measure_coverage=True)
+    assert session.calibration is None and not report.counts.fits.get('calibrate')
+    values = report.values
     assert 'cannot be tesla' in values['input_problem']
-    level, message = session.diagnostics_level(session.coverage(), 100.0)
-    assert level == 'WARN' and 'cannot be tesla' in message
-    assert 'cannot be tesla' in session.progress_text()
+    assert report.level == 'WARN' and 'cannot be tesla' in report.message
+    assert 'cannot be tesla' in report.progress
     ticket = session.request_calibration()
     answer = next(e for e in session.take_events() if e.ticket == ticket)
     assert not answer.attempt.success and 'cannot be tesla' in answer.attempt.message
@@ -109,7 +109,7 @@ def test_a_normalised_field_is_said_within_ten_seconds_and_nothing_moves_it():
     if calibration is not None:  # nothing adopted that moves a reading by more than 1 % of |B|
         moved = np.linalg.norm(calibration.apply(normalised) - normalised, axis=1)
         assert np.max(moved) <= 0.01 * 1e-4
-    assert 'already normalised' in session.diagnostic_values(30.0)['input_problem']
+    assert 'already normalised' in session.report(30.0).values['input_problem']
 
 
 def test_the_normalised_verdict_survives_a_still_spell():
@@ -118,7 +118,7 @@ def test_the_normalised_verdict_survives_a_still_spell():
     still = np.tile(normalised[-1], (500, 1))
     session = CalibrationSession()
     stream(session, np.concatenate([normalised, still]))
-    assert 'already normalised' in session.input_watch.problem
+    assert 'already normalised' in session.report().input_problem
 
 
 def test_an_accelerometer_in_g_is_said_once():
@@ -127,7 +127,8 @@ def test_an_accelerometer_in_g_is_said_once():
     said = stream(session, mag, accel / 9.80665, gyro)
     warnings = [(t, e.message) for t, e in said if 'accelerometer cannot be m/s^2' in e.message]
     assert len(warnings) == 1 and warnings[0][0] < 1.0 and 'looks like g' in warnings[0][1]
-    assert session.diagnostics_level(session.coverage(), 100.0)[0] == 'WARN'
+    report = session.report(3.0)
+    assert report.level == 'WARN' and 'accelerometer cannot be m/s^2' in report.message
 
 
 def test_a_recording_in_its_own_unit_is_not_judged_as_tesla():

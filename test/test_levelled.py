@@ -16,6 +16,7 @@ from mag_calibrator_ros.calibration.fit.ellipsoid import fit_ellipsoid
 from mag_calibrator_ros.calibration.fit.fitting import FitOptions, fit_calibration
 from mag_calibrator_ros.calibration.fit.levelled import level_planar
 from mag_calibrator_ros.calibration.live.buffer import SampleBuffer
+from mag_calibrator_ros.calibration.live.offline import feed
 from mag_calibrator_ros.calibration.live.report import calibration_summary
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.sim import motion
@@ -138,7 +139,8 @@ def test_a_level_first_turn_knows_nothing_and_a_wobbly_refinement_frees_it():
                                                 or session.calibration is not in_force[-1]):
             in_force.append(session.calibration)
     session.close()
-    assert len(in_force) >= 2 and session.adoptions.get('refine', 0) == len(in_force) - 1
+    adoptions = session.report().counts.adoptions
+    assert len(in_force) >= 2 and adoptions.get('refine', 0) == len(in_force) - 1
     first, refined = in_force[0], in_force[1]
     assert 'levelled_offset_normal_std' not in first.metadata  # held, not fitted
     assert abs(first.offset[2] / UT - HARD_IRON_UT[2]) > 20.0  # the plain fit's guess
@@ -245,7 +247,7 @@ def test_the_live_session_levels_a_wobbling_robot_with_its_accelerometer():
     results = {}
     for accel in (None, up * G):
         session = CalibrationSession()
-        session.feed(raw * UT, RATE_HZ, frame_id='imu_link', accel=accel)
+        feed(session, raw * UT, RATE_HZ, frame_id='imu_link', accel=accel)
         assert session.calibration is not None and session.calibration.model == 'planar'
         results['imu' if accel is not None else 'mag'] = heading_error_deg(session.calibration)
         summary = calibration_summary(session.calibration)

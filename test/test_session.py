@@ -14,9 +14,11 @@ from mag_calibrator_ros.calibration.fit.calibration import Calibration, transfor
 from mag_calibrator_ros.calibration.live.backlog import DRAIN_FOR_REQUEST, DRAIN_PER_MESSAGE
 from mag_calibrator_ros.calibration.live.evidence import HOLD_OUT_EVERY, magnitude_residual_pct
 from mag_calibrator_ros.calibration.live.jobs import FitJob, JobOutcome, run_job
+from mag_calibrator_ros.calibration.live.offline import calibrate_now, feed
 from mag_calibrator_ros.calibration.live.session import REFUSAL_REASONS, CalibrationSession
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
 from mag_calibrator_ros.calibration.live.verdicts import bounded_step, coverage_kept
+from mag_calibrator_ros.calibration.live.worker import InlineRunner
 from mag_calibrator_ros.nodes.mag_calibrator_parameters import AK09916_FULL_SCALE_T
 from mag_calibrator_ros.sim import motion
 
@@ -50,8 +52,18 @@ def direction_error_deg(calibration: Calibration, kind='tumble', n=500, seed=7) 
 
 def stream(session, samples, start_s=0.0, rate_hz=RATE_HZ):
     """Feed ``samples`` at ``rate_hz`` from ``start_s``; returns the session's events."""
-    session.feed(samples, rate_hz, start_ns=round(start_s * 1e9), frame_id='imu_link')
+    feed(session, samples, rate_hz, start_ns=round(start_s * 1e9), frame_id='imu_link')
     return session.take_events()
+
+
+def counts_of(session):
+    """What the session counted so far (messages, refusals, fits, adoptions ...)."""
+    return session.report().counts
+
+
+def progress(session):
+    """The progress line with the coverage measured now."""
+    return session.report(measure_coverage=True).progress
 
 
 def messages(events, level=None, adopted=None):
@@ -92,10 +104,24 @@ class ManualRunner:
         pass
 
 
+class Recorded(InlineRunner):
+    """Inline fits, each outcome kept: what the worker gave back to the session."""
+
+    def __init__(self):
+        super().__init__()
+        self.outcomes = []
+
+    def poll(self):
+        outcome = super().poll()
+        if outcome is not None:
+            self.outcomes.append(outcome)
+        return outcome
+
+
 def settle(session, runner):
     """What the node's poll timer does once messages stop: every fit finishes (released) and
     every held reading is fed."""
-    while runner.busy or session.held:
+    while runner.busy or counts_of(session).held:
         if runner.busy:
             runner.release()
         session.poll()
@@ -115,10 +141,11 @@ def test_every_refusal_is_counted_once_and_nothing_refused_is_corrected():
         processed = session.process(200, 'imu_link', field)
         assert not processed.accepted and processed.corrected is None
     assert session.process(99, 'other', good).accepted is False
-    counts = session.rejects()
+    counted = counts_of(session)
+    counts = counted.rejects
     assert set(counts) == set(REFUSAL_REASONS)
     assert (counts['non_finite'], counts['zero'], counts['saturated']) == (3, 1, 1)
-    assert counts['frame_changed'] == 1 and session.accepted == 1
+    assert counts['frame_changed'] == 1 and counted.accepted == 1
 
 
 def test_corrected_output_uses_the_calibration_in_force():
@@ -135,13 +162,15 @@ def test_held_out_readings_never_enter_the_buffer():
     before), and what is held out never reaches the buffer."""
     uncalibrated = CalibrationSession(SessionSettings(auto_calibrate=False))
     stream(uncalibrated, distorted('tumble', 800))
-    assert uncalibrated.buffer.seen == uncalibrated.accepted == 800
-    assert len(uncalibrated.evidence) == 0
+    report = uncalibrated.report()
+    assert report.buffer.seen == report.counts.accepted == 800
+    assert report.counts.held_out == 0
     calibrated = CalibrationSession(SessionSettings(auto_calibrate=False), calibration=EXACT)
     stream(calibrated, distorted('tumble', 800))
-    held_out = 800 - calibrated.buffer.seen
+    report = calibrated.report()
+    held_out = 800 - report.buffer.seen
     assert 0.5 * 800 / HOLD_OUT_EVERY < held_out < 1.5 * 800 / HOLD_OUT_EVERY
-    assert 0.8 * held_out <= len(calibrated.evidence) <= held_out  # the latest few per cell
+    assert 0.8 * held_out <= report.counts.held_out <= held_out  # the latest few per cell
 
 
 # -- calibrating by itself ------------------------------------------------------------------------
@@ -149,13 +178,13 @@ def test_held_out_readings_never_enter_the_buffer():
 
 def test_calibrates_by_itself_and_corrects_strong_soft_iron():
     session = CalibrationSession()
-    assert session.state == 'uncalibrated'
+    assert session.report().state == 'uncalibrated'
     events = stream(session, distorted('tumble', 3000))
     (first, *_) = messages(events, adopted=True)
     assert first.startswith('calibrated automatically: model')
     for word in ('offset', 'uT', 'residual', 'coverage', '%'):
         assert word in first
-    assert session.state.startswith('calibrated')
+    assert session.report().state.startswith('calibrated')
     assert direction_error_deg(session.calibration) < 0.5
     metadata = session.calibration.metadata
     assert metadata['frame_id'] == 'imu_link' and metadata['units'] == 'T'
@@ -165,8 +194,8 @@ def test_readiness_is_checked_often_but_only_a_ready_buffer_is_fitted():
     session = CalibrationSession(SessionSettings(min_coverage=0.9))  # never ready in 3 s
     stream(session, distorted('tumble', 150))
     assert session.calibration is None
-    assert session.jobs_run.get('calibrate', 0) > 5
-    assert 'keep rotating' in session.progress_text()
+    assert counts_of(session).fits.get('calibrate', 0) > 5
+    assert 'keep rotating' in progress(session)
 
 
 def test_failing_automatic_fits_are_rate_limited_by_stream_time():
@@ -181,8 +210,8 @@ def test_failing_automatic_fits_are_rate_limited_by_stream_time():
 def test_auto_calibrate_off_never_fits_by_itself():
     session = CalibrationSession(SessionSettings(auto_calibrate=False))
     stream(session, distorted('tumble', 3000))
-    assert session.calibration is None and 'calibrate' not in session.jobs_run
-    assert 'call ~/calibrate' in session.progress_text()
+    assert session.calibration is None and 'calibrate' not in counts_of(session).fits
+    assert 'call ~/calibrate' in progress(session)
 
 
 def test_a_requested_calibration_is_answered_by_ticket_and_put_in_force():
@@ -191,14 +220,14 @@ def test_a_requested_calibration_is_answered_by_ticket_and_put_in_force():
     ticket = session.request_calibration()
     (answer,) = [e for e in session.take_events() if e.ticket == ticket]
     assert answer.attempt.success and answer.adopted and session.calibration is not None
-    assert session.calibrate_now().success
+    assert calibrate_now(session).success
 
 
 def test_a_failed_request_keeps_the_previous_calibration_and_says_why():
     session = CalibrationSession(SessionSettings(model='full'), calibration=EXACT)
     session.reset()
     stream(session, distorted('still', 300, seed=2))
-    attempt = session.calibrate_now()
+    attempt = calibrate_now(session)
     assert not attempt.success and 'previous calibration stays' in attempt.message
     assert len(attempt.message) > len('calibration failed: ; the previous calibration stays')
     assert session.calibration is EXACT
@@ -210,18 +239,19 @@ def test_a_still_sensor_gives_the_buffer_no_reference_to_set_aside(seed):
     is no field sphere (the readings fill its inside). Taken as the reference it refused half the
     readings and was set aside with a log line, over and over."""
     session = CalibrationSession()
-    stream(session, distorted('still', 3000, seed=seed))  # a minute at 50 Hz
-    assert session.jobs_run['reference'] > 0
-    assert session.buffer.reference is None
-    assert not [m for m in messages(session.take_events()) if 'stopped screening' in m]
+    events = stream(session, distorted('still', 3000, seed=seed))  # a minute at 50 Hz
+    report = session.report()
+    assert report.counts.fits['reference'] > 0
+    assert report.buffer.screened_by is None
+    assert not [m for m in messages(events) if 'stopped screening' in m]
 
 
 def test_planar_data_with_a_3d_model_fails_uncalibrated():
     session = CalibrationSession(SessionSettings(model='full', auto_calibrate=False))
     stream(session, distorted('yaw', 2000))
-    attempt = session.calibrate_now()
+    attempt = calibrate_now(session)
     assert not attempt.success and 'still uncalibrated' in attempt.message
-    assert session.state == 'collecting'
+    assert session.report().state == 'collecting'
 
 
 # -- the buffer's reference -----------------------------------------------------------------------
@@ -243,13 +273,19 @@ def test_spikes_are_refused_and_evicted_with_no_calibration_given():
     raw, spikes = spiky(distorted('tumble', 3000, seed=21), 0.03, seed=21)
     session = CalibrationSession(SessionSettings(auto_calibrate=False))
     stream(session, raw)
-    assert session.jobs_run['reference'] >= 1 and session.buffer.merging
+    report = session.report()
+    assert report.counts.fits['reference'] >= 1 and report.buffer.merging
     spike_rows = set(map(tuple, raw[spikes]))
-    assert not {tuple(row) for row in session.buffer.anchors} & spike_rows
-    refused = session.rejects()['magnitude_outlier']
+    # A point no reading merged into is the reading itself; readings merge only once a
+    # reference is set, and setting it evicts the spikes it refuses.
+    assert not {tuple(row) for row in session.view().raw} & spike_rows
+    refused = report.counts.rejects['magnitude_outlier']
     assert 0.6 * spikes.sum() <= refused <= spikes.sum() + 5
-    assert session.calibrate_now().success
+    assert calibrate_now(session).success
     assert direction_error_deg(session.calibration) < 0.3
+    view = session.view()  # and no point is a spike with readings merged in: all on the sphere
+    assert np.all(np.abs(np.linalg.norm(view.corrected, axis=1) / view.field_strength - 1.0)
+                  < 0.5)
 
 
 def test_the_merged_buffer_fits_nearly_as_well_as_every_sample():
@@ -257,8 +293,8 @@ def test_the_merged_buffer_fits_nearly_as_well_as_every_sample():
     (random 100-sample subsets give about 0.2 deg here)."""
     session = CalibrationSession(SessionSettings(auto_calibrate=False, model='full'))
     stream(session, distorted('tumble', 3000, seed=25))
-    assert session.buffer.merged > 1000
-    assert session.calibrate_now().success
+    assert session.report().buffer.merged > 1000
+    assert calibrate_now(session).success
     assert direction_error_deg(session.calibration) < 0.12
 
 
@@ -273,8 +309,9 @@ def test_decisions_are_the_same_in_any_unit():
     first, names = runs[0]
     for session, other_names in runs[1:]:
         assert other_names == names
-        assert session.jobs_run == first.jobs_run and session.adoptions == first.adoptions
-        np.testing.assert_array_equal(session.buffer.counts, first.buffer.counts)
+        counts, first_counts = counts_of(session), counts_of(first)
+        assert counts.fits == first_counts.fits and counts.adoptions == first_counts.adoptions
+        np.testing.assert_array_equal(session.view().weights, first.view().weights)
         scale = session.calibration.field_strength / first.calibration.field_strength
         np.testing.assert_allclose(session.calibration.offset / scale,
                                    first.calibration.offset, rtol=1e-6, atol=1e-12)
@@ -283,7 +320,7 @@ def test_decisions_are_the_same_in_any_unit():
 def test_a_moved_sensor_sets_the_reference_aside_and_recalibrates():
     session = CalibrationSession()
     stream(session, distorted('tumble', 3000, seed=27))
-    assert session.buffer.reference is not None
+    assert session.report().buffer.screened_by is not None
     moved = distorted('tumble', 3000, seed=28) + np.array([60e-6, 0.0, 0.0])  # 1.2 F off
     events = stream(session, moved, start_s=100.0)
     assert any('stopped screening' in m for m in messages(events))
@@ -297,8 +334,9 @@ def test_yaw_only_motion_merges_nothing():
     merged or placed on a surface a planar fit would misjudge."""
     session = CalibrationSession(SessionSettings(auto_calibrate=False))
     stream(session, distorted('yaw', 3000, seed=30))
-    assert session.jobs_run['reference'] > 0
-    assert not session.buffer.merging and session.buffer.merged == 0
+    report = session.report()
+    assert report.counts.fits['reference'] > 0
+    assert not report.buffer.merging and report.buffer.merged == 0
 
 
 # -- fits never run on the message path -----------------------------------------------------------
@@ -317,8 +355,8 @@ def test_while_a_fit_runs_readings_are_held_and_the_result_is_the_same():
         if runner.busy and i % 7 == 0:  # the worker answers a few messages later
             runner.release()
     settle(held, runner)
-    assert runner.submitted and held.jobs_run == inline.jobs_run
-    np.testing.assert_array_equal(held.buffer.samples, inline.buffer.samples)
+    assert runner.submitted and counts_of(held).fits == counts_of(inline).fits
+    np.testing.assert_array_equal(held.view().raw, inline.view().raw)
     np.testing.assert_array_equal(held.calibration.offset, inline.calibration.offset)
     np.testing.assert_array_equal(held.calibration.matrix, inline.calibration.matrix)
 
@@ -329,13 +367,13 @@ def test_a_poll_feeds_a_few_held_readings_while_messages_flow_and_the_rest_once_
     runner = ManualRunner()
     session = CalibrationSession(SessionSettings(auto_calibrate=False), runner=runner)
     stream(session, distorted('tumble', 300, seed=8))
-    assert runner.busy and session.held > DRAIN_PER_MESSAGE  # the reference fit at 100
+    assert runner.busy and counts_of(session).held > DRAIN_PER_MESSAGE  # the reference fit
     runner.release()
-    held = session.held
+    held = counts_of(session).held
     session.poll()
-    assert held - session.held == DRAIN_PER_MESSAGE
+    assert held - counts_of(session).held == DRAIN_PER_MESSAGE
     session.poll()  # no message since the last poll: the stream stopped
-    assert not session.held or runner.busy  # all fed, unless a new fit became due meanwhile
+    assert not counts_of(session).held or runner.busy  # all fed, unless a new fit became due
 
 
 def test_a_poll_feeds_more_held_readings_while_a_request_waits_for_them():
@@ -346,10 +384,10 @@ def test_a_poll_feeds_more_held_readings_while_a_request_waits_for_them():
     stream(session, distorted('tumble', 300, seed=8))
     session.request_calibration()
     runner.release()
-    held = session.held
+    held = counts_of(session).held
     assert held > DRAIN_FOR_REQUEST
     session.poll()
-    assert held - session.held == DRAIN_FOR_REQUEST
+    assert held - counts_of(session).held == DRAIN_FOR_REQUEST
 
 
 def test_a_request_made_while_readings_wait_fits_them_all():
@@ -358,12 +396,12 @@ def test_a_request_made_while_readings_wait_fits_them_all():
     raw = distorted('tumble', 600, seed=32)
     inline = CalibrationSession(SessionSettings(auto_calibrate=False))
     stream(inline, raw)
-    expected = inline.calibrate_now()
+    expected = calibrate_now(inline)
     runner = ManualRunner()
     held = CalibrationSession(SessionSettings(auto_calibrate=False), runner=runner)
     for i, reading in enumerate(raw):
         held.process(round(i * 1e9 / RATE_HZ), 'imu_link', reading)
-    assert held.held  # the buffer's reference fit (at 100 samples) is still running
+    assert counts_of(held).held  # the buffer's reference fit (at 100 samples) still runs
     ticket = held.request_calibration()
     settle(held, runner)
     (answer,) = [e for e in held.take_events() if e.ticket == ticket]
@@ -383,7 +421,7 @@ def test_a_reset_while_a_fit_runs_abandons_it_and_answers_the_request():
     session.poll()
     (answer,) = [e for e in session.take_events() if e.ticket == ticket]
     assert not answer.attempt.success and 'reset' in answer.message
-    assert session.calibration is None and session.buffer.fill == 0
+    assert session.calibration is None and session.report().buffer.fill == 0
 
 
 def test_a_worker_error_is_reported_and_the_session_carries_on():
@@ -393,13 +431,13 @@ def test_a_worker_error_is_reported_and_the_session_carries_on():
 
     runner = Failing()
     session = CalibrationSession(SessionSettings(auto_calibrate=False), runner=runner)
-    session.feed(distorted('tumble', 300), RATE_HZ, frame_id='imu_link')
+    feed(session, distorted('tumble', 300), RATE_HZ, frame_id='imu_link')
     ticket = session.request_calibration()
     settle(session, runner)  # the buffer's reference fit fails first, then the request
     events = session.take_events()
     (answer,) = [e for e in events if e.ticket == ticket]
     assert not answer.attempt.success and 'boom' in answer.message
-    assert session.buffer.reference is None
+    assert session.report().buffer.screened_by is None
     assert session.process(6 * 10**9, 'imu_link', (1e-5, 2e-5, 3e-5)).accepted
 
 
@@ -416,7 +454,7 @@ def test_refinement_replaces_a_calibration_that_is_measurably_off():
     refined = [m for m in messages(events, adopted=True) if m.startswith('refined: residual')]
     assert refined, messages(events)
     assert '->' in refined[0] and 'coverage 50 % ->' in refined[0]
-    assert session.adoptions['refine'] >= 1
+    assert counts_of(session).adoptions['refine'] >= 1
     assert session.calibration.metadata['coverage'] >= 0.5
     assert direction_error_deg(session.calibration) < 0.2 < 0.2 * direction_error_deg(rough)
 
@@ -425,16 +463,18 @@ def test_a_good_calibration_is_kept_and_converges():
     session = CalibrationSession(calibration=EXACT)
     events = stream(session, distorted('tumble', 15000, seed=41))
     assert session.calibration is EXACT, messages(events, adopted=True)
-    assert session.jobs_run['refine'] >= 3
-    assert session.state == 'calibrated-converged'
+    report = session.report()
+    assert report.counts.fits['refine'] >= 3
+    assert report.state == 'calibrated-converged'
     assert not messages(events, level='warning')
 
 
 def test_refinement_off_keeps_the_first_calibration():
     session = CalibrationSession(SessionSettings(refine=False))
     stream(session, distorted('tumble', 6000, seed=42))
-    assert session.adoptions == {'auto': 1} and 'refine' not in session.jobs_run
-    assert session.state == 'calibrated'
+    report = session.report()
+    assert report.counts.adoptions == {'auto': 1} and 'refine' not in report.counts.fits
+    assert report.state == 'calibrated'
 
 
 def test_a_planar_calibration_never_replaces_a_3d_one():
@@ -473,7 +513,8 @@ def test_another_robots_file_is_noticed_and_replaced():
     assert 'does not fit the live data' in text and 'uT vs 50.00 uT expected' in text
     assert warned <= 10 and recalibrated <= 30  # stream seconds (the issue's targets)
     assert direction_error_deg(session.calibration) < 0.5
-    assert session.state.startswith('calibrated-') and session.state != 'calibrated-misfit'
+    state = session.report().state
+    assert state.startswith('calibrated-') and state != 'calibrated-misfit'
 
 
 def test_without_auto_calibrate_a_misfit_is_reported_and_nothing_changes():
@@ -482,8 +523,9 @@ def test_without_auto_calibrate_a_misfit_is_reported_and_nothing_changes():
     events = stream(session, distorted('tumble', 1500, seed=44))
     (warning,) = [m for m in messages(events, level='warning') if 'does not fit' in m]
     assert 'call ~/reset then ~/calibrate' in warning
-    assert session.calibration is wrong and session.state == 'calibrated-misfit'
-    assert 'does not fit' in session.misfit_text()
+    report = session.report()
+    assert session.calibration is wrong and report.state == 'calibrated-misfit'
+    assert 'does not fit' in report.misfit
 
 
 def magnet_pass(raw, start, length, strength_t):
@@ -528,7 +570,7 @@ def test_online_tracking_follows_drift_in_bounded_steps(drift_t):
     drifted = Calibration(HARD_IRON_T + np.array([drift_t, -0.5 * drift_t, 0.0]), EXACT.matrix,
                           FIELD_T, 'full')
     session = CalibrationSession(TRACKING, calibration=drifted)
-    assert session.tracker is not None
+    assert session.report().tracking
     samples = distorted('tumble', 6000, seed=4)
     offsets = []
     for second in range(120):
@@ -536,7 +578,7 @@ def test_online_tracking_follows_drift_in_bounded_steps(drift_t):
         offsets.append(session.calibration.offset.copy())
     steps = np.linalg.norm(np.diff(offsets, axis=0), axis=1)
     assert steps.max() <= 2 * 0.02 * FIELD_T * (1 + 1e-6)  # at most two checks per second
-    assert session.tracked_updates > 0
+    assert counts_of(session).tracked_updates > 0
     before = magnitude_residual_pct(drifted, samples[-500:])
     after = magnitude_residual_pct(session.calibration, samples[-500:])
     assert after < 0.5 * before
@@ -556,7 +598,7 @@ def test_online_tracking_ignores_a_still_sensor_next_to_a_disturbance():
     readings = SOFT_IRON @ still + HARD_IRON_T + np.random.default_rng(0).normal(
         0.0, 0.3e-6, (300 * 50, 3))
     stream(session, readings)
-    assert session.tracked_updates == 0
+    assert counts_of(session).tracked_updates == 0
     np.testing.assert_array_equal(session.calibration.offset, EXACT.offset)
 
 
@@ -564,16 +606,20 @@ def test_online_tracking_ignores_a_still_sensor_next_to_a_disturbance():
 
 
 class WatchedSession(CalibrationSession):
-    """Notes what another thread would see at the moment the calibration in force changes."""
+    """Notes what another thread would see at the moment the calibration in force changes: the
+    counts right after the assignment that changed what ``calibration`` gives."""
 
     def __init__(self, *args, **kwargs):
         self.counted_when_seen = []
         super().__init__(*args, **kwargs)
 
     def __setattr__(self, name, value):
-        if name == 'calibration' and value is not None:
-            self.counted_when_seen.append(sum(self.adoptions.values()) + self.tracked_updates)
+        before = getattr(self, 'calibration', None)  # None until the session has one
         super().__setattr__(name, value)
+        if getattr(self, 'calibration', None) is not before:
+            counts = self.report().counts
+            self.counted_when_seen.append(sum(counts.adoptions.values())
+                                          + counts.tracked_updates)
 
 
 @pytest.mark.parametrize('settings', [SessionSettings(), TRACKING], ids=['refine', 'tracking'])
@@ -610,61 +656,65 @@ def test_settings_validation_and_reconfigure_keep_samples():
     assert len(bad.problems()) == 6
     with pytest.raises(ValueError, match='model'):
         CalibrationSession(replace(SessionSettings(), model='banana'))
-    session = CalibrationSession(SessionSettings(auto_calibrate=False))
+    settings = SessionSettings(auto_calibrate=False)
+    session = CalibrationSession(settings)
     stream(session, distorted('tumble', 1000))
-    held = session.buffer.fill
-    session.reconfigure(replace(session.settings, buffer_size=held + 40))
-    assert session.buffer.capacity == held + 40 and session.buffer.fill == held
-    session.reconfigure(replace(session.settings, buffer_size=held // 2))
-    assert session.buffer.fill == held // 2
+    held = session.report().buffer.fill
+    session.reconfigure(replace(settings, buffer_size=held + 40))
+    buffer = session.report().buffer
+    assert buffer.capacity == held + 40 and buffer.fill == held
+    settings = replace(settings, buffer_size=held // 2)
+    session.reconfigure(settings)
+    assert session.report().buffer.fill == held // 2
     with pytest.raises(ValueError, match='k must'):
-        session.reconfigure(replace(session.settings, k=held))
+        session.reconfigure(replace(settings, k=held))
 
 
-def test_reports_take_the_coverage_the_worker_measured_while_it_is_fresh(monkeypatch):
+def test_reports_take_the_coverage_the_worker_measured_while_it_is_fresh():
     """Diagnostics read the coverage every second and measuring it costs milliseconds: reports
     take what the worker's latest check measured, and measure it themselves once that is stale
     (another stream second) or the buffer was emptied."""
-    session = CalibrationSession()
+    runner = Recorded()
+    session = CalibrationSession(runner=runner)
     stream(session, distorted('tumble', 3000, seed=7))
-    assert session.calibration is not None and session.jobs_run['check'] > 0
-    exact = session.coverage()
-    measured_here = []
-    original = session.buffer.coverage
-    monkeypatch.setattr(session.buffer, 'coverage',
-                        lambda: measured_here.append(1) or original())
-    reported = session.reported_coverage()
-    assert not measured_here and reported.cells == exact.cells
+    assert session.calibration is not None and counts_of(session).fits['check'] > 0
+    (*_, worker) = [outcome.coverage for outcome in runner.outcomes
+                    if outcome.coverage is not None]
+    exact = session.report(measure_coverage=True).coverage
+    reported = session.report().coverage
+    assert reported is worker and reported.cells == exact.cells  # the worker's, not measured
     assert abs(reported.fraction - exact.fraction) <= 0.05
     session.reset()
-    session.reported_coverage()
-    assert measured_here
+    emptied = session.report().coverage
+    assert emptied is not worker and emptied.fraction == 0.0  # measured here: nothing held
 
 
 def test_diagnostic_values_are_plain_numbers_and_strings():
     session = CalibrationSession()
-    session.diagnostic_values(now=0.0)
+    session.report(0.0, measure_coverage=True)  # the first diagnostics period begins
     stream(session, distorted('tumble', 3000))
     session.process(10**12, 'imu_link', (0.0, 0.0, 0.0))
-    values = session.diagnostic_values(now=2.0)
+    report = session.report(2.0, measure_coverage=True)
+    values = report.values
     assert values['state'].startswith('calibrated')
     assert values['input_rate_hz'] == pytest.approx(3001 / 2.0)
     assert values['rejected_zero'] == 1
-    assert values['buffer_fill'] == session.buffer.fill
+    assert values['buffer_fill'] == report.buffer.fill
     for value in values.values():
         items = value if isinstance(value, list) else [value]
         assert all(type(item) in (int, float, str, bool) for item in items), value
     assert len(values['offset_uT']) == 3 and 'field_strength_uT' in values
-    assert session.new_screen_rejects() == {'zero': 1}
-    assert session.new_screen_rejects() == {}
+    # what screening refused since the previous report is the message, once
+    assert report.message == f'{report.state}: input messages refused since last report: zero 1'
+    assert 'refused' not in session.report(3.0).message
 
 
 def test_stream_changes_are_reported_and_followed():
     session = CalibrationSession(calibration=EXACT)
     raw = distorted('tumble', 20)
-    session.feed(raw[:10], RATE_HZ, frame_id='imu_link')
-    session.feed(raw[10:], RATE_HZ, start_ns=0, frame_id='imu_link')  # a bag starting over
-    session.feed(raw, RATE_HZ, start_ns=10**9, frame_id='imu')  # the driver's frame_id changed
+    feed(session, raw[:10], RATE_HZ, frame_id='imu_link')
+    feed(session, raw[10:], RATE_HZ, start_ns=0, frame_id='imu_link')  # a bag starting over
+    feed(session, raw, RATE_HZ, start_ns=10**9, frame_id='imu')  # the driver's frame_id changed
     events = session.take_events()
     assert any('jumped back' in m for m in messages(events, level='info'))
     assert any("to 'imu'" in m for m in messages(events, level='warning'))
@@ -681,7 +731,7 @@ def test_a_ground_robot_turning_with_floor_tilt_calibrates_at_high_latitude(mode
     noisy = raw + np.random.default_rng(0).normal(0.0, 0.3e-6, truth.shape)
     session = CalibrationSession(SessionSettings(model=model, auto_calibrate=False))
     stream(session, noisy)
-    attempt = session.calibrate_now()
+    attempt = calibrate_now(session)
     assert attempt.success, attempt.message
     metrics = attempt.outcome.result.metrics
     assert metrics.model == 'planar' and metrics.unobserved == ('matrix_normal',)
@@ -694,14 +744,20 @@ def test_a_ground_robot_turning_with_floor_tilt_calibrates_at_high_latitude(mode
 
 
 def test_a_job_made_by_the_session_is_a_complete_snapshot():
-    session = CalibrationSession(SessionSettings(auto_calibrate=False), calibration=EXACT)
+    runner = ManualRunner()
+    session = CalibrationSession(SessionSettings(auto_calibrate=False), calibration=EXACT,
+                                 runner=runner)
     stream(session, distorted('tumble', 500))
-    job = session._make_job('refine', None)
-    assert isinstance(job, FitJob) and job.current is EXACT
-    assert len(job.samples) == len(job.weights) == session.buffer.fill
-    assert len(job.evidence) == len(session.evidence)
+    settle(session, runner)
+    assert 'refine' in runner.submitted
+    ticket = session.request_calibration()
+    job = runner.job  # a fit of the buffer as it is now, not run yet
+    report = session.report()
+    assert isinstance(job, FitJob) and job.ticket == ticket and job.current is EXACT
+    assert len(job.samples) == len(job.weights) == report.buffer.fill
+    assert len(job.evidence) == report.counts.held_out > 0
     job.samples[:] = 0.0  # a copy: the buffer is untouched
-    assert np.all(session.buffer.samples != 0.0)
+    assert np.all(session.view().raw != 0.0)
 
 
 def test_with_the_worker_process_refinement_and_misfits_are_decided_too():
@@ -714,11 +770,11 @@ def test_with_the_worker_process_refinement_and_misfits_are_decided_too():
         session = CalibrationSession(calibration=other_robots_calibration(), runner=runner)
         for i, reading in enumerate(distorted('tumble', 3000, seed=43)):
             session.process(round(i * 1e9 / RATE_HZ), 'imu_link', reading)
-        while runner.busy or session.held:
+        while runner.busy or counts_of(session).held:
             session.poll()
         events = session.take_events()
         assert any('does not fit' in m for m in messages(events, level='warning'))
-        assert session.adoptions.get('auto') == 1
+        assert counts_of(session).adoptions.get('auto') == 1
         assert direction_error_deg(session.calibration) < 0.5
     finally:
         runner.close()
@@ -748,7 +804,7 @@ def test_a_stuck_fit_worker_answers_the_request_says_error_and_is_replaced():
 
     try:
         stream(session, distorted('tumble', 600, seed=9))
-        while runner.busy or session.held:
+        while runner.busy or counts_of(session).held:
             session.poll()
         os.kill(runner.pid, signal.SIGSTOP)
         attempt = answer(session.request_calibration())
@@ -757,14 +813,15 @@ def test_a_stuck_fit_worker_answers_the_request_says_error_and_is_replaced():
                                           'within 15 s: restarted; the next fit runs in the new '
                                           'worker')
         os.kill(runner.pid, signal.SIGSTOP)  # the new worker, caught while it imports
-        level, message = session.diagnostics_level(session.coverage(), 50.0)
+        report = session.report(1.0, measure_coverage=True)
+        level, message = report.level, report.message
         assert level == 'ERROR' and message.startswith('the fit worker is restarting (restart 1')
-        values = session.diagnostic_values(1.0)
+        values = report.values
         assert values['fit_worker_restarts'] == 1
         assert values['fit_worker_last_restart'] == 'the fit worker did not answer within 15 s'
         os.kill(runner.pid, signal.SIGCONT)
         attempt = answer(session.request_calibration())
         assert attempt.success, attempt.message
-        assert session.diagnostics_level(session.coverage(), 50.0)[0] == 'OK'
+        assert session.report().level == 'OK'
     finally:
         runner.close()

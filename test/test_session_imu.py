@@ -12,10 +12,16 @@ import pytest
 from mag_calibrator_ros.calibration.fit.alignment import rotation_angle_deg
 from mag_calibrator_ros.calibration.fit.calibration import Calibration, transform_covariance
 from mag_calibrator_ros.calibration.fit.earth_field import EarthField
-from mag_calibrator_ros.calibration.live.pairing import PAIR_TOLERANCE_NS, PAIR_WAIT_NS
+from mag_calibrator_ros.calibration.live.offline import calibrate_now, feed
+from mag_calibrator_ros.calibration.live.pairing import (
+    PAIR_TOLERANCE_NS,
+    PAIR_WAIT_NS,
+    ImuPairing,
+)
 from mag_calibrator_ros.calibration.live.report import calibration_summary
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
+from mag_calibrator_ros.calibration.live.worker import InlineRunner
 from mag_calibrator_ros.sim.board import BoardModel, board_readings
 from mag_calibrator_ros.sim.config import SimConfig
 
@@ -38,12 +44,19 @@ def misaligned():
     return recording(mag_misalignment_deg=(1.8, -1.9, 1.4))
 
 
-def calibrated(rows, settings=None, earth=None, **feed):
+def calibrated(rows, settings=None, earth=None, events=None):
+    """The session fed ``rows`` and its answer to ~/calibrate; the events said until the answer
+    are appended to ``events`` when given (``calibrate_now``)."""
     mag, accel, gyro, _ = rows
     session = CalibrationSession(settings or SessionSettings(auto_calibrate=False))
     session.set_earth_field(earth)
-    session.feed(mag, RATE_HZ, frame_id='imu_link', accel=accel, gyro=gyro, **feed)
-    return session, session.calibrate_now()
+    feed(session, mag, RATE_HZ, frame_id='imu_link', accel=accel, gyro=gyro)
+    return session, calibrate_now(session, events=events)
+
+
+def diagnostics(session, now=1.0):
+    """The report of a diagnostics period ending at ``now``, with the coverage measured now."""
+    return session.report(now, measure_coverage=True)
 
 
 def test_a_misaligned_magnetometer_is_aligned_to_the_imu(misaligned):
@@ -56,10 +69,11 @@ def test_a_misaligned_magnetometer_is_aligned_to_the_imu(misaligned):
     assert rotation_angle_deg(calibration.rotation @ board.mag_misalignment.T) < 0.2
     assert calibration.metadata['dip_deg'] == pytest.approx(60.0, abs=0.2)
     assert calibration.metadata['dip_std_deg'] < 0.3
-    assert session.pairing.paired == session.accepted == len(misaligned[0])
+    report = diagnostics(session)
+    assert report.imu.paired == report.counts.accepted == len(misaligned[0])
     assert calibration_summary(calibration).endswith('rotated 3.00 deg into the IMU frame') or (
         'rotated 2.9' in calibration_summary(calibration))
-    values = session.diagnostic_values(1.0)
+    values = report.values
     assert values['static_attitudes'] >= 15 and values['last_alignment'] == 'applied'
     assert values['alignment_angle_deg'] == pytest.approx(3.0, abs=0.2)
     # corrected = R M (raw - b): the corrected field is the true field in the IMU frame
@@ -77,25 +91,29 @@ def test_without_an_imu_nothing_changes(misaligned):
     mag = misaligned[0]
     with_imu, _ = calibrated(misaligned, SessionSettings(auto_calibrate=False, align=False))
     without = CalibrationSession(SessionSettings(auto_calibrate=False))
-    without.feed(mag, RATE_HZ, frame_id='imu_link')
-    attempt = without.calibrate_now()
+    feed(without, mag, RATE_HZ, frame_id='imu_link')
+    attempt = calibrate_now(without)
+    report = diagnostics(without)
     assert attempt.success and 'aligned' not in attempt.message
-    assert not without.calibration.aligned and without.pairing.paired == 0
+    assert not without.calibration.aligned and report.imu.paired == 0
     np.testing.assert_array_equal(without.calibration.offset, with_imu.calibration.offset)
-    assert 'static_attitudes' not in without.diagnostic_values(1.0)
+    assert 'static_attitudes' not in report.values
 
 
 def test_a_flipped_magnetometer_is_named_not_applied_and_warned_once():
     rows = recording(40.0, mag_misalignment_deg=(180.0, 0.0, 0.0), seed=1)
-    session, attempt = calibrated(rows)
+    said = []
+    session, attempt = calibrated(rows, events=said)
     assert attempt.success  # the hard and soft iron are fine
     assert 'gross mounting error' in attempt.message and '(x, -y, -z)' in attempt.message
     assert not session.calibration.aligned
-    warnings = [e.message for e in session.take_events() if e.level == 'warning']
+    warnings = [e.message for e in said + session.take_events() if e.level == 'warning']
     assert len([w for w in warnings if 'gross mounting error' in w]) == 1
-    assert 'gross mounting error' in session.alignment_warning()
-    session.calibrate_now()
-    assert not [e for e in session.take_events() if 'gross' in e.message and e.level == 'warning']
+    assert 'gross mounting error' in session.report().alignment_warning
+    again = []
+    calibrate_now(session, events=again)
+    assert not [e for e in again + session.take_events()
+                if 'gross' in e.message and e.level == 'warning']
 
 
 def test_the_model_sets_the_field_strength_and_checks_the_fit(misaligned):
@@ -105,10 +123,11 @@ def test_the_model_sets_the_field_strength_and_checks_the_fit(misaligned):
     gain = np.linalg.det(np.reshape(SOFT_IRON, (3, 3))) ** (1 / 3)  # the raw radius / 50 uT
     assert f'field {gain:.2f}' in attempt.message and 'declination 3.00 deg' in attempt.message
     assert session.calibration.metadata['declination_deg'] == 3.0
-    values = session.diagnostic_values(1.0)
+    report = diagnostics(session)
+    values = report.values
     assert values['field_ratio_to_model'] == pytest.approx(gain, abs=0.005)
     assert abs(values['dip_error_deg']) < 0.3 and values['declination_deg'] == 3.0
-    assert session.earth_warning() == ''
+    assert report.earth_warning == ''
 
 
 @pytest.mark.parametrize(('disturbance', 'reason'), [
@@ -121,11 +140,14 @@ def test_a_disturbed_field_is_refused_with_the_reason_or_warned(disturbance, rea
     assert not attempt.success
     assert re.search(reason, attempt.message) and 'steel structure' in attempt.message
     assert session.calibration is None
+    said = []
     warned, attempt = calibrated(rows, SessionSettings(auto_calibrate=False,
-                                                       earth_field_gate=False), earth=MODEL)
+                                                       earth_field_gate=False), earth=MODEL,
+                                 events=said)
     assert attempt.success
-    assert re.search(reason, warned.earth_warning())
-    assert any(re.search(reason, e.message) for e in warned.take_events() if e.level == 'warning')
+    assert re.search(reason, warned.report().earth_warning)
+    assert any(re.search(reason, e.message) for e in said + warned.take_events()
+               if e.level == 'warning')
 
 
 def test_a_calibration_in_force_is_aligned_by_refinement(misaligned):
@@ -133,9 +155,10 @@ def test_a_calibration_in_force_is_aligned_by_refinement(misaligned):
     truth = Calibration(np.array(HARD_IRON_UT) * 1e-6,
                         np.linalg.inv(np.reshape(SOFT_IRON, (3, 3))), 50e-6, 'full',
                         {'coverage': 0.5})
-    session = CalibrationSession(SessionSettings(), calibration=truth)
-    session.feed(mag, RATE_HZ, frame_id='imu_link', accel=accel, gyro=gyro)
-    while session.runner.busy:
+    runner = InlineRunner()
+    session = CalibrationSession(SessionSettings(), calibration=truth, runner=runner)
+    feed(session, mag, RATE_HZ, frame_id='imu_link', accel=accel, gyro=gyro)
+    while runner.busy:
         session.poll()
     assert session.calibration.aligned
     assert rotation_angle_deg(session.calibration.rotation @ board.mag_misalignment.T) < 0.2
@@ -147,16 +170,29 @@ def test_imu_samples_pair_by_nearest_stamp_and_bad_ones_are_refused():
     assert not session.process_imu(0, 'imu_link', (math.nan, 0.0, 9.8))
     assert not session.process_imu(0, 'imu_link', (0.0, 0.0, 0.0))
     assert not session.process_imu(0, 'imu_link', 'garbage')
-    assert session.pairing.refused == 3
+    assert session.report().imu.refused == 3
     assert session.process_imu(1_000_000, 'imu_link', (0.0, 0.0, 9.8), (math.inf, 0, 0))
     assert session.process_imu(11_000_000, 'imu_link', (0.0, 1.0, 9.8), (0.0, 0.0, 0.0))
+    session.process(9_000_000, 'imu_link', (20e-6, 0.0, 40e-6))
+    assert session.report().imu.paired == 1
+    session.reset()  # the samples are forgotten: nothing to pair with
+    session.process(11_000_000, 'imu_link', (20e-6, 0.0, 40e-6))
+    assert session.report().imu.paired == 1
+    # which sample a reading pairs with: ImuPairing, the session's, given the same samples
+    pairing = ImuPairing()
+    for stamp, accel, gyro in ((0, (math.nan, 0.0, 9.8), None), (0, (0.0, 0.0, 0.0), None),
+                               (0, 'garbage', None),
+                               (1_000_000, (0.0, 0.0, 9.8), (math.inf, 0, 0)),
+                               (11_000_000, (0.0, 1.0, 9.8), (0.0, 0.0, 0.0))):
+        assert pairing.add(stamp, accel, gyro, 'imu_link') == (stamp > 0)
+    assert pairing.refused == 3
     # (force, gyro, gravity): none yet where the gyroscope has just begun tracking it
-    assert session.pairing.pair(9_000_000) == ((0.0, 1.0, 9.8), (0.0, 0.0, 0.0), None)
+    assert pairing.pair(9_000_000) == ((0.0, 1.0, 9.8), (0.0, 0.0, 0.0), None)
     # a NaN/Inf gyro is no gyro: nothing tells a tilt from an acceleration, the force's own way
-    assert session.pairing.pair(2_000_000) == ((0.0, 0.0, 9.8), None, (0.0, 0.0, 1.0))
-    assert session.pairing.pair(11_000_000 + PAIR_TOLERANCE_NS + 1) is None
-    session.reset()
-    assert session.pairing.pair(11_000_000) is None
+    assert pairing.pair(2_000_000) == ((0.0, 0.0, 9.8), None, (0.0, 0.0, 1.0))
+    assert pairing.pair(11_000_000 + PAIR_TOLERANCE_NS + 1) is None
+    pairing.clear()  # what the session's reset does
+    assert pairing.pair(11_000_000) is None
 
 
 def test_field_radius_is_the_raw_ellipsoid_mean_radius():
@@ -172,10 +208,12 @@ def test_a_fit_that_fails_its_own_gates_says_nothing_about_the_place(misaligned)
                         np.linalg.inv(np.reshape(SOFT_IRON, (3, 3))), 50e-6, 'full')
     session = CalibrationSession(SessionSettings(), calibration=truth)
     session.set_earth_field(MODEL)
-    session.feed(mag[:400], RATE_HZ, frame_id='imu_link', accel=accel[:400], gyro=gyro[:400])
-    assert session.jobs_run.get('refine', 0) >= 1
+    feed(session, mag[:400], RATE_HZ, frame_id='imu_link', accel=accel[:400],
+         gyro=gyro[:400])
+    report = session.report()
+    assert report.counts.fits.get('refine', 0) >= 1
     assert not [e for e in session.take_events() if e.level == 'warning']
-    assert session.findings.earth_check is None and session.findings.alignment is None
+    assert report.earth_check is None and report.alignment is None
     assert session.calibration is truth
 
 
@@ -203,11 +241,11 @@ def test_an_implausible_specific_force_is_refused_and_never_stalls_the_output(fo
                                    gyro[index]) is not bad
         assert session.process(stamp, 'imu_link', row).corrected is not None
     refused = len(mag) // 10
-    assert session.pairing.refusals == {**dict.fromkeys(session.pairing.refusals, 0),
-                                        reason: refused}
-    values = session.diagnostic_values(1.0)
+    report = diagnostics(session)
+    assert report.imu.refusals == {**dict.fromkeys(report.imu.refusals, 0), reason: refused}
+    values = report.values
     assert values[f'imu_rejected_{reason}'] == values['imu_messages_refused'] == refused
-    assert session.pairing.paired == len(mag)  # a reading beside a refused one pairs 10 ms away
+    assert report.imu.paired == len(mag)  # a reading beside a refused one pairs 10 ms away
 
 
 def test_an_uncalibrated_session_calibrates_through_a_subnormal_accelerometer_sample(misaligned):
@@ -215,22 +253,27 @@ def test_an_uncalibrated_session_calibrates_through_a_subnormal_accelerometer_sa
     accel = accel.copy()
     accel[::50] = (1e-200, 0.0, 0.0)
     session = CalibrationSession(SessionSettings())
-    session.feed(mag, RATE_HZ, frame_id='imu_link', accel=accel, gyro=gyro)
+    feed(session, mag, RATE_HZ, frame_id='imu_link', accel=accel, gyro=gyro)
     assert session.calibration is not None and session.calibration.aligned
-    assert session.pairing.refusals['too_weak'] == len(mag[::50])
+    assert session.report().imu.refusals['too_weak'] == len(mag[::50])
 
 
 def test_the_offline_session_takes_an_accelerometer_in_any_unit():
     """mag_calibrator_fit reads logs in counts or g: only zero and non-finite norms go."""
-    session = CalibrationSession(SessionSettings(auto_calibrate=False))
-    session.pairing.force_range = None
+    session = CalibrationSession(SessionSettings(auto_calibrate=False),
+                                 pairing=ImuPairing(force_range=None))
     assert session.process_imu(0, '', (16384.0, 0.0, 0.0))  # 1 g in counts
     assert session.process_imu(1, '', (0.0, 0.0, 1.0))  # 1 g in g
     assert session.process_imu(2, '', (1e-200, 0.0, 0.0))  # hypot: no underflow
     assert not session.process_imu(3, '', (5e-324, 0.0, 0.0))
     assert not session.process_imu(4, '', (1.5e308, 1.5e308, 0.0))  # |a| beyond a float
     session.process(2, '', (20e-6, 0.0, 40e-6))
-    assert session.pairing.pair(2) == ((1e-200, 0.0, 0.0), None, (1.0, 0.0, 0.0))
+    assert session.report().imu.paired == 1
+    # the pair it took, and gravity's direction from it: the same samples to ImuPairing
+    pairing = ImuPairing(force_range=None)
+    for stamp, force in enumerate(((16384.0, 0.0, 0.0), (0.0, 0.0, 1.0), (1e-200, 0.0, 0.0))):
+        assert pairing.add(stamp, force)
+    assert pairing.pair(2) == ((1e-200, 0.0, 0.0), None, (1.0, 0.0, 0.0))
 
 
 def rotated(rows: np.ndarray, degrees: float) -> np.ndarray:
@@ -239,8 +282,9 @@ def rotated(rows: np.ndarray, degrees: float) -> np.ndarray:
     return rows @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]).T
 
 
-def warnings_of(session) -> list[str]:
-    return [e.message for e in session.take_events() if e.level == 'warning']
+def warnings_of(session, said=()) -> list[str]:
+    """The warnings in ``said`` (events taken already) and the session's since."""
+    return [e.message for e in [*said, *session.take_events()] if e.level == 'warning']
 
 
 def test_an_imu_in_another_frame_is_not_paired_and_said_once(misaligned):
@@ -253,15 +297,17 @@ def test_an_imu_in_another_frame_is_not_paired_and_said_once(misaligned):
         session.process_imu(stamp, 'base_link', rotated(accel[index], 10.0),
                             rotated(gyro[index], 10.0))
         session.process(stamp, 'imu_link', row)
-    attempt = session.calibrate_now()
+    said = []
+    attempt = calibrate_now(session, events=said)
+    report = diagnostics(session)
     assert attempt.success and not session.calibration.aligned
-    assert session.pairing.paired == 0
-    assert session.pairing.refusals['other_frame'] == len(mag) - 1  # the first: frame unknown
-    (warning,) = [w for w in warnings_of(session) if 'frame' in w]
+    assert report.imu.paired == 0
+    assert report.imu.refusals['other_frame'] == len(mag) - 1  # the first: frame unknown
+    (warning,) = [w for w in warnings_of(session, said) if 'frame' in w]
     assert "imu/data_raw is in frame 'base_link' but imu/mag in 'imu_link'" in warning
-    values = session.diagnostic_values(1.0)
+    values = report.values
     assert values['imu_rejected_other_frame'] == len(mag) - 1
-    level, message = session.diagnostics_level(session.coverage(), 100.0)
+    level, message = report.level, report.message
     assert level == 'WARN' and "'base_link'" in message and "'imu_link'" in message
     assert "'base_link'" in values['imu_warning'] and "'imu_link'" in values['imu_warning']
 
@@ -277,11 +323,12 @@ def test_of_two_imus_in_different_frames_only_the_magnetometers_frame_pairs(misa
                             rotated(gyro[index], 90.0))
         session.process_imu(stamp + 2_000_000, 'imu_link', accel[index], gyro[index])
         session.process(stamp, 'imu_link', row)
-    attempt = session.calibrate_now()
+    said = []
+    attempt = calibrate_now(session, events=said)
     assert attempt.success and 'remap' not in attempt.message, attempt.message
     assert rotation_angle_deg(session.calibration.rotation @ board.mag_misalignment.T) < 0.2
-    assert session.pairing.paired == len(mag)
-    assert len([w for w in warnings_of(session) if 'base_link' in w]) == 1
+    assert session.report().imu.paired == len(mag)
+    assert len([w for w in warnings_of(session, said) if 'base_link' in w]) == 1
 
 
 def test_an_imu_whose_frame_changes_mid_stream_is_refused_from_then_on(misaligned):
@@ -293,8 +340,9 @@ def test_an_imu_whose_frame_changes_mid_stream_is_refused_from_then_on(misaligne
         frame = 'imu_link' if index < half else 'imu_link_renamed'
         session.process_imu(stamp, frame, accel[index], gyro[index])
         session.process(stamp, 'imu_link', row)
-    assert session.pairing.paired == half + 2  # two within 20 ms of the last good sample
-    assert session.pairing.refusals['other_frame'] == len(mag) - half
+    imu = session.report().imu
+    assert imu.paired == half + 2  # two within 20 ms of the last good sample
+    assert imu.refusals['other_frame'] == len(mag) - half
     assert len([w for w in warnings_of(session) if 'imu_link_renamed' in w]) == 1
 
 
@@ -310,17 +358,16 @@ def test_imu_stamps_behind_the_magnetometers_are_said_with_the_offset(misaligned
     mag, accel, _, _ = misaligned
     session = CalibrationSession(SessionSettings(auto_calibrate=False))
     stream_with_imu_offset(session, mag[:1500], accel, -800_000_000)
-    assert session.pairing.paired < 100
+    assert session.report().imu.paired < 100
     (warning,) = [w for w in warnings_of(session) if 'imu/data_raw stamps' in w]
     assert "imu/data_raw stamps are 0.800 s behind imu/mag's" in warning
     assert 'readings found no imu/data_raw sample within 20 ms' in warning
-    assert 'imu/data_raw stamps are 0.800 s behind' in session.diagnostic_values(1.0)[
-        'imu_warning']
-    level, message = session.diagnostics_level(session.coverage(), 100.0)
-    assert level == 'WARN' and '0.800 s behind' in message
+    report = diagnostics(session)
+    assert 'imu/data_raw stamps are 0.800 s behind' in report.values['imu_warning']
+    assert report.level == 'WARN' and '0.800 s behind' in report.message
     # once the clocks agree, pairing resumes and the warning goes
     stream_with_imu_offset(session, mag[:3000], accel, 0, start=1500)
-    assert session.diagnostic_values(2.0)['imu_warning'] == ''
+    assert diagnostics(session, 2.0).values['imu_warning'] == ''
     assert not [w for w in warnings_of(session) if 'imu/data_raw' in w]
 
 
@@ -352,22 +399,26 @@ def test_imu_samples_that_arrive_after_their_readings_still_pair(misaligned):
     session.process_imu(rows * 10_000_000, 'imu_link', accel[rows], gyro[rows])
     session.process(rows * 10_000_000, 'imu_link', mag[rows])  # takes in the decided ones
     # before the first IMU sample there is no IMU to wait for: those 15 are not paired
-    assert session.pairing.paired == session.accepted - 15 == rows + 1 - 15
-    assert session.pairing.waiting == 0 and session.pairing.warning() == ''
+    report = session.report()
+    assert report.imu.paired == report.counts.accepted - 15 == rows + 1 - 15
+    assert report.imu.waiting == 0 and report.imu.warning == ''
     # what the node learnt is what the same stream in stamp order teaches (offline replay)
     offline = CalibrationSession(SessionSettings(auto_calibrate=False),
                                  calibration=Calibration(np.zeros(3), np.eye(3), 1.0))
     no_imu_yet = accel[:rows + 1].copy()
     no_imu_yet[:15] = np.nan
-    offline.feed(mag[:rows + 1], RATE_HZ, frame_id='imu_link', accel=no_imu_yet,
-                 gyro=gyro[:rows + 1])
-    assert len(session.attitudes.snapshot()) >= 5
-    assert np.array_equal(offline.attitudes.snapshot(), session.attitudes.snapshot())
+    feed(offline, mag[:rows + 1], RATE_HZ, frame_id='imu_link', accel=no_imu_yet,
+         gyro=gyro[:rows + 1])
+    assert offline.report().imu.waiting == 0
+    # what each would fit now (~/calibrate): the buffer, gravity behind it, the still attitudes
+    live, replay = (calibrate_now(each).outcome.job for each in (session, offline))
+    assert len(live.attitudes) >= 5
+    assert np.array_equal(replay.attitudes, live.attitudes)
     # gravity's direction comes from a filter of every sample: the live one also saw the first
     # 15 (delivered late), the replay did not, which moves it by hundredths of a degree
-    assert np.array_equal(np.isnan(offline.buffer.ups), np.isnan(session.buffer.ups))
-    assert np.allclose(offline.buffer.ups, session.buffer.ups, atol=1e-3, equal_nan=True)
-    assert np.array_equal(offline.buffer.samples, session.buffer.samples)
+    assert np.array_equal(np.isnan(replay.ups), np.isnan(live.ups))
+    assert np.allclose(replay.ups, live.ups, atol=1e-3, equal_nan=True)
+    assert np.array_equal(replay.samples, live.samples)
 
 
 def test_a_reading_waits_for_its_imu_sample_only_a_bounded_time(misaligned):
@@ -375,7 +426,8 @@ def test_a_reading_waits_for_its_imu_sample_only_a_bounded_time(misaligned):
     late = PAIR_WAIT_NS // 10_000_000 + 5  # later than the bound: unpaired, and said
     session = CalibrationSession(SessionSettings(auto_calibrate=False))
     stream_with_imu_arriving_late(session, mag[:600], accel, late)
-    assert session.pairing.waiting == 0 and session.pairing.paired < 100
+    imu = session.report().imu
+    assert imu.waiting == 0 and imu.paired < 100
     (warning,) = [w for w in warnings_of(session) if 'imu/data_raw stamps' in w]
     assert f'imu/data_raw stamps are {late / 100:.3f} s behind' in warning
     assert 'deliver imu/data_raw without delay' in warning
@@ -383,16 +435,17 @@ def test_a_reading_waits_for_its_imu_sample_only_a_bounded_time(misaligned):
     session.process_imu(600 * 10_000_000, 'imu_link', accel[0])
     for index in range(600, 620):
         session.process(index * 10_000_000, 'imu_link', mag[index])
-    assert session.pairing.waiting > 0
-    session.calibrate_now()
-    assert session.pairing.waiting == 0
+    assert session.report().imu.waiting > 0
+    calibrate_now(session)
+    assert session.report().imu.waiting == 0
 
 
 def test_an_imu_that_stops_or_keeps_time_is_no_starvation(misaligned):
     mag, accel, _, _ = misaligned
     session = CalibrationSession(SessionSettings(auto_calibrate=False))
     stream_with_imu_offset(session, mag[:300], accel, 3_000_000)  # 3 ms apart: paired
-    session.feed(mag[300:600], RATE_HZ, start_ns=3_000_000_000, frame_id='imu_link')  # IMU gone
-    assert session.pairing.paired == 302  # two within 20 ms of the last sample
+    feed(session, mag[300:600], RATE_HZ, start_ns=3_000_000_000, frame_id='imu_link')  # gone
+    imu = session.report().imu
+    assert imu.paired == 302  # two within 20 ms of the last sample
     assert not [w for w in warnings_of(session) if 'imu/data_raw' in w]
-    assert session.pairing.warning() == ''
+    assert imu.warning == ''
