@@ -15,7 +15,7 @@ axis fit) against this engine, then PASS/FAIL for every target of issue #2:
 
 Timings are wall-clock on a shared machine: read them as orders of magnitude, and re-run before
 quoting them. ``--quick`` runs one seed and fewer timing repeats; ``--markdown`` prints the
-tables as markdown for the README.
+tables as markdown for docs/BENCHMARKS.md.
 """
 
 from __future__ import annotations
@@ -35,6 +35,7 @@ from scipy.spatial import cKDTree
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
 from mag_calibrator_ros.calibration.fit.fitting import FitOptions, fit_calibration
 from mag_calibrator_ros.calibration.live.buffer import SampleBuffer
+from mag_calibrator_ros.calibration.live.offline import feed
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
 from mag_calibrator_ros.calibration.live.tracker import OnlineTracker
@@ -146,9 +147,9 @@ def streamed_buffer(samples: np.ndarray, capacity: int = BUFFER_CAPACITY) -> Buf
     reading in eight held out), as the node and ``mag_calibrator_fit --buffer`` do."""
     settings = SessionSettings(buffer_size=capacity, auto_calibrate=False, full_scale=0.0)
     session = CalibrationSession(settings)
-    session.feed(samples)
-    buffer = session.buffer
-    return Buffered(buffer.samples, buffer.counts, buffer.anchors)
+    feed(session, samples)
+    view = session.view()
+    return Buffered(view.raw, view.weights, view.anchors)
 
 
 def brief_outcome(samples: np.ndarray, pre_scaler: float) -> Outcome:

@@ -94,9 +94,7 @@ class CalibrationSession:
         counts has no plausible range), ``attitudes`` (a log without stamps has no clock) and
         ``input_names`` (the own field's inputs it logged, fed by ``process_input``)."""
         self._settings = settings or SessionSettings()
-        problems = self._settings.problems()
-        if problems:
-            raise ValueError('; '.join(problems))
+        self._settings.check()
         self._runner = runner or InlineRunner()
         self._metadata = {'units': 'T', **(metadata or {})}  # stamped on every fit
         self._units = str(self._metadata['units'])
@@ -147,9 +145,7 @@ class CalibrationSession:
 
     def reconfigure(self, settings: SessionSettings) -> None:
         """Adopt new settings; a resized buffer keeps its most unique samples."""
-        problems = settings.problems()
-        if problems:
-            raise ValueError('; '.join(problems))
+        settings.check()
         old, self._settings = self._settings, settings
         if (settings.buffer_size, settings.k) != (old.buffer_size, old.k):
             self._buffer.resize(settings.buffer_size, settings.k)
@@ -729,7 +725,8 @@ class CalibrationSession:
 
     def view(self) -> CalibrationView:
         """The buffer's samples as the calibration in force sees them, for RViz."""
-        return calibration_view(self._buffer.samples, self._buffer.counts, self._calibration)
+        buffer = self._buffer
+        return calibration_view(buffer.samples, buffer.counts, self._calibration, buffer.anchors)
 
     def heading_coverage(self) -> Coverage:
         """Heading coverage and the turn still needed (ms: the turn in place asks 2/s)."""

@@ -87,6 +87,12 @@ class SessionSettings:
         """The fewest samples a fit takes: the engine's, or the whole buffer when smaller."""
         return min(DEFAULT_FIT.min_samples, self.buffer_size)
 
+    def check(self) -> None:
+        """Raise ValueError with every one of ``problems`` (none: these settings can work)."""
+        problems = self.problems()
+        if problems:
+            raise ValueError('; '.join(problems))
+
     def problems(self) -> list[str]:
         """Every reason these settings cannot work, in words a user can act on."""
         problems = []

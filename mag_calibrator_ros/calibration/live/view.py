@@ -41,6 +41,8 @@ class CalibrationView:
     """The 80 equal-area direction cells' centres, (80, 3)."""
     occupied: np.ndarray
     """Which cells the buffer covers, (80,)."""
+    anchors: np.ndarray | None = None
+    """The reading each point began as, before readings were merged into it, (n, 3)."""
 
 
 def calibration_surface(calibration: Calibration) -> Surface:
@@ -53,8 +55,10 @@ def calibration_surface(calibration: Calibration) -> Surface:
 
 
 def calibration_view(samples: np.ndarray, weights: np.ndarray,
-                     calibration: Calibration | None) -> CalibrationView:
-    """The view of a buffer's ``samples`` (weights: counts) under ``calibration`` (or none)."""
+                     calibration: Calibration | None,
+                     anchors: np.ndarray | None = None) -> CalibrationView:
+    """The view of a buffer's ``samples`` (weights: counts; ``anchors``: the readings they began
+    as) under ``calibration`` (or none)."""
     samples = np.asarray(samples, dtype=float).reshape(-1, 3)
     occupied = np.zeros(len(cell_centres()), dtype=bool)
     corrected = surface = strength = None
@@ -68,7 +72,7 @@ def calibration_view(samples: np.ndarray, weights: np.ndarray,
     elif len(samples) >= 10:
         occupied = occupied_cells(whitened_directions(samples))
     return CalibrationView(samples, np.asarray(weights, dtype=float).reshape(-1), corrected,
-                           surface, strength, cell_centres(), occupied)
+                           surface, strength, cell_centres(), occupied, anchors)
 
 
 __all__ = ['CalibrationView', 'Surface', 'calibration_surface', 'calibration_view']
