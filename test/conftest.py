@@ -31,9 +31,8 @@ settings.register_profile('dev', deadline=None, print_blob=True)
 settings.load_profile('ci' if os.environ.get('CI') else 'dev')
 
 ROS_FILES = frozenset({
-    'test_calibration_file.py',  # rclpy --params-file: what rcl applies to which node
+    'test_calibration_file_rclpy.py',  # rclpy --params-file: what rcl applies to which node
     'test_calibrator_node.py',
-    'test_calibrator_node_aligned_first.py',
     'test_calibrator_node_first_day.py',
     'test_calibrator_node_imu.py',
     'test_calibrator_node_location.py',
