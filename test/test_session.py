@@ -609,8 +609,8 @@ class WatchedSession(CalibrationSession):
     """Notes what another thread would see at the moment the calibration in force changes: the
     counts right after the assignment that changed what ``calibration`` gives."""
 
-    def __init__(self, *args, **kwargs):
-        self.counted_when_seen = []
+    def __init__(self, *args, seen: list[int], **kwargs):
+        self.counted_when_seen = seen
         super().__init__(*args, **kwargs)
 
     def __setattr__(self, name, value):
@@ -628,9 +628,9 @@ def test_a_calibration_is_in_force_only_once_it_is_counted(settings):
     force whose adoption is not yet counted or whose screening is not yet set up."""
     rough = Calibration(HARD_IRON_T + [4e-6, -2e-6, 0.0], 1.02 * EXACT.matrix, FIELD_T, 'full',
                         {'residual_rms_pct': 1.5, 'coverage': 0.5})
-    session = WatchedSession(settings, calibration=rough)
+    seen: list[int] = []
+    session = WatchedSession(settings, calibration=rough, seen=seen)
     stream(session, distorted('tumble', 3000, seed=40))
-    seen = session.counted_when_seen
     assert len(seen) >= 2, seen  # given, then refined or tracked
     assert seen == list(range(1, len(seen) + 1))
 
