@@ -122,8 +122,13 @@ def test_the_node_draws_its_buffer_for_rviz_while_watched(tmp_path):
             watcher.create_subscription(kind, f'/view/mag_calibrator/view/{name}',
                                         received[name].append, latched)
         assert wait_for(lambda: received['corrected']), node.session.report().progress
-        # A view is three messages on three topics, delivered in no set order: wait for the
-        # markers of a calibrated view too.
+        # The calibration is in force from the first view on, when the buffer may hold a point
+        # or two: wait for views of a buffer that holds more than ten. A view is three messages
+        # on three topics, delivered in no set order: wait for the markers of a calibrated view
+        # too.
+        assert wait_for(lambda: all(len(received[name]) and received[name][-1].width > 10
+                                    for name in ('raw', 'corrected'))), [
+            cloud.width for cloud in received['raw']]
         assert wait_for(lambda: received['markers'] and any(
             marker.ns == 'corrected sphere' for marker in received['markers'][-1].markers))
         raw = decode(received['raw'][-1])
