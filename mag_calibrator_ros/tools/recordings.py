@@ -5,7 +5,8 @@ header, LF or CRLF, and labelled lines such as ``Mx 144 My -270 Mz 415``. Each l
 *fields* on whitespace, ``,``, ``;`` and ``=``. Without ``columns`` the layout is detected from the
 first lines: the most common pattern of numeric fields is the data; a header (or the labels in
 the lines) naming the magnetometer's x, y, z picks those fields (``mx``, ``mag_x``, ``magX``,
-``Bx``, ``Magnetic field x (µT)``, ``field.magnetic_field.x`` ..., see :func:`column_roles`), and
+``Bx``, ``Magnetic field x (µT)``, ``field.magnetic_field.x`` ..., see
+:func:`recording_columns.column_roles`), and
 without names the three numeric fields are x, y, z (``Mx 144 My -270 Mz 415`` -> fields 1, 3, 5).
 A file that does not say which fields are the magnetometer's (more numeric fields than three and no
 names, several magnetometer sets, only accelerometer or gyroscope names) raises ``RecordingError``
@@ -29,12 +30,14 @@ tesla (REP-103).
 
 Time: a text log whose header names a time column (``Time (s)``, ``time``, ``t``, ``stamp``,
 ``timestamp``, ``millis`` ...) is stamped by it, in the unit its header gives or, without one,
-the unit its values show (seconds or milliseconds, :func:`time_unit`); ``Recording.time_source``
+the unit its values show (seconds or milliseconds, :func:`recording_time.time_unit`);
+``Recording.time_source``
 says which column and unit were taken. A log without one has ``stamps`` None: its rate is
 unknown, and nothing that reads it may depend on a guessed one.
 
 The robot's own field (``compensation``): a text log's current and temperature columns, by
-header name (:func:`compensation_columns`) or named; a bag's ``sensor_msgs/BatteryState``
+header name (:func:`recording_inputs.compensation_columns`) or named; a bag's
+``sensor_msgs/BatteryState``
 (``current``) and ``sensor_msgs/Temperature`` topics, paired with each reading by stamp. A bad
 value there (text, NaN, a temperature no sensor reads) is NaN in ``Recording.inputs`` /
 ``temperature``, counted and named in ``input_problems`` (a column that never varied too), and
@@ -77,7 +80,8 @@ def read_recording(
     ``accel_topic``: a bag's Imu topic to pair by stamp (``''``: the only one).
     ``compensation``: read the robot's own field's inputs too: for text (the input columns, the
     temperature column), for a bag (the BatteryState topic, the Temperature topic); None in
-    either place finds them by name or type (``compensation_columns``, ``read_rosbag``).
+    either place finds them by name or type (``recording_inputs.compensation_columns``,
+    ``recording_bags.read_rosbag``).
 
     Raises ``RecordingError`` for missing or unreadable input, options that do not fit the input,
     no usable rows, or fewer than ``min_rows``.
