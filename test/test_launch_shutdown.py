@@ -9,6 +9,7 @@ group first (the calibrator's fit worker too, which must not print a traceback w
 imports), then to the node. It must exit 0 without a traceback, and in bounded time.
 """
 
+from concurrent.futures import ThreadPoolExecutor
 import os
 from pathlib import Path
 import random
@@ -41,6 +42,9 @@ SIGNALS = {
 CASES = [('SIGINT twice', moment, gap) for moment in (0.0, 0.15, 0.5, RANDOM, RUNNING)
          for gap in (0.005, 0.1)] + [
     ('SIGTERM', 0.15, 0.0), ('SIGTERM', RUNNING, 0.0), ('SIGINT then SIGTERM', RUNNING, 0.05)]
+CONCURRENT_CASES = 4
+"""Cases run at once: each is a process that mostly waits (its start-up, a moment, its exit);
+more at once would stretch every start-up, and with it which phase a fixed moment lands in."""
 
 
 def catches(pid: int, number: int) -> bool:
@@ -54,43 +58,64 @@ def catches(pid: int, number: int) -> bool:
     return bool(int(mask, 16) >> (number - 1) & 1)
 
 
-@pytest.mark.skipif(not sys.platform.startswith('linux'), reason='reads /proc/<pid>/status')
-@pytest.mark.parametrize('signals, moment, gap', CASES)
-@pytest.mark.parametrize('name', sorted(NODES))
-def test_a_node_ends_cleanly_on_launch_style_signals(tmp_path, name, signals, moment, gap):
+def signal_once(tmp_path: Path, name: str, signals: str, moment, gap: float, index: int
+                ) -> str | None:
+    """One case: start the node in a process group of its own, send it ``signals`` at
+    ``moment``, ``gap`` seconds apart. Returns None when it exited 0 without a traceback in
+    bounded time, else what went wrong, with its output."""
     if moment == RANDOM:
         moment = random.SystemRandom().uniform(0.0, 1.0)
     module, arguments, running_line = NODES[name]
-    log_path = tmp_path / 'output.log'
-    namespace = f'/shutdown_{name}_{int(time.monotonic() * 1000) % 100000}'
+    case_dir = tmp_path / f'case{index}'
+    case_dir.mkdir()
+    log_path = case_dir / 'output.log'
+    namespace = f'/shutdown_{name}_{index}_{int(time.monotonic() * 1000) % 100000}'
     if name == 'mag_calibrator':
-        arguments = arguments + ['-p', f'calibration_file:={tmp_path / "calibration.yaml"}']
+        arguments = arguments + ['-p', f'calibration_file:={case_dir / "calibration.yaml"}']
     command = [sys.executable, '-m', module, '--ros-args', '-r', f'__ns:={namespace}', *arguments]
+    when = f'{name}, {signals} {gap} s apart at {moment}'
     with log_path.open('wb') as log:
         process = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=log,
                                    stderr=subprocess.STDOUT, start_new_session=True)
         try:
-            assert wait_until(lambda: catches(process.pid, signal.SIGTERM), START_TIMEOUT_S)
+            if not wait_until(lambda: catches(process.pid, signal.SIGTERM), START_TIMEOUT_S,
+                              step_s=0.005):
+                return f'{when}: no handlers after {START_TIMEOUT_S} s'
             if moment == RUNNING:
-                assert wait_until(lambda: running_line in log_path.read_text(errors='replace'),
-                                  START_TIMEOUT_S), log_path.read_text(errors='replace')
+                if not wait_until(lambda: running_line in log_path.read_text(errors='replace'),
+                                  START_TIMEOUT_S):
+                    return f'{when}: not running: {log_path.read_text(errors="replace")}'
             else:
                 time.sleep(moment)
-            for index, number in enumerate(SIGNALS[signals]):
-                if index == 0 and signals == 'SIGINT twice':
+            for number_index, number in enumerate(SIGNALS[signals]):
+                if number_index == 0 and signals == 'SIGINT twice':
                     os.killpg(process.pid, number)  # the terminal's Ctrl-C
                 else:
                     process.send_signal(number)  # launch's
                 time.sleep(gap)
             code = process.wait(timeout=EXIT_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            code = f'none within {EXIT_TIMEOUT_S} s'
         finally:
             if process.poll() is None:
                 process.kill()
                 process.wait()
     output = log_path.read_text(errors='replace')
-    when = f'{signals} {gap} s apart at {moment}'
-    assert code == 0, f'{when}: {output}'
-    assert 'Traceback' not in output and 'KeyboardInterrupt' not in output, f'{when}: {output}'
+    if code != 0 or 'Traceback' in output or 'KeyboardInterrupt' in output:
+        return f'{when}: exit {code}: {output}'
+    return None
+
+
+@pytest.mark.skipif(not sys.platform.startswith('linux'), reason='reads /proc/<pid>/status')
+@pytest.mark.parametrize('name', sorted(NODES))
+def test_a_node_ends_cleanly_on_launch_style_signals(tmp_path, name):
+    """Every case of CASES, each its own process (own process group, own namespace), a few at
+    once: they share nothing but the machine, and a case spends most of its time waiting."""
+    with ThreadPoolExecutor(max_workers=CONCURRENT_CASES) as pool:
+        failures = [failure for failure in pool.map(
+            lambda numbered: signal_once(tmp_path, name, *numbered[1], numbered[0]),
+            enumerate(CASES)) if failure is not None]
+    assert not failures, '\n\n'.join(failures)
 
 
 PARENT = '''#!{python}
@@ -103,30 +128,29 @@ time.sleep(3600)
 '''
 
 
-@pytest.mark.skipif(not sys.platform.startswith('linux'), reason='reads /proc/<pid>/cmdline')
-@pytest.mark.parametrize('parent_name, ends', [('ros2', True), ('supervisor', False)])
-def test_a_node_started_by_the_ros2_command_ends_when_that_process_is_killed(
-        tmp_path, parent_name, ends):
-    """A SIGTERM to ``ros2 launch`` ends launch and leaves its nodes running (launch's own
-    'using SIGTERM can result in orphaned processes'); a calibrator left so could keep turning
-    the robot. A node the ros2 command started stops when that process ends, however it ended
-    (here SIGKILL); one started by anything else is not tied to its parent."""
+def killed_parent(tmp_path: Path, parent_name: str, ends: bool) -> str | None:
+    """Start the calibrator under a parent named ``parent_name``, SIGKILL the parent once the
+    node runs. Returns None when the node ended (``ends``: within EXIT_TIMEOUT_S, saying why,
+    without a traceback) or kept running for 3 s (not ``ends``), else what happened."""
     module, arguments, running_line = NODES['mag_calibrator']
-    parent = tmp_path / parent_name
+    case_dir = tmp_path / parent_name
+    case_dir.mkdir()
+    parent = case_dir / parent_name
     parent.write_text(PARENT.format(python=sys.executable))
     parent.chmod(0o755)
-    log_path = tmp_path / 'output.log'
+    log_path = case_dir / 'output.log'
     namespace = f'/orphan_{parent_name}_{int(time.monotonic() * 1000) % 100000}'
     command = [str(parent), sys.executable, '-m', module, '--ros-args', '-r',
                f'__ns:={namespace}', *arguments,
-               '-p', f'calibration_file:={tmp_path / "calibration.yaml"}']
+               '-p', f'calibration_file:={case_dir / "calibration.yaml"}']
     with log_path.open('wb') as log:
         starter = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
                                    stderr=log, start_new_session=True)
         node = int(starter.stdout.readline())
         try:
-            assert wait_until(lambda: running_line in log_path.read_text(errors='replace'),
-                              START_TIMEOUT_S), log_path.read_text(errors='replace')
+            if not wait_until(lambda: running_line in log_path.read_text(errors='replace'),
+                              START_TIMEOUT_S):
+                return f'{parent_name}: not running: {log_path.read_text(errors="replace")}'
             starter.kill()
             starter.wait()
             ended = wait_until(lambda: not Path(f'/proc/{node}').exists()
@@ -138,9 +162,24 @@ def test_a_node_started_by_the_ros2_command_ends_when_that_process_is_killed(
             except ProcessLookupError:
                 pass
     output = log_path.read_text(errors='replace')
-    assert ended == ends, output
-    if ends:
-        assert 'ended without stopping it' in output and 'Traceback' not in output, output
+    if ended != ends or (ends and ('ended without stopping it' not in output
+                                   or 'Traceback' in output)):
+        return f'{parent_name}: {"ended" if ended else "still running"}: {output}'
+    return None
+
+
+@pytest.mark.skipif(not sys.platform.startswith('linux'), reason='reads /proc/<pid>/cmdline')
+def test_a_node_started_by_the_ros2_command_ends_when_that_process_is_killed(tmp_path):
+    """A SIGTERM to ``ros2 launch`` ends launch and leaves its nodes running (launch's own
+    'using SIGTERM can result in orphaned processes'); a calibrator left so could keep turning
+    the robot. A node the ros2 command started stops when that process ends, however it ended
+    (here SIGKILL); one started by anything else is not tied to its parent. Both at once: the
+    second's 3 s of still running overlap the first's."""
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        failures = [failure for failure in pool.map(
+            lambda case: killed_parent(tmp_path, *case), [('ros2', True), ('supervisor', False)])
+            if failure is not None]
+    assert not failures, '\n\n'.join(failures)
 
 
 class _Raises:
