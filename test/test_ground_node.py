@@ -150,8 +150,10 @@ def remove_all(ros: Ros, *nodes) -> None:
 
 
 def test_rotate_and_calibrate_turns_the_robot_until_calibrated_and_stops(ros, tmp_path):
+    # Twice the default speed (the sim robot's limit is 1 rad/s): the same circle in half the
+    # time; the default speed and its ramp are test_turning.py's
     namespace = 'ground_done'
-    driver, calibrator, commander = turning_robot(ros, tmp_path, namespace)
+    driver, calibrator, commander = turning_robot(ros, tmp_path, namespace, rotation_speed=0.6)
     start_yaw = driver.settings.cmd_vel.yaw_and_rate(driver.simulator.sim_time_s)[0]
     assert wait_for(lambda: calibrator._rotation.state == 'idle', timeout_s=CALIBRATION_S), (
         calibrator._rotation.progress_text(time.monotonic()))
@@ -166,7 +168,7 @@ def test_rotate_and_calibrate_turns_the_robot_until_calibrated_and_stops(ros, tm
     # machine's load (a timing, measured by bench_ground), so only the circle is asserted here.
     assert turned >= 300.0
     speeds = [abs(z) for _, z in commander.twists]
-    assert max(speeds) == pytest.approx(0.3) and min(speeds) < 0.1  # a ramp from standstill
+    assert max(speeds) == pytest.approx(0.6) and min(speeds) < 0.1  # a ramp from standstill
     error = heading_error_deg(calibrator.session.calibration, seed=SIM_SEED)
     print(f'rotate_and_calibrate: {message}; turned {turned:.0f} deg; heading error '
           f'{error:.2f} deg RMS (noise-free, over a turn)')
@@ -280,11 +282,12 @@ class FailingRequests(InlineRunner):
 
 def test_a_fit_error_commands_zero(ros, tmp_path):
     driver = sim_robot(ros, 'ground_error')
-    # A quicker turn than the default (the circle is what the fit waits for): the stop is
-    # the same at any speed.
+    # A quicker turn than the default, the sim robot's limit of 1 rad/s and its ramp (the
+    # circle is what the fit waits for): the stop is the same at any speed.
     calibrator = ros.calibrator('ground_error', runner=FailingRequests(),
                                 calibration_file=str(tmp_path / 'c.yaml'),
-                                auto_calibrate=False, rotation_speed=0.8)
+                                auto_calibrate=False, rotation_speed=1.0,
+                                rotation_acceleration=1.0)
     commander = Commander(ros, 'ground_error', calibrator=calibrator)
     assert wait_for(lambda: accepted(calibrator) > 20)
     assert commander.call('mag_calibrator/rotate_and_calibrate').success
