@@ -6,6 +6,7 @@ test_ground_replays.py."""
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 import math
 import os
 from pathlib import Path
@@ -449,10 +450,11 @@ def test_twist_stamped_for_nav2_style_bases(ros, tmp_path):
 # -- the process: Ctrl-C and SIGTERM --------------------------------------------------------------
 
 
-@pytest.mark.parametrize('stop_signal', [signal.SIGTERM, signal.SIGINT], ids=['SIGTERM', 'SIGINT'])
-def test_a_signalled_calibrator_process_leaves_the_robot_commanded_to_zero(
-        ros, tmp_path, stop_signal):
+def signalled_calibrator_process(ros: Ros, tmp_path: Path, stop_signal: signal.Signals) -> None:
+    """A calibrator process turning a sim robot gets ``stop_signal``: it exits 0 and the robot
+    is commanded to zero and comes to rest (AssertionError if not)."""
     namespace = f'ground_{stop_signal.name.lower()}'
+    tmp_path.mkdir(exist_ok=True)
     driver = sim_robot(ros, namespace)
     commander = Commander(ros, namespace)
     process = subprocess.Popen(
@@ -488,3 +490,14 @@ def test_a_signalled_calibrator_process_leaves_the_robot_commanded_to_zero(
             process.kill()
             process.wait()
     remove_all(ros, commander, driver)
+
+
+def test_a_signalled_calibrator_process_leaves_the_robot_commanded_to_zero(ros, tmp_path):
+    """SIGTERM and SIGINT, each to a process of its own turning a robot of its own (own
+    namespaces), both at once: each mostly waits for its process to start."""
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        runs = {number.name: pool.submit(signalled_calibrator_process, ros, tmp_path / number.name,
+                                         number)
+                for number in (signal.SIGTERM, signal.SIGINT)}
+    failures = [f'{name}: {run.exception()!r}' for name, run in runs.items() if run.exception()]
+    assert not failures, '\n'.join(failures)
