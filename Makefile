@@ -14,7 +14,7 @@ STAMP := $(VENV)/.installed
 SHARED_DATA ?= ../shared/data
 
 .PHONY: setup demo test test-core test-ros lint stress bench bench-engine bench-replay bench-node \
-	bench-recordings fetch-recordings colcon-build clean
+	bench-recordings bench-broad fetch-recordings colcon-build clean
 
 setup: $(STAMP)
 
@@ -60,6 +60,9 @@ fetch-recordings: setup
 
 bench-recordings: fetch-recordings
 	$(PY) benchmarks/bench_recordings.py --data $(SHARED_DATA)
+
+bench-broad: fetch-recordings
+	$(PY) benchmarks/bench_broad.py --json out/bench_broad.json
 
 colcon-build: setup
 	source $(VENV)/bin/activate && colcon build --base-paths . --build-base build --install-base install
