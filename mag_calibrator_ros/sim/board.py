@@ -23,7 +23,14 @@ apart. A motion is any ``motion.Trajectory``; the world is ENU with the earth's 
   ``I`` the battery current of a ``cmd_vel`` robot (``motion.DriveCurrent``), and ``c * (T -
   T0)`` with ``c = hard_iron_drift_ut_per_c``, ``T`` the die temperature and ``T0 =
   temperature_c`` (the hard iron is ``hard_iron_ut`` at power-on). ``interference_truth`` gives
-  K, c and T0 in SI units for tests and benchmarks.
+  K, c and T0 in SI units for tests and benchmarks;
+- a magnet stuck on the board (``attached_magnet_ut``): a body-fixed hard-iron step, added to
+  the hard iron from ``magnet_attached_s`` until ``magnet_removed_s`` (``hard_iron_ut``);
+- a magnet in the room (``zone_field_ut``): fixed in the world frame, added to the earth's
+  field before the board's rotation, scaled by ``(1 - (d / r)^2)^2`` with ``d`` the distance
+  from the motion's ``position(t)`` to ``zone_center_m`` and ``r = zone_radius_m``: all of it
+  at the centre, none from the edge out (``zone_weight``). The truth ``magnetometer`` returns
+  stays the earth's field alone: what a heading needs.
 
 Noise per sample is the noise density times the square root of the DLPF's noise bandwidth, the
 way DS-000189 specifies it; the DLPF's delay is not modelled.
@@ -111,6 +118,11 @@ class BoardModel:
                                                         None)):
             raise ValueError(f'current_field_ut_per_a needs a motion that draws a battery '
                              f'current (cmd_vel), got a {type(self.trajectory).__name__}')
+        self._magnet = bool(np.any(config.attached_magnet != 0.0))
+        self._zoned = config.zone_radius_m > 0.0 and bool(np.any(config.zone_field != 0.0))
+        if self._zoned and not callable(getattr(self.trajectory, 'position', None)):
+            raise ValueError(f'zone_field_ut needs a motion with a position (a '
+                             f'motion.CarriedTrajectory), got a {type(self.trajectory).__name__}')
 
     @property
     def earth_field_ut(self) -> np.ndarray:
@@ -123,11 +135,15 @@ class BoardModel:
 
     def magnetometer(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """(sensed field in µT with distortion and noise, true earth field in T), chip frame."""
-        earth_chip_ut = self.trajectory.state(max(t, 0.0)).rotation.T @ self._earth_ut
+        rotation = self.trajectory.state(max(t, 0.0)).rotation
+        earth_chip_ut = rotation.T @ self._earth_ut
+        around_ut = earth_chip_ut
+        if self._zoned:
+            around_ut = earth_chip_ut + rotation.T @ self.zone_field_ut(t)
         # An absurd distortion may leave the doubles (inf, NaN): the chip reads that as an
         # overflow, the simulator's business, not a warning on every sample.
         with np.errstate(over='ignore', invalid='ignore'):
-            sensed = self._sensing @ earth_chip_ut + self.hard_iron_ut(t)
+            sensed = self._sensing @ around_ut + self.hard_iron_ut(t)
             if self.config.noise_ut > 0.0:
                 sensed = sensed + self._mag_rng.normal(0.0, self.config.noise_ut, 3)
         return sensed, earth_chip_ut * 1e-6
@@ -168,7 +184,25 @@ class BoardModel:
         if self._drifts:
             offset = offset + self.config.hard_iron_drift * (
                 self.temperature_c(t) - self.config.temperature_c)
+        if self._magnet and self.magnet_attached(t):
+            offset = offset + self.config.attached_magnet
         return offset
+
+    def magnet_attached(self, t: float) -> bool:
+        """Whether the magnet of ``attached_magnet_ut`` is on the board at ``t``."""
+        return self.config.magnet_attached_s <= t < self.config.magnet_removed_s
+
+    def zone_weight(self, t: float) -> float:
+        """How much of the zone's field the board is in at ``t``: 1 at its centre, 0 outside."""
+        if not self._zoned:
+            return 0.0
+        offset = self.trajectory.position(max(t, 0.0)) - self.config.zone_center
+        inside = 1.0 - float(offset @ offset) / self.config.zone_radius_m**2
+        return inside * inside if inside > 0.0 else 0.0
+
+    def zone_field_ut(self, t: float) -> np.ndarray:
+        """The world-fixed zone's field (µT, world frame ENU) where the board is at ``t``."""
+        return self.config.zone_field * self.zone_weight(t)
 
     def interference_truth(self) -> InterferenceTruth:
         """K, c and T0 as simulated (SI), for tests and benchmarks to judge a learned model."""

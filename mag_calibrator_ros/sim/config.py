@@ -46,6 +46,12 @@ class SimConfig:
     given at). Both zero by default: a board without them.
     Earth and mounting (``board.BoardModel``): ``mag_misalignment_deg``, a location, and a
     disturbance (``field_scale``, ``inclination_offset_deg``).
+    Disturbances of ordinary use (issue #44), off by default: a magnet attached to the board
+    (``attached_magnet_ut``, magnetometer axes, added to the hard iron from
+    ``magnet_attached_s`` until ``magnet_removed_s``, seconds since power-on) and a world-fixed
+    magnet zone (``zone_field_ut``, world frame ENU, added to the earth's field while the board
+    is within ``zone_radius_m`` of ``zone_center_m``, tapering smoothly to nothing at its edge;
+    a motion with a ``position``: ``motion.CarriedTrajectory``).
     """
 
     @property
@@ -82,11 +88,24 @@ class SimConfig:
     field_scale: float = 1.0
     inclination_offset_deg: float = 0.0
     """A disturbed place: the field scaled and dipped against the model (or field_ut/incl.)."""
+    attached_magnet_ut: Sequence[float] = (0.0, 0.0, 0.0)
+    """A magnet stuck on the board: a body-fixed hard-iron step (uT, magnetometer axes)."""
+    magnet_attached_s: float = math.inf
+    magnet_removed_s: float = math.inf
+    """When it is attached and removed (s since power-on; inf: never)."""
+    zone_field_ut: Sequence[float] = (0.0, 0.0, 0.0)
+    """A magnet in the room: the field (uT, world frame ENU) it adds at its zone's centre."""
+    zone_center_m: Sequence[float] = (0.0, 0.0, 0.0)
+    zone_radius_m: float = 0.0
+    """Where it is (world, m) and how far it reaches (m; 0: no zone)."""
     # Derived, validated copies (filled in __post_init__).
     hard_iron: np.ndarray = field(init=False, repr=False, compare=False)
     soft_iron_matrix: np.ndarray = field(init=False, repr=False, compare=False)
     current_field: np.ndarray = field(init=False, repr=False, compare=False)
     hard_iron_drift: np.ndarray = field(init=False, repr=False, compare=False)
+    attached_magnet: np.ndarray = field(init=False, repr=False, compare=False)
+    zone_field: np.ndarray = field(init=False, repr=False, compare=False)
+    zone_center: np.ndarray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         problems = config_problems(self)
@@ -99,6 +118,10 @@ class SimConfig:
                            np.asarray(self.current_field_ut_per_a, dtype=float))
         object.__setattr__(self, 'hard_iron_drift',
                            np.asarray(self.hard_iron_drift_ut_per_c, dtype=float))
+        for name, given in (('attached_magnet', self.attached_magnet_ut),
+                            ('zone_field', self.zone_field_ut),
+                            ('zone_center', self.zone_center_m)):
+            object.__setattr__(self, name, np.asarray(given, dtype=float))
 
 
 def config_problems(config: SimConfig) -> list[str]:
@@ -195,7 +218,27 @@ def config_problems(config: SimConfig) -> list[str]:
         problems.append(f'current_field_ut_per_a needs motion cmd_vel (the simulated ground '
                         f'robot, the only motion that draws a battery current), got motion '
                         f'{config.motion!r}: set motion to cmd_vel or the field to zero')
+    _check_disturbances(config, vector, problems)
     return problems
+
+
+def _check_disturbances(config: SimConfig, vector, problems: list[str]) -> None:
+    """Append the attached magnet's and the world-fixed zone's problems (``vector``: the check
+    of a 3-vector, appending to the same list)."""
+    vector('attached_magnet_ut', config.attached_magnet_ut, 'uT', 4900.0, 'the AK09916 range')
+    attached, removed = config.magnet_attached_s, config.magnet_removed_s
+    if not all(isinstance(v, (int, float)) and not math.isnan(v) and v >= 0.0
+               for v in (attached, removed)):
+        problems.append(f'magnet_attached_s and magnet_removed_s must be >= 0 s (inf: never), '
+                        f'got {attached!r} and {removed!r}')
+    elif removed < attached:
+        problems.append(f'magnet_removed_s ({removed}) must not come before magnet_attached_s '
+                        f'({attached})')
+    vector('zone_field_ut', config.zone_field_ut, 'uT', 4900.0, 'the AK09916 range')
+    vector('zone_center_m', config.zone_center_m, 'm')
+    radius = config.zone_radius_m
+    if not (isinstance(radius, (int, float)) and math.isfinite(radius) and radius >= 0.0):
+        problems.append(f'zone_radius_m must be a finite number >= 0 m, got {radius!r}')
 
 
 def _nan(value: object) -> bool:

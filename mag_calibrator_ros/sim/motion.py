@@ -809,3 +809,221 @@ class CourseDriver:
             return 0.0, 0.0
         leg = self.legs[index]
         return leg.speed, leg.yaw_rate
+
+
+# -- motions of ordinary use (issue #44): a wrist, a drone, a board carried along a path -------
+#
+# Each is a pure function of time, seeded where random: smooth sums of sinusoids mapped onto
+# rotation vectors, so the body rate is analytic (the right Jacobian of SO(3), below) and a
+# gyroscope sampling it sees the true rate of the orientation path. They are not in
+# ``TRAJECTORY_KINDS`` (the node's ``sim.motion`` and the demo keep their choices): construct
+# them and hand them to ``board.BoardModel(config, trajectory)``.
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _exp_and_right_jacobian(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(exp([theta]), J_r(theta)): for R(t) = R0 exp([theta(t)]) the body rate is J_r theta'."""
+    angle = math.sqrt(float(theta @ theta))
+    k = _skew(theta)
+    k2 = k @ k
+    if angle < 1e-6:
+        return np.eye(3) + k + 0.5 * k2, np.eye(3) - 0.5 * k + k2 / 6.0
+    s, c = math.sin(angle), math.cos(angle)
+    exp = np.eye(3) + (s / angle) * k + ((1.0 - c) / angle**2) * k2
+    jacobian = np.eye(3) - ((1.0 - c) / angle**2) * k + ((angle - s) / angle**3) * k2
+    return exp, jacobian
+
+
+def _saturated(u: np.ndarray, du: np.ndarray, limit: float) -> tuple[np.ndarray, np.ndarray]:
+    """``u`` squashed radially into the open ball of radius ``limit`` (``limit tanh(|u| /
+    limit)`` along ``u``: the identity near zero, smooth everywhere) and its time derivative."""
+    r = math.sqrt(float(u @ u))
+    if r < 1e-12:
+        return u.copy(), du.copy()
+    n = u / r
+    squash = math.tanh(r / limit)
+    radius = limit * squash
+    along = float(n @ du)
+    return radius * n, (1.0 - squash * squash) * along * n + (radius / r) * (du - along * n)
+
+
+class _Sinusoids:
+    """Per component, a seeded sum of sinusoids: ``sum a sin(w t + phi)`` and its derivatives."""
+
+    def __init__(self, rng: np.random.Generator, components: int, terms: int,
+                 amplitude: tuple[float, float], hz: tuple[float, float]) -> None:
+        self.amp = rng.uniform(*amplitude, size=(components, terms))
+        self.freq = rng.uniform(*hz, size=(components, terms)) * 2.0 * math.pi
+        self.phase = rng.uniform(0.0, 2.0 * math.pi, size=(components, terms))
+
+    def at(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(value, first derivative, second derivative) at ``t``, each (components,)."""
+        angle = self.freq * t + self.phase
+        sin, cos = np.sin(angle), np.cos(angle)
+        return (np.sum(self.amp * sin, axis=1), np.sum(self.amp * self.freq * cos, axis=1),
+                -np.sum(self.amp * self.freq**2 * sin, axis=1))
+
+
+class _AnalyticTrajectory(Trajectory):
+    """A trajectory whose ``state`` is exact at any time: ``rotations`` reads it."""
+
+    def rotations(self, times: np.ndarray) -> Rotation:
+        times = _checked_times(times)
+        if len(times) == 0:
+            return Rotation.from_quat(np.empty((0, 4)))
+        return Rotation.from_matrix(np.array([self.state(t).rotation for t in times.tolist()]))
+
+    def orientation(self, t: float) -> np.ndarray:
+        return self.state(t).rotation
+
+
+class WristTrajectory(_AnalyticTrajectory):
+    """A hand turning the board at the wrist: a partial sphere about a base pose.
+
+    The orientation is ``base @ exp([theta(t)])``: ``base`` a seeded uniformly random pose and
+    ``theta`` three sums of three sinusoids (0.05-0.3 Hz) squashed smoothly into a ball of
+    ``cone_deg`` (90 by default), so the board never turns more than ``cone_deg`` from its base
+    pose and the earth's field, seen from the board, never enters the hemisphere opposite its
+    direction in the base pose. Rates are a hand's: about 1 rad/s on average, peaks of 2-3.
+    The hand also carries the board a few centimetres (three sinusoids per axis, 0.2-1 Hz, as
+    ``tumble``); ``position(t)`` is that displacement, its second derivative the acceleration.
+    """
+
+    kind = 'wrist'
+
+    def __init__(self, seed: int = 0, cone_deg: float = 90.0) -> None:
+        if not (math.isfinite(cone_deg) and 0.0 < cone_deg <= 180.0):
+            raise ValueError(f'cone_deg must be in (0, 180], got {cone_deg!r}')
+        rng = np.random.default_rng([seed, 20])
+        self.cone = math.radians(cone_deg)
+        self.base = Rotation.random(random_state=rng).as_matrix()
+        self._turn = _Sinusoids(rng, 3, 3, (0.4, 0.8), (0.05, 0.3))
+        self._shake = _Sinusoids(np.random.default_rng([seed, 21]), 3, 3, (0.01, 0.03),
+                                 (0.2, 1.0))
+
+    def angle_from_base(self, t: float) -> float:
+        """How far (rad) the board has turned from its base pose at ``t``."""
+        u, du, _ = self._turn.at(_checked_time(t))
+        return float(np.linalg.norm(_saturated(u, du, self.cone)[0]))
+
+    def position(self, t: float) -> np.ndarray:
+        """World-frame displacement (3,) in metres of the hand at ``t``."""
+        return self._shake.at(_checked_time(t))[0]
+
+    def state(self, t: float) -> MotionState:
+        t = _checked_time(t)
+        u, du, _ = self._turn.at(t)
+        theta, dtheta = _saturated(u, du, self.cone)
+        exp, jacobian = _exp_and_right_jacobian(theta)
+        return MotionState(self.base @ exp, jacobian @ dtheta, self._shake.at(t)[2])
+
+
+class DroneTrajectory(_AnalyticTrajectory):
+    """A multirotor flying about: tilts of at most ``max_tilt_deg`` (30) and turns in yaw.
+
+    The orientation is ``Rz(yaw) @ exp([a, b, 0])``: the yaw turns at a seeded 0.2-0.5 rad/s,
+    sped up, slowed and at times reversed by two slow sinusoids; the tilt vector ``(a, b)``
+    (rad, about horizontal axes of the yawed frame; its length is the angle between the body z
+    axis and up) is two sums of three sinusoids (0.1-0.5 Hz) squashed smoothly into a disc of
+    ``max_tilt_deg``.
+
+    ``thrust`` (default): the drone holds its altitude, so its thrust along body z carries its
+    weight and its tilt accelerates it sideways (``g tan(tilt)``, drag ignored): the
+    accelerometer reads ``g / cos(tilt)`` along body z only, gravity's direction hidden while it
+    tilts, as on a real multirotor. ``thrust=False``: the attitude alone, no linear acceleration
+    (a board on a gimbal test stand), the accelerometer reading gravity.
+    """
+
+    kind = 'drone'
+
+    def __init__(self, seed: int = 0, max_tilt_deg: float = 30.0, thrust: bool = True) -> None:
+        if not (math.isfinite(max_tilt_deg) and 0.0 < max_tilt_deg < 90.0):
+            raise ValueError(f'max_tilt_deg must be in (0, 90), got {max_tilt_deg!r}')
+        rng = np.random.default_rng([seed, 22])
+        self.max_tilt = math.radians(max_tilt_deg)
+        self.thrust = bool(thrust)
+        self._yaw0 = rng.uniform(-math.pi, math.pi)
+        self._yaw_rate = rng.choice([-1.0, 1.0]) * rng.uniform(0.2, 0.5)
+        self._yaw_mod = _Sinusoids(rng, 1, 2, (0.8, 2.0), (0.02, 0.08))
+        self._tilt = _Sinusoids(rng, 2, 3, (0.12, 0.3), (0.1, 0.5))
+
+    def yaw(self, t: float) -> float:
+        """The heading (rad, unwrapped) at ``t``: the yaw of the body x axis about world up."""
+        return self._yaw0 + self._yaw_rate * t + float(self._yaw_mod.at(_checked_time(t))[0][0])
+
+    def state(self, t: float) -> MotionState:
+        t = _checked_time(t)
+        mod, dmod, _ = self._yaw_mod.at(t)
+        yaw = self._yaw0 + self._yaw_rate * t + float(mod[0])
+        yaw_rate = self._yaw_rate + float(dmod[0])
+        u, du, _ = self._tilt.at(t)
+        tilt, dtilt = _saturated(u, du, self.max_tilt)
+        theta, dtheta = np.array([tilt[0], tilt[1], 0.0]), np.array([dtilt[0], dtilt[1], 0.0])
+        exp, jacobian = _exp_and_right_jacobian(theta)
+        cy, sy = math.cos(yaw), math.sin(yaw)
+        rotation = np.array([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]]) @ exp
+        omega = exp.T @ np.array([0.0, 0.0, yaw_rate]) + jacobian @ dtheta
+        acceleration = ZERO3
+        if self.thrust:  # body z carries the weight: sideways g tan(tilt)
+            up = rotation[:, 2]
+            g = 9.80665
+            acceleration = np.array([up[0] * g / up[2], up[1] * g / up[2], 0.0])
+        return MotionState(rotation, omega, acceleration)
+
+
+class CarriedTrajectory(Trajectory):
+    """Another trajectory's turning, carried along a path of waypoints (a robot or a person
+    walking through a room, for a world-fixed disturbance to be passed through).
+
+    ``waypoints``: ``(time s, (x, y, z) m)`` in increasing time; between two the position moves
+    with a minimum-jerk profile (at rest at each waypoint; the same position twice: a stop), and
+    holds the first before it and the last after. ``position(t)`` is the path's position plus
+    the carried trajectory's own (a hand's few centimetres), the linear acceleration theirs
+    summed; orientation and body rate are the carried trajectory's.
+    """
+
+    kind = 'carried'
+
+    def __init__(self, turning: Trajectory,
+                 waypoints: tuple[tuple[float, tuple[float, float, float]], ...]) -> None:
+        times = [float(w[0]) for w in waypoints]
+        if not times or any(not math.isfinite(v) for v in times) or any(
+                b <= a for a, b in zip(times[:-1], times[1:], strict=True)):
+            raise ValueError('waypoints need at least one, at finite increasing times')
+        self.turning = turning
+        self._times = times
+        self._points = [np.asarray(w[1], dtype=float).reshape(3) for w in waypoints]
+
+    def _path(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """(position, acceleration) of the path alone at ``t``."""
+        index = bisect_right(self._times, t) - 1
+        if index < 0:
+            return self._points[0].copy(), ZERO3
+        if index >= len(self._times) - 1:
+            return self._points[-1].copy(), ZERO3
+        start, end = self._times[index], self._times[index + 1]
+        span = end - start
+        s, _, dds = PosesTrajectory._profile((t - start) / span)
+        step = self._points[index + 1] - self._points[index]
+        return self._points[index] + s * step, step * (dds / span**2)
+
+    def position(self, t: float) -> np.ndarray:
+        """World-frame position (3,) in metres at ``t``."""
+        t = _checked_time(t)
+        own = getattr(self.turning, 'position', None)
+        return self._path(t)[0] + (own(t) if callable(own) else ZERO3)
+
+    def rotations(self, times: np.ndarray) -> Rotation:
+        return self.turning.rotations(times)
+
+    def orientation(self, t: float) -> np.ndarray:
+        return self.turning.orientation(t)
+
+    def state(self, t: float) -> MotionState:
+        t = _checked_time(t)
+        inner = self.turning.state(t)
+        return MotionState(inner.rotation, inner.angular_velocity,
+                           inner.linear_acceleration + self._path(t)[1])
