@@ -1,5 +1,6 @@
 """With an IMU, the first automatic calibration waits (bounded) for the still tilts that align
-it, so the corrected field is in the IMU frame from its first message (issue #24)."""
+it, so the corrected field is in the IMU frame from its first message (issue #24); with the
+gyroscope's own fit (``gyro_aided``, issue #44) the turning aligns it and nothing waits."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import pytest
 from mag_calibrator_ros.calibration.fit.alignment import rotation_angle_deg
 from mag_calibrator_ros.calibration.live.alignment_wait import NO_STILL_WAIT_S
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
+from mag_calibrator_ros.calibration.live.settings import SessionSettings
 from mag_calibrator_ros.sim.board import BoardModel, board_readings
 from mag_calibrator_ros.sim.config import SimConfig
 
@@ -32,10 +34,11 @@ def tumble_then_poses(tumble_s: float, poses_s: float):
             board('tumble').mag_misalignment)
 
 
-def run(mag, accel, gyro, imu: bool = True):
+def run(mag, accel, gyro, imu: bool = True, gyro_aided: bool = False):
     """Stream it; returns the session, the stream time of the first adoption, the calibration
-    adopted then, every event and the progress lines once a second."""
-    session = CalibrationSession()
+    adopted then, every event and the progress lines once a second. The wait is the rule of
+    the sphere's fits: the gyroscope's own (``gyro_aided``) is off unless asked for."""
+    session = CalibrationSession(SessionSettings(gyro_aided=gyro_aided))
     first_s = first = None
     events, progress = [], []
     for index in range(len(mag)):
@@ -90,3 +93,14 @@ def test_without_an_imu_nothing_waits():
     assert first is not None and first_s < 12.0
     assert not any('still tilts' in line for line in progress)
     assert 'alignment_wait_s' not in session.report(12.0, measure_coverage=True).values
+
+
+def test_with_the_gyroscope_the_tumble_alone_is_calibrated_aligned_without_waiting():
+    """The gyroscope turns the IMU frame: readings it turned back agree only in that frame, so
+    the gyro-aided fit finds the magnetometer's 3 deg rotation from the tumble, never still."""
+    mag, accel, gyro, misalignment = tumble_then_poses(12.0, 0.0)
+    session, first_s, first, events, _ = run(mag, accel, gyro, gyro_aided=True)
+    assert first is not None and first_s <= 12.0, [event.message for event in events]
+    assert first.metadata.get('aligned_by') == 'gyroscope'
+    assert rotation_angle_deg(first.rotation.T @ misalignment) < 1.0
+    assert not any('waiting for still tilts' in event.message for event in events)

@@ -42,6 +42,12 @@ from mag_calibrator_ros.calibration.fit.earth_field import (
 )
 from mag_calibrator_ros.calibration.fit.ellipsoid import robust_sigma
 from mag_calibrator_ros.calibration.fit.fitting import FitOptions, FitResult, fit_calibration
+from mag_calibrator_ros.calibration.fit.gyro_aided import (
+    GyroAidedFit,
+    TurnedReadings,
+    fit_gyro_aided,
+    turned_errors,
+)
 from mag_calibrator_ros.calibration.fit.heading import (
     COMPLETE_HEADING_COVERAGE,
     heading_coverage_of,
@@ -58,13 +64,18 @@ from mag_calibrator_ros.calibration.live.evidence import (
     relative_errors,
 )
 
-JOB_KINDS = ('reference', 'calibrate', 'refine', 'check', 'compensate')
+JOB_KINDS = ('reference', 'calibrate', 'refine', 'check', 'compensate', 'gyro')
 """reference: the buffer's own full fit, to screen and merge by; calibrate: a fit to put in force
 (automatic or on request); refine: a fit to put in force only if better on held-out evidence;
 check: no fit, the calibration in force judged on recent evidence (does it still fit? is the
 online-tracked calibration better?) and the buffer's coverage measured for reports; compensate:
 the robot's own field learned from the readings kept with their inputs (fit/compensation.py),
-the calibration in force its base."""
+the calibration in force its base; gyro: the offset from the gyroscope's turning
+(fit/gyro_aided.py), judged against the raw field on held-out windows of turned readings."""
+
+HELD_OUT_WINDOWS = 3
+"""gyro: every third window of turned readings is held out of the fit to judge it by (windows
+interleaved in time, so a disturbance for a while touches both sides alike)."""
 
 REFERENCE_OPTIONS = FitOptions(model='full')
 """How the buffer is fitted for its reference: the default gates, model ``full``, the one that
@@ -114,6 +125,8 @@ class FitJob:
     """SampleBuffer.paired_readings: readings with gravity's direction, preferred for levelling."""
     compensation: CompensationData | None = None
     """compensate: the readings with their inputs (live/compensation.py)."""
+    turned: TurnedReadings | None = None
+    """gyro: recent readings with the attitude the gyroscope integrated (rotation_track.py)."""
 
 
 @dataclass(frozen=True)
@@ -146,6 +159,11 @@ class JobOutcome:
     """The fit against the World Magnetic Model."""
     compensation: CompensationFit | None = None
     """compensate: the robot's own field learned, with its evidence."""
+    gyro_fit: GyroAidedFit | None = None
+    """gyro: the offset from the turning, its uncertainty and the raw field's spread."""
+    turning: Comparison | None = None
+    """refine: the calibration in force against the candidate on the turned readings
+    (``better``: the candidate turns directions worse than the one in force, beyond noise)."""
 
     @property
     def fitted(self) -> bool:
@@ -163,6 +181,8 @@ def run_job(job: FitJob) -> JobOutcome:
 
 
 def _run(job: FitJob) -> JobOutcome:
+    if job.kind == 'gyro':
+        return gyro_aided_outcome(job)
     if job.kind == 'compensate':
         data = job.compensation
         fit = fit_compensation(data, job.current)
@@ -200,12 +220,40 @@ def _run(job: FitJob) -> JobOutcome:
         )
         result = replace(result, calibration=kept_compensation(stamped, job.current))
     result, alignment, earth_check = align_and_check(job, result)
-    comparison = None
+    comparison = turning = None
     if (result.success and job.current is not None and job.evidence is not None
             and len(job.evidence)):
         comparison = compare_on_evidence(job.current, result.calibration, job.evidence)
+        if job.turned is not None:
+            turning = compare_residuals(turned_errors(result.calibration, job.turned),
+                                        turned_errors(job.current, job.turned),
+                                        'readings turned by the gyroscope')
     return JobOutcome(job, result, comparison=comparison, coverage=coverage,
-                      alignment=alignment, earth_check=earth_check)
+                      alignment=alignment, earth_check=earth_check, turning=turning)
+
+
+def gyro_aided_outcome(job: FitJob) -> JobOutcome:
+    """The offset fitted on two of every three windows of turned readings, and it against the
+    raw field on the third (``compare_residuals``: the rule every candidate meets), so that a
+    sensor calibrated already keeps its own calibration unless the offset is clearly better."""
+    data = job.turned
+    held = data.windows % HELD_OUT_WINDOWS == HELD_OUT_WINDOWS - 1
+    most = 15.0 if job.alignment is None else job.alignment.max_angle_deg
+    fit = fit_gyro_aided(_part(data, ~held), max_residual_pct=job.options.max_residual_pct,
+                         max_rotation_deg=most)
+    comparison = None
+    if fit.calibration is not None:
+        stamped = fit.calibration.with_metadata(
+            time=time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()), **job.metadata)
+        fit = replace(fit, calibration=stamped)
+        part = _part(data, held)
+        comparison = compare_residuals(turned_errors(None, part),
+                                       turned_errors(stamped, part), 'held-out turned readings')
+    return JobOutcome(job, comparison=comparison, gyro_fit=fit)
+
+
+def _part(data: TurnedReadings, rows: np.ndarray) -> TurnedReadings:
+    return TurnedReadings(data.readings[rows], data.rotations[rows], data.windows[rows])
 
 
 def through_gyroscope(comparison: Comparison, pair_errors: tuple | None) -> Comparison:

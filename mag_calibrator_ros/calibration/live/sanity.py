@@ -38,7 +38,7 @@ IMU_JUDGE_EVERY = 100
 
 NORMALISED = 'the magnetometer input is already normalised'
 
-FITS_REFUSED = ('calibrate', 'refine', 'request')
+FITS_REFUSED = ('calibrate', 'refine', 'request', 'gyro')
 """The fits whose outcome could go in force; reference fits and checks change nothing."""
 
 

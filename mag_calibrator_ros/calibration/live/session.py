@@ -49,6 +49,7 @@ from mag_calibrator_ros.calibration.live.jobs import REFERENCE_OPTIONS, FitJob, 
 from mag_calibrator_ros.calibration.live.pairing import ImuPairing, RateMeter
 from mag_calibrator_ros.calibration.live.reference import BufferReference
 from mag_calibrator_ros.calibration.live.report import CalibrationAttempt
+from mag_calibrator_ros.calibration.live.rotation_track import RotationTrack
 from mag_calibrator_ros.calibration.live.sanity import InputWatch
 from mag_calibrator_ros.calibration.live.scheduler import (
     FitScheduler,
@@ -62,6 +63,7 @@ from mag_calibrator_ros.calibration.live.verdicts import (
     Verdict,
     automatic_verdict,
     check_verdict,
+    gyro_verdict,
     judged_on_evidence,
     passed_own_gates,
     realign_verdict,
@@ -134,6 +136,7 @@ class CalibrationSession:
         self._alignment_wait = AlignmentWait()  # the first calibration waits to be aligned
         self._attitudes = attitudes or StaticAttitudes()  # still ones paired, for alignment
         self._pairing = pairing or ImuPairing()
+        self._turns = RotationTrack()  # the gyroscope's turning, for the gyro-aided fit
         self._findings = Findings()  # the model's field here, the latest alignment and check
         self._compensation = CompensationLearner(*self._settings.compensation)  # K u + c (T - T0)
         if input_names is not None:
@@ -199,6 +202,8 @@ class CalibrationSession:
         self._sync_states()
         reading, state = self._compensation.observe(stamp_ns, np.array((x0, x1, x2)),
                                                    self._calibration)
+        if self._settings.gyro_aided:
+            self._turns.add_reading(stamp_ns, reading)
         epochs = (self._compensation_epoch, self._state_epoch)
         decided = self._pairing.settle(stamp_ns, frame_id,
                                        Reading(reading, stamp_ns, epochs, state))
@@ -220,6 +225,8 @@ class CalibrationSession:
         specific force, or ``frame_id`` not the magnetometer stream's (said once a frame)."""
         self._input_watch.offer_imu(accel)
         kept = self._pairing.add(stamp_ns, accel, gyro, frame_id, self._screen.frame_id)
+        if kept and gyro is not None and self._settings.gyro_aided:
+            self._turns.add_rate(stamp_ns, gyro)
         if kept and gyro is not None and self._compensation.learning:
             self._compensation.gyro(stamp_ns, gyro)
         if self._pairing.has_warnings:
@@ -322,9 +329,16 @@ class CalibrationSession:
                                      self._buffer.capacity, self._calibration is not None,
                                      self._misfit.misfit, self._backlog.request_ready)
             kind = (self._scheduler.due(situation)
-                    or self._compensation.due(now, self._calibration))  # 'compensate' or None
+                    or self._compensation.due(now, self._calibration)  # 'compensate' or None
+                    or self._gyro_due(now))
             if kind is not None:
                 self._submit(kind)
+
+    def _gyro_due(self, now: float) -> str | None:
+        """'gyro' while nothing is in force and the turning kept is worth a fit."""
+        wanted = (self._calibration is None and self._settings.gyro_aided
+                  and self._settings.auto_calibrate)
+        return 'gyro' if wanted and self._turns.due(now) else None
 
     def _update_centre(self) -> None:
         radius = 0.0
@@ -363,6 +377,11 @@ class CalibrationSession:
         samples, weights, readings = buffer.samples, buffer.counts, buffer.readings
         if kind == 'compensate':  # the robot's own field: live/compensation.py
             return self._compensation.job(self._calibration)
+        if kind == 'gyro':
+            return FitJob('gyro', np.zeros((0, 3)), None, None, self._settings.fit_options(),
+                          metadata={**self._metadata, 'frame_id': self._frame_id},
+                          alignment=self._settings.alignment_options(self._findings.earth),
+                          turned=self._turns.snapshot())
         if kind == 'reference':
             return FitJob('reference', samples, weights, readings, REFERENCE_OPTIONS,
                           previous=self._buffer_reference.provisional)
@@ -392,6 +411,8 @@ class CalibrationSession:
             earth=self._earth_reference(),
             ups=buffer.ups if buffer.paired else None,
             paired=buffer.paired_readings if buffer.paired else None,
+            turned=self._turns.snapshot() if kind == 'refine' and self._settings.gyro_aided
+            else None,
         )
 
     def _earth_reference(self) -> EarthReference | None:
@@ -432,6 +453,8 @@ class CalibrationSession:
             self._apply(verdict)
             self._answer(self._compensation.window_answer(self._clock.now, self._calibration,
                                                          verdict))
+        elif job.kind == 'gyro':
+            self._apply(gyro_verdict(outcome, current, self._units))
         elif job.ticket is not None:
             self._note_reference(outcome)
             verdict = request_verdict(outcome, current, self._units, self._findings.earth)
@@ -662,6 +685,7 @@ class CalibrationSession:
         self._restart_tracker()
         self._attitudes.clear()
         self._pairing.clear()
+        self._turns.reset()
         self.end_compensation_window('~/reset emptied what it was learning from')
         self._compensation.reset()
         for part in (self._hints, self._input_watch, self._alignment_wait):

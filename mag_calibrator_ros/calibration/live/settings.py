@@ -55,6 +55,11 @@ class SessionSettings:
     """Per second: offset change as a share of the field, matrix change as a relative norm."""
     align: bool = True
     """With paired accelerometer readings (``process_imu``), align fits to the IMU frame."""
+    gyro_aided: bool = True
+    """With gyroscope rates (``process_imu``), calibrate first from the turning they measure
+    (``fit/gyro_aided.py``): the offset from rotation about two axes, no sphere needed, put in
+    force only when held-out readings say it beats the raw field (else the raw field, confirmed,
+    is); the sphere fits refine it later."""
     max_alignment_deg: float = MAX_ANGLE_DEG
     """A larger rotation is reported as a mounting error (with the remap) and not applied."""
     max_field_error_pct: float = MAX_FIELD_ERROR_PCT

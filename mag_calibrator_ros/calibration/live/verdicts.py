@@ -5,7 +5,8 @@ few facts it needs, and returns a :class:`Verdict`; ``CalibrationSession._comple
 (through ``_put_in_force``) and does the bookkeeping. To change when a fit goes in force, change
 the function here: :func:`automatic_verdict` for automatic calibration, :func:`refinement_verdict`
 for refinement, :func:`request_verdict` for ``~/calibrate``, :func:`realign_verdict` for a new
-rotation into the IMU frame and :func:`check_verdict` for misfit and online tracking.
+rotation into the IMU frame, :func:`check_verdict` for misfit and online tracking and
+:func:`gyro_verdict` for the first calibration from the gyroscope's turning.
 
 One verdict has state, and so lives beside stream time rather than here:
 ``alignment_wait.AlignmentWait.judge`` takes :func:`automatic_verdict`'s verdict on the first
@@ -32,6 +33,7 @@ from mag_calibrator_ros.calibration.live.report import (
     CalibrationAttempt,
     calibration_summary,
     coverage_pct,
+    format_field,
     misfit_text,
     reference_text,
 )
@@ -121,6 +123,48 @@ def automatic_verdict(outcome: JobOutcome, current: Calibration | None, misfit: 
     return Verdict(result.calibration, 'auto', 'info', f'{what}: {attempt.message}', attempt)
 
 
+def gyro_verdict(outcome: JobOutcome, current: Calibration | None, units: str) -> Verdict:
+    """The first calibration from the gyroscope's turning (``jobs.gyro_aided_outcome``), while
+    nothing is in force. The raw field is a candidate like any other, so that a sensor that
+    arrives calibrated is never made worse:
+
+    - the offset goes in force when it passed its own bounds (``fit_gyro_aided``: determined to
+      MAX_OFFSET_STD, the turned readings within the residual gate) and beats the raw field on
+      the held-out windows by the rule every candidate meets (``evidence.compare_residuals``);
+    - else, when it passed its bounds and the raw field's own turned readings are within the
+      residual gate, the raw field goes in force: the gyroscope confirmed it;
+    - else nothing: the sphere fits (``automatic_verdict``) go on as before.
+    The sphere's refinements then judge whatever went in force on held-out readings."""
+    if outcome.error:
+        return Verdict(level='warning', message=f'gyro-aided calibration failed: {outcome.error}')
+    fit, comparison = outcome.gyro_fit, outcome.comparison
+    if current is not None or fit is None or not fit.success or comparison is None:
+        reason = 'calibrated meanwhile' if current is not None else (
+            fit.reason if fit is not None and fit.reason else 'no offset solved')
+        return Verdict(level='debug', message=f'gyro-aided calibration not yet: {reason}')
+    uncertain = format_field(float(np.max(fit.offset_std)), units)
+    if comparison.better:
+        candidate = fit.calibration.with_metadata(residual_rms_pct=round(fit.residual_pct, 3))
+        attempt = CalibrationAttempt(True, calibration_summary(candidate, units), outcome)
+        return Verdict(candidate, 'gyro', 'info',
+                       f"calibrated from the gyroscope's turning ({fit.windows} windows, offset "
+                       f'uncertain by {uncertain}): {comparison.reason}; {attempt.message}',
+                       attempt)
+    if fit.raw_residual_pct <= outcome.job.options.max_residual_pct:
+        radius = float(np.median(np.linalg.norm(outcome.job.turned.readings, axis=1)))
+        raw = Calibration(np.zeros(3), np.eye(3), radius, 'sphere', {
+            **fit.calibration.metadata, 'confirmed': 'raw',
+            'residual_rms_pct': round(fit.raw_residual_pct, 3)})
+        attempt = CalibrationAttempt(True, calibration_summary(raw, units), outcome)
+        offset = format_field(float(np.linalg.norm(fit.calibration.offset)), units)
+        return Verdict(raw, 'gyro', 'info',
+                       f"the sensor's own calibration holds: the gyroscope's turning finds an "
+                       f'offset of {offset} (uncertain by {uncertain}), {comparison.reason}',
+                       attempt)
+    return Verdict(level='debug', message=f'gyro-aided calibration not yet: {comparison.reason}; '
+                   f'the raw field spreads by {fit.raw_residual_pct:.1f} %')
+
+
 def refinement_verdict(outcome: JobOutcome, current: Calibration | None) -> Verdict:
     """The adoption rule of refinement: a fit of the buffer goes in force when all of these hold,
     and each one that fails is the reason logged (debug) for keeping the calibration in force:
@@ -132,7 +176,10 @@ def refinement_verdict(outcome: JobOutcome, current: Calibration | None) -> Verd
       errors and by MIN_GAIN, and still lower without the stretches of time most in its favour
       (a magnet that stayed a while is not an improvement);
     - that calibration is still in force, and the fit covers no fewer directions
-      (``coverage_kept``).
+      (``coverage_kept``);
+    - with the gyroscope, the one in force is not better than it on the readings the gyroscope
+      turned (``outcome.turning``): magnitudes cannot see a soft iron that bends directions, the
+      turning can.
 
     It converges: the held-out store keeps up to READINGS_PER_CELL a direction cell, so a real
     gain of a few per cent is proven once the sensor has turned long enough, and the calibration
@@ -141,6 +188,12 @@ def refinement_verdict(outcome: JobOutcome, current: Calibration | None) -> Verd
     result, comparison = outcome.result, outcome.comparison
     if outcome.error:
         return Verdict(level='warning', message=f'refinement failed: {outcome.error}')
+    turning = outcome.turning
+    if (comparison is not None and comparison.better and turning is not None
+            and turning.better):
+        return Verdict(level='debug', message='refinement kept the calibration: it fits the '
+                       f'magnitudes better ({comparison.reason}) but turns directions worse: the '
+                       f'one in force is {turning.reason}')
     if (result is not None and result.success and comparison is not None
             and comparison.better and current is outcome.job.current
             and coverage_kept(current, result.calibration)):
@@ -322,6 +375,7 @@ __all__ = [
     'check_text',
     'check_verdict',
     'coverage_kept',
+    'gyro_verdict',
     'judged_on_evidence',
     'passed_own_gates',
     'realign_verdict',

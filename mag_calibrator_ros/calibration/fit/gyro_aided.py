@@ -1,0 +1,232 @@
+"""The hard iron from the gyroscope: the Earth's field is fixed in the world, so readings turned
+back by the rotation the gyroscope measured must all be one vector; only the offset keeps them
+apart. No sphere is needed, only rotation about two axes.
+
+Within a window of readings integrated from one gyroscope stream, ``R_i (m_i - b) = w`` (``R_i``
+the attitude the gyroscope integrated, ``w`` the field in the window's frame): linear in ``b``
+and ``w``, so each window's ``w`` is eliminated by centring and ``b`` is one least-squares
+solve (PX4's ``mag_bias_estimator`` learns the same offset from ``dm/dt = -w x (m - b)``;
+Kok & Schoen, "Magnetometer calibration using inertial sensors", IEEE Sensors J. 16(14), 2016;
+MAGYC, arXiv 2410.13827, adds the soft iron). Windows are short, so the gyroscope's bias turns
+the field by little in one; its effect and every other correlated error show in the offset's
+uncertainty, measured by leaving groups of windows out (a jackknife), not from the residuals as
+if each reading were independent. The same readings judge the raw field: a sensor that arrives
+calibrated (many do) has nothing to gain from an offset its own uncertainty cannot tell from
+zero, and ``fit_gyro_aided`` says so.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+
+import numpy as np
+
+from mag_calibrator_ros.calibration.fit.calibration import Calibration
+
+MIN_WINDOWS = 8
+"""Windows needed before an offset is solved: each contributes one rotation's worth of turning."""
+
+JACKKNIFE_GROUPS = 8
+"""Groups of windows left out in turn to measure the offset's uncertainty: windows next to each
+other share a gyroscope bias and a hand's motion, so groups of consecutive windows are left out
+together."""
+
+MAX_OFFSET_STD = 0.01
+"""The largest 1-sigma of the offset (each axis, relative to the field's radius) a fit may have:
+1 % of the field moves a heading by at most about 0.6 degrees per unit of the field's horizontal
+share."""
+
+MOUNTING_ITERATIONS = 50
+"""Rounds of (rotation into the gyroscope's frame, offset) at most: each moves the rotation part
+of the way (each window's field is re-estimated from the last rotation), so a few degrees take
+tens of rounds of a millisecond; they stop once the rotation moves less than MOUNTING_SETTLED."""
+
+MOUNTING_SETTLED = 1e-5
+"""...radians in a round."""
+
+MIN_TURN = 0.2
+"""The turning each axis must see, as the smallest singular value of the windows' rotations
+about their means (rad-like): rotation about one axis leaves the offset along it unseen."""
+
+
+@dataclass(frozen=True)
+class TurnedReadings:
+    """Readings with the attitude the gyroscope integrated at each, in windows.
+
+    ``readings`` (n, 3) raw readings (the robot's own field removed); ``rotations`` (n, 3, 3)
+    the attitude of each reading in its window's frame (body to that frame); ``windows`` (n,)
+    integer labels, readings of one label sharing one frame (one stretch of gyroscope
+    integration no longer than the gyroscope's bias allows)."""
+
+    readings: np.ndarray
+    rotations: np.ndarray
+    windows: np.ndarray
+
+
+@dataclass(frozen=True)
+class GyroAidedFit:
+    """An offset from the gyroscope, its uncertainty, and the raw field judged by the same
+    readings. ``calibration`` is None when no offset could be solved; ``success`` says whether
+    it is determined well enough to go in force (``reason`` says why not)."""
+
+    success: bool
+    calibration: Calibration | None
+    offset_std: np.ndarray
+    """1-sigma of each offset component (input units, from the jackknife)."""
+    residual_pct: float
+    """RMS spread of the turned readings about their windows' field, in % of F (the fit)."""
+    raw_residual_pct: float
+    """The same for the raw readings (offset zero)."""
+    windows: int
+    readings: int
+    turn: float
+    """The smallest singular value of the rotations about their windows' means (MIN_TURN)."""
+    reason: str = ''
+
+
+def fit_gyro_aided(data: TurnedReadings, *, max_offset_std: float = MAX_OFFSET_STD,
+                   max_residual_pct: float = 5.0, max_rotation_deg: float = 15.0
+                   ) -> GyroAidedFit:
+    """The offset that makes each window's turned readings one vector (see the module), with a
+    sphere's correction (``M = I``, ``F`` the field's median radius) and the rotation ``R`` of
+    the magnetometer's axes into the gyroscope's (the IMU frame: readings turned by the
+    gyroscope agree only in its frame, so no still tilts are needed): a value or the reason."""
+    readings = np.asarray(data.readings, dtype=float).reshape(-1, 3)
+    rotations = np.asarray(data.rotations, dtype=float).reshape(-1, 3, 3)
+    labels = np.asarray(data.windows).reshape(-1)
+    design, target, groups = _centred(readings, rotations, labels)
+    windows = int(groups.max()) + 1 if len(groups) else 0
+    nothing = np.full(3, math.inf)
+    if windows < MIN_WINDOWS:
+        return GyroAidedFit(False, None, nothing, math.nan, math.nan, windows, len(readings),
+                            0.0, f'{windows} windows of turning readings, need {MIN_WINDOWS}')
+    turn = float(np.linalg.svd(design, compute_uv=False)[-1]) / math.sqrt(windows)
+    offset = _solve(design, target)
+    mounting = np.eye(3)
+    for _ in range(MOUNTING_ITERATIONS if offset is not None else 0):
+        previous, mounting = mounting, _mounting(readings - offset, rotations, labels, mounting)
+        design, target, groups = _centred(readings, rotations @ mounting, labels)
+        offset = _solve(design, target)
+        if offset is None or np.max(np.abs(mounting - previous)) < MOUNTING_SETTLED:
+            break
+    if offset is None or turn < MIN_TURN:
+        return GyroAidedFit(False, None, nothing, math.nan, math.nan, windows, len(readings),
+                            turn, 'the readings turned about one axis only (the offset along '
+                            'it is not seen): turn it about another axis too')
+    radius = float(np.median(np.linalg.norm(readings - offset, axis=1)))
+    raw_radius = float(np.median(np.linalg.norm(readings, axis=1)))
+    if not (radius > 0.0 and raw_radius > 0.0):
+        return GyroAidedFit(False, None, nothing, math.nan, math.nan, windows, len(readings),
+                            turn, 'the readings have no field left once the offset is removed')
+    std = _jackknife_std(design, target, groups, windows, offset)
+    residual = 100.0 * _spread(readings, rotations @ mounting, labels, offset) / radius
+    raw_residual = 100.0 * _spread(readings, rotations, labels, np.zeros(3)) / raw_radius
+    angle = math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(mounting) - 1.0) / 2.0))))
+    calibration = Calibration(offset, np.eye(3), radius, model='sphere', rotation=mounting,
+                              metadata={'fit': 'gyro_aided', 'windows': windows,
+                                        'aligned_by': 'gyroscope',
+                                        'rotation_deg': round(angle, 3)})
+    reason = ''
+    if angle > max_rotation_deg:
+        reason = (f"the magnetometer's axes are turned {angle:.0f} deg from the gyroscope's "
+                  f'(more than {max_rotation_deg:g}): a mounting or axis-remap error')
+    elif not np.all(std <= max_offset_std * radius):
+        reason = (f'the offset is uncertain by {_pct(std, radius)} of the field, the bound is '
+                  f'{100 * max_offset_std:.1f} %: keep turning it')
+    elif residual > max_residual_pct:
+        reason = (f'the turned readings spread by {residual:.1f} % of the field, the bound is '
+                  f'{max_residual_pct:.1f} %: the magnetometer does not turn with the '
+                  'gyroscope (another frame, a disturbed field or another unit)')
+    return GyroAidedFit(not reason, calibration, std, residual, raw_residual, windows,
+                        len(readings), turn, reason)
+
+
+def turned_errors(calibration: Calibration | None, data: TurnedReadings) -> np.ndarray:
+    """Each reading's distance from its window's field once turned back, relative to the
+    field's radius (``calibration`` None: the raw readings): how well a calibration makes the
+    field one vector, on readings it may never have seen."""
+    readings = np.asarray(data.readings, dtype=float).reshape(-1, 3)
+    rotations = np.asarray(data.rotations, dtype=float).reshape(-1, 3, 3)
+    labels = np.asarray(data.windows).reshape(-1)
+    if calibration is None:
+        corrected = readings
+        radius = float(np.median(np.linalg.norm(readings, axis=1))) if len(readings) else 1.0
+    else:  # in the IMU frame (R M (x - b)): the gyroscope turns that frame
+        corrected = (readings - calibration.offset) @ calibration.correction.T
+        radius = calibration.field_strength
+    turned = np.einsum('nij,nj->ni', rotations, corrected)
+    errors = np.zeros(len(readings))
+    for label in np.unique(labels):
+        rows = labels == label
+        errors[rows] = np.linalg.norm(turned[rows] - turned[rows].mean(axis=0), axis=1)
+    return errors / (radius if radius > 0.0 else 1.0)
+
+
+def _centred(readings: np.ndarray, rotations: np.ndarray, labels: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The linear system ``(R_i - mean R) b = R_i m_i - mean (R m)`` of every window with at least
+    three readings, and each row's window number (0 ..)."""
+    design, target, groups = [], [], []
+    turned = np.einsum('nij,nj->ni', rotations, readings)
+    for label in np.unique(labels):
+        rows = np.flatnonzero(labels == label)
+        if len(rows) < 3:
+            continue
+        design.append((rotations[rows] - rotations[rows].mean(axis=0)).reshape(-1, 3))
+        target.append((turned[rows] - turned[rows].mean(axis=0)).reshape(-1))
+        groups.append(np.full(3 * len(rows), len(groups)))
+    if not design:
+        return np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=int)
+    return np.vstack(design), np.concatenate(target), np.concatenate(groups)
+
+
+def _mounting(centred: np.ndarray, rotations: np.ndarray, labels: np.ndarray,
+              mounting: np.ndarray) -> np.ndarray:
+    """The rotation Q taking the readings (offset removed) onto their windows' field seen from
+    each attitude, ``R_i^T w``: Kabsch's solution (SVD of the cross-covariance)."""
+    turned = np.einsum('nij,nj->ni', rotations @ mounting, centred)
+    targets = np.zeros_like(centred)
+    for label in np.unique(labels):
+        rows = labels == label
+        targets[rows] = np.einsum('nji,j->ni', rotations[rows], turned[rows].mean(axis=0))
+    u, _, vt = np.linalg.svd(targets.T @ centred)
+    return u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+
+
+def _solve(design: np.ndarray, target: np.ndarray) -> np.ndarray | None:
+    offset, _, rank, _ = np.linalg.lstsq(design, target, rcond=None)
+    return offset if rank == 3 and np.all(np.isfinite(offset)) else None
+
+
+def _jackknife_std(design: np.ndarray, target: np.ndarray, groups: np.ndarray, windows: int,
+                   offset: np.ndarray) -> np.ndarray:
+    """Delete-a-group jackknife over consecutive windows: sqrt((g-1)/g sum (b_j - b)^2)."""
+    count = min(JACKKNIFE_GROUPS, windows)
+    group_of_row = groups * count // windows
+    estimates = []
+    for group in range(count):
+        kept = group_of_row != group
+        estimate = _solve(design[kept], target[kept])
+        if estimate is None:
+            return np.full(3, math.inf)
+        estimates.append(estimate)
+    deviations = np.asarray(estimates) - offset
+    return np.sqrt((count - 1) / count * np.sum(deviations**2, axis=0))
+
+
+def _spread(readings: np.ndarray, rotations: np.ndarray, labels: np.ndarray,
+            offset: np.ndarray) -> float:
+    turned = np.einsum('nij,nj->ni', rotations, readings - offset)
+    squares = []
+    for label in np.unique(labels):
+        rows = labels == label
+        squares.append(np.sum((turned[rows] - turned[rows].mean(axis=0)) ** 2, axis=1))
+    return math.sqrt(float(np.mean(np.concatenate(squares)))) if squares else math.nan
+
+
+def _pct(std: np.ndarray, radius: float) -> str:
+    return f'{100 * float(np.max(std)) / radius:.1f} %'
+
+
+__all__ = ['GyroAidedFit', 'TurnedReadings', 'fit_gyro_aided', 'turned_errors']

@@ -1,0 +1,150 @@
+"""The gyroscope's turning, integrated between messages, and the readings it turned: what the
+gyro-aided fit (``fit/gyro_aided.py``) learns the hard iron from without a sphere.
+
+The attitude is the gyroscope's rates integrated (quaternions, plain floats: a few microseconds
+an IMU sample on the message path) from the start of each unbroken stream of rates; a reading
+takes the attitude at its stamp (the last rate carried over the few milliseconds between). The
+readings kept are thinned to one per STEP_S and grouped in windows of WINDOW_S of one stream:
+within a window the gyroscope's bias turns the field by little (0.5 deg/s over a second is half
+a degree), and each window has a frame of its own.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Sequence
+import math
+
+import numpy as np
+
+from mag_calibrator_ros.calibration.fit.gyro_aided import MIN_WINDOWS, TurnedReadings
+from mag_calibrator_ros.calibration.live.jobs import HELD_OUT_WINDOWS
+
+STEP_S = 0.02
+"""One reading kept per 20 ms of stream (50 Hz): more add noise samples, not turning."""
+
+WINDOW_S = 1.0
+"""A window of readings shares one frame: one second of integrated rates."""
+
+MAX_GAP_S = 0.1
+"""Rates further apart than this (or going back) start a new stream: a turn in the gap is
+unknown."""
+
+MAX_READINGS = 1500
+"""Readings kept: the last 30 s at 50 Hz, all a first calibration needs and bounded memory."""
+
+WINDOWS_NEEDED = math.ceil(MIN_WINDOWS * HELD_OUT_WINDOWS / (HELD_OUT_WINDOWS - 1))
+"""Windows kept before a fit is tried: the fit sees MIN_WINDOWS, the held-out third judges it."""
+
+FIT_PERIOD_S = 2.0
+"""Stream seconds between gyro-aided fits while nothing is in force."""
+
+Quaternion = tuple[float, float, float, float]
+
+
+class RotationTrack:
+    """Integrates the gyroscope (rad/s) and keeps recent readings with their attitudes."""
+
+    def __init__(self) -> None:
+        self._readings: deque[tuple[int, tuple[float, float, float], Quaternion]] = deque(
+            maxlen=MAX_READINGS)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the readings and the stream (a reset, another sensor)."""
+        self._readings.clear()
+        self._stream = 0  # bumped by each new stream of rates
+        self._attitude: Quaternion = (1.0, 0.0, 0.0, 0.0)
+        self._rate: tuple[float, float, float] | None = None
+        self._rate_stamp: int | None = None
+        self._kept_stamp: int | None = None
+        self._window = -1
+        self._window_start: int | None = None
+        self._window_stream = -1
+        self._next_fit_s = 0.0
+
+    def add_rate(self, stamp_ns: int, rate: Sequence[float]) -> None:
+        """One gyroscope sample; O(1)."""
+        try:
+            wx, wy, wz = (float(value) for value in rate)
+        except (TypeError, ValueError):
+            return
+        if not (math.isfinite(wx) and math.isfinite(wy) and math.isfinite(wz)):
+            self._rate = None
+            return
+        last = self._rate_stamp
+        if self._rate is None or last is None or not 0 < stamp_ns - last <= MAX_GAP_S * 1e9:
+            self._stream += 1
+            self._attitude = (1.0, 0.0, 0.0, 0.0)
+        else:
+            dt = (stamp_ns - last) * 1e-9
+            px, py, pz = self._rate  # trapezoid: the mean of the two rates over the step
+            self._attitude = _turned(self._attitude, 0.5 * (px + wx) * dt, 0.5 * (py + wy) * dt,
+                                     0.5 * (pz + wz) * dt)
+        self._rate, self._rate_stamp = (wx, wy, wz), stamp_ns
+
+    def add_reading(self, stamp_ns: int, reading: Sequence[float]) -> None:
+        """One accepted reading (the own field removed); kept one per STEP_S with the attitude
+        at its stamp when the rates reach it."""
+        last = self._rate_stamp
+        if self._rate is None or last is None or abs(stamp_ns - last) > MAX_GAP_S * 1e9:
+            return
+        if self._kept_stamp is not None and 0 <= stamp_ns - self._kept_stamp < STEP_S * 1e9:
+            return
+        dt = (stamp_ns - last) * 1e-9
+        wx, wy, wz = self._rate
+        attitude = _turned(self._attitude, wx * dt, wy * dt, wz * dt)
+        if (self._window_stream != self._stream or self._window_start is None
+                or not 0 <= stamp_ns - self._window_start < WINDOW_S * 1e9):
+            self._window += 1
+            self._window_start, self._window_stream = stamp_ns, self._stream
+        self._kept_stamp = stamp_ns
+        self._readings.append((self._window, tuple(float(v) for v in reading), attitude))
+
+    def due(self, now_s: float) -> bool:
+        """Whether a gyro-aided fit is due (every FIT_PERIOD_S once WINDOWS_NEEDED are kept)."""
+        if now_s < self._next_fit_s or not self._enough():
+            return False
+        self._next_fit_s = now_s + FIT_PERIOD_S
+        return True
+
+    def snapshot(self) -> TurnedReadings | None:
+        """The readings kept, their attitudes (as rotation matrices) and windows; None before
+        WINDOWS_NEEDED are kept."""
+        if not self._enough():
+            return None
+        windows = np.array([window for window, _, _ in self._readings], dtype=int)
+        readings = np.array([reading for _, reading, _ in self._readings], dtype=float)
+        rotations = np.array([_matrix(q) for _, _, q in self._readings], dtype=float)
+        return TurnedReadings(readings.reshape(-1, 3), rotations.reshape(-1, 3, 3),
+                              windows - (windows[0] if len(windows) else 0))
+
+
+    def _enough(self) -> bool:
+        readings = self._readings
+        return bool(readings) and readings[-1][0] - readings[0][0] + 1 >= WINDOWS_NEEDED
+
+
+def _turned(q: Quaternion, ax: float, ay: float, az: float) -> Quaternion:
+    """``q`` turned by the body-frame rotation vector (ax, ay, az): q * exp(a / 2)."""
+    angle = math.sqrt(ax * ax + ay * ay + az * az)
+    if angle < 1e-12:
+        return q
+    half = 0.5 * angle
+    s = math.sin(half) / angle
+    bw, bx, by, bz = math.cos(half), ax * s, ay * s, az * s
+    w, x, y, z = q
+    w, x, y, z = (w * bw - x * bx - y * by - z * bz, w * bx + x * bw + y * bz - z * by,
+                  w * by - x * bz + y * bw + z * bx, w * bz + x * by - y * bx + z * bw)
+    norm = math.sqrt(w * w + x * x + y * y + z * z)
+    return (w / norm, x / norm, y / norm, z / norm)
+
+
+def _matrix(q: Quaternion) -> list[list[float]]:
+    w, x, y, z = q
+    return [[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]]
+
+
+__all__ = ['RotationTrack']
