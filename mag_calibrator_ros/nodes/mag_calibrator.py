@@ -59,7 +59,8 @@ config/mag_calibrator.yaml and in the README's table:
 - output, file and views: ``publish_uncalibrated``, ``auto_save``, ``calibration_file``
   ($ROS_HOME/mag_calibrator/<namespace>__<name>.yaml: loaded at start-up and by ~/load,
   written by ~/save), ``progress_log_period``, ``view_period``, ``view_scale``;
-- alignment to the IMU and the Earth's field here: ``use_imu``, ``max_alignment_deg``,
+- alignment to the IMU and the Earth's field here: ``use_imu``, ``gyro_aided`` (calibrated
+  first from the gyroscope's turning), ``max_alignment_deg``,
   ``latitude``, ``longitude``, ``altitude`` (NaN: unknown; one alone waits for the other),
   ``use_gps``, ``max_field_error_pct``, ``max_dip_error_deg``, ``earth_field_gate``;
 - turning in place (``~/rotate_and_calibrate``): ``rotation_speed``,

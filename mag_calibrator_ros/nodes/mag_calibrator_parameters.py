@@ -125,6 +125,11 @@ PARAMETERS: dict[str, tuple[object, str, dict]] = {
     'use_imu': (True, 'Subscribe imu/data_raw (sensor_msgs/Imu, same frame as imu/mag) and align '
                       'each calibration to the accelerometer from readings held still; without '
                       'a publisher nothing changes.', {}),
+    'gyro_aided': (DEFAULTS.gyro_aided,
+                   "With imu/data_raw's gyroscope, calibrate first from the turning it measures "
+                   '(the offset from rotation about two axes, no sphere needed), in force only '
+                   'when better than the raw field on held-out readings; refinements must not '
+                   'turn directions worse.', {}),
     'max_alignment_deg': (DEFAULTS.max_alignment_deg,
                           'A larger rotation to the IMU is reported as a mounting or axis-remap '
                           'error (with the remap that fixes it) and not applied.',
