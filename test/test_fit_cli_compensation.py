@@ -1,6 +1,7 @@
 """mag_calibrator_fit learns the robot's own field (K per ampere, c per degree) from recordings
 that log the current and the temperature: text columns by header name or option, rosbag2
-BatteryState / Temperature topics paired by stamp; bad columns are named, never a traceback."""
+BatteryState / Temperature topics paired by stamp (test_fit_cli_compensation_bags.py); bad
+columns are named, never a traceback."""
 
 from __future__ import annotations
 
@@ -21,7 +22,6 @@ from mag_calibrator_ros.tools import fit
 from mag_calibrator_ros.tools.fit_compensation import without_own_field
 from mag_calibrator_ros.tools.recording_inputs import compensation_columns
 from mag_calibrator_ros.tools.recording_value import Recording, RecordingError
-from mag_calibrator_ros.tools.recordings import read_recording
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'benchmarks'))
 from bench_interference import robot  # noqa: E402 - the benchmark's simulated ground robot
@@ -145,14 +145,17 @@ def test_the_second_pass_removes_the_field_of_each_rows_latest_inputs():
 
 def test_without_the_columns_the_result_is_todays(tmp_path, capsys, course):
     """The same readings without current and temperature, and with them but
-    --no-compensation: the same static calibration and no compensation."""
+    --no-compensation: the same static calibration and no compensation. The first half of
+    the course (its turns in place and straight legs at speed) is enough to calibrate; the
+    replay's fits follow its stream time, so a shorter log, not a sparser one, is quicker."""
     recording, _ = course
-    rows = range(0, len(recording.times), 3)
+    rows = range(0, len(recording.times) // 2, 3)
     bare = run(capsys, write_csv(tmp_path / 'bare.csv', recording, (), rows), '--units', 'T')
     ignored = run(capsys, write_csv(tmp_path / 'full.csv', recording, rows=rows), '--units', 'T',
                   '--no-compensation')
     for _, summary in (bare, ignored):
         assert summary['compensation'] is None
+    assert bare[1]['success'], bare[1]['reason']  # the same calibration, not the same failure
     keys = ('success', 'reason', 'offset', 'matrix', 'field_strength', 'metrics')
     assert [bare[0], *(bare[1][k] for k in keys)] == [ignored[0], *(ignored[1][k] for k in keys)]
 
@@ -207,30 +210,19 @@ def write_rosbag2(path: Path, recording, imu: bool = False) -> Path:
     return path
 
 
-def test_a_rosbag2_with_battery_state_and_temperature_learns_k_and_c(tmp_path, capsys, course):
-    recording, truth = course
-    bag = write_rosbag2(tmp_path / 'course', recording)
-    read = read_recording(bag, compensation=(None, None))
-    assert read.input_names == ('/battery:sensor_msgs/msg/BatteryState:current',)
-    assert np.isfinite(read.inputs).all() and np.isfinite(read.temperature).all()
-    _, summary = run(capsys, bag)
-    assert_near_truth(summary['compensation'], truth, recording)
-    assert 'battery topic /battery' in summary['input']['layout']
-
-
 def test_bad_columns_are_counted_and_named_never_a_traceback(tmp_path, capsys, course):
     recording, _ = course
-    rows = range(2000)
+    rows = range(600)  # the inputs are judged as they are read: a short log says it all
     current = [('garbage' if i % 7 == 3 else 'nan' if i % 11 == 3 else f'{value:g}')
                for i, value in enumerate(recording.current_a)]
     csv = write_csv(tmp_path / 'bad.csv', recording, rows=rows, current=current,
                     temperature=np.full(len(recording.times), 25.0))
     status, summary = run(capsys, csv, '--units', 'T')
     assert status in (0, 1)
-    assert summary['input']['rows'] == 2000  # the readings are kept whatever the inputs say
+    assert summary['input']['rows'] == 600  # the readings are kept whatever the inputs say
     problems = ' '.join(summary['compensation']['problems'])
     garbage = sum(1 for i in rows if i % 7 == 3 or i % 11 == 3)
-    assert f"input column 'current': {garbage} of 2000 rows not a finite number" in problems
+    assert f"input column 'current': {garbage} of 600 rows not a finite number" in problems
     assert "temperature column 'temperature': the temperature never varied" in problems
     status = fit.main([str(csv), '--input-columns', 'amps'])
     assert status == 2
@@ -277,54 +269,3 @@ def test_a_column_is_named_with_or_without_the_unit_its_header_gives():
                              'esc[1].current', '')  # an index is no unit
     with pytest.raises(RecordingError, match="input columns 3, 4 are all named 'current'"):
         compensation_columns(['mx,my,mz,current,current', '1,2,3,5,6'], (0, 1, 2), 'log')
-
-
-def test_a_ros1_bag_pairs_its_battery_and_temperature_and_names_bad_values(tmp_path):
-    """The ROS 1 reader too: the nearest sample within the live tolerance (0.5 s for the
-    current, 2 s for the temperature), a NaN temperature counted, two BatteryState topics
-    left for the user to choose (--battery-topic)."""
-    from rosbags.rosbag1 import Writer as Ros1Writer
-    ros1 = get_typestore(Stores.ROS1_NOETIC)
-    start = 1_700_000_000 * 10**9
-
-    def stamped(stamp_ns):
-        return ros1.types['std_msgs/msg/Header'](
-            seq=0, stamp=ros1.types['builtin_interfaces/msg/Time'](
-                sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9), frame_id='imu_link')
-
-    def battery(stamp_ns, current):
-        return ros1.types['sensor_msgs/msg/BatteryState'](
-            header=stamped(stamp_ns), voltage=12.0, current=current, charge=1.0, capacity=2.0,
-            temperature=25.0, cell_temperature=np.zeros(0, dtype=np.float32),
-            design_capacity=2.0, percentage=0.5, power_supply_status=2, power_supply_health=1,
-            power_supply_technology=2, present=True,
-            cell_voltage=np.zeros(0, dtype=np.float32), location='', serial_number='')
-
-    path = tmp_path / 'run.bag'
-    with Ros1Writer(path) as writer:
-        types = {'/imu/mag': 'sensor_msgs/msg/MagneticField',
-                 '/battery': 'sensor_msgs/msg/BatteryState',
-                 '/imu/temperature': 'sensor_msgs/msg/Temperature'}
-        connections = {topic: writer.add_connection(topic, msgtype, typestore=ros1)
-                       for topic, msgtype in types.items()}
-        for i in range(40):
-            stamp = start + i * 100_000_000
-            messages = [('/imu/mag', ros1.types[types['/imu/mag']](
-                header=stamped(stamp), magnetic_field=ros1.types['geometry_msgs/msg/Vector3'](
-                    2e-5, -3e-5 + 1e-7 * i, 4e-5), magnetic_field_covariance=np.zeros(9)))]
-            if i % 10 == 0:  # 1 Hz: readings 5 or more rows away find none within 0.5 s
-                messages.append(('/battery', battery(stamp, 1.0 + i / 10)))
-                messages.append(('/imu/temperature', ros1.types[types['/imu/temperature']](
-                    header=stamped(stamp), temperature=math.nan if i == 20 else 30.0 + i / 10,
-                    variance=0.0)))
-            for topic, message in messages:
-                writer.write(connections[topic], stamp, ros1.serialize_ros1(message,
-                                                                            types[topic]))
-    read = read_recording(path, compensation=(None, None))
-    assert read.input_names == ('/battery:sensor_msgs/msg/BatteryState:current',)
-    assert read.inputs[:10, 0].tolist() == [1.0] * 5 + [read.inputs[5, 0]] + [2.0] * 4
-    assert read.inputs[34, 0] == 4.0 and np.isnan(read.inputs[36, 0])  # 0.6 s from any
-    assert read.temperature[0] == 30.0 and read.temperature[18] == 31.0  # the NaN is skipped
-    assert "'/imu/temperature temperature': 1 of 4 rows not a finite number" in ' '.join(
-        read.input_problems)
-    assert read_recording(path, compensation=('', '')).inputs is None
