@@ -23,13 +23,16 @@ a calibration is in force, the corrected one after. Then, per trial:
   heading error by BROAD's own metric (``heading_error``) RMS over the movement samples;
 - the peers given the same samples, batch over the whole trial: the package's ellipsoid fit
   (``fit_calibration``, model 'full', every row) and MAGYC's four methods (CoMPAS Lab, PyPI
-  ``magyc``, run by benchmarks/peers/magyc_broad.py in a venv of its own; n/a without it);
+  ``magyc``, run by benchmarks/peers/magyc_broad.py in a venv of its own; n/a without it).
+  MAGYC differentiates the field between successive rows, and the aktos-t holds its
+  magnetometer between updates (repeated rows): ``--magyc-step N`` gives it every N-th row,
+  its calibration applied to every row;
 - the IMU warnings the session logged (messages naming the accelerometer or gyroscope) and the
   coverage its report reached.
 
     make fetch-recordings   # once: the trials, outside the repository
     python3.11 -m venv .venv-magyc && .venv-magyc/bin/pip install magyc==1.0.0   # optional
-    python benchmarks/bench_broad.py [--dir DIR] [--json out/bench_broad.json]
+    python benchmarks/bench_broad.py [--dir DIR] [--json out/bench_broad.json] [--magyc-step N]
 """
 
 from __future__ import annotations
@@ -187,7 +190,8 @@ def magyc_results(args: argparse.Namespace, paths: list[Path]) -> dict:
         path.parent.mkdir(parents=True, exist_ok=True)
         print(f'MAGYC: {len(missing)} trial(s) through {MAGYC_PYTHON} (minutes)', flush=True)
         subprocess.run([str(MAGYC_PYTHON), str(ROOT / 'benchmarks/peers/magyc_broad.py'),
-                        *map(str, missing), '-o', str(path)], check=False)
+                        *map(str, missing), '-o', str(path), '--step', str(args.magyc_step)],
+                       check=False)
         have = json.loads(path.read_text()) if path.exists() else {}
     elif missing:
         print(f'MAGYC: n/a (no {MAGYC_PYTHON}: python3.11 -m venv .venv-magyc && '
@@ -236,7 +240,8 @@ def evaluate(name: str, data: dict, magyc: dict | None) -> dict:
         corrected = magyc_apply(entry, raw)
         peers[method] = {'status': entry.get('error', 'ok' if corrected is not None
                                                else 'not finite'),
-                         'seconds': entry.get('seconds')}
+                         'seconds': entry.get('seconds'),
+                         'step': (magyc or {}).get(name, {}).get('step')}
         if corrected is not None:
             fields[method] = corrected
     heading = {key: mocap(field) for key, field in fields.items()}
@@ -310,8 +315,11 @@ def main() -> int:
     parser.add_argument('--dir', type=Path, default=recordings_dir(),
                         help='where make fetch-recordings put the trials')
     parser.add_argument('--json', type=Path, default=None, help='write the results here')
-    parser.add_argument('--magyc', type=Path, default=ROOT / 'out' / 'bench_broad_magyc.json',
-                        help="MAGYC's calibrations (made by peers/magyc_broad.py if missing)")
+    parser.add_argument('--magyc', type=Path, default=None,
+                        help="MAGYC's calibrations (made by peers/magyc_broad.py if missing; "
+                        'default out/bench_broad_magyc_stepN.json)')
+    parser.add_argument('--magyc-step', type=int, default=1,
+                        help='MAGYC sees every N-th row (default 1: the same samples)')
     parser.add_argument('--trials', default='',
                         help='comma-separated prefixes of the development trials (default all)')
     args = parser.parse_args()
@@ -323,6 +331,8 @@ def main() -> int:
         print(f"bench_broad: skipped: {', '.join(absent)} not in {args.dir}; run "
               '`make fetch-recordings` (or give --dir)')
         return 0
+    if args.magyc is None:
+        args.magyc = ROOT / 'out' / f'bench_broad_magyc_step{args.magyc_step}.json'
     magyc = magyc_results(args, paths)
     results = {}
     for path in paths:
