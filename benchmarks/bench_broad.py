@@ -27,7 +27,7 @@ a calibration is in force, the corrected one after. Then, per trial:
   MAGYC differentiates the field between successive rows, and the aktos-t holds its
   magnetometer between updates (repeated rows): ``--magyc-step N`` gives it every N-th row,
   its calibration applied to every row;
-- the IMU warnings the session logged (messages naming the accelerometer or gyroscope) and the
+- the IMU warnings the session logged (warnings naming the accelerometer or gyroscope) and the
   coverage its report reached.
 
     make fetch-recordings   # once: the trials, outside the repository
@@ -164,7 +164,8 @@ def replay(data: dict) -> dict:
     session.poll()
     events += [(len(published), e.level, e.message, e.adopted) for e in session.take_events()]
     report = session.report()
-    warnings = [e for e in events if any(w in e[2].lower() for w in IMU_WORDS)]
+    warnings = [e for e in events  # the IMU's, not the gyro-aided fit's news
+                if e[1] == 'warning' and any(w in e[2].lower() for w in IMU_WORDS)]
     return {
         'published': published, 'in_force': in_force, 'events': events, 'warnings': warnings,
         'coverage': report.coverage.fraction, 'state': report.state,
