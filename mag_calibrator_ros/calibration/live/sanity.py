@@ -2,9 +2,10 @@
 
 ``InputWatch`` sees every magnetometer message before screening (a field in gauss published as
 tesla is refused by screening as saturated, so screening alone would only count it) and every
-accelerometer sample, O(1) each; it judges a small window of them at the fifth message and then
-once a second of stream time, so a wrong unit is said within a second of data and a normalised
-field within a few seconds of turning. While a problem stands, no fit runs that could put a
+accelerometer sample, O(1) each; it judges a small window of fields at the fifth message and then
+once a second of stream time, and the accelerometer's latest second, so a wrong unit is said
+within a second of data and a normalised field within a few seconds of turning. While a
+problem stands, no fit runs that could put a
 calibration in force (``refusal``); the session logs each new problem once and /diagnostics
 shows it as a WARN.
 """
@@ -32,9 +33,14 @@ WINDOW = 200
 JUDGE_PERIOD_S = 1.0
 """Stream seconds between judgements after the first."""
 
-IMU_WINDOW = 50
+IMU_SPAN_S = 1.0
+"""Accelerometer samples are judged on the median |a| of the latest second of stream: a hand's
+motion moves a shorter median by far more than gravity (BROAD's trial 28: 1.2 m/s^2 over
+0.175 s, 6.3 over a second), and the factor of a wrong unit (g: 9.8) is not moved by a second of
+motion that goes nowhere."""
+
 IMU_JUDGE_EVERY = 100
-"""Accelerometer samples judged: the latest IMU_WINDOW, at the fifth and every IMU_JUDGE_EVERY."""
+"""...judged once the samples span IMU_SPAN_S, then every IMU_JUDGE_EVERY samples."""
 
 NORMALISED = 'the magnetometer input is already normalised'
 
@@ -52,9 +58,10 @@ class InputWatch:
     def __init__(self, tesla: bool = True) -> None:
         self.tesla = tesla
         self._fields: deque[tuple[float, float, float]] = deque(maxlen=WINDOW)
-        self._accel: deque[tuple[float, float, float]] = deque(maxlen=IMU_WINDOW)
+        self._accel: deque[tuple[int, tuple[float, float, float]]] = deque()
         self._offered = 0
         self._imu_offered = 0
+        self._imu_judged = 0
         self._next_judgement: float | None = None
         self.problem = ''
         """What is wrong with the magnetometer input now ('' when nothing)."""
@@ -87,18 +94,29 @@ class InputWatch:
         elif due is not None and now < due - 10.0 * JUDGE_PERIOD_S:
             self._next_judgement = now  # stamps went back (a replay): judge from now on
 
-    def offer_imu(self, accel: Sequence[float]) -> None:
-        """One accelerometer sample, m/s^2 as sensor_msgs/Imu requires."""
+    def offer_imu(self, stamp_ns: int, accel: Sequence[float]) -> None:
+        """One accelerometer sample, m/s^2 as sensor_msgs/Imu requires; O(1) but one judgement
+        every IMU_JUDGE_EVERY."""
         try:
             row = tuple(float(value) for value in accel)
         except (TypeError, ValueError):
             return
         if len(row) != 3 or not all(math.isfinite(value) for value in row):
             return
-        self._accel.append(row)
+        window = self._accel
+        if window and not 0 <= stamp_ns - window[-1][0] <= IMU_SPAN_S * 1e9:
+            window.clear()  # stamps went back or jumped: a new stream
+        window.append((stamp_ns, row))
+        while stamp_ns - window[0][0] > IMU_SPAN_S * 1e9:
+            window.popleft()
         self._imu_offered += 1
-        if self._imu_offered == MIN_READINGS or self._imu_offered % IMU_JUDGE_EVERY == 0:
-            self._change('imu_problem', accel_unit_problem(np.array(self._accel)) or '')
+        count = len(window)  # n samples stand for n sample periods of stream
+        spans = count > 1 and (stamp_ns - window[0][0]) * count / (count - 1) >= IMU_SPAN_S * 1e9
+        judged = self._imu_judged
+        if spans and (not judged or self._imu_offered - judged >= IMU_JUDGE_EVERY):
+            self._imu_judged = self._imu_offered
+            rows = np.array([sample for _, sample in window])
+            self._change('imu_problem', accel_unit_problem(rows) or '')
 
     def _change(self, which: str, problem: str) -> None:
         if problem and problem.split(':')[0] != getattr(self, which).split(':')[0]:
@@ -124,4 +142,4 @@ class InputWatch:
         self.__init__(self.tesla)
 
 
-__all__ = ['FITS_REFUSED', 'JUDGE_PERIOD_S', 'WINDOW', 'InputWatch']
+__all__ = ['FITS_REFUSED', 'IMU_SPAN_S', 'JUDGE_PERIOD_S', 'WINDOW', 'InputWatch']

@@ -223,7 +223,7 @@ class CalibrationSession:
         """Keep one accelerometer (m/s^2) and gyroscope (rad/s) sample to pair magnetometer
         readings with (``ImuPairing.add``); False when refused, counted by reason: no plausible
         specific force, or ``frame_id`` not the magnetometer stream's (said once a frame)."""
-        self._input_watch.offer_imu(accel)
+        self._input_watch.offer_imu(stamp_ns, accel)
         kept = self._pairing.add(stamp_ns, accel, gyro, frame_id, self._screen.frame_id)
         if kept and gyro is not None and self._settings.gyro_aided:
             self._turns.add_rate(stamp_ns, gyro)
