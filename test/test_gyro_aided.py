@@ -11,6 +11,7 @@ from mag_calibrator_ros.calibration.fit.gyro_aided import (
     MAX_OFFSET_STD,
     TurnedReadings,
     fit_gyro_aided,
+    fit_gyro_aided_full,
     turned_errors,
 )
 from mag_calibrator_ros.calibration.live.rotation_track import STEP_S, WINDOW_S, RotationTrack
@@ -38,18 +39,25 @@ def wrist_motion(seconds: float, seed: int, axes: int = 3) -> tuple[np.ndarray, 
     return rates, Rotation.concatenate(attitudes).as_matrix()
 
 
+SOFT_IRON = np.array([[1.08, 0.04, -0.02], [0.04, 0.94, 0.03], [-0.02, 0.03, 1.0]])
+
+
 def readings_of(attitudes: np.ndarray, offset: np.ndarray, noise: float, seed: int,
-                mounting: np.ndarray | None = None) -> np.ndarray:
+                mounting: np.ndarray | None = None, soft_iron: np.ndarray | None = None
+                ) -> np.ndarray:
     rng = np.random.default_rng(seed + 100)
     body = np.einsum('nji,j->ni', attitudes, EARTH)  # R^T w
     if mounting is not None:
         body = body @ mounting.T
+    if soft_iron is not None:
+        body = body @ soft_iron.T
     return body + offset + rng.normal(0.0, noise, body.shape)
 
 
 def windows_of(attitudes: np.ndarray, readings: np.ndarray, step: int = 2) -> TurnedReadings:
+    """Every ``step``-th reading in one-second windows (the fit takes windows of any length)."""
     rows = np.arange(0, len(readings), step)
-    return TurnedReadings(readings[rows], attitudes[rows], (rows / RATE_HZ // WINDOW_S)
+    return TurnedReadings(readings[rows], attitudes[rows], (rows / RATE_HZ // 1.0)
                           .astype(int))
 
 
@@ -65,6 +73,32 @@ def test_an_offset_is_found_from_a_partial_sphere_within_its_uncertainty(seed):
     assert np.all(fit.offset_std < MAX_OFFSET_STD * fit.calibration.field_strength)
     assert fit.calibration.field_strength == pytest.approx(np.linalg.norm(EARTH), rel=0.02)
     assert fit.raw_residual_pct > 10 * fit.residual_pct  # the raw field does not turn as one
+
+
+def direction_errors_deg(calibration, readings: np.ndarray, attitudes: np.ndarray) -> np.ndarray:
+    corrected = calibration.apply(readings)
+    truth = np.einsum('nji,j->ni', attitudes, EARTH)
+    lengths = np.linalg.norm(corrected, axis=1) * np.linalg.norm(truth, axis=1)
+    cosine = np.sum(corrected * truth, axis=1) / lengths
+    return np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
+
+
+@pytest.mark.parametrize('seed', [0, 1])
+def test_the_soft_iron_is_found_from_a_partial_sphere_where_the_offset_alone_is_not_enough(seed):
+    _, attitudes = wrist_motion(20.0, seed)
+    readings = readings_of(attitudes, np.array([12.0, -30.0, 7.5]), 0.3, seed,
+                           soft_iron=SOFT_IRON)
+    data = windows_of(attitudes, readings)
+    sphere = fit_gyro_aided(data)
+    full = fit_gyro_aided_full(data, sphere)
+    assert full.calibration is not None and full.calibration.model == 'full', full.reason
+    full_errors = direction_errors_deg(full.calibration, readings, attitudes)
+    sphere_errors = direction_errors_deg(sphere.calibration, readings, attitudes)
+    assert np.median(full_errors) < 0.5 < np.median(sphere_errors)
+    undone = full.calibration.correction @ SOFT_IRON  # R M S: a rotation times a scale
+    scale = np.cbrt(np.linalg.det(undone))
+    assert np.max(np.abs(undone / scale - np.eye(3))) < 0.01
+    assert full.residual_pct < sphere.residual_pct
 
 
 def test_turning_about_one_axis_leaves_the_offset_along_it_unseen():
@@ -119,7 +153,7 @@ def test_the_track_integrates_a_constant_turn_and_keeps_one_reading_per_step():
         track.add_reading(stamp, body)
     data = track.snapshot()
     assert data is not None
-    assert len(np.unique(data.windows)) == 12 and len(data.readings) == 12 / STEP_S
+    assert len(np.unique(data.windows)) == 12 / WINDOW_S and len(data.readings) == 12 / STEP_S
     assert np.max(turned_errors(None, data)) < 1e-6  # each window's field turned back is one
 
 
@@ -141,9 +175,15 @@ def test_a_gap_in_the_rates_starts_a_new_window_and_no_reading_is_kept_without_r
 
 
 def replay(offset: np.ndarray, seconds: float, seed: int, settings: SessionSettings,
-           mounting: np.ndarray | None = None) -> tuple[CalibrationSession, float | None, list]:
+           mounting: np.ndarray | None = None, change=None, soft_iron: np.ndarray | None = None
+           ) -> tuple[CalibrationSession, float | None, list]:
+    """The wrist motion streamed through a session; ``change(t, readings)`` edits the readings
+    (uT) over time (a magnet attached, a magnet in the room)."""
     rates, attitudes = wrist_motion(seconds, seed)
-    readings = readings_of(attitudes, offset, 0.3, seed, mounting) * 1e-6  # tesla
+    readings = readings_of(attitudes, offset, 0.3, seed, mounting, soft_iron)
+    if change is not None:
+        change(np.arange(len(readings)) / RATE_HZ, readings, attitudes)
+    readings = readings * 1e-6  # tesla
     gravity = np.einsum('nji,j->ni', attitudes, np.array([0.0, 0.0, 9.81]))
     session = CalibrationSession(settings)
     first, events = None, []
@@ -167,6 +207,17 @@ def test_the_session_calibrates_a_hand_turned_sensor_from_the_gyroscope_within_3
     assert session.report().counts.adoptions.get('gyro') == 1
 
 
+def test_a_hand_turned_sensor_with_soft_iron_is_calibrated_in_full_within_30_s():
+    session, first, events = replay(np.array([15.0, -25.0, 10.0]), 40.0, 12, SessionSettings(),
+                                    soft_iron=SOFT_IRON)
+    assert first is not None and first <= 30.0, [e.message for e in events]
+    assert session.calibration.model == 'full'
+    _, attitudes = wrist_motion(40.0, 12)
+    readings = readings_of(attitudes, np.array([15.0, -25.0, 10.0]), 0.0, 12, None, SOFT_IRON)
+    assert np.median(direction_errors_deg(session.calibration.scaled(1e6), readings,
+                                          attitudes)) < 0.5
+
+
 def test_without_the_gyro_aided_fit_the_same_motion_waits_for_the_sphere():
     offset = np.array([15.0, -25.0, 10.0])
     session, _, events = replay(offset, 40.0, 7, SessionSettings(gyro_aided=False))
@@ -186,3 +237,58 @@ def test_a_magnetometer_in_another_frame_is_not_calibrated_from_the_gyroscope():
     mounting = Rotation.from_euler('x', 90, degrees=True).as_matrix()
     _, _, events = replay(np.array([10.0, 0.0, 0.0]), 30.0, 9, SessionSettings(), mounting)
     assert not any(e.adopted and 'gyroscope' in e.message for e in events)
+
+
+def magnet_attached(at_s: float, offset_ut):
+    def change(t, readings, attitudes):
+        readings[t >= at_s] += np.asarray(offset_ut)
+    return change
+
+
+def test_a_magnet_attached_to_the_board_is_learned_from_the_turning_within_10_s():
+    before, added = np.array([15.0, -25.0, 10.0]), np.array([0.0, 30.0, -20.0])
+    session, first, events = replay(before, 50.0, 10, SessionSettings(),
+                                    change=magnet_attached(25.0, added))
+    steps = [e for e in events if e.adopted and 'hard-iron step' in e.message]
+    assert first is not None and first < 25.0
+    assert len(steps) == 1, [e.message for e in events if e.level != 'debug']
+    assert np.linalg.norm(session.calibration.offset * 1e6 - (before + added)) < 1.5
+    assert session.report().counts.adoptions.get('step') == 1
+
+
+def test_a_magnet_fixed_in_the_room_is_not_learned_as_a_step():
+    """A field added in the world frame (the sensor turning inside a magnet's field) agrees with
+    no body-fixed offset as the sensor turns."""
+    def room_magnet(t, readings, attitudes):
+        inside = (t >= 25.0) & (t < 35.0)
+        readings[inside] += np.einsum('nji,j->ni', attitudes[inside], np.array([25.0, 0, 0]))
+    _, first, events = replay(np.array([15.0, -25.0, 10.0]), 50.0, 11, SessionSettings(),
+                              change=room_magnet)
+    assert first is not None and first < 25.0
+    assert not any(e.adopted and 'hard-iron step' in e.message for e in events)
+
+
+def test_another_boards_file_is_corrected_by_a_step_within_seconds():
+    """A file 150 uT off this sensor's offset: the turned readings agree with another offset,
+    so a step re-learns it from the gyroscope long before the sphere could."""
+    from mag_calibrator_ros.calibration.fit.calibration import Calibration
+
+    offset = np.array([15.0, -25.0, 10.0])
+    wrong = Calibration((offset + [140.0, -60.0, 20.0]) * 1e-6, np.eye(3),
+                        np.linalg.norm(EARTH) * 1e-6, 'sphere')
+    rates, attitudes = wrist_motion(20.0, 13)
+    readings = readings_of(attitudes, offset, 0.3, 13) * 1e-6
+    gravity = np.einsum('nji,j->ni', attitudes, np.array([0.0, 0.0, 9.81]))
+    session = CalibrationSession(SessionSettings(), wrong)
+    stepped = None
+    for index, reading in enumerate(readings):
+        stamp = int(index * 1e9 / RATE_HZ)
+        session.process_imu(stamp, '', gravity[index], rates[index])
+        session.process(stamp, '', reading)
+        if stepped is None and any(e.adopted and 'hard-iron step' in e.message
+                                   for e in session.take_events()):
+            stepped = index / RATE_HZ
+    assert stepped is not None and stepped <= 10.0
+    after = session.calibration.apply(readings[-200:])
+    assert np.all(np.abs(np.linalg.norm(after, axis=1) / (np.linalg.norm(EARTH) * 1e-6) - 1)
+                  < 0.1)

@@ -17,12 +17,13 @@ zero, and ``fit_gyro_aided`` says so.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import math
 
 import numpy as np
 
-from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.fit.calibration import Calibration, CalibrationError
+from mag_calibrator_ros.calibration.fit.robust import mad_sigma
 
 MIN_WINDOWS = 8
 """Windows needed before an offset is solved: each contributes one rotation's worth of turning."""
@@ -45,9 +46,18 @@ tens of rounds of a millisecond; they stop once the rotation moves less than MOU
 MOUNTING_SETTLED = 1e-5
 """...radians in a round."""
 
-MIN_TURN = 0.2
-"""The turning each axis must see, as the smallest singular value of the windows' rotations
-about their means (rad-like): rotation about one axis leaves the offset along it unseen."""
+OUTLIER_ROUNDS = 3
+"""Rounds of leaving out the windows that disagree with the rest (``_consistent_windows``)."""
+
+OUTLIER_SIGMAS = 5.0
+"""A window disagrees when its field's length is five robust sigmas (over windows) from the
+median window's: beyond a sensor's noise and soft iron, well within what a magnet stuck on or
+taken off moves."""
+
+ONE_AXIS = 0.05
+"""The windows' rotations about their means span less than this share of their largest turn in
+some direction: the sensor turned about one axis, and the offset along it is not seen. Said as
+the likely reason when the uncertainty is too large (the uncertainty is the gate)."""
 
 
 @dataclass(frozen=True)
@@ -81,8 +91,10 @@ class GyroAidedFit:
     windows: int
     readings: int
     turn: float
-    """The smallest singular value of the rotations about their windows' means (MIN_TURN)."""
+    """The windows' turning in their least-turned direction, a share of the most (ONE_AXIS)."""
     reason: str = ''
+    used: np.ndarray | None = None
+    """The window labels fitted (those that agree with the rest); None: all."""
 
 
 def fit_gyro_aided(data: TurnedReadings, *, max_offset_std: float = MAX_OFFSET_STD,
@@ -101,16 +113,23 @@ def fit_gyro_aided(data: TurnedReadings, *, max_offset_std: float = MAX_OFFSET_S
     if windows < MIN_WINDOWS:
         return GyroAidedFit(False, None, nothing, math.nan, math.nan, windows, len(readings),
                             0.0, f'{windows} windows of turning readings, need {MIN_WINDOWS}')
-    turn = float(np.linalg.svd(design, compute_uv=False)[-1]) / math.sqrt(windows)
-    offset = _solve(design, target)
-    mounting = np.eye(3)
-    for _ in range(MOUNTING_ITERATIONS if offset is not None else 0):
-        previous, mounting = mounting, _mounting(readings - offset, rotations, labels, mounting)
-        design, target, groups = _centred(readings, rotations @ mounting, labels)
-        offset = _solve(design, target)
-        if offset is None or np.max(np.abs(mounting - previous)) < MOUNTING_SETTLED:
+    spans = np.linalg.svd(design, compute_uv=False)
+    turn = float(spans[-1] / spans[0]) if spans[0] > 0.0 else 0.0
+    offset, mounting, design, target, groups = _offset_and_mounting(readings, rotations, labels)
+    for _ in range(OUTLIER_ROUNDS if offset is not None else 0):
+        kept = _consistent_windows(readings, labels, offset)
+        if kept.all():
             break
-    if offset is None or turn < MIN_TURN:
+        readings, rotations, labels = readings[kept], rotations[kept], labels[kept]
+        offset, mounting, design, target, groups = _offset_and_mounting(
+            readings, rotations, labels)
+        windows = int(groups.max()) + 1 if len(groups) else 0
+        if offset is None or windows < MIN_WINDOWS:
+            return GyroAidedFit(False, None, nothing, math.nan, math.nan, windows,
+                                len(readings), turn, 'the turned readings disagree with one '
+                                'another (a field disturbed, or a magnet come or gone): keep '
+                                'turning it')
+    if offset is None:
         return GyroAidedFit(False, None, nothing, math.nan, math.nan, windows, len(readings),
                             turn, 'the readings turned about one axis only (the offset along '
                             'it is not seen): turn it about another axis too')
@@ -122,24 +141,132 @@ def fit_gyro_aided(data: TurnedReadings, *, max_offset_std: float = MAX_OFFSET_S
     std = _jackknife_std(design, target, groups, windows, offset)
     residual = 100.0 * _spread(readings, rotations @ mounting, labels, offset) / radius
     raw_residual = 100.0 * _spread(readings, rotations, labels, np.zeros(3)) / raw_radius
-    angle = math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(mounting) - 1.0) / 2.0))))
+    angle = _angle_deg(mounting)
     calibration = Calibration(offset, np.eye(3), radius, model='sphere', rotation=mounting,
                               metadata={'fit': 'gyro_aided', 'windows': windows,
                                         'aligned_by': 'gyroscope',
                                         'rotation_deg': round(angle, 3)})
     reason = ''
     if angle > max_rotation_deg:
-        reason = (f"the magnetometer's axes are turned {angle:.0f} deg from the gyroscope's "
-                  f'(more than {max_rotation_deg:g}): a mounting or axis-remap error')
+        reason = _mounting_text(angle, max_rotation_deg)
     elif not np.all(std <= max_offset_std * radius):
+        hint = 'turn it about another axis too' if turn < ONE_AXIS else 'keep turning it'
         reason = (f'the offset is uncertain by {_pct(std, radius)} of the field, the bound is '
-                  f'{100 * max_offset_std:.1f} %: keep turning it')
+                  f'{100 * max_offset_std:.1f} %: {hint}')
     elif residual > max_residual_pct:
         reason = (f'the turned readings spread by {residual:.1f} % of the field, the bound is '
                   f'{max_residual_pct:.1f} %: the magnetometer does not turn with the '
                   'gyroscope (another frame, a disturbed field or another unit)')
     return GyroAidedFit(not reason, calibration, std, residual, raw_residual, windows,
-                        len(readings), turn, reason)
+                        len(readings), turn, reason, np.unique(labels))
+
+
+def fit_gyro_aided_full(data: TurnedReadings, start: GyroAidedFit, *,
+                        max_offset_std: float = MAX_OFFSET_STD,
+                        max_residual_pct: float = 5.0, max_rotation_deg: float = 15.0
+                        ) -> GyroAidedFit:
+    """The soft iron too (MAGYC's idea, arXiv 2410.13827): the whole linear map ``G = R M`` and
+    the offset that make each window's turned readings one vector and every reading as long as
+    the others, from the offset-only fit ``start`` (Levenberg-Marquardt; both residuals relative
+    to the field, so ``G``'s scale is free and set afterwards). Its uncertainty, of the offset
+    and of ``M`` (relative), by the same jackknife over windows; bounded as the offset's."""
+    if start.calibration is None:
+        return start
+    readings = np.asarray(data.readings, dtype=float).reshape(-1, 3)
+    rotations = np.asarray(data.rotations, dtype=float).reshape(-1, 3, 3)
+    labels = np.asarray(data.windows).reshape(-1)
+    if start.used is not None:  # the windows that agree with the rest
+        rows = np.isin(labels, start.used)
+        readings, rotations, labels = readings[rows], rotations[rows], labels[rows]
+    initial = np.concatenate([start.calibration.correction.reshape(9), start.calibration.offset])
+    solution = _full_solve(readings, rotations, labels, initial)
+    if solution is None:
+        return replace(start, success=False, reason='the soft iron could not be solved')
+    groups = np.unique(labels)
+    count = min(JACKKNIFE_GROUPS, len(groups))
+    estimates = []
+    for group in range(count):
+        kept = np.isin(labels, groups[np.arange(len(groups)) * count // len(groups) != group])
+        estimate = _full_solve(readings[kept], rotations[kept], labels[kept], solution)
+        if estimate is None:
+            return replace(start, success=False, reason='the soft iron could not be solved')
+        estimates.append(_normalised(estimate))
+    deviations = np.asarray(estimates) - _normalised(solution)
+    std = np.sqrt((count - 1) / count * np.sum(deviations**2, axis=0))
+    try:
+        calibration = _calibration(solution, readings, start.calibration.metadata)
+    except (CalibrationError, ValueError, np.linalg.LinAlgError):
+        return replace(start, success=False, reason='the soft iron is not positive definite')
+    radius = calibration.field_strength
+    offset_std, matrix_std = std[9:], float(np.max(std[:9]))
+    residual = 100.0 * _spread(readings, rotations @ calibration.rotation, labels,
+                               calibration.offset, calibration.matrix) / radius
+    angle = _angle_deg(calibration.rotation)
+    calibration = calibration.with_metadata(rotation_deg=round(angle, 3))
+    reason = ''
+    if angle > max_rotation_deg:
+        reason = _mounting_text(angle, max_rotation_deg)
+    elif not (np.all(offset_std <= max_offset_std * radius) and matrix_std <= max_offset_std):
+        reason = (f'the soft iron is uncertain by {100 * matrix_std:.1f} % and the offset by '
+                  f'{_pct(offset_std, radius)} of the field, the bound is '
+                  f'{100 * max_offset_std:.1f} %: keep turning it')
+    elif residual > max_residual_pct:
+        reason = (f'the turned readings spread by {residual:.1f} % of the field, the bound is '
+                  f'{max_residual_pct:.1f} %')
+    return GyroAidedFit(not reason, calibration, offset_std, residual, start.raw_residual_pct,
+                        start.windows, start.readings, start.turn, reason, start.used)
+
+
+def _full_residuals(x: np.ndarray, readings: np.ndarray, rotations: np.ndarray,
+                    starts: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    linear, offset = x[:9].reshape(3, 3), x[9:]
+    corrected = (readings - offset) @ linear.T
+    scale = float(np.mean(np.linalg.norm(corrected, axis=1)))
+    if not scale > 0.0:
+        return np.full(4 * len(readings), 1e6)
+    turned = np.einsum('nij,nj->ni', rotations, corrected)
+    sums = np.add.reduceat(turned, starts, axis=0)
+    counts = np.diff(np.append(starts, len(readings)))
+    means = np.repeat(sums / counts[:, None], counts, axis=0)
+    magnitude = np.linalg.norm(corrected, axis=1) / scale - 1.0
+    return np.concatenate([((turned - means) / scale).ravel(), magnitude])
+
+
+def _full_solve(readings: np.ndarray, rotations: np.ndarray, labels: np.ndarray,
+                initial: np.ndarray) -> np.ndarray | None:
+    from scipy.optimize import least_squares  # the worker's: nodes start without scipy.optimize
+    order = np.argsort(labels, kind='stable')
+    readings, rotations, labels = readings[order], rotations[order], labels[order]
+    starts = np.flatnonzero(np.r_[True, labels[1:] != labels[:-1]])
+    try:
+        result = least_squares(_full_residuals, initial, method='lm', x_scale='jac',
+                               args=(readings, rotations, starts, labels))
+    except (ValueError, np.linalg.LinAlgError):
+        return None
+    return result.x if np.all(np.isfinite(result.x)) else None
+
+
+def _normalised(x: np.ndarray) -> np.ndarray:
+    """``G`` at unit determinant (its scale is free) and the offset: what the jackknife
+    compares."""
+    linear = x[:9].reshape(3, 3)
+    determinant = np.linalg.det(linear)
+    scale = np.cbrt(determinant) if determinant > 0 else 1.0
+    return np.concatenate([(linear / scale).reshape(9), x[9:]])
+
+
+def _calibration(x: np.ndarray, readings: np.ndarray, metadata: dict) -> Calibration:
+    """``G = R M`` split by the polar decomposition (a rotation, a symmetric positive definite
+    soft iron), ``M`` at unit determinant and ``F`` the corrected readings' median length."""
+    from scipy.linalg import polar
+    linear = _normalised(x)[:9].reshape(3, 3)
+    rotation, matrix = polar(linear)
+    if np.linalg.det(rotation) < 0:
+        raise CalibrationError('a reflection')
+    offset = x[9:]
+    radius = float(np.median(np.linalg.norm((readings - offset) @ matrix.T, axis=1)))
+    return Calibration(offset, matrix, radius, model='full', rotation=rotation,
+                       metadata={**metadata, 'fit': 'gyro_aided'})
 
 
 def turned_errors(calibration: Calibration | None, data: TurnedReadings) -> np.ndarray:
@@ -181,6 +308,36 @@ def _centred(readings: np.ndarray, rotations: np.ndarray, labels: np.ndarray
     return np.vstack(design), np.concatenate(target), np.concatenate(groups)
 
 
+def _offset_and_mounting(readings: np.ndarray, rotations: np.ndarray, labels: np.ndarray):
+    """The offset (least squares) and the rotation into the gyroscope's frame (Kabsch rounds),
+    with the last round's centred system (for the jackknife)."""
+    design, target, groups = _centred(readings, rotations, labels)
+    offset = _solve(design, target)
+    mounting = np.eye(3)
+    for _ in range(MOUNTING_ITERATIONS if offset is not None else 0):
+        previous, mounting = mounting, _mounting(readings - offset, rotations, labels, mounting)
+        design, target, groups = _centred(readings, rotations @ mounting, labels)
+        offset = _solve(design, target)
+        if offset is None or np.max(np.abs(mounting - previous)) < MOUNTING_SETTLED:
+            break
+    return offset, mounting, design, target, groups
+
+
+def _consistent_windows(readings: np.ndarray, labels: np.ndarray,
+                        offset: np.ndarray) -> np.ndarray:
+    """Which readings belong to windows that agree with the rest: a window whose field is
+    longer or shorter than the others' by OUTLIER_SIGMAS robust sigmas (over windows) was taken
+    with another offset (before a magnet came, after it went) or in a disturbed field. (The
+    spread of a window's turned readings grows with how fast it turned: no criterion.)"""
+    lengths = np.linalg.norm(readings - offset, axis=1)
+    windows = np.unique(labels)
+    length = np.array([np.median(lengths[labels == label]) for label in windows])
+    centre = float(np.median(length))
+    sigma = max(mad_sigma(length), 1e-3 * centre)
+    bad = np.abs(length - centre) > OUTLIER_SIGMAS * sigma
+    return np.isin(labels, windows[~bad])
+
+
 def _mounting(centred: np.ndarray, rotations: np.ndarray, labels: np.ndarray,
               mounting: np.ndarray) -> np.ndarray:
     """The rotation Q taking the readings (offset removed) onto their windows' field seen from
@@ -216,8 +373,9 @@ def _jackknife_std(design: np.ndarray, target: np.ndarray, groups: np.ndarray, w
 
 
 def _spread(readings: np.ndarray, rotations: np.ndarray, labels: np.ndarray,
-            offset: np.ndarray) -> float:
-    turned = np.einsum('nij,nj->ni', rotations, readings - offset)
+            offset: np.ndarray, matrix: np.ndarray | None = None) -> float:
+    corrected = readings - offset if matrix is None else (readings - offset) @ matrix.T
+    turned = np.einsum('nij,nj->ni', rotations, corrected)
     squares = []
     for label in np.unique(labels):
         rows = labels == label
@@ -225,8 +383,18 @@ def _spread(readings: np.ndarray, rotations: np.ndarray, labels: np.ndarray,
     return math.sqrt(float(np.mean(np.concatenate(squares)))) if squares else math.nan
 
 
+def _angle_deg(rotation: np.ndarray) -> float:
+    return math.degrees(math.acos(max(-1.0, min(1.0, (float(np.trace(rotation)) - 1.0) / 2.0))))
+
+
+def _mounting_text(angle: float, most: float) -> str:
+    return (f"the magnetometer's axes are turned {angle:.0f} deg from the gyroscope's (more "
+            f'than {most:g}): a mounting or axis-remap error')
+
+
 def _pct(std: np.ndarray, radius: float) -> str:
     return f'{100 * float(np.max(std)) / radius:.1f} %'
 
 
-__all__ = ['GyroAidedFit', 'TurnedReadings', 'fit_gyro_aided', 'turned_errors']
+__all__ = ['GyroAidedFit', 'TurnedReadings', 'fit_gyro_aided', 'fit_gyro_aided_full',
+           'turned_errors']

@@ -46,6 +46,7 @@ from mag_calibrator_ros.calibration.fit.gyro_aided import (
     GyroAidedFit,
     TurnedReadings,
     fit_gyro_aided,
+    fit_gyro_aided_full,
     turned_errors,
 )
 from mag_calibrator_ros.calibration.fit.heading import (
@@ -64,14 +65,16 @@ from mag_calibrator_ros.calibration.live.evidence import (
     relative_errors,
 )
 
-JOB_KINDS = ('reference', 'calibrate', 'refine', 'check', 'compensate', 'gyro')
+JOB_KINDS = ('reference', 'calibrate', 'refine', 'check', 'compensate', 'gyro', 'step')
 """reference: the buffer's own full fit, to screen and merge by; calibrate: a fit to put in force
 (automatic or on request); refine: a fit to put in force only if better on held-out evidence;
 check: no fit, the calibration in force judged on recent evidence (does it still fit? is the
 online-tracked calibration better?) and the buffer's coverage measured for reports; compensate:
 the robot's own field learned from the readings kept with their inputs (fit/compensation.py),
 the calibration in force its base; gyro: the offset from the gyroscope's turning
-(fit/gyro_aided.py), judged against the raw field on held-out windows of turned readings."""
+(fit/gyro_aided.py), judged against the raw field on held-out windows of turned readings;
+step: the latest turned readings refitted for the offset alone (the rest of the calibration in
+force kept), judged against the calibration in force on held-out windows: a hard-iron step."""
 
 HELD_OUT_WINDOWS = 3
 """gyro: every third window of turned readings is held out of the fit to judge it by (windows
@@ -183,6 +186,8 @@ def run_job(job: FitJob) -> JobOutcome:
 def _run(job: FitJob) -> JobOutcome:
     if job.kind == 'gyro':
         return gyro_aided_outcome(job)
+    if job.kind == 'step':
+        return step_outcome(job)
     if job.kind == 'compensate':
         data = job.compensation
         fit = fit_compensation(data, job.current)
@@ -233,22 +238,59 @@ def _run(job: FitJob) -> JobOutcome:
 
 
 def gyro_aided_outcome(job: FitJob) -> JobOutcome:
-    """The offset fitted on two of every three windows of turned readings, and it against the
-    raw field on the third (``compare_residuals``: the rule every candidate meets), so that a
-    sensor calibrated already keeps its own calibration unless the offset is clearly better."""
+    """The offset alone, then the soft iron with it, fitted on two of every three windows of
+    turned readings and judged on the third (``compare_residuals``: the rule every candidate
+    meets): the raw field is the first candidate, the offset replaces it only when better, the
+    soft iron replaces the offset only when it is not worse (a sensor calibrated already keeps
+    its own calibration unless another is clearly better). The fit returned is the one chosen,
+    its comparison the one against the raw field."""
     data = job.turned
     held = data.windows % HELD_OUT_WINDOWS == HELD_OUT_WINDOWS - 1
+    train, part = _part(data, ~held), _part(data, held)
     most = 15.0 if job.alignment is None else job.alignment.max_angle_deg
-    fit = fit_gyro_aided(_part(data, ~held), max_residual_pct=job.options.max_residual_pct,
-                         max_rotation_deg=most)
-    comparison = None
-    if fit.calibration is not None:
-        stamped = fit.calibration.with_metadata(
-            time=time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()), **job.metadata)
-        fit = replace(fit, calibration=stamped)
-        part = _part(data, held)
-        comparison = compare_residuals(turned_errors(None, part),
-                                       turned_errors(stamped, part), 'held-out turned readings')
+    bounds = {'max_residual_pct': job.options.max_residual_pct, 'max_rotation_deg': most}
+    sphere = fit_gyro_aided(train, **bounds)
+    if sphere.calibration is None:
+        return JobOutcome(job, gyro_fit=sphere)
+    full = fit_gyro_aided_full(train, sphere, **bounds)
+    stamp = time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())
+    fits = [replace(fit, calibration=fit.calibration.with_metadata(time=stamp, **job.metadata))
+            for fit in (sphere, full)]
+    raw = turned_errors(None, part)
+    errors = [turned_errors(fit.calibration, part) for fit in fits]
+    what = 'held-out turned readings'
+    against_raw = [compare_residuals(raw, error, what) for error in errors]
+    sphere, full = fits
+    chosen, comparison = sphere, against_raw[0]
+    full_worse = compare_residuals(errors[1], errors[0], what).better
+    if full.success and against_raw[1].better and not (
+            sphere.success and against_raw[0].better and full_worse):
+        chosen, comparison = full, against_raw[1]
+    elif not sphere.success and full.success:
+        chosen, comparison = full, against_raw[1]
+    return JobOutcome(job, comparison=comparison, gyro_fit=chosen)
+
+
+def step_outcome(job: FitJob) -> JobOutcome:
+    """The offset a magnet (a battery, a tool) mounted next to the sensor added, from the
+    latest turned readings corrected by the calibration in force (so its soft iron and rotation
+    stay), fitted and judged as ``gyro_aided_outcome`` does, against the calibration in force."""
+    data, current = job.turned, job.current
+    corrected = TurnedReadings(current.unrotated(data.readings),
+                               data.rotations, data.windows)
+    held = data.windows % HELD_OUT_WINDOWS == HELD_OUT_WINDOWS - 1
+    fit = fit_gyro_aided(_part(corrected, ~held), max_residual_pct=job.options.max_residual_pct)
+    if fit.calibration is None:
+        return JobOutcome(job, gyro_fit=fit)
+    shift = np.linalg.solve(current.matrix, fit.calibration.offset)  # into raw units
+    candidate = current.with_compensation(
+        current.compensation, offset=current.offset + shift,
+        step_time=time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()))
+    fit = replace(fit, calibration=candidate, offset_std=np.abs(
+        np.linalg.solve(current.matrix, np.diag(fit.offset_std))).sum(axis=1))
+    part = _part(data, held)
+    comparison = compare_residuals(turned_errors(current, part), turned_errors(candidate, part),
+                                   'held-out turned readings')
     return JobOutcome(job, comparison=comparison, gyro_fit=fit)
 
 

@@ -5,8 +5,8 @@ The attitude is the gyroscope's rates integrated (quaternions, plain floats: a f
 an IMU sample on the message path) from the start of each unbroken stream of rates; a reading
 takes the attitude at its stamp (the last rate carried over the few milliseconds between). The
 readings kept are thinned to one per STEP_S and grouped in windows of WINDOW_S of one stream:
-within a window the gyroscope's bias turns the field by little (0.5 deg/s over a second is half
-a degree), and each window has a frame of its own.
+within a window the gyroscope's bias turns the field by little (0.5 deg/s over half a second is
+a quarter of a degree), and each window has a frame of its own.
 """
 
 from __future__ import annotations
@@ -23,8 +23,8 @@ from mag_calibrator_ros.calibration.live.jobs import HELD_OUT_WINDOWS
 STEP_S = 0.02
 """One reading kept per 20 ms of stream (50 Hz): more add noise samples, not turning."""
 
-WINDOW_S = 1.0
-"""A window of readings shares one frame: one second of integrated rates."""
+WINDOW_S = 0.5
+"""A window of readings shares one frame: half a second of integrated rates."""
 
 MAX_GAP_S = 0.1
 """Rates further apart than this (or going back) start a new stream: a turn in the gap is
@@ -39,6 +39,16 @@ WINDOWS_NEEDED = math.ceil(MIN_WINDOWS * HELD_OUT_WINDOWS / (HELD_OUT_WINDOWS - 
 FIT_PERIOD_S = 2.0
 """Stream seconds between gyro-aided fits while nothing is in force."""
 
+FIT_WINDOWS = 60
+"""The first calibration fits the latest 60 windows (30 s, all that are kept): the more turning,
+the surer the offset; a magnet attached meanwhile is a step the next looks find."""
+
+STEP_WINDOWS = 12
+"""A hard-iron step is looked for in the latest 12 windows (6 s) once calibrated."""
+
+STEP_PERIOD_S = 1.0
+"""Stream seconds between looks for a step."""
+
 Quaternion = tuple[float, float, float, float]
 
 
@@ -52,16 +62,20 @@ class RotationTrack:
 
     def reset(self) -> None:
         """Forget the readings and the stream (a reset, another sensor)."""
-        self._readings.clear()
+        self.forget()
         self._stream = 0  # bumped by each new stream of rates
         self._attitude: Quaternion = (1.0, 0.0, 0.0, 0.0)
         self._rate: tuple[float, float, float] | None = None
         self._rate_stamp: int | None = None
+        self._next_fit_s = 0.0
+
+    def forget(self) -> None:
+        """Forget the readings kept (the sensor changed), not the turning integrated."""
+        self._readings.clear()
         self._kept_stamp: int | None = None
         self._window = -1
         self._window_start: int | None = None
         self._window_stream = -1
-        self._next_fit_s = 0.0
 
     def add_rate(self, stamp_ns: int, rate: Sequence[float]) -> None:
         """One gyroscope sample; O(1)."""
@@ -101,28 +115,31 @@ class RotationTrack:
         self._kept_stamp = stamp_ns
         self._readings.append((self._window, tuple(float(v) for v in reading), attitude))
 
-    def due(self, now_s: float) -> bool:
-        """Whether a gyro-aided fit is due (every FIT_PERIOD_S once WINDOWS_NEEDED are kept)."""
-        if now_s < self._next_fit_s or not self._enough():
+    def due(self, now_s: float, period_s: float = FIT_PERIOD_S,
+            windows: int = WINDOWS_NEEDED) -> bool:
+        """Whether a gyro-aided fit is due: every ``period_s`` once ``windows`` are kept."""
+        if now_s < self._next_fit_s or not self._enough(windows):
             return False
-        self._next_fit_s = now_s + FIT_PERIOD_S
+        self._next_fit_s = now_s + period_s
         return True
 
-    def snapshot(self) -> TurnedReadings | None:
-        """The readings kept, their attitudes (as rotation matrices) and windows; None before
-        WINDOWS_NEEDED are kept."""
-        if not self._enough():
+    def snapshot(self, last_windows: int | None = None) -> TurnedReadings | None:
+        """The readings kept (of the latest ``last_windows`` windows: None, all), their
+        attitudes (as rotation matrices) and windows; None before WINDOWS_NEEDED are kept."""
+        if not self._enough(min(WINDOWS_NEEDED, last_windows or WINDOWS_NEEDED)):
             return None
-        windows = np.array([window for window, _, _ in self._readings], dtype=int)
-        readings = np.array([reading for _, reading, _ in self._readings], dtype=float)
-        rotations = np.array([_matrix(q) for _, _, q in self._readings], dtype=float)
+        first = -1 if last_windows is None else self._readings[-1][0] - last_windows + 1
+        kept = [item for item in self._readings if item[0] >= first]
+        windows = np.array([window for window, _, _ in kept], dtype=int)
+        readings = np.array([reading for _, reading, _ in kept], dtype=float)
+        rotations = np.array([_matrix(q) for _, _, q in kept], dtype=float)
         return TurnedReadings(readings.reshape(-1, 3), rotations.reshape(-1, 3, 3),
                               windows - (windows[0] if len(windows) else 0))
 
 
-    def _enough(self) -> bool:
+    def _enough(self, windows: int = WINDOWS_NEEDED) -> bool:
         readings = self._readings
-        return bool(readings) and readings[-1][0] - readings[0][0] + 1 >= WINDOWS_NEEDED
+        return bool(readings) and readings[-1][0] - readings[0][0] + 1 >= windows
 
 
 def _turned(q: Quaternion, ax: float, ay: float, az: float) -> Quaternion:

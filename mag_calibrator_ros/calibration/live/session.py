@@ -49,7 +49,12 @@ from mag_calibrator_ros.calibration.live.jobs import REFERENCE_OPTIONS, FitJob, 
 from mag_calibrator_ros.calibration.live.pairing import ImuPairing, RateMeter
 from mag_calibrator_ros.calibration.live.reference import BufferReference
 from mag_calibrator_ros.calibration.live.report import CalibrationAttempt
-from mag_calibrator_ros.calibration.live.rotation_track import RotationTrack
+from mag_calibrator_ros.calibration.live.rotation_track import (
+    FIT_WINDOWS,
+    STEP_PERIOD_S,
+    STEP_WINDOWS,
+    RotationTrack,
+)
 from mag_calibrator_ros.calibration.live.sanity import InputWatch
 from mag_calibrator_ros.calibration.live.scheduler import (
     FitScheduler,
@@ -69,6 +74,7 @@ from mag_calibrator_ros.calibration.live.verdicts import (
     realign_verdict,
     refinement_verdict,
     request_verdict,
+    step_verdict,
 )
 from mag_calibrator_ros.calibration.live.view import CalibrationView, calibration_view
 from mag_calibrator_ros.calibration.live.worker import FitRunner, InlineRunner
@@ -335,10 +341,13 @@ class CalibrationSession:
                 self._submit(kind)
 
     def _gyro_due(self, now: float) -> str | None:
-        """'gyro' while nothing is in force and the turning kept is worth a fit."""
-        wanted = (self._calibration is None and self._settings.gyro_aided
-                  and self._settings.auto_calibrate)
-        return 'gyro' if wanted and self._turns.due(now) else None
+        """'gyro' while nothing is in force and the turning kept is worth a fit; once
+        calibrated, 'step' every STEP_PERIOD_S (a magnet attached: the offset steps)."""
+        if not (self._settings.gyro_aided and self._settings.auto_calibrate):
+            return None
+        if self._calibration is None:
+            return 'gyro' if self._turns.due(now) else None
+        return 'step' if self._turns.due(now, STEP_PERIOD_S, STEP_WINDOWS) else None
 
     def _update_centre(self) -> None:
         radius = 0.0
@@ -377,11 +386,13 @@ class CalibrationSession:
         samples, weights, readings = buffer.samples, buffer.counts, buffer.readings
         if kind == 'compensate':  # the robot's own field: live/compensation.py
             return self._compensation.job(self._calibration)
-        if kind == 'gyro':
-            return FitJob('gyro', np.zeros((0, 3)), None, None, self._settings.fit_options(),
+        if kind in ('gyro', 'step'):
+            return FitJob(kind, np.zeros((0, 3)), None, None, self._settings.fit_options(),
                           metadata={**self._metadata, 'frame_id': self._frame_id},
+                          current=self._calibration,
                           alignment=self._settings.alignment_options(self._findings.earth),
-                          turned=self._turns.snapshot())
+                          turned=self._turns.snapshot(
+                              FIT_WINDOWS if kind == 'gyro' else STEP_WINDOWS))
         if kind == 'reference':
             return FitJob('reference', samples, weights, readings, REFERENCE_OPTIONS,
                           previous=self._buffer_reference.provisional)
@@ -455,6 +466,13 @@ class CalibrationSession:
                                                          verdict))
         elif job.kind == 'gyro':
             self._apply(gyro_verdict(outcome, current, self._units))
+        elif job.kind == 'step':
+            verdict = step_verdict(outcome, current, self._units)
+            self._apply(verdict)
+            if verdict.collect_anew:  # the old readings describe another sensor
+                self._collect_anew(self._clock.now)
+                self._evidence.clear()
+                self._turns.forget()
         elif job.ticket is not None:
             self._note_reference(outcome)
             verdict = request_verdict(outcome, current, self._units, self._findings.earth)

@@ -6,7 +6,8 @@ few facts it needs, and returns a :class:`Verdict`; ``CalibrationSession._comple
 the function here: :func:`automatic_verdict` for automatic calibration, :func:`refinement_verdict`
 for refinement, :func:`request_verdict` for ``~/calibrate``, :func:`realign_verdict` for a new
 rotation into the IMU frame, :func:`check_verdict` for misfit and online tracking and
-:func:`gyro_verdict` for the first calibration from the gyroscope's turning.
+:func:`gyro_verdict` for the first calibration from the gyroscope's turning and
+:func:`step_verdict` for a hard-iron step it sees once calibrated.
 
 One verdict has state, and so lives beside stream time rather than here:
 ``alignment_wait.AlignmentWait.judge`` takes :func:`automatic_verdict`'s verdict on the first
@@ -163,6 +164,42 @@ def gyro_verdict(outcome: JobOutcome, current: Calibration | None, units: str) -
                        attempt)
     return Verdict(level='debug', message=f'gyro-aided calibration not yet: {comparison.reason}; '
                    f'the raw field spreads by {fit.raw_residual_pct:.1f} %')
+
+
+STEP_SIGMAS = 5.0
+"""A step must move the offset by five of its own standard deviations (each reading of a look
+every second is judged: a one-in-a-million chance of a false step a look)..."""
+
+MIN_STEP = 0.05
+"""...and by 5 % of the field at least (a heading error of up to 3 degrees): smaller changes are
+the refinements' to find, from the sphere."""
+
+
+def step_verdict(outcome: JobOutcome, current: Calibration | None, units: str) -> Verdict:
+    """A hard-iron step (``jobs.step_outcome``): the latest turned readings agree with another
+    offset, the rest of the calibration in force kept. It goes in force at once, and what was
+    learned before it is forgotten (``collect_anew``: the old buffer is not mixed with the new
+    sensor), when the offset passed its own bounds, moved by STEP_SIGMAS of its uncertainty and
+    MIN_STEP of the field, and beats the calibration in force on the held-out windows by the
+    rule every candidate meets. A field disturbed in the world (a magnet in the room) agrees
+    with no offset as the sensor turns: no step. Looks that find none say nothing."""
+    fit, comparison = outcome.gyro_fit, outcome.comparison
+    if outcome.error or current is None or current is not outcome.job.current:
+        return Verdict()
+    if fit is None or not fit.success or comparison is None or not comparison.better:
+        return Verdict()
+    shift = fit.calibration.offset - current.offset
+    size = float(np.linalg.norm(shift))
+    sigma = float(np.linalg.norm(fit.offset_std))
+    if size < STEP_SIGMAS * sigma or size < MIN_STEP * current.field_radius():
+        return Verdict()
+    candidate = fit.calibration
+    attempt = CalibrationAttempt(True, calibration_summary(candidate, units), outcome)
+    return Verdict(candidate, 'step', 'warning',
+                   f'hard-iron step: the offset moved by {format_field(size, units)} (uncertain '
+                   f'by {format_field(sigma, units)}): a magnet, a battery or a tool mounted '
+                   f"near the sensor? Re-learned from the gyroscope's turning: "
+                   f'{comparison.reason}; collecting anew', attempt, collect_anew=True)
 
 
 def refinement_verdict(outcome: JobOutcome, current: Calibration | None) -> Verdict:
@@ -381,4 +418,5 @@ __all__ = [
     'realign_verdict',
     'refinement_verdict',
     'request_verdict',
+    'step_verdict',
 ]
