@@ -8,7 +8,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from mag_calibrator_ros.calibration.fit.gyro_aided import (
-    MAX_OFFSET_STD,
+    MAX_DIRECTION_STD_DEG,
     TurnedReadings,
     fit_gyro_aided,
     fit_gyro_aided_full,
@@ -70,7 +70,7 @@ def test_an_offset_is_found_from_a_partial_sphere_within_its_uncertainty(seed):
     assert fit.success, fit.reason
     error = np.abs(fit.calibration.offset - offset)
     assert np.all(error <= 4.0 * fit.offset_std + 0.05), (error, fit.offset_std)
-    assert np.all(fit.offset_std < MAX_OFFSET_STD * fit.calibration.field_strength)
+    assert fit.direction_std_deg < MAX_DIRECTION_STD_DEG
     assert fit.calibration.field_strength == pytest.approx(np.linalg.norm(EARTH), rel=0.02)
     assert fit.raw_residual_pct > 10 * fit.residual_pct  # the raw field does not turn as one
 
@@ -204,7 +204,8 @@ def test_the_session_calibrates_a_hand_turned_sensor_from_the_gyroscope_within_3
     adopted = [e.message for e in events if e.adopted]
     assert "gyroscope's turning" in adopted[0]
     assert np.linalg.norm(session.calibration.offset * 1e6 - offset) < 1.0
-    assert session.report().counts.adoptions.get('gyro') == 1
+    adoptions = session.report().counts.adoptions  # the first, then surer refits, nothing else
+    assert set(adoptions) == {'gyro'} and adoptions['gyro'] >= 1
 
 
 def test_a_hand_turned_sensor_with_soft_iron_is_calibrated_in_full_within_30_s():

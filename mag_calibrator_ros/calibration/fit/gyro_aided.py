@@ -33,10 +33,11 @@ JACKKNIFE_GROUPS = 8
 other share a gyroscope bias and a hand's motion, so groups of consecutive windows are left out
 together."""
 
-MAX_OFFSET_STD = 0.01
-"""The largest 1-sigma of the offset (each axis, relative to the field's radius) a fit may have:
-1 % of the field moves a heading by at most about 0.6 degrees per unit of the field's horizontal
-share."""
+MAX_DIRECTION_STD_DEG = 1.0
+"""The largest 1-sigma (jackknife) of the corrected directions a fit may have, in degrees: what
+its own uncertainty can move a heading by (the soft iron's, the offset's and the rotation's
+together, on the readings it saw), rather than a share of the sphere covered."""
+
 
 MOUNTING_ITERATIONS = 50
 """Rounds of (rotation into the gyroscope's frame, offset) at most: each moves the rotation part
@@ -56,8 +57,12 @@ taken off moves."""
 
 ONE_AXIS = 0.05
 """The windows' rotations about their means span less than this share of their largest turn in
-some direction: the sensor turned about one axis, and the offset along it is not seen. Said as
-the likely reason when the uncertainty is too large (the uncertainty is the gate)."""
+some direction: the sensor turned about one axis (a ground robot, a straight drive), and the
+offset along it is not seen, however sure the jackknife of so little wobble is: no fit (the
+planar fits are that motion's)."""
+
+_ONE_AXIS_TEXT = ('the readings turned about one axis only (the offset along it is not seen): '
+                  'turn it about another axis too')
 
 
 @dataclass(frozen=True)
@@ -95,9 +100,12 @@ class GyroAidedFit:
     reason: str = ''
     used: np.ndarray | None = None
     """The window labels fitted (those that agree with the rest); None: all."""
+    direction_std_deg: float = math.inf
+    """The jackknife's sigma of the corrected directions (MAX_DIRECTION_STD_DEG)."""
 
 
-def fit_gyro_aided(data: TurnedReadings, *, max_offset_std: float = MAX_OFFSET_STD,
+def fit_gyro_aided(data: TurnedReadings, *,
+                   max_direction_std_deg: float = MAX_DIRECTION_STD_DEG,
                    max_residual_pct: float = 5.0, max_rotation_deg: float = 15.0
                    ) -> GyroAidedFit:
     """The offset that makes each window's turned readings one vector (see the module), with a
@@ -138,7 +146,7 @@ def fit_gyro_aided(data: TurnedReadings, *, max_offset_std: float = MAX_OFFSET_S
     if not (radius > 0.0 and raw_radius > 0.0):
         return GyroAidedFit(False, None, nothing, math.nan, math.nan, windows, len(readings),
                             turn, 'the readings have no field left once the offset is removed')
-    std = _jackknife_std(design, target, groups, windows, offset)
+    std, estimates = _jackknife_std(design, target, groups, windows, offset)
     residual = 100.0 * _spread(readings, rotations @ mounting, labels, offset) / radius
     raw_residual = 100.0 * _spread(readings, rotations, labels, np.zeros(3)) / raw_radius
     angle = _angle_deg(mounting)
@@ -146,23 +154,27 @@ def fit_gyro_aided(data: TurnedReadings, *, max_offset_std: float = MAX_OFFSET_S
                               metadata={'fit': 'gyro_aided', 'windows': windows,
                                         'aligned_by': 'gyroscope',
                                         'rotation_deg': round(angle, 3)})
+    direction_std = _direction_std_deg(readings, calibration, [
+        Calibration(estimate, np.eye(3), radius, rotation=mounting) for estimate in estimates])
+    calibration = calibration.with_metadata(direction_std_deg=round(direction_std, 3))
+    most = max_direction_std_deg
     reason = ''
     if angle > max_rotation_deg:
         reason = _mounting_text(angle, max_rotation_deg)
-    elif not np.all(std <= max_offset_std * radius):
-        hint = 'turn it about another axis too' if turn < ONE_AXIS else 'keep turning it'
-        reason = (f'the offset is uncertain by {_pct(std, radius)} of the field, the bound is '
-                  f'{100 * max_offset_std:.1f} %: {hint}')
+    elif turn < ONE_AXIS:
+        reason = _ONE_AXIS_TEXT
+    elif not direction_std <= most:
+        reason = _uncertain_text(direction_std, most, std, radius, 'keep turning it')
     elif residual > max_residual_pct:
         reason = (f'the turned readings spread by {residual:.1f} % of the field, the bound is '
                   f'{max_residual_pct:.1f} %: the magnetometer does not turn with the '
                   'gyroscope (another frame, a disturbed field or another unit)')
     return GyroAidedFit(not reason, calibration, std, residual, raw_residual, windows,
-                        len(readings), turn, reason, np.unique(labels))
+                        len(readings), turn, reason, np.unique(labels), direction_std)
 
 
 def fit_gyro_aided_full(data: TurnedReadings, start: GyroAidedFit, *,
-                        max_offset_std: float = MAX_OFFSET_STD,
+                        max_direction_std_deg: float = MAX_DIRECTION_STD_DEG,
                         max_residual_pct: float = 5.0, max_rotation_deg: float = 15.0
                         ) -> GyroAidedFit:
     """The soft iron too (MAGYC's idea, arXiv 2410.13827): the whole linear map ``G = R M`` and
@@ -195,8 +207,12 @@ def fit_gyro_aided_full(data: TurnedReadings, start: GyroAidedFit, *,
     std = np.sqrt((count - 1) / count * np.sum(deviations**2, axis=0))
     try:
         calibration = _calibration(solution, readings, start.calibration.metadata)
+        alternatives = [_calibration(estimate, readings, {}) for estimate in estimates]
     except (CalibrationError, ValueError, np.linalg.LinAlgError):
         return replace(start, success=False, reason='the soft iron is not positive definite')
+    direction_std = _direction_std_deg(readings, calibration, alternatives)
+    calibration = calibration.with_metadata(direction_std_deg=round(direction_std, 3))
+    most = max_direction_std_deg
     radius = calibration.field_strength
     offset_std, matrix_std = std[9:], float(np.max(std[:9]))
     residual = 100.0 * _spread(readings, rotations @ calibration.rotation, labels,
@@ -206,15 +222,17 @@ def fit_gyro_aided_full(data: TurnedReadings, start: GyroAidedFit, *,
     reason = ''
     if angle > max_rotation_deg:
         reason = _mounting_text(angle, max_rotation_deg)
-    elif not (np.all(offset_std <= max_offset_std * radius) and matrix_std <= max_offset_std):
-        reason = (f'the soft iron is uncertain by {100 * matrix_std:.1f} % and the offset by '
-                  f'{_pct(offset_std, radius)} of the field, the bound is '
-                  f'{100 * max_offset_std:.1f} %: keep turning it')
+    elif start.turn < ONE_AXIS:
+        reason = _ONE_AXIS_TEXT
+    elif not direction_std <= most:
+        reason = _uncertain_text(direction_std, most, offset_std, radius,
+                                 f'soft iron by {100 * matrix_std:.1f} %; keep turning it')
     elif residual > max_residual_pct:
         reason = (f'the turned readings spread by {residual:.1f} % of the field, the bound is '
                   f'{max_residual_pct:.1f} %')
     return GyroAidedFit(not reason, calibration, offset_std, residual, start.raw_residual_pct,
-                        start.windows, start.readings, start.turn, reason, start.used)
+                        start.windows, start.readings, start.turn, reason, start.used,
+                        direction_std)
 
 
 def _full_residuals(x: np.ndarray, readings: np.ndarray, rotations: np.ndarray,
@@ -357,8 +375,9 @@ def _solve(design: np.ndarray, target: np.ndarray) -> np.ndarray | None:
 
 
 def _jackknife_std(design: np.ndarray, target: np.ndarray, groups: np.ndarray, windows: int,
-                   offset: np.ndarray) -> np.ndarray:
-    """Delete-a-group jackknife over consecutive windows: sqrt((g-1)/g sum (b_j - b)^2)."""
+                   offset: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Delete-a-group jackknife over consecutive windows: sqrt((g-1)/g sum (b_j - b)^2), and
+    the offsets b_j (empty when one could not be solved: an infinite sigma)."""
     count = min(JACKKNIFE_GROUPS, windows)
     group_of_row = groups * count // windows
     estimates = []
@@ -366,10 +385,29 @@ def _jackknife_std(design: np.ndarray, target: np.ndarray, groups: np.ndarray, w
         kept = group_of_row != group
         estimate = _solve(design[kept], target[kept])
         if estimate is None:
-            return np.full(3, math.inf)
+            return np.full(3, math.inf), []
         estimates.append(estimate)
     deviations = np.asarray(estimates) - offset
-    return np.sqrt((count - 1) / count * np.sum(deviations**2, axis=0))
+    return np.sqrt((count - 1) / count * np.sum(deviations**2, axis=0)), estimates
+
+
+def _direction_std_deg(readings: np.ndarray, calibration: Calibration,
+                       alternatives: list[Calibration]) -> float:
+    """The jackknife's sigma of the corrected directions (degrees, RMS over the readings): how
+    far the calibrations fitted without each group of windows turn the readings from this one.
+    Infinite without alternatives."""
+    if not alternatives:
+        return math.inf
+    corrected = calibration.apply(readings)
+    corrected /= np.linalg.norm(corrected, axis=1, keepdims=True)
+    squares = []
+    for alternative in alternatives:
+        other = alternative.apply(readings)
+        other /= np.linalg.norm(other, axis=1, keepdims=True)
+        cosine = np.clip(np.sum(corrected * other, axis=1), -1.0, 1.0)
+        squares.append(float(np.mean(np.degrees(np.arccos(cosine)) ** 2)))
+    count = len(alternatives)
+    return math.sqrt((count - 1) / count * sum(squares))
 
 
 def _spread(readings: np.ndarray, rotations: np.ndarray, labels: np.ndarray,
@@ -390,6 +428,12 @@ def _angle_deg(rotation: np.ndarray) -> float:
 def _mounting_text(angle: float, most: float) -> str:
     return (f"the magnetometer's axes are turned {angle:.0f} deg from the gyroscope's (more "
             f'than {most:g}): a mounting or axis-remap error')
+
+
+def _uncertain_text(direction_std: float, most: float, offset_std: np.ndarray, radius: float,
+                    hint: str) -> str:
+    return (f'the corrected directions are uncertain by {direction_std:.2f} deg (the bound is '
+            f'{most:g}; the offset by {_pct(offset_std, radius)} of the field): {hint}')
 
 
 def _pct(std: np.ndarray, radius: float) -> str:

@@ -166,7 +166,7 @@ class JobOutcome:
     """gyro: the offset from the turning, its uncertainty and the raw field's spread."""
     turning: Comparison | None = None
     """refine: the calibration in force against the candidate on the turned readings
-    (``better``: the candidate turns directions worse than the one in force, beyond noise)."""
+    (``turned_worse``; ``better``: the candidate turns directions worse than the one in force)."""
 
     @property
     def fitted(self) -> bool:
@@ -230,9 +230,7 @@ def _run(job: FitJob) -> JobOutcome:
             and len(job.evidence)):
         comparison = compare_on_evidence(job.current, result.calibration, job.evidence)
         if job.turned is not None:
-            turning = compare_residuals(turned_errors(result.calibration, job.turned),
-                                        turned_errors(job.current, job.turned),
-                                        'readings turned by the gyroscope')
+            turning = turned_worse(job.current, result.calibration, job.turned)
     return JobOutcome(job, result, comparison=comparison, coverage=coverage,
                       alignment=alignment, earth_check=earth_check, turning=turning)
 
@@ -292,6 +290,21 @@ def step_outcome(job: FitJob) -> JobOutcome:
     comparison = compare_residuals(turned_errors(current, part), turned_errors(candidate, part),
                                    'held-out turned readings')
     return JobOutcome(job, comparison=comparison, gyro_fit=fit)
+
+
+def turned_worse(current: Calibration, candidate: Calibration,
+                 turned: TurnedReadings) -> Comparison:
+    """Whether ``candidate`` turns directions worse than ``current`` (``better``: the one in
+    force is): its RMS error on the turned readings (uncapped: a soft iron that bends some
+    directions is exactly the large errors a cap would hide) above the current one's by more
+    than MIN_GAIN. A refinement must not be worse; proving it better is the magnitudes' job."""
+    now = float(np.sqrt(np.mean(turned_errors(current, turned) ** 2)))
+    new = float(np.sqrt(np.mean(turned_errors(candidate, turned) ** 2)))
+    worse = new > (1.0 + MIN_GAIN) * now
+    return Comparison(worse, 100.0 * now, 100.0 * new, len(turned.readings), math.nan,
+                      f'{"better" if worse else "not better"} on {len(turned.readings)} '
+                      f'readings turned by the gyroscope: RMS {100 * new:.2f} % (the fit) vs '
+                      f'{100 * now:.2f} % (in force)')
 
 
 def _part(data: TurnedReadings, rows: np.ndarray) -> TurnedReadings:

@@ -129,9 +129,10 @@ def gyro_verdict(outcome: JobOutcome, current: Calibration | None, units: str) -
     nothing is in force. The raw field is a candidate like any other, so that a sensor that
     arrives calibrated is never made worse:
 
-    - the offset goes in force when it passed its own bounds (``fit_gyro_aided``: determined to
-      MAX_OFFSET_STD, the turned readings within the residual gate) and beats the raw field on
-      the held-out windows by the rule every candidate meets (``evidence.compare_residuals``);
+    - the fit (the offset, or the soft iron with it) goes in force when it passed its own bounds
+      (``fit_gyro_aided``: directions determined to MAX_DIRECTION_STD_DEG, the turned readings
+      within the residual gate) and beats the raw field on the held-out windows by the rule
+      every candidate meets (``evidence.compare_residuals``);
     - else, when it passed its bounds and the raw field's own turned readings are within the
       residual gate, the raw field goes in force: the gyroscope confirmed it;
     - else nothing: the sphere fits (``automatic_verdict``) go on as before.
@@ -139,23 +140,26 @@ def gyro_verdict(outcome: JobOutcome, current: Calibration | None, units: str) -
     if outcome.error:
         return Verdict(level='warning', message=f'gyro-aided calibration failed: {outcome.error}')
     fit, comparison = outcome.gyro_fit, outcome.comparison
-    if current is not None or fit is None or not fit.success or comparison is None:
-        reason = 'calibrated meanwhile' if current is not None else (
-            fit.reason if fit is not None and fit.reason else 'no offset solved')
+    if current is not None:
+        return Verdict(level='debug', message='gyro-aided calibration: calibrated meanwhile')
+    if fit is None or not fit.success or comparison is None:
+        reason = fit.reason if fit is not None and fit.reason else 'no offset solved'
         return Verdict(level='debug', message=f'gyro-aided calibration not yet: {reason}')
     uncertain = format_field(float(np.max(fit.offset_std)), units)
     if comparison.better:
         candidate = fit.calibration.with_metadata(residual_rms_pct=round(fit.residual_pct, 3))
         attempt = CalibrationAttempt(True, calibration_summary(candidate, units), outcome)
         return Verdict(candidate, 'gyro', 'info',
-                       f"calibrated from the gyroscope's turning ({fit.windows} windows, offset "
-                       f'uncertain by {uncertain}): {comparison.reason}; {attempt.message}',
+                       f"calibrated from the gyroscope's turning ({fit.windows} windows, "
+                       f'directions uncertain by {fit.direction_std_deg:.2f} deg, the offset by '
+                       f'{uncertain}): {comparison.reason}; {attempt.message}',
                        attempt)
     if fit.raw_residual_pct <= outcome.job.options.max_residual_pct:
         radius = float(np.median(np.linalg.norm(outcome.job.turned.readings, axis=1)))
+        kept = {key: value for key, value in fit.calibration.metadata.items()
+                if key not in ('direction_std_deg', 'rotation_deg')}  # the fit's, not the raw's
         raw = Calibration(np.zeros(3), np.eye(3), radius, 'sphere', {
-            **fit.calibration.metadata, 'confirmed': 'raw',
-            'residual_rms_pct': round(fit.raw_residual_pct, 3)})
+            **kept, 'confirmed': 'raw', 'residual_rms_pct': round(fit.raw_residual_pct, 3)})
         attempt = CalibrationAttempt(True, calibration_summary(raw, units), outcome)
         offset = format_field(float(np.linalg.norm(fit.calibration.offset)), units)
         return Verdict(raw, 'gyro', 'info',
