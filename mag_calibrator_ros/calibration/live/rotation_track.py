@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Sequence
+from itertools import takewhile
 import math
 
 import numpy as np
@@ -59,7 +60,7 @@ class RotationTrack:
     """Integrates the gyroscope (rad/s) and keeps recent readings with their attitudes."""
 
     def __init__(self) -> None:
-        self._readings: deque[tuple[int, tuple[float, float, float], Quaternion]] = deque(
+        self._readings: deque[tuple[int, tuple[float, float, float], list]] = deque(
             maxlen=MAX_READINGS)
         self.reset()
 
@@ -116,7 +117,8 @@ class RotationTrack:
             self._window += 1
             self._window_start, self._window_stream = stamp_ns, self._stream
         self._kept_stamp = stamp_ns
-        self._readings.append((self._window, tuple(float(v) for v in reading), attitude))
+        self._readings.append((self._window, tuple(float(v) for v in reading),
+                               _matrix(attitude)))  # once here, not at every snapshot
 
     def due(self, now_s: float, period_s: float = FIT_PERIOD_S,
             windows: int = WINDOWS_NEEDED) -> bool:
@@ -131,11 +133,13 @@ class RotationTrack:
         attitudes (as rotation matrices) and windows; None before WINDOWS_NEEDED are kept."""
         if not self._enough(min(WINDOWS_NEEDED, last_windows or WINDOWS_NEEDED)):
             return None
-        first = -1 if last_windows is None else self._readings[-1][0] - last_windows + 1
-        kept = [item for item in self._readings if item[0] >= first]
+        kept = self._readings
+        if last_windows is not None:  # from the newest back: O(what is taken), not O(kept)
+            first = kept[-1][0] - last_windows + 1
+            kept = list(takewhile(lambda item: item[0] >= first, reversed(kept)))[::-1]
         windows = np.array([window for window, _, _ in kept], dtype=int)
         readings = np.array([reading for _, reading, _ in kept], dtype=float)
-        rotations = np.array([_matrix(q) for _, _, q in kept], dtype=float)
+        rotations = np.array([matrix for _, _, matrix in kept], dtype=float)
         return TurnedReadings(readings.reshape(-1, 3), rotations.reshape(-1, 3, 3),
                               windows - (windows[0] if len(windows) else 0))
 
