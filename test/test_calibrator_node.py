@@ -311,8 +311,9 @@ def test_bad_messages_are_counted_and_never_published(ros, live):
     time.sleep(0.3)
     first = probe.take_corrected()[0]
     matrix = node.session.calibration.matrix
-    np.testing.assert_allclose(np.reshape(first.magnetic_field_covariance, (3, 3)),
-                               matrix @ covariance @ matrix.T, rtol=1e-9)
+    added = np.reshape(first.magnetic_field_covariance, (3, 3)) - matrix @ covariance @ matrix.T
+    assert added[0, 0] > 0.0  # the calibration's own error (ErrorModel), over the input's
+    np.testing.assert_allclose(added, added[0, 0] * np.eye(3), rtol=1e-9, atol=1e-30)
     messages = [
         (([math.nan, 1e-5, 1e-5], 101), {}),
         (([math.inf, 1e-5, 1e-5], 102), {}),
@@ -324,7 +325,9 @@ def test_bad_messages_are_counted_and_never_published(ros, live):
     ]
     out = send_and_collect(probe, node, messages, 1)
     assert [m.header.stamp.sec for m in out] == [106]
-    assert not np.any(out[0].magnetic_field_covariance)  # unknown stays unknown
+    published = np.reshape(out[0].magnetic_field_covariance, (3, 3))
+    assert published[0, 0] > 0.0  # an unknown input: the calibration's own error, never 0
+    np.testing.assert_array_equal(published, published[0, 0] * np.eye(3))
     assert wait_for(lambda: any(s.level == DiagnosticStatus.WARN and 'refused' in s.message
                                 for s in probe.statuses_of(node)), timeout_s=3.0)
     rejects = node.session.report().counts.rejects

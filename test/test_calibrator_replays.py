@@ -204,12 +204,17 @@ def other_boards_calibration() -> Calibration:
 
 
 def test_a_calibration_judged_not_to_fit_is_marked_with_its_uncertainty_until_recalibrated():
-    """Between the misfit and the recalibration every corrected reading carries the measured
-    |B| error (the node adds its square to the covariance: test_calibrator_node_first_day.py),
-    before the misfit is confirmed and after the recalibration none."""
+    """Every corrected reading carries its 1-sigma (the node puts its square on the covariance:
+    test_calibrator_node_first_day.py). Another board's file is off by ~150 uT: from the first
+    message, before anything is judged, each reading off by more than half the field has an
+    error inside the 99.7 % ellipsoid of its covariance (issue #45: 681 messages had none);
+    the misfit sizes it by the measured error until the recalibration, and then it shrinks to
+    what the new calibration is off by."""
     mag, accel, gyro, _ = board_stream(
         40.0, hard_iron_ut=HARD_IRON_UT, soft_iron=SOFT_IRON, noise_ut=0.05, motion='tumble',
         seed=5)
+    truth = (mag - np.array(HARD_IRON_UT) * 1e-6) @ np.linalg.inv(
+        np.array(SOFT_IRON).reshape(3, 3)).T
     # the misfit's path: with the gyroscope's fit a step re-learns the offset first
     # (test_gyro_aided.py::test_another_boards_file_is_corrected_by_a_step_within_seconds)
     session = CalibrationSession(SessionSettings(gyro_aided=False))
@@ -218,21 +223,20 @@ def test_a_calibration_judged_not_to_fit_is_marked_with_its_uncertainty_until_re
     replay = Replay(session).run(mag, accel, gyro, until=in_force_and_after(200))
     assert session.report().counts.adoptions.get('auto', 0) >= 1, session.report().state
     outputs = replay.outputs
-    marked = [output.uncertainty > 0.0 for output in outputs]
-    magnitudes = np.array([np.linalg.norm(output.corrected) for output in outputs])
-    assert any(marked), 'the wrong calibration was never marked'
-    first = marked.index(True)
-    last = len(marked) - 1 - marked[::-1].index(True)
-    assert all(marked[first:last + 1]), 'the mark came and went while the misfit lasted'
-    assert first > 50  # the first seconds: judged on nothing yet, nothing to mark
-    assert np.all(np.abs(magnitudes[:first] / FIELD_T - 1.0) > 0.3)  # wrong, not yet judged
-    after = magnitudes[last + 1:]
-    assert len(after) >= 100 and np.all(np.abs(after / FIELD_T - 1.0) < 0.1)  # recalibrated
-    assert last < replay.adopted[0][0] + 1  # marked until the recalibration, not after
-    for output, magnitude in zip(outputs[first:last + 1], magnitudes[first:last + 1],
-                                 strict=True):
-        assert output.uncertainty >= 0.2 * FIELD_T  # sized from the misfit: tens of uT
-        assert abs(magnitude - FIELD_T) < 10.0 * output.uncertainty
+    assert all(output.uncertainty > 0.0 for output in outputs)  # never "unknown"
+    errors = np.array([np.linalg.norm(output.corrected - truth[index])
+                       for index, output in enumerate(outputs)])
+    sigmas = np.array([output.uncertainty for output in outputs])
+    off = errors > 0.5 * FIELD_T
+    assert off[0] and off.sum() > 50  # the wrong file, in force from the first message
+    chi2_3dof_997 = 14.16
+    assert np.all(errors[off] ** 2 <= chi2_3dof_997 * sigmas[off] ** 2), (
+        np.max(errors[off] / sigmas[off]))
+    adopted = replay.adopted[0][0]
+    after = slice(adopted + 100, None)  # the new calibration's window has filled
+    assert len(errors[after]) >= 50 and np.all(errors[after] < 0.1 * FIELD_T)  # recalibrated
+    assert np.all(sigmas[after] < 0.05 * FIELD_T)  # and says so
+    assert np.median(sigmas[after]) < 0.1 * np.median(sigmas[off])
 
 
 # -- with an IMU (test_calibrator_node_aligned_first.py, test_calibrator_node_imu.py) ------------

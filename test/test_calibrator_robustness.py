@@ -245,7 +245,7 @@ def test_a_fifo_neither_blocks_load_nor_save(ros, tmp_path, calibration_path):
 
 
 @pytest.mark.parametrize('bad', [math.nan, math.inf])
-def test_a_non_finite_covariance_is_published_as_unknown(ros, calibration_path, bad):
+def test_a_non_finite_covariance_gives_way_to_the_calibrations_own(ros, calibration_path, bad):
     node, probe = start(ros, f'covariance_{int(math.isnan(bad))}',
                         calibration_file=str(calibration_path))
     warmed_up(probe)
@@ -254,7 +254,9 @@ def test_a_non_finite_covariance_is_published_as_unknown(ros, calibration_path, 
     (out,) = [msg for msg in probe.take_corrected() if msg.header.stamp.sec == 1001]
     assert out.header.frame_id == 'imu_link'  # the input's header
     np.testing.assert_allclose(vector(out), CALIBRATION.apply(GOOD))
-    assert not np.any(out.magnetic_field_covariance)  # all zero: unknown (REP-145)
+    published = np.reshape(out.magnetic_field_covariance, (3, 3))
+    assert np.all(np.isfinite(published)) and published[0, 0] > 0.0  # the input's is dropped
+    np.testing.assert_array_equal(published, published[0, 0] * np.eye(3))  # ErrorModel's σ²
     stop(ros, probe, node)
 
 

@@ -342,7 +342,7 @@ class MagCalibratorNode(Node):
                 processed.corrected.tolist())
             covariance = transform_covariance(processed.calibration.correction,
                                               msg.magnetic_field_covariance)
-            out.magnetic_field_covariance = (  # calibrated-misfit: judged not to fit
+            out.magnetic_field_covariance = (  # the calibration's own 1-sigma (ErrorModel)
                 with_uncertainty(covariance, processed.uncertainty)
                 if processed.uncertainty > 0.0 else covariance)
             self._publisher.publish(out)

@@ -32,8 +32,9 @@ class Processed(NamedTuple):
     calibration: Calibration | None
     """The calibration that corrected it (for the covariance)."""
     uncertainty: float = 0.0
-    """While the calibration in force is judged not to fit (calibrated-misfit), the median |B|
-    error measured (``MisfitMonitor.uncertainty``): the node marks the message with it."""
+    """Each corrected component's 1-sigma in field units (``ErrorModel.sigma``, with the median
+    |B| error of a confirmed misfit added in quadrature); the node puts it on the covariance.
+    0.0 only while uncalibrated."""
 
 
 REFUSED = Processed(False, None, None)

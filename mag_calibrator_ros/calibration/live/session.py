@@ -29,6 +29,7 @@ from mag_calibrator_ros.calibration.live.alignment_wait import AlignmentWait
 from mag_calibrator_ros.calibration.live.backlog import DRAIN_PER_MESSAGE, Backlog, Reading
 from mag_calibrator_ros.calibration.live.buffer import SampleBuffer
 from mag_calibrator_ros.calibration.live.compensation import CompensationLearner
+from mag_calibrator_ros.calibration.live.error_model import ErrorModel
 from mag_calibrator_ros.calibration.live.events import (
     MAX_EVENTS,
     REFUSAL_REASONS,
@@ -111,6 +112,7 @@ class CalibrationSession:
         self._evidence = HeldOutEvidence()
         self._scheduler = FitScheduler(self._settings.buffer_size)
         self._misfit = MisfitMonitor()
+        self._errors = ErrorModel()
         self._clock = StreamClock()
         self._refusals = dict.fromkeys(REFUSAL_REASONS[len(SCREEN_REASONS):], 0)
         self._accepted = 0
@@ -222,7 +224,9 @@ class CalibrationSession:
         calibration = self._calibration
         if calibration is None:
             return Processed(True, None, None)
-        return Processed(True, calibration.apply(reading), calibration, self._misfit.uncertainty)
+        corrected = calibration.apply(reading)
+        sigma = self._errors.sigma(float(np.linalg.norm(corrected)))
+        return Processed(True, corrected, calibration, math.hypot(sigma, self._misfit.uncertainty))
 
     def process_imu(self, stamp_ns: int, frame_id: str, accel: Sequence[float],
                     gyro: Sequence[float] | None = None) -> bool:
@@ -611,6 +615,7 @@ class CalibrationSession:
                     calibration.metadata.get('plane_normal'), self._buffer.samples)
             self._adoptions[source] = self._adoptions.get(source, 0) + 1
             self._misfit.reset()
+            self._errors.restart(calibration)
             self._scheduler.calibration_changed()
             if reference.source != 'fit' or moved:
                 reference.set(calibration, None, 'calibration')
