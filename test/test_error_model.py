@@ -90,3 +90,15 @@ def test_a_new_calibration_forgets_what_the_old_one_departed_by():
     assert model.sigma(1.2 * FIELD) > 0.1 * FIELD
     model.restart(calibration(0.5))
     assert model.sigma(FIELD) == pytest.approx(0.005 * FIELD)
+
+
+def test_a_gyro_fits_direction_uncertainty_stays_when_the_magnitudes_agree():
+    """A direction wrong by the fit's jackknife sigma leaves |corrected| = F: the magnitude
+    cannot see it, so it stays in the sigma however long the readings agree."""
+    direction = Calibration(np.zeros(3), np.eye(3), FIELD, 'full',
+                            {'residual_rms_pct': 0.5, 'direction_std_deg': 1.0})
+    model = ErrorModel()
+    model.restart(direction)
+    for _ in range(2 * WINDOW):
+        sigma = model.sigma(FIELD)
+    assert sigma == pytest.approx(FIELD * math.radians(1.0), rel=0.01)
