@@ -32,12 +32,14 @@ after it left.
 from __future__ import annotations
 
 import argparse
+from collections.abc import Iterator
 import json
 import math
 import time
 
 import numpy as np
 
+from mag_calibrator_ros.calibration.live.events import Processed
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
 from mag_calibrator_ros.icm20948 import registers as reg
@@ -88,14 +90,11 @@ def make_board(case: str, seed: int) -> tuple[BoardModel, float]:
     raise ValueError(f'unknown case {case!r}')
 
 
-def replay(board: BoardModel, seconds: float) -> dict[str, np.ndarray]:
-    """Stream the board's readings through a default session; per magnetometer reading: its
-    time, error (deg; inf while uncalibrated), the index of the calibration in force and the
-    zone's weight."""
+def stream(board: BoardModel, seconds: float) -> Iterator[tuple[float, Processed, np.ndarray]]:
+    """The board's readings through a default session as the node streams them: per
+    magnetometer reading its time, what ``process`` made of it and the true earth field (T)."""
     session = CalibrationSession(SessionSettings())
     n_mag, n_imu = int(seconds * MAG_HZ), int(seconds * IMU_HZ)
-    times, errors, calibrations, zone = [], [], [], []
-    in_force: list[object] = []
     imu = 0
     try:
         for k in range(n_mag):
@@ -109,20 +108,29 @@ def replay(board: BoardModel, seconds: float) -> dict[str, np.ndarray]:
             processed = session.process(round(t * 1e9), 'imu_link', (sensed * 1e-6).tolist())
             session.poll()
             session.take_events()
-            error = math.inf
-            if processed.corrected is not None:
-                corrected = np.asarray(processed.corrected, dtype=float)
-                cosine = corrected @ truth / (np.linalg.norm(corrected) * np.linalg.norm(truth))
-                error = math.degrees(math.acos(min(1.0, max(-1.0, float(cosine)))))
-            if processed.calibration is not None and (
-                    not in_force or in_force[-1] is not processed.calibration):
-                in_force.append(processed.calibration)
-            times.append(t)
-            errors.append(error)
-            calibrations.append(len(in_force) - 1)
-            zone.append(board.zone_weight(t))
+            yield t, processed, truth
     finally:
         session.close()
+
+
+def replay(board: BoardModel, seconds: float) -> dict[str, np.ndarray]:
+    """Per magnetometer reading of ``stream``: its time, error (deg; inf while uncalibrated),
+    the index of the calibration in force and the zone's weight."""
+    times, errors, calibrations, zone = [], [], [], []
+    in_force: list[object] = []
+    for t, processed, truth in stream(board, seconds):
+        error = math.inf
+        if processed.corrected is not None:
+            corrected = np.asarray(processed.corrected, dtype=float)
+            cosine = corrected @ truth / (np.linalg.norm(corrected) * np.linalg.norm(truth))
+            error = math.degrees(math.acos(min(1.0, max(-1.0, float(cosine)))))
+        if processed.calibration is not None and (
+                not in_force or in_force[-1] is not processed.calibration):
+            in_force.append(processed.calibration)
+        times.append(t)
+        errors.append(error)
+        calibrations.append(len(in_force) - 1)
+        zone.append(board.zone_weight(t))
     return {'t': np.array(times), 'error': np.array(errors),
             'calibration': np.array(calibrations), 'zone': np.array(zone)}
 

@@ -23,11 +23,9 @@ import json
 import math
 import sys
 
-from bench_motions import ACCEL_NBW, BOARD, GYRO_NBW, IMU_HZ, MAG_HZ, make_board
+from bench_motions import BOARD, make_board, stream
 import numpy as np
 
-from mag_calibrator_ros.calibration.live.session import CalibrationSession
-from mag_calibrator_ros.calibration.live.settings import SessionSettings
 from mag_calibrator_ros.sim import motion
 from mag_calibrator_ros.sim.board import BoardModel
 from mag_calibrator_ros.sim.config import SimConfig
@@ -43,28 +41,11 @@ def board_of(case: str, seed: int) -> tuple[BoardModel, float]:
 
 
 def score(case: str, seed: int) -> dict[str, object]:
-    board, seconds = board_of(case, seed)
-    session = CalibrationSession(SessionSettings())
-    n_mag, n_imu = int(seconds * MAG_HZ), int(seconds * IMU_HZ)
     errors, sigmas = [], []
-    imu = 0
-    try:
-        for k in range(n_mag):
-            t = k / MAG_HZ
-            while imu < n_imu and imu / IMU_HZ <= t:
-                t_imu = imu / IMU_HZ
-                accel, gyro, _ = board.inertial(t_imu, ACCEL_NBW, GYRO_NBW)
-                session.process_imu(round(t_imu * 1e9), 'imu_link', accel.tolist(), gyro.tolist())
-                imu += 1
-            sensed, truth = board.magnetometer(t)
-            processed = session.process(round(t * 1e9), 'imu_link', (sensed * 1e-6).tolist())
-            session.poll()
-            session.take_events()
-            if processed.corrected is not None:
-                errors.append((np.asarray(processed.corrected) - truth) * 1e6)
-                sigmas.append(processed.uncertainty * 1e6)
-    finally:
-        session.close()
+    for _, processed, truth in stream(*board_of(case, seed)):
+        if processed.corrected is not None:
+            errors.append((np.asarray(processed.corrected) - truth) * 1e6)
+            sigmas.append(processed.uncertainty * 1e6)
     if not errors:
         return {'case': case, 'seed': seed, 'messages': 0}
     e, s = np.array(errors), np.array(sigmas)
