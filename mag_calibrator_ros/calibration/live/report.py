@@ -20,6 +20,11 @@ from mag_calibrator_ros.calibration.fit.coverage import HEADING_SECTORS, Coverag
 from mag_calibrator_ros.calibration.fit.earth_field import EarthCheck, EarthField, EarthReference
 from mag_calibrator_ros.calibration.fit.heading import COMPLETE_HEADING_COVERAGE
 from mag_calibrator_ros.calibration.live.buffer import SampleBuffer
+from mag_calibrator_ros.calibration.live.error_model import (
+    Accuracy,
+    ErrorModel,
+    calibration_accuracy,
+)
 from mag_calibrator_ros.calibration.live.evidence import (
     MIN_GAIN,
     MISFIT_WINDOW_S,
@@ -58,8 +63,11 @@ def format_field(value: float, units: str, unit: bool = True) -> str:
     return f'{text} {display_units(units)}' if unit else text
 
 
-def calibration_summary(calibration: Calibration, units: str = 'T') -> str:
-    """One line: model, offset, residual % and coverage % (when the fit recorded them)."""
+def calibration_summary(calibration: Calibration, units: str = 'T',
+                        earth: EarthField | None = None) -> str:
+    """One line: model, offset, residual % and coverage % (when the fit recorded them), and
+    what it is worth for a heading by its own numbers (at the model's dip when none was
+    measured)."""
     offset = ', '.join(format_field(v, units, unit=False) for v in calibration.offset)
     text = f'model {calibration.model}, offset [{offset}] {display_units(units)}'
     residual, coverage, samples = (calibration.metadata_number(key)
@@ -73,6 +81,8 @@ def calibration_summary(calibration: Calibration, units: str = 'T') -> str:
     if calibration.metadata.get('levelled_by_gravity') is True:
         dip = calibration.metadata_number('levelled_dip_deg')
         text += ', levelled by gravity' + ('' if dip is None else f' (dip {dip:.1f} deg)')
+    inclination = None if earth is None else earth.inclination_deg
+    text += ', ' + calibration_accuracy(calibration, inclination).text()
     if calibration.aligned:
         text += f', rotated {rotation_angle_deg(calibration.rotation):.2f} deg into the IMU frame'
     return text + unobserved_text(calibration, units) + compensation_text(calibration, units)
@@ -413,6 +423,8 @@ class SessionReport:
     tracking: bool
     """Whether online tracking follows the calibration in force."""
     waiting_for_alignment: bool
+    accuracy: Accuracy
+    """What the calibration in force is worth for a heading now (``error_model.py``)."""
 
 
 class ReportInputs(NamedTuple):
@@ -427,6 +439,7 @@ class ReportInputs(NamedTuple):
     screened_by: str | None
     evidence: HeldOutEvidence
     misfit: MisfitMonitor
+    errors: ErrorModel
     input_rate: RateMeter
     pairing: ImuPairing
     attitudes: StaticAttitudes
@@ -454,10 +467,15 @@ def session_report(parts: ReportInputs, now: float | None, coverage: Coverage,
     since the previous report that had one, None keeps the latest measured. ``refused``:
     messages refused by screening since the previous such report."""
     node = node or NodeStatus()
-    values = {**diagnostic_values(parts, now, coverage), **parts.input_values, **node.values}
+    misfit = misfit_text(parts.misfit.last, parts.units, parts.settings.auto_calibrate)
+    earth = parts.findings.earth
+    accuracy = parts.errors.accuracy(
+        parts.calibration, None if earth is None else earth.inclination_deg,
+        parts.misfit.uncertainty, misfit if parts.misfit.misfit else '')
+    values = {**diagnostic_values(parts, now, coverage), **accuracy.values(),
+              **parts.input_values, **node.values}
     input_rate_hz = float(values['input_rate_hz'])
     pairing, input_problem = parts.pairing, parts.input_problem
-    misfit = misfit_text(parts.misfit.last, parts.units, parts.settings.auto_calibrate)
     problem = '; '.join(text for text in (node.problem, parts.runner.problem) if text) or None
     level, message = diagnostics_level(
         parts.state, parts.progress, input_rate_hz, node.no_input, problem=problem,
@@ -488,7 +506,8 @@ def session_report(parts: ReportInputs, now: float | None, coverage: Coverage,
         earth=parts.findings.earth, alignment=parts.findings.alignment,
         earth_check=parts.findings.earth_check,
         last_attempt=parts.last_attempt, compensation_needs=parts.compensation_needs,
-        tracking=parts.tracker is not None, waiting_for_alignment=parts.waiting_for_alignment)
+        tracking=parts.tracker is not None, waiting_for_alignment=parts.waiting_for_alignment,
+        accuracy=accuracy)
 
 
 def diagnostic_values(parts: ReportInputs, now: float | None, coverage: Coverage

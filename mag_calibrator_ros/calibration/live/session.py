@@ -310,6 +310,8 @@ class CalibrationSession:
             state = None
         if pair is not None and self._settings.align:
             self._attitudes.add(now, reading, pair[0], pair[1])
+        if pair is not None and pair[2] is not None and self._calibration is not None:
+            self._errors.observe_dip(self._calibration.apply(reading), pair[2])
         # Evidence judges a calibration: none yet, none needed. The draw is pseudo-random (and
         # deterministic), so a recording replayed again holds out other readings.
         if self._calibration is not None and self._hold_out.random() * HOLD_OUT_EVERY < 1.0:
@@ -753,7 +755,8 @@ class CalibrationSession:
             settings=self._settings, units=self._units, state=state,
             calibration=self._calibration, buffer=self._buffer,
             screened_by=self._buffer_reference.source, evidence=self._evidence,
-            misfit=self._misfit, input_rate=self._input_rate, pairing=self._pairing,
+            misfit=self._misfit, errors=self._errors, input_rate=self._input_rate,
+            pairing=self._pairing,
             attitudes=self._attitudes, counts=counts, last_attempt=self._last_attempt,
             tracker=self._tracker, findings=self._findings,
             earth_reference=self._earth_reference(),

@@ -75,7 +75,7 @@ def request_verdict(outcome: JobOutcome, current: Calibration | None, units: str
     if outcome.error or result is None:
         attempt = CalibrationAttempt(False, f'calibration failed: {outcome.error}{kept}', outcome)
     elif result.success:
-        message = calibration_summary(result.calibration, units)
+        message = calibration_summary(result.calibration, units, earth)
         comparison = outcome.comparison
         if comparison is not None and comparison.readings >= MIN_EVIDENCE:
             message += (f'; on held-out readings {comparison.current_pct:.2f} % before, '
@@ -118,7 +118,7 @@ def automatic_verdict(outcome: JobOutcome, current: Calibration | None, misfit: 
                                                   outcome))
     if current is not None and not misfit:
         return Verdict()  # calibrated meanwhile (a request or a file): refinement takes over
-    attempt = CalibrationAttempt(True, calibration_summary(result.calibration, units)
+    attempt = CalibrationAttempt(True, calibration_summary(result.calibration, units, earth)
                                  + reference_text(outcome, earth), outcome)
     what = 'recalibrated automatically' if current is not None else 'calibrated automatically'
     return Verdict(result.calibration, 'auto', 'info', f'{what}: {attempt.message}', attempt)
