@@ -27,6 +27,12 @@ a calibration is in force, the corrected one after. Then, per trial:
   MAGYC differentiates the field between successive rows, and the aktos-t holds its
   magnetometer between updates (repeated rows): ``--magyc-step N`` gives it every N-th row,
   its calibration applied to every row;
+- the heading sigma it publishes (issue #45): per corrected sample ``heading_sigma_deg`` of its
+  ``Processed.uncertainty`` at the dip its report states once a second (as /diagnostics), and
+  the share of movement samples whose mocap heading error lies within it and twice it: as
+  measured, and with the trial's mean heading error removed (the optical frame's north is not
+  magnetic north, and the aktos-t's heading holds a per-trial offset raw: what no calibration
+  of the magnetometer can see); the statuses its reports gave;
 - the IMU warnings the session logged (warnings naming the accelerometer or gyroscope) and the
   coverage its report reached.
 
@@ -50,6 +56,7 @@ import numpy as np
 import scipy.io as spio
 
 from mag_calibrator_ros.calibration.fit.fitting import FitOptions, fit_calibration
+from mag_calibrator_ros.calibration.live.error_model import heading_sigma_deg
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
 
@@ -142,6 +149,9 @@ def replay(data: dict) -> dict:
     session = CalibrationSession(SessionSettings(), metadata={'units': 'uT'})
     step = 1e9 / data['rate']
     published = np.full_like(data['imu_mag'], np.nan)
+    sigma = np.full(len(published), np.nan)  # heading 1-sigma, deg, per corrected sample
+    statuses: dict[str, int] = {}
+    dip = None
     in_force: list[tuple[int, str]] = []  # (sample, model) at each change of calibration
     events: list[tuple[int, str, str, bool]] = []
     current = None
@@ -153,6 +163,13 @@ def replay(data: dict) -> dict:
         processed = session.process(stamp, '', row)
         if processed.accepted:
             published[i] = row if processed.corrected is None else processed.corrected
+        if i % round(data['rate']) == 0:  # once a second, as the node's diagnostics
+            accuracy = session.report().accuracy
+            statuses[accuracy.status] = statuses.get(accuracy.status, 0) + 1
+            dip = accuracy.dip_deg
+        if processed.corrected is not None and dip is not None:
+            sigma[i] = heading_sigma_deg(processed.uncertainty,
+                                         processed.calibration.field_strength, dip)
         if processed.calibration is not None and processed.calibration is not current:
             current = processed.calibration
             in_force.append((i, current.model))
@@ -168,6 +185,7 @@ def replay(data: dict) -> dict:
                 if e[1] == 'warning' and any(w in e[2].lower() for w in IMU_WORDS)]
     return {
         'published': published, 'in_force': in_force, 'events': events, 'warnings': warnings,
+        'heading_sigma': sigma, 'statuses': statuses,
         'coverage': report.coverage.fraction, 'state': report.state,
         'replay_s': time.monotonic() - start,
     }
@@ -250,6 +268,19 @@ def evaluate(name: str, data: dict, magyc: dict | None) -> dict:
     for key in peers:
         peers[key].update(heading_deg=heading.get(key), fusion_deg=fused.get(key))
     messages: dict[str, int] = {}
+    errors, sigma = mocap_heading_errors(opt, published), run['heading_sigma']
+    scored = mask & np.isfinite(sigma)
+    coverage_of_sigma = None
+    if scored.any():
+        e, s = errors[scored], sigma[scored]
+        centred = e - np.mean(e)
+        coverage_of_sigma = {
+            'scored': int(scored.sum()), 'sigma_median_deg': float(np.median(s)),
+            'within_1s': float(np.mean(np.abs(e) <= s)),
+            'within_2s': float(np.mean(np.abs(e) <= 2 * s)),
+            'centred_within_1s': float(np.mean(np.abs(centred) <= s)),
+            'centred_within_2s': float(np.mean(np.abs(centred) <= 2 * s)),
+            'centred_rms_deg': float(np.sqrt(np.mean(centred ** 2)))}
     for _, _, text, _ in run['warnings']:
         messages[text[:100]] = messages.get(text[:100], 0) + 1
     return {
@@ -270,6 +301,7 @@ def evaluate(name: str, data: dict, magyc: dict | None) -> dict:
                                     if first_cal is not None else None),
         'fusion_heading_deg': {'raw': fused['raw'], 'session': fused['session']},
         'peers': peers,
+        'heading_sigma': coverage_of_sigma, 'statuses': run['statuses'],
         'imu_warnings': len(run['warnings']), 'imu_warning_texts': messages,
         'coverage': run['coverage'], 'final_state': run['state'],
         'replay_s': run['replay_s'],
@@ -296,6 +328,20 @@ def print_tables(results: dict) -> None:
               f"{_f(r['fusion_heading_deg']['raw']):>8}"
               f"{_f(r['fusion_heading_deg']['session']):>8}"
               f"{r['imu_warnings']:>9}{100.0 * r['coverage']:>6.0f}")
+    print('\nThe heading sigma it publishes against the mocap error (within 1 sigma / 2 sigma; '
+          "centred: the trial's mean error removed)")
+    print(f"{'trial':<6}{'scored':>8}{'median σ°':>10}{'1σ':>6}{'2σ':>6}{'centred 1σ':>11}"
+          f"{'2σ':>6}{'RMS°':>6}  statuses")
+    for name, r in results.items():
+        c = r['heading_sigma']
+        told = ', '.join(f'{k} {v}' for k, v in sorted(r['statuses'].items()))
+        if c is None:
+            print(f'{name[:2]:<6}{0:>8}  {told}')
+            continue
+        print(f"{name[:2]:<6}{c['scored']:>8}{c['sigma_median_deg']:>10.2f}"
+              f"{100 * c['within_1s']:>5.0f}%{100 * c['within_2s']:>5.0f}%"
+              f"{100 * c['centred_within_1s']:>10.0f}%{100 * c['centred_within_2s']:>5.0f}%"
+              f"{c['centred_rms_deg']:>6.2f}  {told}")
     peers = ('ellipsoid', *MAGYC)
     print('\nPeers, batch over the whole trial (heading RMS deg: mocap / Fusion)')
     print(f"{'trial':<6}{'session':>14}" + ''.join(f'{p:>14}' for p in peers))

@@ -90,10 +90,12 @@ def make_board(case: str, seed: int) -> tuple[BoardModel, float]:
     raise ValueError(f'unknown case {case!r}')
 
 
-def stream(board: BoardModel, seconds: float) -> Iterator[tuple[float, Processed, np.ndarray]]:
-    """The board's readings through a default session as the node streams them: per
-    magnetometer reading its time, what ``process`` made of it and the true earth field (T)."""
-    session = CalibrationSession(SessionSettings())
+def stream(board: BoardModel, seconds: float, session: CalibrationSession | None = None
+           ) -> Iterator[tuple[float, Processed, np.ndarray]]:
+    """The board's readings through ``session`` (a default one if None; closed at the end) as
+    the node streams them: per magnetometer reading its time, what ``process`` made of it and
+    the true earth field (T)."""
+    session = session or CalibrationSession(SessionSettings())
     n_mag, n_imu = int(seconds * MAG_HZ), int(seconds * IMU_HZ)
     imu = 0
     try:

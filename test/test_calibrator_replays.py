@@ -237,6 +237,14 @@ def test_a_calibration_judged_not_to_fit_is_marked_with_its_uncertainty_until_re
     assert len(errors[after]) >= 50 and np.all(errors[after] < 0.1 * FIELD_T)  # recalibrated
     assert np.all(sigmas[after] < 0.05 * FIELD_T)  # and says so
     assert np.median(sigmas[after]) < 0.1 * np.median(sigmas[off])
+    # /diagnostics' status says the same: unreliable under the wrong file, trusted after
+    before = [report for index, report in enumerate(replay.reports)
+              if index * RATE_HZ < adopted]
+    assert before and all(report.values['calibration_status'] == 'unreliable'
+                          for report in before[1:])
+    final = session.report()
+    assert final.accuracy.status in ('high', 'medium'), final.accuracy
+    assert final.values['calibration_status'] == final.accuracy.status
 
 
 # -- with an IMU (test_calibrator_node_aligned_first.py, test_calibrator_node_imu.py) ------------
@@ -287,12 +295,16 @@ def test_a_misaligned_board_held_at_tilts_is_aligned_and_checked_against_the_mod
     assert attempt.success, attempt.message
     assert 'aligned to the IMU' in attempt.message
     assert 'WMM2025' in attempt.message and 'declination' in attempt.message
+    assert 'accuracy high: heading sigma' in attempt.message  # ~/calibrate's answer
+    assert 'deg (measured)' in attempt.message
     calibration = session.calibration
     assert rotation_angle_deg(calibration.rotation @ board.mag_misalignment.T) < 0.3
     assert calibration.field_strength == pytest.approx(model.intensity_nt * 1e-9)
     assert calibration.metadata['dip_deg'] == pytest.approx(model.inclination_deg, abs=0.3)
     report = session.report()
     assert report.imu.paired > 0.9 * report.counts.accepted
+    assert report.values['heading_dip_source'] == 'measured'
+    assert 0.0 < report.values['heading_sigma_deg'] < 2.0
     # The corrected stream is the true field in the IMU frame.
     start = len(replay.outputs)
     replay.run(mag[start:start + 50], accel[start:start + 50], gyro[start:start + 50])

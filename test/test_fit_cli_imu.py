@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import json
+import math
 
 import numpy as np
 import pytest
@@ -68,6 +69,29 @@ def test_the_real_log_is_aligned_to_its_accelerometer(shared_data, capsys, tmp_p
     saved = load_calibration(output)
     np.testing.assert_allclose(saved.rotation.reshape(9), alignment['rotation'], atol=1e-12)
     assert saved.metadata['static_samples'] == alignment['static_samples']
+
+
+
+def test_the_answer_states_its_heading_sigma_at_the_dip_it_measured(shared_data, capsys):
+    """The same log: what the node's /diagnostics would say of the answer (issue #45), its
+    heading 1-sigma at the dip its alignment measured; with a location only, the model's."""
+    log = shared_data / 'lsm303dlhc-altimu10v3' / 'cal_output_2.log'
+    status, out, _ = run([log, '--accel-columns', '0,1,2', '--rate', '3', '--json'], capsys)
+    summary = json.loads(out)
+    told = summary['accuracy']
+    assert status == 0 and told['dip_source'] == 'measured'
+    assert told['dip_deg'] == pytest.approx(summary['alignment']['dip_deg'])
+    # 0.58 % of F across cos(63.9 deg) of it: 0.76 deg
+    assert told['heading_sigma_deg'] == pytest.approx(
+        math.degrees(math.atan(summary['metrics']['residual_rms_pct'] / 100.0
+                               / math.cos(math.radians(told['dip_deg'])))), rel=0.05)
+    assert told['status'] == 'high'
+    status, out, _ = run([log, '--columns', '3,4,5', *PORTLAND], capsys)
+    assert status == 0
+    (line,) = [line for line in out.splitlines() if line.startswith('accuracy')]
+    assert 'heading sigma' in line and 'deg (model)' in line, line
+    status, out, _ = run([log, '--columns', '3,4,5'], capsys)  # neither: a lower bound
+    assert 'dip unknown' in out
 
 
 @pytest.mark.parametrize('rate', [None, 1.0, 3.0, 10.0, 100.0])

@@ -343,7 +343,7 @@ class MagCalibratorNode(Node):
             covariance = transform_covariance(processed.calibration.correction,
                                               msg.magnetic_field_covariance)
             out.magnetic_field_covariance = (  # the calibration's own 1-sigma (ErrorModel)
-                with_uncertainty(covariance, processed.uncertainty)
+                with_uncertainty(covariance, processed.uncertainty, processed.along)
                 if processed.uncertainty > 0.0 else covariance)
             self._publisher.publish(out)
         elif processed.accepted and self.get_parameter('publish_uncalibrated').value:

@@ -40,7 +40,7 @@ from __future__ import annotations
 import argparse
 from collections import Counter
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 import json
 import math
 import os
@@ -65,6 +65,7 @@ from mag_calibrator_ros.calibration.fit.earth_field import (
 from mag_calibrator_ros.calibration.fit.fitting import FitOptions, FitResult
 from mag_calibrator_ros.calibration.fit.input_sanity import field_unit_problem, normalised_problem
 from mag_calibrator_ros.calibration.live.buffer import DEFAULT_CAPACITY, DEFAULT_K
+from mag_calibrator_ros.calibration.live.error_model import Accuracy, calibration_accuracy
 from mag_calibrator_ros.calibration.live.gravity import GravityTracker, RateCheck
 from mag_calibrator_ros.calibration.live.jobs import FitJob, run_job
 from mag_calibrator_ros.calibration.live.offline import calibrate_now
@@ -446,6 +447,8 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     if answer is not None and answer['answer'] == 'in force':
         alignment, earth_check = fit_start.in_force_reference(session, calibration, reference)
     add_reference(summary, alignment, earth_check, calibration, earth, clock)
+    summary['accuracy'] = accuracy_summary(calibration if success else None, answer, alignment,
+                                           earth, session)
     if answer is not None:
         summary['start'] = _finite(answer)
         summary['success'] = success
@@ -881,6 +884,29 @@ def add_reference(summary: dict[str, Any], alignment: Alignment | None,
                                  f'{earth.longitude_deg:g}, {earth.altitude_m:g} m, {earth.date}'
 
 
+def accuracy_summary(calibration: Calibration | None, answer: dict[str, Any] | None,
+                     alignment: Alignment | None, earth: EarthField | None,
+                     session: CalibrationSession | None) -> dict[str, Any]:
+    """The --json 'accuracy' of the answer, as the node's /diagnostics states it: the
+    calibration's heading sigma by its own numbers at the dip its alignment measured (else the
+    stream's, else the model's), and its status; 'uncalibrated' when it failed, 'unreliable'
+    when the calibration given to start from does not fit the recording."""
+    if calibration is None:
+        misfit = answer is not None and not answer['check']['fits']
+        told = (Accuracy('unreliable', reason=(
+            'the calibration does not fit this recording: median |B| error '
+            f"{answer['check']['median_error_pct']:.2f} % of F")) if misfit
+            else Accuracy('uncalibrated'))
+        return _finite(asdict(told))
+    dip = None if alignment is None or not math.isfinite(alignment.dip_deg) \
+        else alignment.dip_deg
+    if dip is None and session is not None:
+        live = session.report().accuracy
+        dip = live.dip_deg if live.dip_source == 'stream' else None
+    inclination = None if earth is None else earth.inclination_deg
+    return _finite(asdict(calibration_accuracy(calibration, inclination, dip)))
+
+
 def _row(values: Sequence[float]) -> str:
     return '[' + '  '.join(f'{value:>12.6g}' for value in values) + ' ]'
 
@@ -943,6 +969,9 @@ def human_summary(summary: dict[str, Any]) -> str:
     if metrics.get('unobserved'):
         unobserved = ', '.join(metrics['unobserved'])
         lines.append(f'          unobserved (held at the prior): {unobserved}')
+    told = summary.get('accuracy')
+    if told is not None and told['status'] != 'uncalibrated':
+        lines.append('accuracy  ' + Accuracy(**told).text().removeprefix('accuracy '))
     lines.append(f"outliers  {metrics['outlier_count']} of {metrics['n_samples']} fitted points")
     rejects = {reason: count for reason, count in summary['rejects'].items() if count}
     lines.append('rejects   ' + (', '.join(f'{count} {REJECT_WORDS.get(reason, reason)}'

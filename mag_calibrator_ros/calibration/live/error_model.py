@@ -9,7 +9,11 @@ wrong file, a magnet passing). An isotropic component error of sigma gives a mag
 of sigma, so the one number is each component's 1-sigma. What the magnitude cannot see (a
 direction wrong by the fit's own uncertainty, ``direction_std_deg`` of a gyroscope-aided fit:
 its jackknife over windows) is added as the calibration's own error, which no window averages
-away.
+away. Nor can the magnitude see a dip that is wrong (a planar fit trades the vertical offset
+against the horizontal scale, |corrected| = F either way): where gravity is paired, the
+stream's mean dip against the one expected (the model's, else the alignment's) is that error,
+across the corrected field in its vertical plane: ``along`` gives it as a vector whose outer
+product the covariance adds (no heading error: it lies in the field's vertical plane).
 
 What a heading made from it is worth follows (``Accuracy``): a component error sigma across the
 horizontal field H = F cos(dip) turns the heading by sigma / H radians, whatever the attitude (the
@@ -152,14 +156,18 @@ class ErrorModel:
 
     def __init__(self) -> None:
         self._departures: deque[float] = deque(maxlen=WINDOW)  # squared, clipped
-        self._gross: deque[bool] = deque(maxlen=WINDOW)
+        self._gross: deque[float] = deque(maxlen=WINDOW)  # a gross one's departure, else 0
         self._gross_count = 0
+        self._gross_sum = 0.0
         self._sum = 0.0
         self._seed = 0.0  # the fit's residual squared, field units squared
         self._own = 0.0  # the fit's direction uncertainty as a component error, squared
         self._field = 0.0
         self._dips: deque[float] = deque(maxlen=DIP_WINDOW)  # deg
         self._dip_sums = [0.0, 0.0]  # of dip, of dip squared
+        self._up: Sequence[float] | None = None  # gravity's latest direction
+        self._measured_dip: float | None = None  # the calibration's alignment's
+        self._model_dip: float | None = None  # the World Magnetic Model's here
 
     def restart(self, calibration: Calibration | None) -> None:
         """A new calibration in force: its own residual seeds the model, the window starts
@@ -169,7 +177,10 @@ class ErrorModel:
         self._dips.clear()
         self._sum = 0.0
         self._gross_count = 0
+        self._gross_sum = 0.0
         self._dip_sums = [0.0, 0.0]
+        self._up = None
+        self._measured_dip = dip_of(calibration)[0]
         if calibration is None:
             self._field = self._seed = self._own = 0.0
             return
@@ -194,12 +205,45 @@ class ErrorModel:
         kept = min(departure, GROSS_SIGMAS ** 2 * model)  # one magnet does not widen it all
         if len(self._departures) == WINDOW:
             self._sum -= self._departures[0]
-            self._gross_count -= self._gross[0]
+            self._gross_count -= self._gross[0] > 0.0
+            self._gross_sum -= self._gross[0]
         self._departures.append(kept)
-        self._gross.append(gross)
+        self._gross.append(departure if gross else 0.0)
         self._gross_count += gross
+        self._gross_sum = max(self._gross_sum + (departure if gross else 0.0), 0.0)
         self._sum = max(self._sum + kept, 0.0)
-        return math.sqrt(model + self._own + (departure if gross else 0.0))
+        # A disturbed field (a magnet near, a zone): what its gross readings departed by, any
+        # reading may be off by, in a direction the magnitude does not show on every one.
+        disturbed = (self._gross_sum / self._gross_count
+                     if self._gross_count > DISTURBED_SHARE * len(self._gross) else 0.0)
+        return math.sqrt(model + self._own + max(departure if gross else 0.0, disturbed))
+
+    def expect_dip(self, model_inclination_deg: float | None) -> None:
+        """The World Magnetic Model's inclination here (None: unknown), the dip ``along``
+        measures the stream against first."""
+        finite = model_inclination_deg is not None and math.isfinite(model_inclination_deg)
+        self._model_dip = float(model_inclination_deg) if finite else None
+
+    def along(self, corrected: Sequence[float]) -> tuple[float, float, float]:
+        """The dip error the magnitude cannot see, as a vector ``v`` (field units) whose outer
+        product ``v v^T`` the covariance adds: the stream's mean dip against the expected one,
+        times F, across ``corrected`` in its vertical plane (gravity's latest direction).
+        Zero while there is nothing to measure it against or too few paired readings."""
+        expected = self._model_dip if self._model_dip is not None else self._measured_dip
+        count = len(self._dips)
+        if expected is None or self._up is None or count < DIP_MIN_READINGS:
+            return (0.0, 0.0, 0.0)
+        norm = math.sqrt(sum(value * value for value in corrected))
+        if not (math.isfinite(norm) and norm > 0.0):
+            return (0.0, 0.0, 0.0)
+        up, unit = self._up, [value / norm for value in corrected]
+        along_up = sum(a * b for a, b in zip(up, unit, strict=True))
+        across = [a - along_up * b for a, b in zip(up, unit, strict=True)]
+        length = math.sqrt(sum(value * value for value in across))
+        if length < 1e-6:
+            return (0.0, 0.0, 0.0)
+        size = self._field * math.radians(self._dip_sums[0] / count - expected) / length
+        return (across[0] * size, across[1] * size, across[2] * size)
 
     def observe_dip(self, corrected: Sequence[float], up: Sequence[float]) -> None:
         """One corrected reading paired with gravity's direction ``up`` (unit, where the
@@ -215,6 +259,7 @@ class ErrorModel:
             old = self._dips[0]
             self._dip_sums[0] -= old
             self._dip_sums[1] -= old * old
+        self._up = tuple(up)
         self._dips.append(dip)
         self._dip_sums[0] += dip
         self._dip_sums[1] += dip * dip

@@ -35,6 +35,9 @@ class Processed(NamedTuple):
     """Each corrected component's 1-sigma in field units (``ErrorModel.sigma``, with the median
     |B| error of a confirmed misfit added in quadrature); the node puts it on the covariance.
     0.0 only while uncalibrated."""
+    along: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """An error in one direction the magnitude cannot see (``ErrorModel.along``, field units):
+    the node adds its outer product to the covariance."""
 
 
 REFUSED = Processed(False, None, None)

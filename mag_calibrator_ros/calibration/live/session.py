@@ -226,7 +226,8 @@ class CalibrationSession:
             return Processed(True, None, None)
         corrected = calibration.apply(reading)
         sigma = self._errors.sigma(float(np.linalg.norm(corrected)))
-        return Processed(True, corrected, calibration, math.hypot(sigma, self._misfit.uncertainty))
+        return Processed(True, corrected, calibration, math.hypot(sigma, self._misfit.uncertainty),
+                         self._errors.along(corrected))
 
     def process_imu(self, stamp_ns: int, frame_id: str, accel: Sequence[float],
                     gyro: Sequence[float] | None = None) -> bool:
@@ -263,6 +264,7 @@ class CalibrationSession:
     def set_earth_field(self, field: EarthField | None) -> None:
         """The World Magnetic Model's field here (None: unknown); used by the next fits."""
         self._findings.earth = field
+        self._errors.expect_dip(None if field is None else field.inclination_deg)
 
     def poll(self) -> None:
         """Take a finished fit's outcome and feed held readings (``Backlog.budget``); the node
