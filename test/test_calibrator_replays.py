@@ -242,8 +242,9 @@ def test_a_calibration_judged_not_to_fit_is_marked_with_its_uncertainty_until_re
               if index * RATE_HZ < adopted]
     assert before and all(report.values['calibration_status'] == 'unreliable'
                           for report in before[1:])
-    final = session.report()
-    assert final.accuracy.status in ('high', 'medium'), final.accuracy
+    final = session.report()  # no dip known here (a tumble is never still): at best 'low'
+    assert final.accuracy.status == 'low' and final.accuracy.direction_sigma_deg < 0.5, (
+        final.accuracy)
     assert final.values['calibration_status'] == final.accuracy.status
 
 

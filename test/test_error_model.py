@@ -137,8 +137,9 @@ def test_without_a_dip_the_status_is_judged_from_the_direction_a_lower_bound():
     told = accuracy(1.5e-6, FIELD, (None, ''))  # 1.7 deg of direction: 'high' at the equator
     assert told.heading_sigma_deg is None and told.direction_sigma_deg == pytest.approx(1.72,
                                                                                       abs=0.01)
-    assert told.status == 'high' and 'dip unknown' in told.text()
+    assert told.status == 'low' and 'dip unknown' in told.text()  # at best, unbounded above
     assert accuracy(1.5e-6, FIELD, (60.0, 'model')).status == 'medium'
+    assert accuracy(15e-6, FIELD, (None, '')).status == 'unreliable'  # 16.7 deg: no better
 
 
 def test_the_dip_measured_comes_before_the_streams_and_the_models():

@@ -45,6 +45,9 @@ UNKNOWN_RESIDUAL = 0.05
 """The seed when a calibration states no residual (a hand-made file): the fit gate's 5 %."""
 STATUS_BOUNDS_DEG = (('high', 2.0), ('medium', 5.0), ('low', 15.0))
 """The heading 1-sigma each status allows at most; beyond the last one it is 'unreliable'."""
+UNKNOWN_DIP_STATUS = 'low'
+"""The best status while the dip is unknown: the heading's sigma is the direction's over
+cos(dip), unbounded from the direction alone."""
 DISTURBED_SHARE = 0.25
 """A window with more gross readings than this share is disturbed now: 'unreliable'."""
 DIP_WINDOW = 512
@@ -76,8 +79,8 @@ class Accuracy:
             return 'accuracy uncalibrated'
         if self.heading_sigma_deg is None:
             told = (f'accuracy {self.status}: direction sigma {self.direction_sigma_deg:.2f} '
-                    'deg (dip unknown: the heading sigma is at least that; give the location '
-                    'or an IMU)')
+                    'deg (dip unknown: the heading sigma is at least that, so at best '
+                    f'{UNKNOWN_DIP_STATUS}; give the location or an IMU)')
         elif not math.isfinite(self.heading_sigma_deg):
             told = f'accuracy {self.status}: heading sigma unbounded'
         else:
@@ -125,7 +128,9 @@ def accuracy(sigma: float, field: float, dip: tuple[float | None, str], reason: 
     """The ``Accuracy`` of a component 1-sigma ``sigma`` on a field ``field`` (``dip``: of
     ``dip_of``); ``reason``: a cause that makes it 'unreliable' whatever the sigma (a misfit
     confirmed, a disturbed field). Without a dip the status is judged from the direction's
-    sigma, a lower bound of the heading's."""
+    sigma, a lower bound of the heading's, and is at best UNKNOWN_DIP_STATUS: a heading claim
+    nothing bounds from above (on BROAD's trial 28, 'high' at 1.3 deg of direction while the
+    heading was off by 4-6 deg at a dip of 69 deg)."""
     if not field > 0.0:
         return Accuracy('uncalibrated')
     direction = math.degrees(math.atan2(sigma, field)) if math.isfinite(sigma) else math.inf
@@ -133,6 +138,8 @@ def accuracy(sigma: float, field: float, dip: tuple[float | None, str], reason: 
     heading = None if dip_deg is None else heading_sigma_deg(sigma, field, dip_deg)
     judged = direction if heading is None else heading
     status = next((name for name, bound in STATUS_BOUNDS_DEG if judged <= bound), 'unreliable')
+    if heading is None and status in ('high', 'medium'):
+        status = UNKNOWN_DIP_STATUS
     if reason:
         status = 'unreliable'
     return Accuracy(status, direction, heading, dip_deg, source, reason)
