@@ -324,12 +324,14 @@ def test_saves_and_loads_from_many_threads_always_see_a_whole_file(tmp_path):
 
 # -- validated load -------------------------------------------------------------------------------
 
+OFFSET_TEXT = '[1.0e-05, 2.0e-05, 3.0e-05]'
+"""GOOD's offset as written (tesla, as every calibration file is)."""
 GOOD = """mag_calibrator:
   ros__parameters:
     calibration:
-      offset: [1.0, 2.0, 3.0]
+      offset: [1.0e-05, 2.0e-05, 3.0e-05]
       matrix: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
-      field_strength: 50.0
+      field_strength: 5.0e-05
       model: "full"
 """
 
@@ -354,19 +356,19 @@ WITH_METADATA = GOOD + '      {}\n'
         ('mag_calibrator:\n  ros__parameters:\n    rate: 1.0\n', 'no calibration parameters'),
         (GOOD.replace('      matrix: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]\n', ''),
          'missing calibration.matrix'),
-        (GOOD.replace('[1.0, 2.0, 3.0]', '[1.0, 2.0]'), 'offset must have 3 numbers, got 2'),
-        (GOOD.replace('[1.0, 2.0, 3.0]', '1.0'), 'offset must be a list of 3 numbers'),
-        (GOOD.replace('[1.0, 2.0, 3.0]', '[1.0, "two", 3.0]'), 'offset must contain numbers'),
-        (GOOD.replace('[1.0, 2.0, 3.0]', '[1.0, true, 3.0]'), 'offset must contain numbers'),
+        (GOOD.replace(OFFSET_TEXT, '[1.0, 2.0]'), 'offset must have 3 numbers, got 2'),
+        (GOOD.replace(OFFSET_TEXT, '1.0'), 'offset must be a list of 3 numbers'),
+        (GOOD.replace(OFFSET_TEXT, '[1.0, "two", 3.0]'), 'offset must contain numbers'),
+        (GOOD.replace(OFFSET_TEXT, '[1.0, true, 3.0]'), 'offset must contain numbers'),
         (GOOD.replace('0.0, 0.0, 1.0]', '0.0, 1.0]'), 'matrix must have 9 numbers, got 8'),
         (GOOD.replace('0.0, 0.0, 1.0]', '0.0, 0.0, .nan]'), 'matrix has non-finite values'),
-        (GOOD.replace('[1.0, 2.0, 3.0]', '[1.0, .inf, 3.0]'), 'offset has non-finite values'),
+        (GOOD.replace(OFFSET_TEXT, '[1.0, .inf, 3.0]'), 'offset has non-finite values'),
         (GOOD.replace('0.0, 0.0, 1.0]', '0.0, 0.0, -1.0]'), 'not positive definite'),
-        (GOOD.replace('50.0', '-50.0'), 'field_strength must be a positive finite number'),
-        (GOOD.replace('50.0', '"strong"'), 'field_strength must be a number'),
+        (GOOD.replace('5.0e-05', '-5.0e-05'), 'field_strength must be a positive finite number'),
+        (GOOD.replace('5.0e-05', '"strong"'), 'field_strength must be a number'),
         (GOOD.replace('"full"', '"banana"'), 'model must be one of'),
         pytest.param(WITH_METADATA.format('n: ' + '1' * 5000).replace(
-            '[1.0, 2.0, 3.0]', '[' + '9' * 5000 + ', 2.0, 3.0]'),
+            OFFSET_TEXT, '[' + '9' * 5000 + ', 2.0, 3.0]'),
             "offset must contain numbers only, got '99999", id='5000-digit integer'),
         pytest.param('mag_calibrator: &x\n  ros__parameters: *x\n', 'anchors and aliases',
                      id='self-referencing alias'),
@@ -382,9 +384,9 @@ WITH_METADATA = GOOD + '      {}\n'
                      id='parameters a number'),
         pytest.param('mag_calibrator:\n  ros__parameters:\n    calibration: [1, 2]\n',
                      'calibration must be a mapping of parameters', id='calibration a list'),
-        pytest.param(GOOD.replace('[1.0, 2.0, 3.0]', '"oops"'),
+        pytest.param(GOOD.replace(OFFSET_TEXT, '"oops"'),
                      "offset must be a list of 3 numbers, got 'oops'", id='offset a string'),
-        pytest.param(GOOD.replace('[1.0, 2.0, 3.0]', '{x: 1}'),
+        pytest.param(GOOD.replace(OFFSET_TEXT, '{x: 1}'),
                      'offset must be a list of 3 numbers', id='offset a mapping'),
         pytest.param(GOOD.replace('"full"', '[1]'), 'model must be one of', id='model a list'),
         pytest.param('1: {ros__parameters: {}}\n', 'top key 1 is not a valid node name',
@@ -428,12 +430,12 @@ def test_load_accepts_what_ros_accepts(tmp_path):
     """Hand-written files: dotted names, the /** wildcard, integers, no model."""
     path = tmp_path / 'hand.yaml'
     path.write_text(
-        '/**:\n  ros__parameters:\n    calibration.offset: [1, 2, 3]\n'
+        '/**:\n  ros__parameters:\n    calibration.offset: [0, 0, 1.0e-5]\n'
         '    calibration.matrix: [2, 0, 0, 0, 2, 0, 0, 0, 2]\n'
-        '    calibration:\n      field_strength: 50\n      note: "by hand"\n'
+        '    calibration:\n      field_strength: 5.0e-5\n      note: "by hand"\n'
     )
     calibration = load_calibration(path)
-    np.testing.assert_array_equal(calibration.offset, [1.0, 2.0, 3.0])
+    np.testing.assert_array_equal(calibration.offset, [0.0, 0.0, 1e-5])
     np.testing.assert_array_equal(calibration.matrix, 2.0 * np.eye(3))
     assert calibration.model == 'full' and calibration.metadata == {'note': 'by hand'}
 
@@ -506,7 +508,7 @@ def test_dates_and_huge_numbers_in_metadata_load_as_rcl_reads_them(tmp_path):
     st.binary(max_size=600),
     st.text(alphabet='mag_calibrator/*:ros__parameters offset[]{}&!.-0123456789e"\n ',
             max_size=400),
-    st.builds(lambda value: GOOD.replace('[1.0, 2.0, 3.0]', value),
+    st.builds(lambda value: GOOD.replace(OFFSET_TEXT, value),
               st.text(alphabet='[]{}-,.0123456789eE"naif ', max_size=40)),
 ))
 def test_any_file_loads_or_raises_calibration_file_error(tmp_path_factory, content):
@@ -525,12 +527,12 @@ def test_any_file_loads_or_raises_calibration_file_error(tmp_path_factory, conte
 
 def test_calibration_from_parameters_takes_ros_arrays():
     calibration = calibration_from_parameters(
-        array.array('d', [1.0, 2.0, 3.0]), array.array('d', SOFT_IRON.reshape(9)), 50.0, 'full',
-        {'samples': 3},
+        array.array('d', [1e-5, 2e-5, 3e-5]), array.array('d', SOFT_IRON.reshape(9)), 5e-5,
+        'full', {'samples': 3},
     )
     np.testing.assert_array_equal(calibration.matrix, SOFT_IRON)
     assert calibration.metadata == {'samples': 3}
-    nested = calibration_from_parameters([1, 2, 3], SOFT_IRON.tolist(), 50, 'axis')
+    nested = calibration_from_parameters([0, 0, 0], SOFT_IRON.tolist(), 5e-5, 'axis')
     np.testing.assert_array_equal(nested.matrix, SOFT_IRON)
 
 
@@ -545,14 +547,37 @@ def test_calibration_from_parameters_names_every_problem():
 
 @pytest.mark.parametrize(
     ('offset', 'matrix', 'strength'),
-    [([1, 2, 3], [1, 0, 0, 0, 1, 0, 0, 0, 1], 1),  # a hand-written --params-file: integers
-     (np.array([1, 2, 3]), np.eye(3, dtype=int), np.int64(1)),
-     (array.array('q', [1, 2, 3]), array.array('q', [1, 0, 0, 0, 1, 0, 0, 0, 1]), 1)],
+    [([0, 0, 0], [1, 0, 0, 0, 1, 0, 0, 0, 1], 5e-5),  # a hand-written --params-file: integers
+     (np.array([0, 0, 0]), np.eye(3, dtype=int), np.float32(5e-5)),
+     (array.array('q', [0, 0, 0]), array.array('q', [1, 0, 0, 0, 1, 0, 0, 0, 1]), 5e-5)],
 )
 def test_integers_stand_for_doubles(offset, matrix, strength):
+    """Integers stand for doubles (a field strength in tesla is never one: see
+    test_numbers_that_cannot_be_tesla_are_refused_naming_the_unit)."""
     calibration = calibration_from_parameters(offset, matrix, strength)
-    assert calibration.offset.dtype == float and calibration.field_strength == 1.0
+    assert calibration.offset.dtype == float
+    assert calibration.field_strength == pytest.approx(5e-5)
     np.testing.assert_array_equal(calibration.matrix, np.eye(3))
+
+
+@pytest.mark.parametrize(('offset', 'strength', 'words'), [
+    ([120.03, -80.0, 60.0], 50.0, 'looks like µT'),                  # the unit every log shows
+    ([0.0, 0.0, 0.0], 1.0, 'a normalised calibration'),
+    ([0.0, 0.0, 0.0], 0.49, 'looks like gauss'),
+    ([0.0, 0.0, 0.0], 5e-11, 'far below'),
+    ([0.3, 0.0, 0.0], 5e-5, 'offset 0.3 T is beyond'),
+])
+def test_numbers_that_cannot_be_tesla_are_refused_naming_the_unit(tmp_path, offset, strength,
+                                                                  words):
+    """A hand-edited file with the offset in µT loaded as tesla and published |B| of 1.9e8 µT
+    (issue #46): every entry reads through calibration_from_parameters, which refuses it."""
+    with pytest.raises(CalibrationError, match=words):
+        calibration_from_parameters(offset, np.eye(3).reshape(9), strength)
+    path = tmp_path / 'c.yaml'
+    path.write_text(GOOD.replace(OFFSET_TEXT, str(offset)).replace(
+        '5.0e-05', repr(strength)))
+    with pytest.raises(CalibrationFileError, match=words):
+        load_calibration(path)
 
 
 @pytest.mark.parametrize(
@@ -574,8 +599,8 @@ def test_integers_stand_for_doubles(offset, matrix, strength):
      ({'metadata': ['samples', 3]}, 'metadata must be a mapping')],
 )
 def test_wrong_parameter_types_are_a_calibration_error(kwargs, message):
-    arguments = {'offset': [0.0, 0.0, 0.0], 'matrix': np.eye(3).reshape(9), 'field_strength': 1.0,
-                 **kwargs}
+    arguments = {'offset': [0.0, 0.0, 0.0], 'matrix': np.eye(3).reshape(9),
+                 'field_strength': 5e-5, **kwargs}
     with pytest.raises(CalibrationError, match=message) as error:
         calibration_from_parameters(**arguments)
     assert len(str(error.value)) < 300

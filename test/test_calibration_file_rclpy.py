@@ -50,8 +50,8 @@ def rclpy_parameters(path, node_name, declared):
 ])
 def test_rclpy_loads_the_file_as_a_params_file(tmp_path, key, node_name):
     """rcl's own YAML parser must type every value as the node declares it."""
-    calibration = Calibration(  # integral values: the int-vs-double trap
-        np.array([1.0, -2.0, 0.0]), np.diag([2.0, 1.0, 1.0]), 50.0, 'full',
+    calibration = Calibration(  # integral values: the int-vs-double trap (F in tesla is not)
+        np.array([0.0, -0.0, 0.0]), np.diag([2.0, 1.0, 1.0]), 5e-5, 'full',
         {**METADATA, 'frame_id': 'on', 'condition_number': 1.0},
         rotation=[[0, -1, 0], [1, 0, 0], [0, 0, 1]],
     )
@@ -75,7 +75,7 @@ def test_rclpy_loads_the_file_as_a_params_file(tmp_path, key, node_name):
     )
     np.testing.assert_array_equal(rebuilt.offset, calibration.offset)
     np.testing.assert_array_equal(rebuilt.matrix, calibration.matrix)
-    assert rebuilt.field_strength == 50.0
+    assert rebuilt.field_strength == 5e-5
     assert rebuilt.rotation.reshape(9).tolist() == [0.0, -1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0]
     assert read_calibration_file(path, node_name).notes == ()  # it is this node's section
 
@@ -89,8 +89,8 @@ def test_rclpy_applies_sections_exactly_as_section_matches_says(tmp_path):
         applied = {node for node in NODES
                    if rclpy_parameters(path, node, double)['field_strength'] is not None}
         assert applied == expected, key
-    for order in ((('/**', 1.0), ('/robot1/mag_calibrator', 2.0)),
-                  (('/robot1/mag_calibrator', 2.0), ('/**', 1.0))):
+    for order in ((('/**', 1e-5), ('/robot1/mag_calibrator', 2e-5)),
+                  (('/robot1/mag_calibrator', 2e-5), ('/**', 1e-5))):
         path = tmp_path / 'merged.yaml'
         path.write_text(''.join(
             calibration_yaml(Calibration(np.zeros(3), np.eye(3), strength), key)

@@ -182,14 +182,29 @@ def node_from_params_file(path: Path, tmp_path: Path) -> tuple[Context, MagCalib
 
 
 def test_params_file_with_integers_loads(tmp_path):
-    """A hand-written file: ``matrix: [1, 0, 0, ...]`` and ``field_strength: 1`` exited 1."""
+    """A hand-written file: ``matrix: [1, 0, 0, ...]`` exited 1 (integers)."""
     path = params_file(tmp_path, '      offset: [0, 0, 0]\n'
                                  '      matrix: [1, 0, 0, 0, 1, 0, 0, 0, 1]\n'
-                                 '      field_strength: 1\n')
+                                 '      field_strength: 5.0e-5\n')
     context, node = node_from_params_file(path, tmp_path)
     try:
         assert node.session.calibration is not None
-        assert node.session.calibration.field_strength == 1.0
+        assert node.session.calibration.field_strength == 5e-5
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+
+
+def test_params_file_in_microtesla_runs_uncalibrated_naming_the_unit(tmp_path):
+    """The offset and F in µT, the unit every log line shows, read as tesla: |B| of 1.9e8 µT
+    was published (issue #46); now nothing is put in force and the unit is named."""
+    path = params_file(tmp_path, '      offset: [120.03, -80.0, 60.0]\n'
+                                 '      matrix: [1, 0, 0, 0, 1, 0, 0, 0, 1]\n'
+                                 '      field_strength: 50.0\n')
+    context, node = node_from_params_file(path, tmp_path)
+    try:
+        assert node.session.calibration is None
+        assert 'looks like µT' in node._problem, node._problem
     finally:
         node.destroy_node()
         rclpy.try_shutdown(context=context)

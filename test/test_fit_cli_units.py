@@ -142,8 +142,9 @@ def test_scale_converts_full_scale_and_field_strength_given_in_counts(tmp_path, 
 # --- the file: converted at load, or refused ---------------------------------------------------
 
 
-def microtesla_calibration(units):
-    return Calibration(OFFSET_T * 1e6, SOFT_IRON, FIELD_T * 1e6, 'full',
+def calibration_in(units, factor):
+    """The calibration written in ``units`` (``factor`` tesla each), labelled so."""
+    return Calibration(OFFSET_T / factor, SOFT_IRON, FIELD_T / factor, 'full',
                        {'units': units, 'samples': 100})
 
 
@@ -153,12 +154,12 @@ def microtesla_calibration(units):
 ])
 def test_a_file_in_another_unit_loads_in_tesla_and_says_so(tmp_path, units, factor):
     path = tmp_path / 'cal.yaml'
-    path.write_text(calibration_yaml(microtesla_calibration(units), '/**'))
+    path.write_text(calibration_yaml(calibration_in(units, factor), '/**'))
     loaded = read_calibration_file(path)
     calibration = loaded.calibration
-    np.testing.assert_allclose(calibration.offset, OFFSET_T * 1e6 * factor, rtol=1e-15)
+    np.testing.assert_allclose(calibration.offset, OFFSET_T, rtol=1e-12)
     np.testing.assert_array_equal(calibration.matrix, SOFT_IRON)  # M does not scale
-    assert calibration.field_strength == pytest.approx(FIELD_T * 1e6 * factor, rel=1e-15)
+    assert calibration.field_strength == pytest.approx(FIELD_T, rel=1e-12)
     assert calibration.metadata['units'] == 'T'
     assert calibration.metadata['samples'] == 100
     converted = [note for note in loaded.notes if 'converted' in note]
@@ -180,7 +181,7 @@ def test_the_old_cli_file_in_microtesla_loads_within_one_percent(tmp_path):
 @pytest.mark.parametrize('units', ['input', 'counts', '', 5, True])
 def test_unknown_units_are_refused_at_load_naming_the_fix(tmp_path, units):
     path = tmp_path / 'cal.yaml'
-    text = calibration_yaml(microtesla_calibration('T'), '/**').replace(
+    text = calibration_yaml(calibration_in('T', 1.0), '/**').replace(
         'units: "T"', f'units: {json.dumps(units)}')
     assert f'units: {json.dumps(units)}' in text
     path.write_text(text)
@@ -190,7 +191,7 @@ def test_unknown_units_are_refused_at_load_naming_the_fix(tmp_path, units):
     assert 'cal.yaml' in message and 'calibration.units' in message
     assert '--units' in message and '--scale' in message
     with pytest.raises(CalibrationFileError, match='cannot save'):  # never written either
-        save_calibration(tmp_path / 'new.yaml', microtesla_calibration('input'))
+        save_calibration(tmp_path / 'new.yaml', calibration_in('input', 1e-6))
     assert not (tmp_path / 'new.yaml').exists()
 
 
@@ -205,3 +206,18 @@ def test_params_file_values_convert_or_refuse_as_the_file_does():
         calibration_from_parameters(OFFSET_T, SOFT_IRON, FIELD_T, 'full', {'units': 'input'})
     kept = calibration_from_parameters(OFFSET_T, SOFT_IRON, FIELD_T, 'full', {})
     np.testing.assert_array_equal(kept.offset, OFFSET_T)
+
+
+@pytest.mark.parametrize(('units', 'noted'), [('uT', False), ('mG', True)])
+def test_a_stated_unit_that_makes_the_field_unlike_the_earths_is_named(shared_data, capsys,
+                                                                       units, noted):
+    """fxos8700's log is in µT (53 µT): --units mG makes it 5.3 µT, said on the answer (issue
+    #46); in gauss (5.3 mT) the readings are refused outright (test_fit_cli.py)."""
+    log = shared_data / 'fxos8700-mwrona' / 'mag-readings.txt'
+    status = main([str(log), '--units', units, '--json'])
+    summary = json.loads(capsys.readouterr().out)
+    notes = [note for note in summary['input']['notes'] if note.startswith('--units')]
+    assert bool(notes) == noted, notes
+    if noted:
+        assert 'outside 10-100 µT' in notes[0] and units in notes[0]
+    assert status in (0, 1)

@@ -63,7 +63,11 @@ from mag_calibrator_ros.calibration.fit.earth_field import (
     earth_field,
 )
 from mag_calibrator_ros.calibration.fit.fitting import FitOptions, FitResult
-from mag_calibrator_ros.calibration.fit.input_sanity import field_unit_problem, normalised_problem
+from mag_calibrator_ros.calibration.fit.input_sanity import (
+    field_unit_problem,
+    normalised_problem,
+    stated_unit_note,
+)
 from mag_calibrator_ros.calibration.live.buffer import DEFAULT_CAPACITY, DEFAULT_K
 from mag_calibrator_ros.calibration.live.error_model import Accuracy, calibration_accuracy
 from mag_calibrator_ros.calibration.live.gravity import GravityTracker, RateCheck
@@ -427,6 +431,10 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
             fitted = own_field.without_own_field(recording, calibration.compensation)
     else:
         calibration = own_field.with_learned(result.calibration, learner)
+    if calibration is not None and units in TESLA_PER_UNIT:
+        note = stated_unit_note(calibration.field_strength * TESLA_PER_UNIT[units], units)
+        if note is not None:
+            recording = replace(recording, notes=(*recording.notes, note))
     written = None
     if success and calibration is not None and args.output is not None:
         save_calibration(args.output, in_tesla(calibration, units), node_name=OUTPUT_SECTION)

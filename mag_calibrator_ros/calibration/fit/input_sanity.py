@@ -148,6 +148,57 @@ def normalised_problem(readings: ArrayLike) -> str | None:
             "filter's normalisation/calibration), or use it as it is (publish_uncalibrated)")
 
 
+CALIBRATION_FIELD_T = (1e-6, 1e-3)
+"""A calibration's field strength F in tesla lies within 1-1000 µT: the Earth's field, or the
+field a magnetometer beside iron reads; F = 1 is a normalised calibration, 50 one in µT."""
+
+STATED_UNIT_FIELD_UT = (10.0, 100.0)
+"""A field strength a stated unit makes outside this (µT) is worth a word: the Earth's is
+22-67 µT, a little more or less beside iron; a tenfold one is another unit."""
+
+MAX_OFFSET_T = 0.01
+"""No magnetometer reads an offset beyond 10 mT (the AK09916's full scale is 4.9 mT, the
+LIS3MDL's 1.6 mT): a larger one is in another unit."""
+
+
+def calibration_unit_problem(offset_t: ArrayLike, field_strength_t: float,
+                             full_scale_t: float | None = None) -> str | None:
+    """Why a calibration said to be in tesla cannot be (its F outside CALIBRATION_FIELD_T, an
+    offset component beyond ``full_scale_t`` or MAX_OFFSET_T), naming the likely unit; None when
+    it can. Every entry of a calibration asks (a file, ``~/load``, ``--params-file``, the CLI's
+    output): one in µT read as tesla publishes 10^6 times the field (issue #46)."""
+    offset = np.asarray(offset_t, dtype=float).reshape(-1)
+    strength = float(field_strength_t)
+    low, high = CALIBRATION_FIELD_T
+    if not (low <= strength <= high):
+        likely = ('a normalised calibration (F = 1: unit vectors, not tesla)' if strength == 1.0
+                  else likely_field_unit(strength))
+        where = 'beyond' if strength > high else 'far below'
+        return (f'field_strength {strength:.6g} T is {where} any field a magnetometer reads '
+                f'({low * 1e6:g}-{high * 1e6:g} µT): it looks like {likely}; a calibration '
+                "for the node is in tesla (mag_calibrator_fit --units gives the recording's)")
+    limit = MAX_OFFSET_T if full_scale_t is None or full_scale_t <= 0.0 else full_scale_t
+    largest = float(np.max(np.abs(offset))) if offset.size else 0.0
+    if largest > limit:
+        return (f'offset {largest:.6g} T is beyond what the magnetometer reads '
+                f'({limit * 1e3:g} mT{" full scale" if limit != MAX_OFFSET_T else ""}): it '
+                f'looks like {likely_field_unit(largest)} next to field_strength '
+                f'{strength * 1e6:.4g} µT; a calibration for the node is in tesla')
+    return None
+
+
+def stated_unit_note(field_strength_t: float, units: str) -> str | None:
+    """A word when the unit a user stated makes the field strength unlike the Earth's
+    (outside STATED_UNIT_FIELD_UT), or None."""
+    field_ut = field_strength_t * 1e6
+    low, high = STATED_UNIT_FIELD_UT
+    if not math.isfinite(field_ut) or low <= field_ut <= high:
+        return None
+    return (f'--units {units} makes the field {field_ut:.3g} µT, outside {low:g}-{high:g} µT '
+            f"(the Earth's is {EARTH_UT[0]:.0f}-{EARTH_UT[1]:.0f} µT): check the unit the "
+            'numbers are in')
+
+
 def accel_unit_problem(samples: ArrayLike) -> str | None:
     """Why accelerometer samples published as m/s^2 are in another unit (g, milli-g, counts),
     from their median |a|, or None. Needs MIN_READINGS usable rows."""
@@ -181,9 +232,14 @@ __all__ = [
     'MIN_TESLA',
     'NORMALISED_SPREAD',
     'PUBLISH_TESLA',
+    'CALIBRATION_FIELD_T',
+    'MAX_OFFSET_T',
+    'STATED_UNIT_FIELD_UT',
     'accel_unit_problem',
+    'calibration_unit_problem',
     'field_unit_problem',
     'likely_field_unit',
     'magnitude_spread',
     'normalised_problem',
+    'stated_unit_note',
 ]

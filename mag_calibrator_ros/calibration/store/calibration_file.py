@@ -62,6 +62,7 @@ from mag_calibrator_ros.calibration.fit.calibration import (
     rotation_problems,
 )
 from mag_calibrator_ros.calibration.fit.earth_field import TESLA_PER_UNIT
+from mag_calibrator_ros.calibration.fit.input_sanity import calibration_unit_problem
 from mag_calibrator_ros.calibration.store.params_yaml import (
     MAX_DEPTH,
     MAX_FILE_BYTES,
@@ -243,8 +244,9 @@ def calibration_from_parameters(
     proper rotation (9 values row-major, orthonormal, det +1); absent means identity. Metadata
     keys that are not ROS parameter names are dropped (they could never be saved).
     ``metadata['units']`` other than tesla converts the calibration to tesla (and says ``T``)
-    or is refused: :func:`tesla_per_unit`. Raises :class:`CalibrationError` naming every problem
-    (type, shape, finiteness, definiteness, units).
+    or is refused: :func:`tesla_per_unit`; numbers that cannot be tesla for a magnetometer are
+    refused with the likely unit (``input_sanity.calibration_unit_problem``). Raises
+    :class:`CalibrationError` naming every problem (type, shape, finiteness, definiteness, units).
     """
     problems: list[str] = []
     offset_values = _numbers(offset, 'offset', 3, problems)
@@ -269,6 +271,9 @@ def calibration_from_parameters(
             problems.append(str(error))
     if not problems:
         problems = calibration_problems(offset_values, np.reshape(matrix_values, (3, 3)), strength)
+    if not problems:
+        unit = calibration_unit_problem(np.array(offset_values) * scale, strength * scale)
+        problems = [] if unit is None else [unit]
     if problems:
         raise CalibrationError('; '.join(problems))
     calibration = Calibration(
