@@ -176,14 +176,15 @@ def calibration_unit_problem(offset_t: ArrayLike, field_strength_t: float,
         where = 'beyond' if strength > high else 'far below'
         return (f'field_strength {strength:.6g} T is {where} any field a magnetometer reads '
                 f'({low * 1e6:g}-{high * 1e6:g} µT): it looks like {likely}; a calibration '
-                "for the node is in tesla (mag_calibrator_fit --units gives the recording's)")
+                'for the node is in tesla or names its unit (calibration.units: "uT")')
     limit = MAX_OFFSET_T if full_scale_t is None or full_scale_t <= 0.0 else full_scale_t
     largest = float(np.max(np.abs(offset))) if offset.size else 0.0
     if largest > limit:
         return (f'offset {largest:.6g} T is beyond what the magnetometer reads '
                 f'({limit * 1e3:g} mT{" full scale" if limit != MAX_OFFSET_T else ""}): it '
                 f'looks like {likely_field_unit(largest)} next to field_strength '
-                f'{strength * 1e6:.4g} µT; a calibration for the node is in tesla')
+                f'{strength * 1e6:.4g} µT; a calibration for the node is in tesla or names its '
+                'unit (calibration.units: "uT")')
     return None
 
 
