@@ -108,7 +108,8 @@ def test_a_reading_judged_off_is_published_with_its_uncertainty(ros, tmp_path, m
         assert len(out) == 4
         assert not np.any(out[0])  # unknown stays unknown
         np.testing.assert_array_equal(out[1], sigma ** 2 * np.eye(3))
-        np.testing.assert_allclose(out[2], carried + sigma ** 2 * np.eye(3), rtol=1e-12)
+        np.testing.assert_allclose(  # raised to sigma^2, the stated noise not counted twice
+            out[2], carried + (sigma ** 2 - np.trace(carried) / 3.0) * np.eye(3), rtol=1e-12)
         np.testing.assert_allclose(out[3], carried, rtol=1e-12)
         np.testing.assert_allclose(vector(published.messages[1]), given.apply(field),
                                    rtol=1e-12)  # corrected as ever: marked, not changed

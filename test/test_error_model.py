@@ -220,6 +220,12 @@ def test_the_covariance_adds_the_sigma_and_the_one_direction():
     np.testing.assert_allclose(covariance, 1e-14 * np.eye(3) + np.outer(along, along))
     unreported = with_uncertainty([-1.0] + [0.0] * 8, 1e-7, (math.nan, 0.0, 0.0))
     np.testing.assert_allclose(unreported.reshape(3, 3), 1e-14 * np.eye(3))
+    # the driver's stated noise is in sigma already (measured on the readings): not twice
+    stated = np.diag([0.25e-14, 0.5e-14, 0.75e-14])  # a mean variance of half sigma^2
+    raised = with_uncertainty(stated.reshape(9), 1e-7).reshape(3, 3)
+    np.testing.assert_allclose(raised, stated + 0.5e-14 * np.eye(3), rtol=1e-12)
+    noisier = np.diag([4e-14, 4e-14, 4e-14])  # stated noisier than measured: kept as stated
+    np.testing.assert_allclose(with_uncertainty(noisier.reshape(9), 1e-7).reshape(3, 3), noisier)
 
 
 def test_a_disturbed_field_widens_every_reading_not_only_the_ones_that_show_it():

@@ -331,15 +331,17 @@ def transform_covariance(matrix: np.ndarray, covariance: Sequence[float]) -> np.
 
 def with_uncertainty(covariance: Sequence[float], sigma: float,
                      along: Sequence[float] = (0.0, 0.0, 0.0)) -> np.ndarray:
-    """A row-major 3x3 covariance with ``sigma**2`` added to each component's variance and
-    ``along along^T`` (an error in one direction): the mark of a correction known to be off by
-    about that much (REP-145: the covariance is the field's uncertainty, so a fusion filter
-    down-weights or gates it). An unknown (all-zero) or unreported (-1) covariance becomes just
-    what is added."""
+    """A row-major 3x3 covariance raised to each component's variance ``sigma**2`` and with
+    ``along along^T`` added (an error in one direction): the mark of a correction known to be off
+    by about that much (REP-145: the covariance is the field's uncertainty, so a fusion filter
+    down-weights or gates it). ``sigma`` is measured on the readings, their noise included, so
+    only what it holds beyond the input's own mean variance is added (the noise is not counted
+    twice). An unknown (all-zero) or unreported (-1) covariance becomes just what is added."""
     covariance = np.asarray(covariance, dtype=float).reshape(3, 3)
     if covariance[0, 0] == -1.0 or not np.all(np.isfinite(covariance)):
         covariance = np.zeros((3, 3))
     vector = np.asarray(along, dtype=float)
     if not np.all(np.isfinite(vector)):
         vector = np.zeros(3)
-    return (covariance + float(sigma) ** 2 * np.eye(3) + np.outer(vector, vector)).reshape(9)
+    beyond = max(float(sigma) ** 2 - max(float(np.trace(covariance)), 0.0) / 3.0, 0.0)
+    return (covariance + beyond * np.eye(3) + np.outer(vector, vector)).reshape(9)
