@@ -195,29 +195,19 @@ def test_params_file_with_integers_loads(tmp_path):
         rclpy.try_shutdown(context=context)
 
 
-def test_params_file_in_microtesla_runs_uncalibrated_naming_the_unit(tmp_path):
-    """The offset and F in µT, the unit every log line shows, read as tesla: |B| of 1.9e8 µT
-    was published (issue #46); now nothing is put in force and the unit is named."""
-    path = params_file(tmp_path, '      offset: [120.03, -80.0, 60.0]\n'
+@pytest.mark.parametrize(('offset', 'strength', 'words'), [
+    ('"oops"', '5.0e-5', ('calibration.* parameters unusable', 'offset')),
+    # µT, the unit every log line shows, read as tesla: |B| of 1.9e8 µT was published (#46)
+    ('[120.03, -80.0, 60.0]', '50.0', ('looks like µT',)),
+])
+def test_params_file_unusable_runs_uncalibrated_and_says_why(tmp_path, offset, strength, words):
+    path = params_file(tmp_path, f'      offset: {offset}\n'
                                  '      matrix: [1, 0, 0, 0, 1, 0, 0, 0, 1]\n'
-                                 '      field_strength: 50.0\n')
+                                 f'      field_strength: {strength}\n')
     context, node = node_from_params_file(path, tmp_path)
     try:
         assert node.session.calibration is None
-        assert 'looks like µT' in node._problem, node._problem
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown(context=context)
-
-
-def test_params_file_with_a_wrong_type_runs_uncalibrated_and_says_why(tmp_path):
-    path = params_file(tmp_path, '      offset: "oops"\n'
-                                 '      matrix: [1, 0, 0, 0, 1, 0, 0, 0, 1]\n'
-                                 '      field_strength: 1.0\n')
-    context, node = node_from_params_file(path, tmp_path)
-    try:
-        assert node.session.calibration is None
-        assert 'calibration.* parameters unusable' in node._problem and 'offset' in node._problem
+        assert all(word in node._problem for word in words), node._problem
     finally:
         node.destroy_node()
         rclpy.try_shutdown(context=context)
