@@ -236,32 +236,75 @@ def fit_gyro_aided_full(data: TurnedReadings, start: GyroAidedFit, *,
 
 
 def _full_residuals(x: np.ndarray, readings: np.ndarray, rotations: np.ndarray,
-                    starts: np.ndarray, labels: np.ndarray) -> np.ndarray:
-    linear, offset = x[:9].reshape(3, 3), x[9:]
-    corrected = (readings - offset) @ linear.T
-    scale = float(np.mean(np.linalg.norm(corrected, axis=1)))
+                    starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """Each window's turned readings from their mean, and each reading's length from the
+    mean length, both relative to that mean: ``x`` is ``G`` and ``d = G b``, so the corrected
+    reading ``G m - d`` is linear in it."""
+    corrected, scale = _corrected(x, readings)
     if not scale > 0.0:
         return np.full(4 * len(readings), 1e6)
     turned = np.einsum('nij,nj->ni', rotations, corrected)
-    sums = np.add.reduceat(turned, starts, axis=0)
-    counts = np.diff(np.append(starts, len(readings)))
-    means = np.repeat(sums / counts[:, None], counts, axis=0)
+    spread = turned - _window_means(turned, starts, counts)
     magnitude = np.linalg.norm(corrected, axis=1) / scale - 1.0
-    return np.concatenate([((turned - means) / scale).ravel(), magnitude])
+    return np.concatenate([(spread / scale).ravel(), magnitude])
+
+
+def _full_jacobian(x: np.ndarray, readings: np.ndarray, rotations: np.ndarray,
+                   starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """``_full_residuals``' derivative: the quotient rule over ``d(G m - d)``, which is the
+    reading itself for ``G``'s row and minus one for ``d``."""
+    corrected, scale = _corrected(x, readings)
+    count = len(readings)
+    if not scale > 0.0:
+        return np.zeros((4 * count, 12))
+    lengths = np.linalg.norm(corrected, axis=1)
+    units = corrected / np.where(lengths > 0.0, lengths, 1.0)[:, None]
+    change = np.zeros((count, 3, 12))  # d corrected_n[i] / d x
+    for row in range(3):
+        change[:, row, 3 * row:3 * row + 3] = readings
+        change[:, row, 9 + row] = -1.0
+    scale_change = np.einsum('ni,nik->k', units, change) / count
+    turned = np.einsum('nij,nj->ni', rotations, corrected)
+    spread = turned - _window_means(turned, starts, counts)
+    turned_change = np.einsum('nij,njk->nik', rotations, change)
+    spread_change = turned_change - _window_means(turned_change, starts, counts)
+    spread_part = (spread_change / scale
+                   - spread[:, :, None] * scale_change[None, None, :] / scale**2)
+    length_part = (np.einsum('ni,nik->nk', units, change) / scale
+                   - lengths[:, None] * scale_change[None, :] / scale**2)
+    return np.concatenate([spread_part.reshape(3 * count, 12), length_part])
+
+
+def _corrected(x: np.ndarray, readings: np.ndarray) -> tuple[np.ndarray, float]:
+    corrected = readings @ x[:9].reshape(3, 3).T - x[9:]
+    return corrected, float(np.mean(np.linalg.norm(corrected, axis=1)))
+
+
+def _window_means(values: np.ndarray, starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """Each row's window mean, on rows sorted by window (``starts``: where each begins)."""
+    sums = np.add.reduceat(values, starts, axis=0)
+    return np.repeat(sums / counts.reshape((-1,) + (1,) * (values.ndim - 1)), counts, axis=0)
 
 
 def _full_solve(readings: np.ndarray, rotations: np.ndarray, labels: np.ndarray,
                 initial: np.ndarray) -> np.ndarray | None:
+    """Levenberg-Marquardt from ``initial`` (``G`` and the offset ``b``); solved in ``G`` and
+    ``G b``, where the spread is linear, and returned as ``G`` and ``b``."""
     from scipy.optimize import least_squares  # the worker's: nodes start without scipy.optimize
     order = np.argsort(labels, kind='stable')
     readings, rotations, labels = readings[order], rotations[order], labels[order]
     starts = np.flatnonzero(np.r_[True, labels[1:] != labels[:-1]])
+    counts = np.diff(np.append(starts, len(readings)))
+    linear = initial[:9].reshape(3, 3)
+    start = np.concatenate([initial[:9], linear @ initial[9:]])
     try:
-        result = least_squares(_full_residuals, initial, method='lm', x_scale='jac',
-                               args=(readings, rotations, starts, labels))
+        result = least_squares(_full_residuals, start, jac=_full_jacobian, method='lm',
+                               x_scale='jac', args=(readings, rotations, starts, counts))
+        solution = np.concatenate([result.x[:9],
+                                   np.linalg.solve(result.x[:9].reshape(3, 3), result.x[9:])])
     except (ValueError, np.linalg.LinAlgError):
         return None
-    return result.x if np.all(np.isfinite(result.x)) else None
+    return solution if np.all(np.isfinite(solution)) else None
 
 
 def _normalised(x: np.ndarray) -> np.ndarray:
