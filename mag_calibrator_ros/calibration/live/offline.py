@@ -31,10 +31,12 @@ def feed(session: CalibrationSession, samples: np.ndarray, rate_hz: float = 100.
 
 
 def calibrate_now(session: CalibrationSession, timeout_s: float = 60.0,
-                  events: list[SessionEvent] | None = None) -> CalibrationAttempt:
+                  events: list[SessionEvent] | None = None,
+                  pause_s: float = 0.001) -> CalibrationAttempt:
     """Request a fit of the buffer (``~/calibrate``) and wait for its answer. The session's
     events taken while waiting, the answer's included, are appended to ``events`` when given
-    (else dropped: offline callers read the attempt)."""
+    (else dropped: offline callers read the attempt). ``pause_s`` between polls lets a worker
+    process run; 0 for a runner that answers after a number of polls, not of seconds."""
     ticket = session.request_calibration()
     deadline = time.monotonic() + timeout_s
     while True:
@@ -46,5 +48,5 @@ def calibrate_now(session: CalibrationSession, timeout_s: float = 60.0,
                 return event.attempt
         if time.monotonic() > deadline:
             return CalibrationAttempt(False, f'calibration did not finish in {timeout_s} s')
-        time.sleep(0.001)
+        time.sleep(pause_s)
         session.poll()
