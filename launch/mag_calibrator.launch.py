@@ -24,14 +24,21 @@ Arguments (``ros2 launch ... --show-args``):
 - ``calibration_file`` (one per node, $ROS_HOME/mag_calibrator/<namespace>__<name>.yaml, e.g.
   robot1__mag_calibrator.yaml): the calibration loaded at start-up and written by ~/save.
 - ``rviz`` (false): also start rviz2 with config/mag_calibrator.rviz, its topics moved into the
-  namespace (the shipped file shows /mag_calibrator/view/...).
+  namespace (the shipped file shows /mag_calibrator/view/...); where rviz2 is not installed, a
+  line says so and the nodes run without it.
+
+Each node is told this launch's pid and stops when it is gone, however it ended.
 """
 
 import os
 import tempfile
 
-from ament_index_python.packages import get_package_share_directory
-from launch.actions import DeclareLaunchArgument, OpaqueFunction
+from ament_index_python.packages import (
+    PackageNotFoundError,
+    get_package_prefix,
+    get_package_share_directory,
+)
+from launch.actions import DeclareLaunchArgument, LogInfo, OpaqueFunction
 from launch.launch_context import LaunchContext
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
@@ -49,6 +56,8 @@ SIM_ARGUMENTS = {
     'sim.motion': ('string', 'Simulator motion: tumble | yaw | still | poses | cmd_vel.'),
 }
 RVIZ_TOPIC_PREFIX = 'Value: /mag_calibrator/view/'
+LAUNCH_PID_ENV = 'MAG_CALIBRATOR_ROS_LAUNCH_PID'
+"""mag_calibrator_ros.nodes.runtime.LAUNCH_PID_ENV: each node stops when this launch is gone."""
 
 
 def argument(context: LaunchContext, name: str) -> str:
@@ -106,7 +115,8 @@ def calibrator(context: LaunchContext, config: str) -> list[Node]:
 def _node(context: LaunchContext, executable: str, parameters: list) -> Node:
     """One of the package's nodes, named as its executable, in the launch's namespace."""
     return Node(package=PACKAGE, executable=executable, name=executable,
-                namespace=argument(context, 'namespace'), output='screen', parameters=parameters)
+                namespace=argument(context, 'namespace'), output='screen', parameters=parameters,
+                additional_env={LAUNCH_PID_ENV: str(os.getpid())})
 
 
 def _use_sim_time(context: LaunchContext) -> bool:
@@ -120,10 +130,14 @@ def namespaced_rviz_config(text: str, namespace: str) -> str:
     return text.replace(RVIZ_TOPIC_PREFIX, f'Value: {prefix}/mag_calibrator/view/')
 
 
-def rviz(context: LaunchContext, config: str) -> list[Node]:
-    """rviz2 with the config written for the namespace, when asked for."""
+def rviz(context: LaunchContext, config: str) -> list[Node | LogInfo]:
+    """rviz2 with the config written for the namespace, when asked for; one line instead when
+    rviz2 is not installed (launch would stop on it, after the nodes had started)."""
     if argument(context, 'rviz') != 'true':  # true | false: the argument's choices
         return []
+    if not rviz2_installed():
+        return [LogInfo(msg='rviz:=true, but rviz2 is not installed (sudo apt install '
+                            'ros-jazzy-rviz2): the driver and calibrator run without it')]
     namespace = argument(context, 'namespace')
     with open(os.path.join(config, 'mag_calibrator.rviz'), encoding='utf-8') as shipped:
         text = namespaced_rviz_config(shipped.read(), namespace)
@@ -132,6 +146,14 @@ def rviz(context: LaunchContext, config: str) -> list[Node]:
         written.write(text)
     return [Node(package='rviz2', executable='rviz2', name='rviz2', namespace=namespace,
                  output='screen', arguments=['-d', path])]
+
+
+def rviz2_installed() -> bool:
+    try:
+        get_package_prefix('rviz2')
+    except PackageNotFoundError:
+        return False
+    return True
 
 
 def generate_launch_description() -> LaunchDescription:

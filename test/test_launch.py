@@ -39,7 +39,8 @@ ARGUMENTS = {'backend', 'calibration_file', 'namespace', 'driver_params_file',
 
 
 def launched(description, **arguments):
-    """The nodes the launch would start for these arguments (name: node)."""
+    """The nodes the launch would start for these arguments (name: node); its lines to the
+    user are in ``launched.said``."""
     from launch.actions import DeclareLaunchArgument, OpaqueFunction
 
     from launch import LaunchContext
@@ -50,10 +51,15 @@ def launched(description, **arguments):
             value = arguments.get(entity.name, entity.default_value)
             context.launch_configurations[entity.name] = (
                 value if isinstance(value, str) else ''.join(s.perform(context) for s in value))
-    nodes = {}
+    from launch.actions import LogInfo
+
+    nodes, launched.said = {}, []
     for function in [e for e in description.entities if isinstance(e, OpaqueFunction)]:
-        for node in function.execute(context) or []:
-            nodes[node.node_executable] = node
+        for action in function.execute(context) or []:
+            if isinstance(action, LogInfo):
+                launched.said.append(''.join(s.perform(context) for s in action.msg))
+            else:
+                nodes[action.node_executable] = action
     return nodes
 
 
@@ -116,8 +122,10 @@ def test_simulator_arguments_params_files_and_sim_time_reach_the_nodes(descripti
     assert files == [str(tmp_path / 'calibrator.yaml')] and given == {'use_sim_time': True}
 
 
-def test_rviz_follows_the_namespace(description):
-    nodes = launched(description, namespace='robot1', rviz='true')
+def test_rviz_follows_the_namespace(launch_module, monkeypatch):
+    monkeypatch.setattr(launch_module, 'rviz2_installed', lambda: True)
+    nodes = launched(launch_module.generate_launch_description(), namespace='robot1',
+                     rviz='true')
     rviz = nodes['rviz2']
     (path,) = [a for a in _arguments(rviz) if a.endswith('.rviz')]
     text = Path(path).read_text()
@@ -125,6 +133,28 @@ def test_rviz_follows_the_namespace(description):
     for view in ('raw', 'corrected', 'markers'):
         assert f'Value: /robot1/mag_calibrator/view/{view}' in text
     assert 'Value: /mag_calibrator/view/' not in text
+
+
+def test_rviz_asked_for_where_it_is_not_installed_is_a_line_and_the_nodes_still_start(
+        launch_module, monkeypatch):
+    """Launch stopped on 'package rviz2 not found' after starting the nodes, and left them
+    running as orphans (issue #46)."""
+    monkeypatch.setattr(launch_module, 'rviz2_installed', lambda: False)
+    nodes = launched(launch_module.generate_launch_description(), rviz='true')
+    assert set(nodes) == {'icm20948_driver', 'mag_calibrator'}
+    (line,) = launched.said
+    assert 'rviz2 is not installed' in line and 'ros-jazzy-rviz2' in line
+
+
+def test_each_node_is_told_the_launch_pid_it_stops_with(description):
+    import os
+
+    from mag_calibrator_ros.nodes.runtime import LAUNCH_PID_ENV
+
+    for node in launched(description).values():
+        environment = {''.join(s.perform(None) for s in key): ''.join(
+            s.perform(None) for s in value) for key, value in node.additional_env}
+        assert environment == {LAUNCH_PID_ENV: str(os.getpid())}
 
 
 def _arguments(node) -> list[str]:

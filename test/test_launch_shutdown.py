@@ -21,7 +21,7 @@ import time
 import pytest
 from rclpy.exceptions import InvalidHandle
 
-from mag_calibrator_ros.nodes.runtime import NodeThreads, wait_until
+from mag_calibrator_ros.nodes.runtime import LAUNCH_PID_ENV, NodeThreads, wait_until
 
 EXIT_TIMEOUT_S = 30.0
 START_TIMEOUT_S = 60.0
@@ -180,6 +180,48 @@ def test_a_node_started_by_the_ros2_command_ends_when_that_process_is_killed(tmp
             lambda case: killed_parent(tmp_path, *case), [('ros2', True), ('supervisor', False)])
             if failure is not None]
     assert not failures, '\n\n'.join(failures)
+
+
+LAUNCH_GONE = '''#!{python}
+"""Stands in for a launch that fails after starting the node (rviz:=true without rviz2): names
+its pid as the launch file does, starts the node and exits at once."""
+import os, subprocess, sys
+os.environ[{variable!r}] = str(os.getpid())
+child = subprocess.Popen(sys.argv[1:], stdin=subprocess.DEVNULL)
+print(child.pid, flush=True)
+'''
+
+
+@pytest.mark.skipif(not sys.platform.startswith('linux'), reason='reads /proc/<pid>')
+def test_a_node_whose_launch_ended_before_the_node_looked_stops_by_itself(tmp_path):
+    """`rviz:=true` without rviz2: launch stopped after starting both nodes, before they ran,
+    so their parent was already init and nothing tied them to it: orphans publishing for good
+    (issue #46). The launch's pid, given in the environment, ties them."""
+    module, arguments, _ = NODES['mag_calibrator']
+    starter = tmp_path / 'launch'
+    starter.write_text(LAUNCH_GONE.format(python=sys.executable, variable=LAUNCH_PID_ENV))
+    starter.chmod(0o755)
+    log_path = tmp_path / 'output.log'
+    command = [str(starter), sys.executable, '-m', module, '--ros-args', '-r',
+               f'__ns:=/launch_gone_{os.getpid()}', *arguments,
+               '-p', f'calibration_file:={tmp_path / "calibration.yaml"}']
+    with log_path.open('wb') as log:
+        process = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                                   stderr=log, start_new_session=True)
+        node = int(process.stdout.readline())
+        process.wait()  # the launch is gone before the node has started
+        try:
+            ended = wait_until(lambda: not Path(f'/proc/{node}').exists()
+                               or 'State:\tZ' in Path(f'/proc/{node}/status').read_text(),
+                               START_TIMEOUT_S + EXIT_TIMEOUT_S)
+        finally:
+            try:
+                os.killpg(process.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+    output = log_path.read_text(errors='replace')
+    assert ended, output
+    assert 'ended without stopping it' in output and 'Traceback' not in output, output
 
 
 class _Raises:

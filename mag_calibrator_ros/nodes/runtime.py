@@ -19,6 +19,9 @@ from rclpy.signals import SignalHandlerOptions
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 SPIN_TIMEOUT_S = 0.05
+LAUNCH_PID_ENV = 'MAG_CALIBRATOR_ROS_LAUNCH_PID'
+"""Set by launch/mag_calibrator.launch.py to the launch process's pid: the node stops when that
+process is gone, even if it was gone before the node could look at its parent."""
 
 
 def guarded(node: Node, name: str, callback: Callable) -> Callable:
@@ -91,18 +94,41 @@ class _StopOnSignal:
 
 
 def ros2_parent() -> int | None:
-    """The parent's pid when it is the ros2 command line (``ros2 run``, ``ros2 launch``), else
-    None. A SIGTERM (``kill``, ``systemctl stop``) ends either without stopping the node it
+    """The pid of the ros2 command line that started this node (``ros2 run``, ``ros2 launch``),
+    else None. A SIGTERM (``kill``, ``systemctl stop``) ends either without stopping the node it
     started: launch 3.4's own handler says 'using SIGTERM can result in orphaned processes', and
-    ros2run does not forward it. A node left running that way could keep turning a robot for
-    ``rotation_timeout``; it stops with its parent instead, as after Ctrl-C. A node started
-    otherwise (systemd, a shell) is not tied to its parent."""
+    ros2run does not forward it; a launch that fails after starting a node (``rviz:=true``
+    without rviz2) exits before the node has even looked at its parent. A node left running that
+    way could keep turning a robot for ``rotation_timeout``; it stops with that process instead,
+    as after Ctrl-C. The package's launch file names its pid in LAUNCH_PID_ENV; otherwise the
+    parent counts when it is the ros2 command. A node started by anything else (systemd, a
+    shell) is not tied to its parent."""
+    stated = os.environ.get(LAUNCH_PID_ENV, '')
+    if stated.isdigit() and int(stated) > 1:
+        return int(stated)
     parent = os.getppid()
     try:
         command = Path(f'/proc/{parent}/cmdline').read_bytes().split(b'\0')
     except OSError:  # not Linux, or the parent is gone already
         return None
     return parent if any(os.path.basename(word) == b'ros2' for word in command[:2]) else None
+
+
+def _gone(pid: int) -> bool:
+    """Whether process ``pid`` has ended. It need not be the parent: a launch ``prefix`` (gdb,
+    valgrind) stands between the launch and the node."""
+    if os.getppid() == pid:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:  # another user's process of that pid: ours is gone
+        return True
+    try:  # ended, not yet reaped by its own parent
+        return Path(f'/proc/{pid}/stat').read_text().rpartition(')')[2].split()[0] == 'Z'
+    except (OSError, IndexError):
+        return False
 
 
 def _spin_until(node: Node, stop: _StopOnSignal, parent: int | None = None) -> None:
@@ -113,10 +139,11 @@ def _spin_until(node: Node, stop: _StopOnSignal, parent: int | None = None) -> N
     executor.add_node(node)
     try:
         while stop.received is None and node.context.ok():
-            if parent is not None and os.getppid() != parent:
+            if parent is not None and _gone(parent):
                 node.get_logger().warning(
                     f'the ros2 command that started this node (pid {parent}) ended without '
-                    'stopping it (a SIGTERM to ros2 launch or ros2 run does that): stopping')
+                    'stopping it (a SIGTERM to ros2 launch or ros2 run does that, and a launch '
+                    'that failed after starting it): stopping')
                 break
             executor.spin_once(timeout_sec=SPIN_TIMEOUT_S)
     finally:
