@@ -667,3 +667,30 @@ def test_the_shipped_config_applies_in_a_namespace_and_matches_the_defaults(tmp_
         node.destroy_node()
     finally:
         rclpy.try_shutdown(context=context)
+
+
+def test_a_second_calibrator_on_the_same_topics_is_a_warning_naming_it(ros, tmp_path):
+    """Two calibrators started in one namespace (``ros2 run`` twice): imu/mag_corrected had two
+    publishers, fusion got every reading twice with stamps going backwards, and nothing warned
+    (issue #46). Each now says so on /diagnostics (WARN) until the other is gone."""
+    first, second = (ros.calibrator('twins', InlineRunner(), progress_log_period=0.0,
+                                    calibration_file=str(tmp_path / f'{n}.yaml'))
+                     for n in ('first', 'second'))
+    probe = Probe(ros, 'twins')
+
+    def latest(node) -> DiagnosticStatus | None:
+        statuses = probe.statuses_of(node)
+        return statuses[-1] if statuses else None
+
+    def warned(status: DiagnosticStatus | None) -> bool:
+        return (status is not None and status.level == DiagnosticStatus.WARN
+                and '/twins/imu/mag_corrected has another publisher: /twins/mag_calibrator'
+                    in status.message and 'started twice' in status.message)
+
+    assert wait_for(lambda: warned(latest(first)), timeout_s=WAIT_S), latest(first)
+    ros.remove(second)
+    assert wait_for(lambda: (latest(first) is not None
+                             and 'another publisher' not in latest(first).message),
+                    timeout_s=WAIT_S), latest(first)
+    ros.remove(first)
+    ros.remove(probe)

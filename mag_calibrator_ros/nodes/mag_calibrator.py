@@ -23,7 +23,8 @@ Published topics:
   to fit (state calibrated-misfit) the square of the measured median |B| error is added to each
   variance, so a fusion filter down-weights or gates it; while uncalibrated nothing, or the raw
   message with ``publish_uncalibrated``.
-- ``/diagnostics`` (diagnostic_msgs/DiagnosticArray): the calibration's state, once a second.
+- ``/diagnostics`` (diagnostic_msgs/DiagnosticArray): the calibration's state, once a second;
+  WARN while another node publishes ``imu/mag_corrected`` or corrects ``imu/mag`` too.
 - ``~/view/raw``, ``~/view/corrected`` (sensor_msgs/PointCloud2) and ``~/view/markers``
   (visualization_msgs/MarkerArray): latched, every ``view_period`` while someone subscribes.
 - ``cmd_vel`` (geometry_msgs/Twist, or TwistStamped with ``cmd_vel_stamped``; reliable): only
@@ -131,6 +132,7 @@ from mag_calibrator_ros.nodes.diagnostics import (
     DiagnosticsPublisher,
     diagnostic_status,
 )
+from mag_calibrator_ros.nodes.graph_watch import GraphWatch
 from mag_calibrator_ros.nodes.inputs import InputSubscriptions
 from mag_calibrator_ros.nodes.location import LOCATION_PARAMETERS, Location, LocationSource
 from mag_calibrator_ros.nodes.mag_calibrator_parameters import (
@@ -202,6 +204,7 @@ class MagCalibratorNode(Node):
         self._imu_subscription = None
         self._location_source = ''  # 'parameters' or 'gps/fix' once the model's field is known
         self._location = LocationSource(bool(self.get_parameter('use_gps').value))
+        self._graph = GraphWatch()  # another publisher on the output, another calibrator
         self._location_asked: tuple[Location, str] | None = None  # last sent to the model
         import_model()  # now: an import on the I/O thread would hold the lock messages need
         self._startup(self._calibration_parameters.given)
@@ -548,7 +551,12 @@ class MagCalibratorNode(Node):
             values['location_waiting'] = self._location.waiting
         if self._location.refused:
             values['gps_fixes_refused'] = self._location.refused_text()
-        report = self.session.report(now, NodeStatus(self._problem, no_input_text(topic), values))
+        doubled, changed = self._graph.check(self, topic, self._publisher.topic_name)
+        if changed:  # the warning once, and once that it ended
+            (self.get_logger().warning if doubled else self.get_logger().info)(
+                doubled or f'{self._publisher.topic_name}: no other node doubles it now')
+        report = self.session.report(now, NodeStatus(self._problem, no_input_text(topic), values,
+                                                     doubled))
         self._log_progress(now, report)
         self._publish_diagnostics(topic, report)
         self._publish_view(now, report)

@@ -275,14 +275,18 @@ def progress_text(state: str, calibration: Calibration | None, coverage: Coverag
 def diagnostics_level(state: str, progress: str, input_rate_hz: float, no_input: str, *,
                       problem: str | None = None, refused: Mapping[str, int] | None = None,
                       misfit: str = '', earth_warning: str = '', alignment_warning: str = '',
-                      imu_warning: str = '', input_problem: str = '') -> tuple[Level, str]:
+                      imu_warning: str = '', input_problem: str = '', node_warning: str = ''
+                      ) -> tuple[Level, str]:
     """The level and message of the calibrator's /diagnostics status: the first that applies of
-    a problem of the node or its fit worker (ERROR), input no calibration can fix (wrong unit,
+    a problem of the node or its fit worker (ERROR), a warning of the node (another publisher
+    on its output: ``nodes/graph_watch.py``), input no calibration can fix (wrong unit,
     normalised: ``sanity.py``), messages refused since the last report, a misfit, a disturbed
     field, a mounting error, an IMU that cannot be paired (WARN), calibrated (OK), no input,
     still calibrating (WARN)."""
     if problem is not None:
         return 'ERROR', problem
+    if node_warning:
+        return 'WARN', f'{state}: {node_warning}'
     if input_problem:
         return 'WARN', f'{state}: {input_problem}'
     if refused:
@@ -307,12 +311,14 @@ def diagnostics_level(state: str, progress: str, input_rate_hz: float, no_input:
 @dataclass(frozen=True)
 class NodeStatus:
     """What the node adds to a report: its own problem (a file or parameter error, shown as
-    ERROR), the 'no input' text in its topic's words, and its /diagnostics values (the file,
-    the turn, the location), after the session's."""
+    ERROR), its warning (WARN: another node doubles its output), the 'no input' text in its
+    topic's words, and its /diagnostics values (the file, the turn, the location), after the
+    session's."""
 
     problem: str | None = None
     no_input: str = ''
     values: Mapping[str, object] = field(default_factory=dict)
+    warning: str = ''
 
 
 @dataclass(frozen=True)
@@ -482,7 +488,7 @@ def session_report(parts: ReportInputs, now: float | None, coverage: Coverage,
         refused=refused if problem is None else None, misfit=misfit,
         earth_warning=parts.earth_warning,
         alignment_warning=parts.findings.alignment_warning, imu_warning=pairing.warning(),
-        input_problem=input_problem)
+        input_problem=input_problem, node_warning=node.warning)
     buffer = parts.buffer
     rates = pairing.gravity.rates
     return SessionReport(
