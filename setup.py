@@ -35,8 +35,8 @@ setup(
     tests_require=['pytest', 'pytest-xdist'],
     entry_points={
         'console_scripts': [
-            f'icm20948_driver = {PACKAGE}.nodes.icm20948_driver:main',
-            f'mag_calibrator = {PACKAGE}.nodes.mag_calibrator:main',
+            f'icm20948_driver = {PACKAGE}.nodes.entry:icm20948_driver',
+            f'mag_calibrator = {PACKAGE}.nodes.entry:mag_calibrator',
             f'mag_calibrator_fit = {PACKAGE}.tools.fit:main',
             f'mag_calibrator_demo = {PACKAGE}.tools.demo:main',
         ],

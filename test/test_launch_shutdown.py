@@ -3,8 +3,10 @@
 A terminal's Ctrl-C reaches every process of the launch's group and launch then forwards one
 more SIGINT, so a node gets two in quick succession; with rclpy's own handlers the second one
 was a KeyboardInterrupt inside ``destroy_node``: a traceback and exit -2 ("process has died").
-Each node runs here in a process group of its own, as under a terminal, and gets the signals at
-different moments: while it builds itself, and once it runs; "SIGINT twice" goes to the whole
+Each node runs here in a process group of its own, as under a terminal, started by its console
+script (which catches the signals before the heavy imports: a Ctrl-C during them was a
+traceback, issue #46), and gets the signals at different moments: while it imports, while it
+builds itself, and once it runs; "SIGINT twice" goes to the whole
 group first (the calibrator's fit worker too, which must not print a traceback while it still
 imports), then to the node. It must exit 0 without a traceback, and in bounded time.
 """
@@ -31,6 +33,13 @@ NODES = {
                         'sim backend, ICM-20948'),
     'mag_calibrator': ('mag_calibrator_ros.nodes.mag_calibrator', [], 'no calibration file at'),
 }
+
+
+def console_script(name: str) -> list[str]:
+    """The command a console script runs (``ros2 run``, ``ros2 launch``): its entry in
+    nodes/entry.py, which catches the signals before the heavy imports."""
+    return [sys.executable, '-c',
+            f'import sys; from mag_calibrator_ros.nodes.entry import {name}; sys.exit({name}())']
 RUNNING, RANDOM = 'running', 'random'
 # When: after the node's start-up line (RUNNING), or this many seconds after its signal handlers
 # are set (rclpy.init, building the node, its first spins), or a random such moment in [0, 1).
@@ -65,14 +74,14 @@ def signal_once(tmp_path: Path, name: str, signals: str, moment, gap: float, ind
     bounded time, else what went wrong, with its output."""
     if moment == RANDOM:
         moment = random.SystemRandom().uniform(0.0, 1.0)
-    module, arguments, running_line = NODES[name]
+    _, arguments, running_line = NODES[name]
     case_dir = tmp_path / f'case{index}'
     case_dir.mkdir()
     log_path = case_dir / 'output.log'
     namespace = f'/shutdown_{name}_{index}_{int(time.monotonic() * 1000) % 100000}'
     if name == 'mag_calibrator':
         arguments = arguments + ['-p', f'calibration_file:={case_dir / "calibration.yaml"}']
-    command = [sys.executable, '-m', module, '--ros-args', '-r', f'__ns:={namespace}', *arguments]
+    command = [*console_script(name), '--ros-args', '-r', f'__ns:={namespace}', *arguments]
     when = f'{name}, {signals} {gap} s apart at {moment}'
     with log_path.open('wb') as log:
         process = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=log,
@@ -222,6 +231,21 @@ def test_a_node_whose_launch_ended_before_the_node_looked_stops_by_itself(tmp_pa
     output = log_path.read_text(errors='replace')
     assert ended, output
     assert 'ended without stopping it' in output and 'Traceback' not in output, output
+
+
+def test_the_console_scripts_catch_the_stop_signals_before_any_heavy_import():
+    """What a Ctrl-C during start-up meets: the entry points in nodes/entry.py, which import
+    neither rclpy nor numpy before the handlers are set."""
+    setup = (Path(__file__).resolve().parents[1] / 'setup.py').read_text()
+    for name in NODES:
+        assert f"'{name} = {{PACKAGE}}.nodes.entry:{name}'" in setup
+    probe = ('import signal, sys; from mag_calibrator_ros.nodes import entry; '
+             'entry.catch_stop_signals(); '
+             'print(sorted(m for m in ("rclpy", "numpy", "scipy") if m in sys.modules), '
+             'type(signal.getsignal(signal.SIGTERM)).__name__)')
+    output = subprocess.run([sys.executable, '-c', probe], capture_output=True, text=True,
+                            check=True).stdout
+    assert output.split() == ['[]', 'StopOnSignal']
 
 
 class _Raises:

@@ -5,7 +5,6 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 import os
 from pathlib import Path
-import signal
 import threading
 import time
 import traceback
@@ -17,7 +16,12 @@ from rclpy.executors import ExternalShutdownException, ShutdownException, Single
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+from mag_calibrator_ros.nodes.signals import (
+    StopOnSignal,
+    catch_stop_signals,
+    ignore_stop_signals,
+)
+
 SPIN_TIMEOUT_S = 0.05
 LAUNCH_PID_ENV = 'MAG_CALIBRATOR_ROS_LAUNCH_PID'
 """Set by launch/mag_calibrator.launch.py to the launch process's pid: the node stops when that
@@ -54,10 +58,11 @@ def spin_node(node_factory: Callable[[], Node], args: Sequence[str] | None = Non
     A node started by the ros2 command line also stops when that process ends (``ros2_parent``).
     Returns a process exit code (0 on a normal stop) so console scripts can ``sys.exit`` it.
     """
-    stop = _StopOnSignal()  # one for both: the first of either signal counts
+    stop = catch_stop_signals()  # before init (and before the imports, by the console scripts)
     parent = ros2_parent()
-    for number in STOP_SIGNALS:  # before init: a signal during start-up is a stop, not a crash
-        signal.signal(number, stop)
+    if stop.received is not None:  # during the imports: nothing started yet
+        ignore_stop_signals()
+        return 0
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     try:
@@ -71,26 +76,8 @@ def spin_node(node_factory: Callable[[], Node], args: Sequence[str] | None = Non
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
-        # Ignored from here on: Python's finalization puts the default action (death by the
-        # signal, exit -2) back for a handler of its own, not for SIG_IGN, and the second
-        # SIGINT of a launch's Ctrl-C can arrive that late.
-        for number in STOP_SIGNALS:
-            signal.signal(number, signal.SIG_IGN)
+        ignore_stop_signals()
     return 0
-
-
-class _StopOnSignal:
-    """The first SIGINT or SIGTERM ends spinning; further ones are ignored, so a second Ctrl-C
-    cannot cut the node's shutdown (its final publishes) short. It only sets a flag: an
-    exception raised from a signal handler can land inside a pybind11 call of rclpy, which
-    turns it into a RuntimeError ("Unable to convert call argument") and exit 1."""
-
-    def __init__(self) -> None:
-        self.received: int | None = None
-
-    def __call__(self, number: int, frame: object) -> None:
-        if self.received is None:
-            self.received = number
 
 
 def ros2_parent() -> int | None:
@@ -131,7 +118,7 @@ def _gone(pid: int) -> bool:
         return False
 
 
-def _spin_until(node: Node, stop: _StopOnSignal, parent: int | None = None) -> None:
+def _spin_until(node: Node, stop: StopOnSignal, parent: int | None = None) -> None:
     """Spin ``node`` until ``stop`` has seen a signal, or the ``parent`` process has ended.
     Python runs the handler once the wait returns (the node's timers wake it at least every
     SPIN_TIMEOUT_S)."""
