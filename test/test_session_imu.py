@@ -150,6 +150,25 @@ def test_a_disturbed_field_is_refused_with_the_reason_or_warned(disturbance, rea
                if e.level == 'warning')
 
 
+def test_a_location_in_the_other_hemisphere_fails_the_dip_gate_and_leaves_what_is_in_force(
+        misaligned):
+    """One wrong gps/fix (the other hemisphere), then ~/calibrate: the alignment saw a dip of
+    the other sign, was not applied, and its dip was left out of the model's check, so the fit
+    went in force with the wrong place's field and without the alignment it had (issue #46)."""
+    wrong = EarthField(50_000.0, -60.0, 3.0, -52.0, 13.0, 0.0, '2026-11-23')
+    session, attempt = calibrated(misaligned, earth=MODEL)
+    assert attempt.success and session.calibration.aligned
+    in_force = session.calibration
+    session.set_earth_field(wrong)
+    attempt = calibrate_now(session)
+    assert not attempt.success
+    assert re.search(r"dip (59\.9|60\.[01]) deg against the model's -60\.0 deg", attempt.message)
+    assert 'the other hemisphere, or left-handed magnetometer axes' in attempt.message
+    assert session.calibration is in_force
+    _, attempt = calibrated(misaligned, earth=wrong)
+    assert not attempt.success and 'the other hemisphere' in attempt.message
+
+
 def test_a_calibration_in_force_is_aligned_by_refinement(misaligned):
     mag, accel, gyro, board = misaligned
     truth = Calibration(np.array(HARD_IRON_UT) * 1e-6,

@@ -201,9 +201,12 @@ def check_against_model(
     if dip_deg is not None and math.isfinite(dip_deg):
         dip_error = float(dip_deg) - expected.inclination_deg
         if abs(dip_error) > max_dip_error_deg:
+            flipped = (dip_deg > 0.0) != (expected.inclination_deg > 0.0)
             problems.append(
                 f"dip {dip_deg:.1f} deg against the model's {expected.inclination_deg:.1f} deg "
-                f'({dip_error:+.1f} deg, tolerance {max_dip_error_deg:g} deg)')
+                f'({dip_error:+.1f} deg, tolerance {max_dip_error_deg:g} deg'
+                + ('; the other sign: the other hemisphere, or left-handed magnetometer axes)'
+                   if flipped else ')'))
     return EarthCheck(intensity, expected.inclination_deg, expected.declination_deg, ratio,
                       dip_error, tuple(problems))
 

@@ -349,9 +349,8 @@ def align_and_check(job: FitJob, result: FitResult
             calibration = calibration.with_rotation(alignment.rotation, **alignment.metadata())
     earth_check = None
     if job.earth is not None:
-        dip = None
-        if alignment is not None and alignment.handedness != 'left' and (
-                alignment.dip_std_deg <= job.alignment.max_dip_std_deg):
+        dip = None  # a dip of the other sign too: a wrong location must not pass (issue #46)
+        if alignment is not None and alignment.dip_std_deg <= job.alignment.max_dip_std_deg:
             dip = alignment.dip_deg
         radius = calibration.field_radius()
         earth_check = job.earth.check(radius, dip)
