@@ -124,3 +124,30 @@ def test_learn_compensation_without_readings_answers_by_the_nodes_own_clock(lear
     assert wait_for(again.done), 'no answer'
     assert not again.result().success
     assert again.result().message == '~/reset emptied what it was learning from'
+
+
+def test_learn_compensation_with_no_input_configured_answers_at_once_naming_the_topics(ros):
+    """With interference_inputs empty and no die temperature, ~/learn_compensation ran its full
+    60 s and answered about the temperature, never that no input was configured, although
+    battery_state was published (issue #46). It answers at once, naming the entry that would
+    learn from the BatteryState topic it sees."""
+    namespace = 'no_inputs'
+    calibrator = ros.calibrator(
+        namespace, auto_calibrate=False, refine=False, use_imu=False, progress_log_period=0.0,
+        **{'calibration.offset': [float(v) for v in OFFSET],
+           'calibration.matrix': [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+           'calibration.field_strength': F, 'calibration.model': 'full'})
+    probe = Probe(ros, namespace)
+    probe.create_publisher(BatteryState, 'battery_state', 10)
+    entry = f'/{namespace}/battery_state:sensor_msgs/msg/BatteryState:current'
+    assert wait_for(lambda: any(name == f'/{namespace}/battery_state' for name, _ in
+                                calibrator.get_topic_names_and_types()))
+    answer = _ask(probe, 'mag_calibrator/learn_compensation')
+    assert wait_for(answer.done, timeout_s=10.0), 'no answer at once'
+    response = answer.result()
+    assert not response.success
+    assert response.message.startswith('nothing to learn: interference_inputs is empty and no '
+                                       'die temperature has come on imu/temperature')
+    assert f"published now: interference_inputs:=['{entry}']" in response.message
+    for node in (probe, calibrator):
+        ros.remove(node)

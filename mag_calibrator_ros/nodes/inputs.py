@@ -21,6 +21,37 @@ from mag_calibrator_ros.calibration.live.settings import SessionSettings
 from mag_calibrator_ros.nodes.runtime import guarded
 
 TEMPERATURE_TOPIC = 'imu/temperature'
+INPUT_EXAMPLES = {  # a published type: the interference_inputs entry that would learn from it
+    'sensor_msgs/msg/BatteryState': 'current',
+    'nav_msgs/msg/Odometry': 'abs(twist.twist.linear.x)',
+}
+"""config/mag_calibrator.yaml's examples, for the types a robot's graph most often has."""
+
+
+def candidate_inputs(node: Node) -> list[str]:
+    """interference_inputs entries for the topics of INPUT_EXAMPLES' types published now
+    (``~/learn_compensation`` with none configured names them)."""
+    return [f'{topic}:{kind}:{INPUT_EXAMPLES[kind]}'
+            for topic, types in node.get_topic_names_and_types()
+            for kind in types if kind in INPUT_EXAMPLES]
+
+
+def learning_plan(node: Node, timeout_s: float) -> tuple[str, str]:
+    """``~/learn_compensation``'s line as it starts (what it collects, for how long), and the
+    note its answer ends with when no input is configured (the BatteryState and Odometry topics
+    published now, as interference_inputs entries); '' with inputs."""
+    inputs = list(node.get_parameter('interference_inputs').value)
+    sources = [*inputs, *(['the die temperature']
+                          if node.get_parameter('use_temperature').value else [])]
+    note = ''
+    if not inputs:
+        candidates = ', '.join(f"'{entry}'" for entry in candidate_inputs(node))
+        note = ('interference_inputs is empty; published now: '
+                f'interference_inputs:=[{candidates}]' if candidates else
+                'interference_inputs is empty, and no BatteryState or Odometry topic is '
+                'published')
+    return (f"learning the robot's own field for up to {timeout_s:g} s of readings, from "
+            f"{', '.join(sources) or 'nothing'}" + (f' ({note})' if note else '')), note
 
 
 def _stamp_ns(message: object) -> int | None:

@@ -151,6 +151,16 @@ class LocationSource:
         had, self._fix = self._fix is not None, None
         return had
 
+    def first_refusal(self, fix: NavSatFix) -> str | None:
+        """The log line for a fix refused for a reason not seen before (None otherwise): each
+        reason once, then only counted (gps_fixes_refused)."""
+        reason = self.offer_fix(fix)
+        if reason is None or self.refused[reason] != 1:
+            return None
+        return (f'gps/fix refused ({reason}: status {fix.status.status}, {fix.latitude}, '
+                f'{fix.longitude}, altitude {fix.altitude}); counted in diagnostics '
+                '(gps_fixes_refused), waiting for a plausible fix')
+
     def refused_text(self) -> str:
         """'null island: 3, no fix: 1' (empty when none was refused)."""
         return ', '.join(f'{reason}: {count}' for reason, count in self.refused.items())

@@ -133,7 +133,7 @@ from mag_calibrator_ros.nodes.diagnostics import (
     diagnostic_status,
 )
 from mag_calibrator_ros.nodes.graph_watch import GraphWatch
-from mag_calibrator_ros.nodes.inputs import InputSubscriptions
+from mag_calibrator_ros.nodes.inputs import InputSubscriptions, learning_plan
 from mag_calibrator_ros.nodes.location import LOCATION_PARAMETERS, Location, LocationSource
 from mag_calibrator_ros.nodes.mag_calibrator_parameters import (
     PARAMETERS,
@@ -211,9 +211,8 @@ class MagCalibratorNode(Node):
         self.add_on_set_parameters_callback(self._validate_parameters)
         self._calibration_parameters.show(self.session.calibration)
         self.add_post_set_parameters_callback(self._apply_parameters)
-        self._publisher = self.create_publisher(
-            MagneticField, 'imu/mag_corrected', QoSProfile(depth=10)
-        )
+        self._publisher = self.create_publisher(MagneticField, 'imu/mag_corrected',
+                                                QoSProfile(depth=10))
         self.create_subscription(MagneticField, 'imu/mag', guarded(self, 'imu/mag', self._on_mag),
                                  INPUT_QOS)
         self._sync_imu_subscription()
@@ -222,9 +221,8 @@ class MagCalibratorNode(Node):
         self._inputs = InputSubscriptions(self, self.session, lambda: self._settings,
                                           INPUT_QOS)  # imu/temperature ...
         self._relocate()
-        # The services wait for the fit worker and the I/O thread without blocking the executor;
-        # a waiting service must not hold the default (mutually exclusive) group, or the poll
-        # timer that completes it could never run.
+        # Services wait for the fit worker and the I/O thread outside the default (mutually
+        # exclusive) group, or the poll timer that completes them could never run.
         waiting = ReentrantCallbackGroup()
         for name, callback in (('~/calibrate', self._on_calibrate), ('~/save', self._on_save),
                                ('~/reset', self._on_reset), ('~/load', self._on_load),
@@ -307,8 +305,7 @@ class MagCalibratorNode(Node):
         if loaded is None:
             self.get_logger().info(
                 f'no calibration file at {path} yet: uncalibrated until ~/calibrate '
-                f'(auto_calibrate={self.get_parameter("auto_calibrate").value})'
-            )
+                f'(auto_calibrate={self.get_parameter("auto_calibrate").value})')
             return
         self._loaded(path, loaded)
 
@@ -397,12 +394,9 @@ class MagCalibratorNode(Node):
 
     def _on_fix(self, msg: NavSatFix) -> None:
         """Screen the fix; a plausible one locates, or replaces a far one (LocationSource)."""
-        reason = self._location.offer_fix(msg)
-        if reason is not None and self._location.refused[reason] == 1:
-            self.get_logger().warning(
-                f'gps/fix refused ({reason}: status {msg.status.status}, {msg.latitude}, '
-                f'{msg.longitude}, altitude {msg.altitude}); counted in diagnostics '
-                '(gps_fixes_refused), waiting for a plausible fix')
+        refused = self._location.first_refusal(msg)
+        if refused is not None:
+            self.get_logger().warning(refused)
         if self._location.wanted != self._location_asked:
             self._relocate()
 
@@ -477,13 +471,18 @@ class MagCalibratorNode(Node):
     async def _on_learn_compensation(self, request: Trigger.Request,
                                      response: Trigger.Response):
         timeout = float(self.get_parameter('compensation_timeout').value)
+        starting, note = learning_plan(self, timeout)
         waiting = Future()
         ticket = self.session.request_compensation(timeout)
         self._requests[ticket] = waiting
         self._learning[ticket] = time.monotonic() + WINDOW_GRACE * timeout + WINDOW_SLACK_S
         self._handle_events()  # a refusal answers at once
+        if not waiting.done():
+            self.get_logger().info(starting)
         attempt = await waiting
         response.success, response.message = attempt.success, attempt.message
+        if note:
+            response.message += f' ({note})'
         return response
 
     def _save_file(self) -> str:

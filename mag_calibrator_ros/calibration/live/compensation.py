@@ -517,6 +517,10 @@ class CompensationLearner:
         if not self.specs and not self.use_temperature:
             return ('nothing to learn: interference_inputs is empty and use_temperature is '
                     "false (list the robot's currents or speeds in interference_inputs)")
+        if not self.specs and not self.temperature_series.samples:
+            return ('nothing to learn: interference_inputs is empty and no die temperature has '
+                    "come on imu/temperature (list the robot's currents or speeds in "
+                    'interference_inputs)')
         if not (math.isfinite(timeout_s) and 0.0 < timeout_s <= MAX_WINDOW_S):
             return f'compensation_timeout must be in (0, {MAX_WINDOW_S:g}] s, got {timeout_s}'
         if self._window is not None:
