@@ -254,3 +254,44 @@ def test_the_live_session_levels_a_wobbling_robot_with_its_accelerometer():
         assert ('levelled by gravity' in summary) == (accel is not None), summary
     assert results['mag'] > 1.0
     assert results['imu'] < 0.5
+
+
+def _coning(tilt_deg: float, seconds: float = 10.0, seed: int = 0):
+    """(mag T, accel m/s^2, gyro rad/s) at RATE_HZ of a board turning about an axis tilted
+    ``tilt_deg`` from the vertical, once in 8 s: its readings lie on one plane, but gravity
+    turns about that axis in the chip frame (the board tilts by ``tilt_deg`` all along)."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    axis = np.array([math.sin(math.radians(tilt_deg)), 0.0, math.cos(math.radians(tilt_deg))])
+    turned = np.arange(0.0, seconds, 1.0 / RATE_HZ) * 2.0 * math.pi / 8.0
+    attitudes = Rotation.from_rotvec(np.outer(turned, axis)).as_matrix()
+    earth = np.array([0.0, 19.0, -45.0]) * UT
+    mag = (np.einsum('nji,j->ni', attitudes, earth) + np.array(HARD_IRON_UT) * UT
+           + rng.normal(0.0, 0.3 * UT, (len(turned), 3)))
+    accel = (np.einsum('nji,j->ni', attitudes, np.array([0.0, 0.0, G]))
+             + rng.normal(0.0, 0.02, (len(turned), 3)))
+    return mag, accel, np.tile(axis * 2.0 * math.pi / 8.0, (len(turned), 1))
+
+
+@pytest.mark.parametrize(('tilt_deg', 'adopted'), [(0.0, True), (20.0, False), (45.0, False)])
+def test_readings_on_one_plane_while_gravity_says_the_board_tilts_are_no_planar_calibration(
+        tilt_deg, adopted):
+    """~/calibrate in a tumble's first seconds, turning about one axis, adopted a planar model
+    (6.4 deg of direction error, saved) although gravity said the board tilted all along (issue
+    #46). With gravity paired, auto takes planar only for a board that stayed level."""
+    from mag_calibrator_ros.calibration.live.offline import calibrate_now
+    from mag_calibrator_ros.calibration.live.settings import SessionSettings
+
+    mag, accel, gyro = _coning(tilt_deg)
+    session = CalibrationSession(SessionSettings(auto_calibrate=False))
+    feed(session, mag, RATE_HZ, frame_id='imu', accel=accel, gyro=gyro)
+    attempt = calibrate_now(session)
+    assert attempt.success == adopted, attempt.message
+    if adopted:
+        assert session.calibration.model == 'planar'
+    else:
+        assert session.calibration is None
+        assert 'the samples lie near one plane, but gravity says the sensor tilted by' in (
+            attempt.message)
+    session.close()

@@ -266,7 +266,41 @@ def fit_calibration(
                 result = _judge(
                     rows, finite, refitted, options, layer_thickness, n_bad, note, evidence
                 )
+        result = _tilted_planar(result, rows, options, gravity)
     return _in_input_units(result, unit)
+
+
+MAX_PLANAR_TILT_DEG = 5.0
+"""With gravity paired, ``auto`` adopts a planar fit only while gravity stayed within this of its
+mean direction in the chip frame (95 % of the paired samples), as a floor keeps a turning robot
+(2-4 deg: test_session.py). Readings near one plane while the board tilts (a tumble's first
+seconds turning about one axis) leave the offset along the plane's normal unseen, and it leaks
+into the heading as the board tilts (issue #46: 6.4 deg adopted and saved)."""
+
+
+def _tilted_planar(result: FitResult, rows: np.ndarray, options: FitOptions,
+                   gravity: tuple | None) -> FitResult:
+    """``result``, failed when ``auto`` chose planar while gravity says the board tilted."""
+    if (options.model != 'auto' or gravity is None or result.calibration is None
+            or result.calibration.model != 'planar'):
+        return result
+    directions = gravity[1][np.all(np.isfinite(gravity[1]), axis=1)]
+    if len(directions) < 2:
+        return result
+    directions = directions / np.linalg.norm(directions, axis=1)[:, None]
+    mean = directions.mean(axis=0)
+    if not np.linalg.norm(mean) > 0.0:
+        return result
+    cosines = np.clip(directions @ (mean / np.linalg.norm(mean)), -1.0, 1.0)
+    tilt = float(np.degrees(np.arccos(np.percentile(cosines, 5.0))))
+    if tilt <= MAX_PLANAR_TILT_DEG:
+        return result
+    reason = (f'the samples lie near one plane, but gravity says the sensor tilted by '
+              f'{tilt:.0f} deg meanwhile (a planar calibration needs it within '
+              f'{MAX_PLANAR_TILT_DEG:g} deg): off that plane it would be wrong; '
+              f'{_tilt_hint(rows)} (or set model planar for a robot that only turns)')
+    failed = reason if result.success else f'{result.reason}; {reason}'
+    return replace(result, success=False, reason=failed)
 
 
 def _near_a_gate(result: FitResult, options: FitOptions) -> bool:
