@@ -694,3 +694,33 @@ def test_a_second_calibrator_on_the_same_topics_is_a_warning_naming_it(ros, tmp_
                     timeout_s=WAIT_S), latest(first)
     ros.remove(first)
     ros.remove(probe)
+
+
+def test_a_refused_load_beside_a_working_calibration_is_a_warning_until_the_file_is_saved(
+        ros, tmp_path):
+    """A failed ~/load after the calibration in force converged left /diagnostics at ERROR for
+    good (issue #46): nothing else would ever clear it, though the calibrator worked. Beside a
+    calibration in force it is a WARN naming the file, until ~/save writes a good one."""
+    path = tmp_path / 'corrupt.yaml'
+    path.write_text(CORRUPT_FILES['bad-yaml'])
+    given = Calibration(np.array(HARD_IRON_UT) * 1e-6, np.eye(3), 50e-6, 'sphere',
+                        {'residual_rms_pct': 0.3})
+    node = ros.calibrator('refused_load', auto_calibrate=False, progress_log_period=0.0,
+                          calibration_file=str(path), **calibration_parameters(given))
+    probe = Probe(ros, 'refused_load')
+
+    def latest() -> DiagnosticStatus | None:
+        statuses = probe.statuses_of(node)
+        return statuses[-1] if statuses else None
+
+    response = probe.call('mag_calibrator/load')
+    assert not response.success and str(path) in response.message
+    assert node.session.calibration is not None
+    assert wait_for(lambda: latest() is not None and latest().level == DiagnosticStatus.WARN
+                    and str(path) in latest().message, timeout_s=WAIT_S), latest()
+    assert probe.call('mag_calibrator/save').success
+    assert wait_for(lambda: latest() is not None and str(path) not in latest().message,
+                    timeout_s=WAIT_S), latest()
+    assert all(s.level != DiagnosticStatus.ERROR for s in probe.statuses_of(node))
+    ros.remove(probe)
+    ros.remove(node)

@@ -161,6 +161,18 @@ class LocationSource:
                 f'{fix.longitude}, altitude {fix.altitude}); counted in diagnostics '
                 '(gps_fixes_refused), waiting for a plausible fix')
 
+    def diagnostic_values(self, source: str) -> dict[str, object]:
+        """/diagnostics values: where the location in force came from (``source``, '' none),
+        what it waits for, the fixes refused by reason; only those that say something."""
+        values: dict[str, object] = {}
+        if source:
+            values['location_source'] = source
+        if self.waiting:
+            values['location_waiting'] = self.waiting
+        if self.refused_text():
+            values['gps_fixes_refused'] = self.refused_text()
+        return values
+
     def refused_text(self) -> str:
         """'null island: 3, no fix: 1' (empty when none was refused)."""
         return ', '.join(f'{reason}: {count}' for reason, count in self.refused.items())

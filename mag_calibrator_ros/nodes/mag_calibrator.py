@@ -196,6 +196,7 @@ class MagCalibratorNode(Node):
         self._requests: dict[int, Future] = {}  # session tickets waiting for their answer
         self._learning: dict[int, float] = {}  # ~/learn_compensation tickets: wall deadline
         self._problem: str | None = None  # a calibration file/parameter error, shown as ERROR
+        self._file_warning: str | None = None  # a refused ~/load beside a calibration in force
         self._last_progress_log = -math.inf
         self._received_at_log = 0  # input messages counted at the last progress line
         self._started = time.monotonic()
@@ -312,14 +313,18 @@ class MagCalibratorNode(Node):
     def _loaded(self, path: Path, loaded: LoadedCalibration | Exception) -> tuple[bool, str]:
         """Put a calibration read from ``path`` in force, or report why it could not be."""
         if isinstance(loaded, Exception):
+            message = f'{loaded}; the calibration in force is unchanged'
+            if self.session.calibration is not None:  # it still works: a WARN until fixed
+                self._file_warning = message
+                self.get_logger().warning(message)
+                return False, message
             return False, self._report_problem(
-                f'{loaded}; the calibration in force is unchanged '
-                f'(state {self.session.report().state})')
+                f'{message} (state {self.session.report().state})')
         for note in loaded.notes:
             self.get_logger().warning(f'{loaded.path}: {note}')
         self.session.apply_calibration(loaded.calibration, 'file')
         self._saved = loaded.calibration
-        self._problem = None
+        self._problem = self._file_warning = None
         message = f'loaded {loaded.path}: {calibration_summary(loaded.calibration)}'
         self.get_logger().info(message)
         return True, message
@@ -492,7 +497,7 @@ class MagCalibratorNode(Node):
             raise ValueError('nothing to save: no calibration in force (call ~/calibrate first)')
         written = save_calibration(self._calibration_file(), calibration,
                                    node_name=self.get_fully_qualified_name())
-        self._saved = calibration
+        self._saved, self._file_warning = calibration, None
         return f'saved to {written}'
 
     def _auto_saved(self, result: object) -> None:
@@ -543,19 +548,15 @@ class MagCalibratorNode(Node):
         now = time.monotonic()
         topic = self.resolve_topic_name('imu/mag')
         values: dict[str, object] = {'calibration_file': str(self._calibration_file()),
-                                     **self._rotation.diagnostic_values(now)}
-        if self._location_source:
-            values['location_source'] = self._location_source
-        if self._location.waiting:
-            values['location_waiting'] = self._location.waiting
-        if self._location.refused:
-            values['gps_fixes_refused'] = self._location.refused_text()
+                                     **self._rotation.diagnostic_values(now),
+                                     **self._location.diagnostic_values(self._location_source)}
         doubled, changed = self._graph.check(self, topic, self._publisher.topic_name)
         if changed:  # the warning once, and once that it ended
             (self.get_logger().warning if doubled else self.get_logger().info)(
                 doubled or f'{self._publisher.topic_name}: no other node doubles it now')
+        warning = '; '.join(text for text in (doubled, self._file_warning) if text)
         report = self.session.report(now, NodeStatus(self._problem, no_input_text(topic), values,
-                                                     doubled))
+                                                     warning))
         self._log_progress(now, report)
         self._publish_diagnostics(topic, report)
         self._publish_view(now, report)
