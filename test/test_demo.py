@@ -22,6 +22,15 @@ def test_demo_runs_calibrates_and_writes_outputs(tmp_path, capsys):
     assert calibration.aligned and calibration.metadata['static_samples'] >= 6
 
 
+def test_a_demo_that_misses_its_coverage_says_so(tmp_path, capsys):
+    """`make demo` reached 72 % of its 80 % and said nothing of it (issue #46)."""
+    status = demo.main(['--output-dir', str(tmp_path / 'out'), '--collect-timeout', '2',
+                        '--min-coverage', '0.99', '--evaluate-seconds', '1'])
+    printed = capsys.readouterr().out
+    assert re.search(r'Coverage \d+ % after 2 s, short of the 99 % asked for', printed), printed
+    assert status != 0  # 2 s of turning: the calibrator's own gate refuses the fit
+
+
 def test_demo_rejects_bad_options(capsys):
     import pytest
 

@@ -450,7 +450,11 @@ def run(args: argparse.Namespace, context: Context) -> int:
         print(f'Turn the board through every orientation, holding it still now and then: '
               f'collecting until coverage '
               f'{100 * target:.0f} % (at most {args.collect_timeout:.0f} s).')
-        collect(calibrator, target, args.collect_timeout)
+        reached = collect(calibrator, target, args.collect_timeout)
+        if reached < target:
+            print(f'Coverage {100 * reached:.0f} % after {args.collect_timeout:.0f} s, short of '
+                  f'the {100 * target:.0f} % asked for (--min-coverage): calibrating with what '
+                  'there is; the calibrator gates on its own min_coverage.')
 
         response = observer.call(observer.calibrate)
         status = answered('~/calibrate', response)
