@@ -245,3 +245,15 @@ def test_reports_progress_and_diagnostics():
     assert 'heading coverage 50 %' in robot.controller.progress_text(robot.now)
     robot.controller.stop(robot.now, 'requested')
     assert robot.controller.diagnostic_values(robot.now)['rotation_last_stop'] == 'requested'
+
+
+def test_a_timeout_too_short_for_the_heading_circle_is_said_when_the_turn_starts():
+    """0.05 rad/s for 120 s is under one turn: it finished at 119.6 of 120 s without a word
+    that it could not have covered the circle (issue #46)."""
+    started, message = Robot(speed=0.05).start()
+    assert started
+    assert 'is 0.95 of a turn: it may stop before the heading circle is covered' in message
+    started, message = Robot().start()  # 0.3 rad/s for 120 s: 5.7 turns
+    assert started and 'of a turn' not in message
+    assert TurnSettings(speed=1.0, acceleration=0.5, timeout_s=2.0).turns() == pytest.approx(
+        0.5 * 0.5 * 2.0**2 / (2 * 3.141592653589793))  # all of it on the ramp

@@ -174,7 +174,10 @@ class TurnInPlace:
             self._session.reset()  # a turn calibrates from what it sees, not older samples
             self._use_type(bool(self._node.get_parameter('cmd_vel_stamped').value))
             self._publish(self.controller.command(now))
-            self._node.get_logger().info(message)
+            if self.controller.settings.caution():  # one call site per severity
+                self._node.get_logger().warning(message)
+            else:
+                self._node.get_logger().info(message)
         else:
             self._node.get_logger().warning(f'~/rotate_and_calibrate refused: {message}')
         response.success, response.message = started, message

@@ -86,6 +86,10 @@ STOP_REASONS = {
 STATES = ('idle', 'turning', 'stopping')
 
 
+MIN_TURNS = 1.5
+"""Turns a timeout should allow: the heading circle once, and the fit and its gates after it."""
+
+
 @dataclass(frozen=True)
 class TurnSettings:
     """What a user tunes (the node's ``rotation_*`` parameters)."""
@@ -107,6 +111,22 @@ class TurnSettings:
         if not (math.isfinite(self.timeout_s) and self.timeout_s > 0.0):
             problems.append(f'rotation_timeout must be > 0 s, got {self.timeout_s}')
         return problems
+
+    def turns(self) -> float:
+        """Full turns within ``timeout_s`` at ``speed`` after the ramp up to it."""
+        ramp_s = min(self.speed / self.acceleration, self.timeout_s)
+        angle = 0.5 * self.acceleration * ramp_s**2 + self.speed * (self.timeout_s - ramp_s)
+        return angle / (2.0 * math.pi)
+
+    def caution(self) -> str:
+        """'' when the timeout allows the heading circle and some more; else why it may stop
+        first (0.05 rad/s for 120 s finished at 119.6 s: issue #46)."""
+        turns = self.turns()
+        if turns >= MIN_TURNS:
+            return ''
+        return (f'rotation_speed {self.speed:g} rad/s for rotation_timeout {self.timeout_s:g} s '
+                f'is {turns:.2f} of a turn: it may stop before the heading circle is covered '
+                f'(raise either to allow {MIN_TURNS:g} turns)')
 
 
 @dataclass(frozen=True)
@@ -175,9 +195,11 @@ class TurnController:
         self.coverage = None
         self.result = ''
         s = self.settings
+        caution = s.caution()
         return True, (f'rotating at {s.speed:.2f} rad/s on {self.command_topic} (ramp '
                       f'{s.acceleration:.2f} rad/s^2) until the heading circle is covered and '
-                      f'the fit passes; at most {s.timeout_s:.0f} s; ~/stop_rotation stops it')
+                      f'the fit passes; at most {s.timeout_s:.0f} s; ~/stop_rotation stops it'
+                      + (f'. Note: {caution}' if caution else ''))
 
     def stop(self, now: float, reason: str, detail: str = '') -> str | None:
         """Stop turning for ``reason`` (STOP_REASONS); returns the log line, None when it was
