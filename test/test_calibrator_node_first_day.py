@@ -242,3 +242,16 @@ def test_auto_save_turned_on_saves_the_calibration_in_force(ros, tmp_path):
     np.testing.assert_array_equal(saved.offset, calibration.offset)
     for each in (probe, node):
         ros.remove(each)
+
+
+def test_sim_time_without_a_clock_is_said_by_the_driver(ros):
+    """use_sim_time:=true with no /clock published every message stamped 0 and nobody said so
+    (issue #46)."""
+    rosout = Rosout(ros)
+    driver = ros.driver('no_clock', use_sim_time=True)
+    said = 'messages are stamped 0: use_sim_time is true and no /clock has come'
+    assert wait_for(lambda: any(said in line for line in rosout.of(
+        'no_clock.icm20948_driver', WARN))), rosout.of(
+        'no_clock.icm20948_driver')
+    ros.remove(driver)
+    ros.remove(rosout)

@@ -299,6 +299,7 @@ class Icm20948DriverNode(Node):
         self._temperature_publisher = (
             self.create_publisher(Temperature, TEMPERATURE_TOPIC, DRIVER_QOS)
             if s.publish_temperature else None)
+        self._zero_stamp_said = False  # 'stamped 0' (sim time without /clock) is said once
         self._sim_robot: sim_backend.SimRobotWiring | None = None  # set last: the pump reads it
         self._diagnostics = diagnostics.DiagnosticsPublisher(self)
         clock = self.get_clock()
@@ -467,6 +468,13 @@ class Icm20948DriverNode(Node):
         return True
 
     def _publish_mag(self, sample: MagSample) -> None:
+        if not self._zero_stamp_said and sample.stamp.sec == 0 and sample.stamp.nanosec == 0:
+            self._zero_stamp_said = True
+            self.get_logger().warning(
+                'messages are stamped 0: use_sim_time is true and no /clock has come (play the '
+                'bag with --clock, or set use_sim_time false)'
+                if self.get_parameter('use_sim_time').value else
+                'messages are stamped 0: the node clock reads 0')
         message = MagneticField()
         message.header.stamp = sample.stamp
         message.header.frame_id = self._frame_id
