@@ -60,16 +60,17 @@ def test_topic_echo_csv_picks_the_field_not_the_covariance(tmp_path):
     path = tmp_path / 'echo.csv'
     path.write_text(echo_csv(rows))
     recording = read_recording(path)
-    assert recording.layout == 'fields 3,4,5'
+    assert recording.layout == 'ros2 topic echo --csv of sensor_msgs/MagneticField (fields 3,4,5)'
     np.testing.assert_array_equal(recording.samples, rows)
-    assert 'constant 6,7,8,9,10,11,12,13,14' in recording.notes[0]
-    assert 'time stamps 0,1' in recording.notes[0]
+    # tesla, as every MagneticField: it was 'units not stated' (issue #46)
+    assert recording.units == 'T' and 'ros2 topic echo --csv' in recording.notes[0]
 
 
 def test_topic_echo_csv_on_stdin_calibrates(capsys, monkeypatch):
     code, captured = run_cli(capsys, ['-', '--json'], echo_csv(field_rows()), monkeypatch)
     assert code == 0, captured.err
-    assert '"fields 3,4,5"' in captured.out
+    assert '"ros2 topic echo --csv of sensor_msgs/MagneticField (fields 3,4,5)"' in captured.out
+    assert '"units": "T"' in captured.out
 
 
 def test_topic_echo_yaml_is_read_message_by_message_in_tesla(capsys, monkeypatch):
@@ -301,3 +302,4 @@ def test_a_logger_line_gives_every_sensor_and_input_row_for_row():
     recording = read_paired_recording('-', accel_columns='ax,ay,az', gyro_columns='gx,gy,gz',
                                       stdin=io.StringIO('\n'.join(said) + '\n'))
     assert recording.gyro[3] == pytest.approx([0.3, 0.2, 0.3])
+

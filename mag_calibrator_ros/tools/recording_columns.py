@@ -273,6 +273,12 @@ def detect_layout(lines: list[str], source: str, role: str = 'magnetometer',
         return TextLayout(chosen, field_count,
                        f'columns {roles.labels[chosen]} (fields {",".join(map(str, chosen))})',
                        notes, delimiter, numpy_fields, units)
+    if role == 'magnetometer' and _magnetic_field_echo(data_line):
+        return TextLayout((3, 4, 5), field_count,
+                          'ros2 topic echo --csv of sensor_msgs/MagneticField (fields 3,4,5)',
+                          ('fields 3,4,5: magnetic_field x, y, z of ros2 topic echo --csv (sec, '
+                           'nanosec, frame_id, the field, its covariance): tesla, REP-103',),
+                          delimiter, numpy_fields, 'T')
     if len(numeric) > 3:
         candidates, ignored = (_axis_candidates(lines, field_count, numeric) if guess
                                else (numeric, ''))
@@ -393,6 +399,17 @@ def _named_roles(before: list[str], data_line: str, field_count: int) -> ColumnR
         break
     roles = column_roles(_inline_labels(_split(data_line)))
     return roles if roles.names_triplets else None
+
+
+def _magnetic_field_echo(line: str) -> bool:
+    """Whether ``line`` is a sensor_msgs/MagneticField as ``ros2 topic echo --csv`` prints it:
+    sec, nanosec, frame_id (not a number), then the field's three and the covariance's nine."""
+    parts = line.strip().split(',')
+    if len(parts) != 15 or not (parts[0].isdigit() and parts[1].isdigit()):
+        return False
+    if int(parts[1]) >= 1_000_000_000 or _number(parts[2]) is not None:
+        return False
+    return all(_number(part) is not None for part in parts[3:])
 
 
 def _numpy_reading(
