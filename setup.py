@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """ament_python build for mag_calibrator_ros (colcon, or pip in a venv)."""
 
 from glob import glob
@@ -12,7 +13,7 @@ setup(
     packages=find_packages(exclude=['test', 'test.*', 'benchmarks']),
     data_files=[
         ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),
-        (f'share/{PACKAGE}', ['package.xml']),
+        (f'share/{PACKAGE}', ['package.xml', 'LICENSE', 'CHANGELOG.rst']),
         (f'share/{PACKAGE}/config', glob('config/*.yaml') + glob('config/*.rviz')),
         (f'share/{PACKAGE}/launch', glob('launch/*.launch.py')),
     ],

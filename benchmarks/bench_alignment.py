@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# SPDX-License-Identifier: MIT
 """Gravity and the Earth's field: alignment to the IMU and the World Magnetic Model check.
 
 (a) Simulated ICM-20948 (hard + soft iron, 0.3 uT noise, 100 Hz magnetometer with the

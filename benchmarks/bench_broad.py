@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# SPDX-License-Identifier: MIT
 """The live calibrator on a real IMU in a real hand, judged against motion capture (issue #44).
 
 Data: BROAD, Laidig, Weygers and Seel, "BROAD - A Benchmark for Robust Inertial Orientation

@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# SPDX-License-Identifier: MIT
 """Calibration file load/save cost, for real files and for the hostile ones that used to hang.
 
 Every case is timed ``--repeats`` times (fresh files in a temporary directory); the table gives

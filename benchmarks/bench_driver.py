@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# SPDX-License-Identifier: MIT
 """icm20948_driver (simulated chip) over real DDS: rates, jitter, CPU, I2C load, faults, accuracy.
 
 The driver node runs in its own process (so its CPU share is its own: process time / wall time,

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Engine benchmark: accuracy on synthetic truth and real recordings, buffer cost and fit time.
 
 ``make bench-engine`` runs ``python benchmarks/bench_engine.py --data ../shared/data``. One run

@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# SPDX-License-Identifier: MIT
 """K and c learned offline by ``mag_calibrator_fit`` from a log of the driven course.
 
 The simulated ground robot of ``bench_interference.py`` (8 uT along x at full current,

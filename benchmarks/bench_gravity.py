@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# SPDX-License-Identifier: MIT
 """Gravity's direction on a driven ground robot, and the levelled planar fit made with it.
 
 The robot of bench_interference without its own field (50 uT at 60° inclination, hard iron

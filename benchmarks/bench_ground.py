@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# SPDX-License-Identifier: MIT
 """Ground robots: a simulated robot that turns only on cmd_vel, calibrated by turning in place.
 
 The robot (sim.motion cmd_vel): field 50 uT at 60° inclination, hard iron (55, -45, 25) uT

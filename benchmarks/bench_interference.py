@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# SPDX-License-Identifier: MIT
 """The robot's own field (issue #26): heading while a ground robot drives and warms up.
 
 The simulated ground robot of bench_ground (50 uT at 60° inclination, hard iron (55, -45, 25)

@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# SPDX-License-Identifier: MIT
 """Motions of ordinary use (issue #44) replayed through the live calibrator.
 
 The simulated board (50 uT at 60° dip, hard iron (25, -15, 10) uT, mild soft iron, noise 0.3 uT,

@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# SPDX-License-Identifier: MIT
 """Throughput and added latency of the mag_calibrator node against a bare rclpy relay.
 
 Three processes per measurement, all over real DDS on localhost in a private ROS_DOMAIN_ID:

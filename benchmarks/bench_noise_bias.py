@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# SPDX-License-Identifier: MIT
 """Does the magnetometer's noise bias the 3-D fits, or only spread them?
 
 Stop 37 found the levelled planar fit pulled by the noise (about the noise squared) and mended it

@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# SPDX-License-Identifier: MIT
 """Real recordings as users have them: hand-taken logs without time, and ROS 1 bags.
 
 (a) Hand-taken logs with an accelerometer beside the magnetometer and no time column

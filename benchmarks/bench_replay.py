@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# SPDX-License-Identifier: MIT
 """The live calibrator on recordings it never saw: replayed through the node over real DDS.
 
 (a) Every shared recording, and a synthetic tumble, published message by message on ``imu/mag``

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Speed of the engine, the command line and the nodes (issue #14); ``bench_engine.py --speed``.
 
 (e) fit_calibration time on 300 / 3k / 12k / 2M rows, clean and with 3 % spikes, ``full`` and

@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# SPDX-License-Identifier: MIT
 """Does a first view subscriber or a first GPS fix stall ``imu/mag_corrected`` at 1 kHz?
 
 Four processes over real DDS in a private ROS_DOMAIN_ID: a feeder publishing

@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# SPDX-License-Identifier: MIT
 """Is the uncertainty on every corrected message honest, and the heading sigma? (issue #45)
 
 The simulated boards of ``bench_motions.py`` (``tumble``, ``poses`` and ``yaw`` added: the board

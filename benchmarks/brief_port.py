@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """A faithful Python/numpy port of the brief's Rust library (peterkrull/mag-calibrator-rs).
 
 This is the yardstick issue #2 measures the engine against, so it reproduces the original's

@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# SPDX-License-Identifier: MIT
 """The live session's decisions, as a text log to compare before and after a change.
 
 Every shared recording (three passes at 100 Hz), a synthetic tumble (plain, with online tracking,

@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# SPDX-License-Identifier: MIT
 """Ctrl-C of ``ros2 launch``, as a terminal sends it, N times: does every launch end cleanly?
 
 Each run starts ``ros2 launch mag_calibrator_ros mag_calibrator.launch.py backend:=sim

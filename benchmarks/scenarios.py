@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Synthetic magnetometer recordings with known truth, for the engine benchmark.
 
 Each scenario is a smooth hand-rotation trajectory (``motion.body_field_samples('tumble', ...)``)

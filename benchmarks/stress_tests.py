@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# SPDX-License-Identifier: MIT
 """Run tests again and again while other processes keep every core busy, and say which failed.
 
 A node test that passes on a quiet computer can fail on a loaded one (a robot's computer is

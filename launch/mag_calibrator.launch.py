@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Start the ICM-20948 driver and the calibrator (and RViz), with the installed config/*.yaml.
 
     ros2 launch mag_calibrator_ros mag_calibrator.launch.py

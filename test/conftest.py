@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Test-wide settings: isolate ROS 2 traffic and locate the shared recordings."""
 
 import atexit

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The simulated board's earth and mounting: a misaligned magnetometer, a location (the World
 Magnetic Model's field there) and a disturbed place."""
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The benchmark yardstick (benchmarks/brief_port.py) must behave as the brief's Rust library.
 
 Each test pins one documented behaviour or quirk of mag-calibrator-rs, so the comparisons in

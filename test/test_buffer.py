@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """SampleBuffer: the kNN uniqueness rule done right, its reference, merging and bookkeeping.
 
 The buffer is given its reference; the session decides which (its own fits are tested in

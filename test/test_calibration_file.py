@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The calibration file: ROS 2 parameters YAML, exact round trip, atomic save, validated load."""
 
 import array

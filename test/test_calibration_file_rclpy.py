@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The calibration file as rcl reads it: ``--params-file`` on a real rclpy node types every value
 as the node declares it, and applies exactly the sections ``section_matches`` says (the evidence
 behind test_calibration_file.py's RCL_MATCHES, re-measured on every run). The file's own tests,

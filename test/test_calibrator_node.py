@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """mag_calibrator node over real rclpy/DDS: simulated driver -> calibrator -> services -> topic.
 
 One rclpy context per module (domain from conftest, discovery on localhost); every node spins on

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """mag_calibrator with an IMU and a location over real rclpy/DDS: the simulated driver publishes
 imu/mag and imu/data_raw from a misaligned magnetometer held still at one tilt after another; the
 calibrator pairs them and knows the World Magnetic Model at its latitude/longitude or at a

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Where the calibrator's location comes from, over real rclpy/DDS: gps/fix screened, replaced
 when far, forgotten on ~/reset, overridden by latitude/longitude, which are set one at a time
 (ros2 param set), atomically, or from a file (ros2 param load), and cleared."""

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """What the calibrator node decides over DDS, replayed without ROS (issue #43): the simulated
 board the driver node publishes (sim.board.BoardModel) streamed with its stamps through a
 CalibrationSession, as the node streams imu/mag and imu/data_raw. The session decides from

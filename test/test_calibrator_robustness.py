@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The calibrator node under attack, over real rclpy/DDS (issue #9): hostile files, wrong
 parameter types, devices and FIFOs as calibration_file, bad covariances, a failing service.
 Each case: the node keeps running and publishing, and what it says names the problem. What its

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The robot's own field: the model, its file, its fit, and the session learning it live.
 
 ``corrected = R M (raw - b - K u - c (T - T0))`` (fit/calibration.py ``Compensation``), learned

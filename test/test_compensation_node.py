@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The calibrator node learns the robot's own field over DDS: a battery current on
 ``battery_state`` (sensor_msgs/BatteryState) and the die temperature on ``imu/temperature``
 (sensor_msgs/Temperature) beside ``imu/mag``, the compensation adopted on evidence and shown in

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Refinement converges to what ``~/calibrate`` would give, and no adoption makes it worse.
 
 A noisy sensor (2 % of the field, like the shared fxos8700 and bno055 recordings) turned for

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """direction_coverage: equal-area cells after whitening, independent of N, and a useful hint."""
 
 from pathlib import Path

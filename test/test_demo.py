@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """mag_calibrator_demo end to end with a short configuration: exit 0, file and PNG written."""
 
 import re

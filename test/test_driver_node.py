@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """icm20948_driver over real rclpy/DDS with the simulated chip: output, faults, parameters."""
 
 import math

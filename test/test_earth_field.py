@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The World Magnetic Model through earth_field, and calibrations judged against it."""
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """mag_calibrator_fit end to end: real recordings, every output, every way it must refuse."""
 
 from collections import Counter

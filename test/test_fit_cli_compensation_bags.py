@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """mag_calibrator_fit's own-field inputs from bags: a rosbag2's BatteryState and Temperature
 topics paired by stamp learn K and c, and a ROS 1 bag's are paired and their bad values named.
 (The bag tests of test_fit_cli_compensation.py, a file of their own so that pytest-xdist's

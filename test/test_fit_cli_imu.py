@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """mag_calibrator_fit with an accelerometer on each line (--accel-columns) and a location
 (--latitude/--longitude): the alignment and the World Magnetic Model, offline."""
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """mag_calibrator_fit's output files and dates as users give them (issue #22.11): the path
 printed is the file written, a plot that cannot be written is an error (exit 2) and leaves no
 partial image, an empty --output is refused, and a date before the model says so."""

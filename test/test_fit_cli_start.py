@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """mag_calibrator_fit --calibration FILE: a recording replayed on a saved calibration, as the
 node with calibration_file would live it: the own field learned from a drive that never
 turns, the answer judged on every reading, and a calibration that does not fit never

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Units end to end (issue #21.1): a calibration fitted offline loads in tesla, or is refused.
 
 The node works in tesla. A file ``mag_calibrator_fit`` wrote from a log in microtesla or in raw

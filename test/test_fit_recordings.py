@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The full fit on real recordings is at least as good as the authors' own published calibrations.
 
 Magnitude spread = std(|corrected|) / mean(|corrected|) on the same rows, so it does not depend on

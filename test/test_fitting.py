@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """fit_calibration: recovery of known hard and soft iron, model choice, every gate, bad input."""
 
 import json

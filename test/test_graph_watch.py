@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The text of another node doubling the calibrator's output (nodes/graph_watch.py)."""
 
 from mag_calibrator_ros.nodes.graph_watch import doubled_text

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Ground robots over real rclpy/DDS: the simulated robot follows cmd_vel (sim.motion cmd_vel),
 the calibrator turns it with ~/rotate_and_calibrate, and every way a rotation ends commands zero
 -- seen by a subscriber and by the simulated robot coming to rest (the loop closed). A robot

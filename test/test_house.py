@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The house's shape: each room imports only from the rooms below it, and no module imports
 itself back through others (docs/ARCHITECTURE.md, "Rooms")."""
 
@@ -216,3 +217,20 @@ def test_the_tier_check_sees_ros_in_a_function_and_a_fixture():
     assert starts_ros('def test_b(ros, tmp_path):\n    pass\n')
     assert starts_ros("rclpy = pytest.importorskip('rclpy')\n")
     assert not starts_ros('import numpy\n# rclpy in a comment\n')
+
+
+def test_every_source_file_names_the_licence_of_the_package():
+    """REP-2004 / rosdistro review: a LICENSE file, the same licence in package.xml and
+    setup.py, and an SPDX line atop every Python and shell file the repository tracks."""
+    import subprocess
+
+    root = PACKAGE.parent
+    licence = re.search(r'<license>([^<]+)</license>', (root / 'package.xml').read_text())[1]
+    assert licence == 'MIT' and (root / 'LICENSE').read_text().startswith('MIT License')
+    assert f"license='{licence}'" in (root / 'setup.py').read_text()
+    tracked = subprocess.run(['git', 'ls-files', '*.py', '*.sh', '.ci/run'], cwd=root,
+                             capture_output=True, text=True, check=True).stdout.split()
+    assert len(tracked) > 100
+    missing = [name for name in tracked if f'SPDX-License-Identifier: {licence}' not in
+               ''.join((root / name).read_text().splitlines(keepends=True)[:2])]
+    assert missing == []

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The AK09916 through the ICM-20948's own I2C master (issue #11: magnetometer polling at <= 1/3
 of the old bus bytes), at register level against the simulated chip: bank 3 and SLV4 protocol
 enforced by the model, the EXT_SLV_SENS_DATA copy, each sample taken once, the wire cost."""

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Our driver at several I2C master clocks and on both paths (issue #23): it sets the master's
 clock itself (LP_CONFIG, I2C_MST_ODR_CONFIG, slave delays) instead of relying on the model's,
 and takes every magnetometer sample once, by its DRDY, none lost at 100 Hz."""

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Other people's ICM-20948 drivers, unchanged from PyPI, against the simulated chip (issue #23).
 
 Our driver and the simulator share one model of the chip, so they agree by construction. These

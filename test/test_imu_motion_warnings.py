@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """A hand's fast motion is not a wrong unit: the accelerometer is judged on a second of stream
 (live/sanity.py IMU_SPAN_S), so a real m/s^2 stream that dips for a fraction of a second while
 the hand swings (BROAD's trial 28) is never called g, and one really in g still is."""

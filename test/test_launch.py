@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The launch file (where launch_ros exists: apt ROS, or the ros2 CLI installed into the venv)."""
 
 from importlib.util import module_from_spec, spec_from_file_location

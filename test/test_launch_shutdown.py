@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Ctrl-C and SIGTERM end either node cleanly, as `ros2 launch` delivers them (issue #21).
 
 A terminal's Ctrl-C reaches every process of the launch's group and launch then forwards one

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Trajectories: proper rotations, determinism, hand-like tumbling that covers every direction."""
 
 import math

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The package builds with colcon as an ament_python package and installs every console script."""
 
 import os

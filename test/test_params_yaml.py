@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """ROS 2 parameters YAML text: strict typing on write, bounded parsing typed as rcl types it."""
 
 import math

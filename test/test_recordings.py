@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Recordings reader: every text layout, stdin, rosbag2 (sqlite3, mcap), every error path."""
 
 import dataclasses

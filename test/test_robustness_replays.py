@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The calibrator under attack (issue #9), replayed through its session: the messages the DDS
 tests of test_calibrator_robustness.py sent, with the same stamps, frames and values, given to
 the ``CalibrationSession`` the node is wiring around. The session decides from stamps only, so

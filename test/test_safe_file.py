@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Safe file access: one path resolution, regular files only, bounded reads, guarded writes."""
 
 import os

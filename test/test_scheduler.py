@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """FitScheduler and StreamClock: when each fit runs, from the stream alone."""
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """OnlineTracker: the notebook's gradient descent on the full model, safe and bounded."""
 
 from hypothesis import given, settings

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The RViz view: what is drawn (ROS-free) and the messages that carry it (over DDS)."""
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Calibration engine: pure numpy/scipy, no rclpy (docs/ARCHITECTURE.md)."""
 
 from mag_calibrator_ros.calibration.fit.calibration import (

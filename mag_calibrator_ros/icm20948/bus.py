@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """I2C accounting: every transaction, every failure and the bytes it put on the wire.
 
 The driver talks to the chip only through ``CountingBus``, so the error counter in diagnostics

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """ICM-20948 and AK09916 register map (TDK DS-000189, AKM AK09916 datasheet).
 
 One place for every address, bit, scale and timing the driver and the simulator share, so the

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Keeps an ICM-20948 producing samples through bus faults: the driver's state machine, no rclpy.
 
 One decision-maker for the chip's life cycle, so the ROS node only wires it up: when to poll each

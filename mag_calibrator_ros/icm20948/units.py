@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The ICM-20948's and the AK09916's conversions between register counts and SI units.
 
 Pure datasheet arithmetic (TDK DS-000189, AKM AK09916) on the constants in ``registers``: the

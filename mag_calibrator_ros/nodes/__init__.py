@@ -1,1 +1,2 @@
+# SPDX-License-Identifier: MIT
 """ROS 2 nodes: thin shells that wire parameters, topics, services and diagnostics to the core."""

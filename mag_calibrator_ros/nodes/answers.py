@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Service callbacks that always answer, and one thread for a node's slow work whose results
 come back on the executor: a waiting service never blocks the timers that complete it, and an
 unexpected error reaches the caller and the log instead of leaving a client waiting forever."""

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """When ``auto_save`` writes the calibration in force to ``calibration_file``.
 
 Online tracking and refinement may put calibrations in force in quick succession; writing each

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """``calibration.*``: the calibration in force, mirrored as the node's parameters.
 
 ``ros2 param get/dump`` read the calibration in force there, and a dump (or a saved calibration

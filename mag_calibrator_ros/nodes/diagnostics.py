@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """diagnostic_msgs helpers (diagnostic_updater has no PyPI wheel for Jazzy)."""
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """ROS 2 node ``icm20948_driver``: the whole ICM-20948, one owner of the chip and its bus.
 
 Wiring only: parameters -> ``Icm20948Supervisor`` (bring-up, polling, fault recovery, rates;

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """``InputSubscriptions``: the calibrator's subscriptions to the robot's own field's inputs.
 
 ``imu/temperature`` (sensor_msgs/Temperature, while ``use_temperature``) and each of

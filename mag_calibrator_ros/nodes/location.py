@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Where the robot is, for the World Magnetic Model: the ``latitude``/``longitude`` parameters,
 else a plausible fix on ``gps/fix``. :class:`LocationSource` decides; the node evaluates the
 model (on its I/O thread) whenever ``LocationSource.wanted`` changes.

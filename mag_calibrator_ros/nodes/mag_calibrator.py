@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """``mag_calibrator`` node: raw ``imu/mag`` in, ``imu/mag_corrected`` out, services to calibrate.
 
 Wiring only: declare the parameters, build the ``CalibrationSession`` (every decision is its),

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The ``mag_calibrator`` node's parameters: the descriptor table and the checks of its values.
 
 One table, so ``ros2 param describe``, the shipped config and the checks cannot disagree: every

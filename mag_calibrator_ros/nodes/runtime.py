@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Process entry points for the nodes: the Jazzy start/spin/shutdown idiom in one place."""
 
 from __future__ import annotations

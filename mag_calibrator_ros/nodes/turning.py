@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The calibrator turning the robot in place: ``~/rotate_and_calibrate``, ``~/stop_rotation``.
 
 Every decision is the :class:`~mag_calibrator_ros.calibration.live.turning.TurnController`'s;

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The calibration drawn for RViz: the buffer as PointCloud2 (raw and corrected, a per-point
 ``weight`` field: readings merged into it), the fitted surfaces and the direction cells as a
 MarkerArray. Latched, published at a low rate and only while someone subscribes.

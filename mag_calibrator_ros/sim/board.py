@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """What the sensors on a moving board measure: physics and sensor errors, in SI units, chip frame.
 
 The register-level simulator asks this model for a sample at a sample time and only encodes the

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """What the simulated board sees and how it misbehaves: ``SimConfig`` and its checks."""
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Orientation trajectories and the earth's field for the simulated sensor, demo and benchmarks.
 
 A magnetometer calibration is only as good as the orientations it saw, so the simulator moves the

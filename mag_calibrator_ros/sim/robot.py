@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The simulated ground robot of ``sim.motion: cmd_vel``: it drives as commanded and says what
 its battery supplies.
 

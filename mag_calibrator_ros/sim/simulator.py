@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Register-level model of an ICM-20948 with its AK09916, behind the smbus2.SMBus methods.
 
 No hardware exists on the development and CI machines, so the driver is exercised against this

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """``mag_calibrator_demo``: the whole live pipeline on a simulated ICM-20948, in one process.
 
 The driver (sim backend, strong hard- and soft-iron distortion, a magnetometer mounted 3 degrees

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """``mag_calibrator_fit``: calibrate a magnetometer offline from a recording.
 
 The recording (text or rosbag2, see :mod:`mag_calibrator_ros.tools.recordings`) is streamed through

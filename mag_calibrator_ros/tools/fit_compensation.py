@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The robot's own field in ``mag_calibrator_fit``: its inputs read from a recording, learned
 by the live calibrator's own ``CompensationLearner``, and reported.
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """``mag_calibrator_fit --calibration FILE``: replay a recording on a saved calibration.
 
 The session starts with FILE's calibration in force, as the node does with

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Before/after pictures of a magnetometer calibration, as PNG files (no display needed).
 
 Top row: the raw samples; bottom row: the corrected samples ``M (raw - b)``. Columns: the XY, YZ

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Read a rosbag2 or ROS 1 bag's MagneticField topic (its Imu, battery, temperature beside)."""
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Which fields of a text log's lines hold a sensor's x, y, z: names, labels, units, layouts."""
 
 from __future__ import annotations

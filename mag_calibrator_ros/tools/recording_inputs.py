@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The robot's own field's inputs in a text log (current, temperature), and their bad values."""
 
 from __future__ import annotations

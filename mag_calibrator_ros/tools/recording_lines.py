@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Text read as bounded lines and fields, a block at a time, into growing float rows."""
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Pair each reading's stamp with the nearest IMU or side-topic sample, within a tolerance."""
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Read a text recording into a ``Recording``: columns, ``ros2 topic echo``, an IMU beside."""
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """A text log's time column, and the unit its stamps are in (seconds, ms, us, ns)."""
 
 from __future__ import annotations

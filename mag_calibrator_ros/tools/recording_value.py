@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The ``Recording`` every reader returns, ``RecordingError``, and why rows were skipped."""
 
 from __future__ import annotations

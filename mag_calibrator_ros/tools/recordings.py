@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Read magnetometer recordings into an ``(n, 3)`` float64 array for the offline fit.
 
 Text (a file or ``-`` for stdin): CSV, TSV, whitespace or ``;`` separated, with or without a

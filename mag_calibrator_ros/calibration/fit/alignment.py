@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Magnetometer-to-IMU alignment from gravity: the rotation that makes the dip angle constant.
 
 A hard- and soft-iron fit makes the field a sphere but cannot see how that sphere is rotated

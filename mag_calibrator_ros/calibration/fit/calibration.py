@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The calibration value shared by every layer: ``corrected = R M (raw - b - K u - c (T - T0))``.
 
 ``b`` and ``M`` (hard and soft iron) make the field a sphere; ``R`` rotates the corrected field

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The robot's own field learned from readings: ``K u + c (T - T0)`` by least squares.
 
 Stateless maths, no memory (the live bookkeeping is ``live/compensation.py``). The readings'

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """How much of the sphere of field directions the samples cover, and which rotation would fill the
 gaps.
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The Earth's field expected where the robot is: the World Magnetic Model, and checks against it.
 
 A calibration made next to a steel structure looks perfect to every self-consistency check: the

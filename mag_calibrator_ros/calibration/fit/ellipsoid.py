@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Ellipsoid fitting maths: algebraic starts, a fast path for clean data, robust refinement.
 
 Every fit runs on normalised data ``y = (x - c) / s`` (``c`` the per-axis median, ``s`` the median

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """fit_calibration(): choose and fit a model, then judge it with quality gates a user can act on.
 
 Every threshold is relative (percent of the field radius, ratios, fractions), so the same options

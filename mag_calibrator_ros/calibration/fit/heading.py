@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Heading coverage for yaw-only motion: what a ground robot turning in place can complete.
 
 A robot that can only turn sweeps the field around one circle of directions, a ring of 6-16 of

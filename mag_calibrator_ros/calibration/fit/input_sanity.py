@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Input that no calibration can fix: a field in the wrong unit, or one already normalised.
 
 Pure judgements on a handful of readings, each returning None (nothing wrong) or the reason in a

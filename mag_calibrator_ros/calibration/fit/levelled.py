@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Planar calibration levelled by gravity: a ground robot that tilts while it turns.
 
 A robot turning on a real floor tilts a few degrees, and a tilt of θ moves about V θ of the

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The median absolute deviation as a normal sigma: the one formula behind every robust scale.
 
 ``ellipsoid.robust_sigma`` builds on it (a floor, residuals about zero); the compensation fit,

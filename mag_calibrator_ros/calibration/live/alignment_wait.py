@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The first automatic calibration waits for the alignment to the IMU, for a bounded time.
 
 With an IMU paired, a calibration put in force before its rotation into the IMU frame is known

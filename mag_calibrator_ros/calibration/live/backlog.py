@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Readings that wait while a fit runs, and the requests that wait for them.
 
 A fit runs on a snapshot of the buffer; the readings that arrive meanwhile are held here in

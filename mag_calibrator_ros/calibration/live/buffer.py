@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """A fixed-size buffer of well-spread magnetometer samples: a kNN uniqueness rule, fixed.
 
 mag-calibrator-rs (P. Krull, 2023, github.com/peterkrull/mag-calibrator-rs) keeps N samples

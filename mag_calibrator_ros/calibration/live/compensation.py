@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The robot's own field between messages: inputs paired with readings, kept for the worker.
 
 ``CompensationLearner`` is the live side of ``fit/compensation.py``. Per reading it does O(k)

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """How wrong the calibration in force is, per corrected message (issue #45, REP-145).
 
 A corrected field should have ``|corrected| = F``: what departs from it is sensor noise, the

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Held-out evidence: readings no fit has seen, and the two judgements made on them.
 
 A calibration fitted to the buffer always looks good on the buffer. To know whether a new fit is

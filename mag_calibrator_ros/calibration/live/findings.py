@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """What fits say about the place and the mounting, kept between fits.
 
 The World Magnetic Model's field here (a location), the latest alignment to the IMU and the

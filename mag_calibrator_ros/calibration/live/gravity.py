@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Gravity's direction in the IMU frame, and which accelerometer samples measured it.
 
 An accelerometer measures gravity and the robot's own acceleration together: a ground robot

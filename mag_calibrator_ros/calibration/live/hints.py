@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Which kind of hint the progress line gives, decided from the stream alone.
 
 The kind (a ground robot's heading circle, or the direction sphere of a sensor turned by hand)

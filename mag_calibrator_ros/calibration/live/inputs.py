@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Interference inputs named by parameter: ``topic:package/msg/Type:field``.
 
 ``battery_state:sensor_msgs/msg/BatteryState:current`` (a battery current),

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Fit jobs: a snapshot of the buffer in, a judged fit out, run inline or in a worker process.
 
 The session decides *when* to fit and what to do with the outcome; this module only runs the one

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Magnetometer readings paired with the accelerometer sample taken with them.
 
 The IMU's samples (``CalibrationSession.process_imu``) wait in a short ring; each accepted

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """What the buffer screens and merges readings by, and when that stops describing the sensor.
 
 The buffer refuses a reading far off its reference's sphere and merges near-duplicates by it

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The session's state in words and numbers for people: log lines, service answers, /diagnostics.
 
 Nothing here decides anything; every text a user reads about a calibration is built here, so a

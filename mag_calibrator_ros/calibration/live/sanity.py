@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The live input watched for mistakes no calibration can fix (``fit/input_sanity.py``).
 
 ``InputWatch`` sees every magnetometer message before screening (a field in gauss published as

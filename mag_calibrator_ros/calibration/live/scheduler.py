@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """When the live calibrator fits: one small decision-maker, driven by the stream alone.
 
 Every decision is a function of the accepted readings and their stamps (stream time), never of

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """What makes a magnetometer message unusable, decided once per message with one set of counters.
 
 Values: non-finite, all-zero and saturated readings are never samples. Stamps and frames: a

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The live calibrator between messages, kept apart from ROS so it can be tested without a graph.
 
 A :class:`CalibrationSession` takes one call per message, ``process(stamp, frame, field)``, and

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """What a user can tune in the live calibrator, and the engine's defaults behind each setting.
 
 The node mirrors every field of :class:`SessionSettings` as a ROS parameter; ``mag_calibrator_fit``

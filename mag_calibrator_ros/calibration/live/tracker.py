@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Online calibration tracking: gradient descent on ``(|m| - 1)^2``, generalised.
 
 A. Sundqvist's notebook (2021, github.com/antsundq/Magnetometer-Auto-Calibration) learns a

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Turn in place until the heading circle is covered and a fit passes: ``~/rotate_and_calibrate``.
 
 The decisions of a self-calibrating ground robot, apart from ROS, in one state machine with an

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Whether a finished fit changes the calibration in force, and what the log says about it.
 
 One pure function per kind of fit: it takes the job's outcome, the calibration in force and the

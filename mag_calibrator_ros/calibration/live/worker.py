@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The fit worker process: ``python -m mag_calibrator_ros.calibration.live.worker``.
 
 Where a FitJob runs: ``InlineRunner`` (here and now: the CLI, tests) or ``ProcessRunner`` (the

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """The calibration file: a ROS 2 parameters YAML, saved atomically, read bounded.
 
 ::

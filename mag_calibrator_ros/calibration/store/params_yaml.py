@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """ROS 2 parameters YAML as text, both ways, bounded: what rcl's ``--params-file`` reads.
 
 Writing is strict about types, because rcl types a value by its text and refuses a parameter

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: MIT
 """Small user files read and written safely: one path resolution, bounded reads, atomic writes.
 
 A file name from a parameter can point anywhere: at a device (``/dev/zero`` never ends,
