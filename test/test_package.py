@@ -20,11 +20,30 @@ CONSOLE_SCRIPTS = (
 def test_package_xml_is_valid_for_catkin_pkg():
     # catkin_pkg rejects an invalid maintainer e-mail; colcon would then silently build the
     # package as plain Python and `ros2 run` would find nothing.
-    package = parse_package(REPO_ROOT / 'package.xml')
-    package.validate()
-    assert package.name == 'mag_calibrator_ros'
+    warnings: list[str] = []
+    package = parse_package(REPO_ROOT / 'package.xml', warnings=warnings)
+    package.validate(warnings=warnings)
+    assert package.name == 'mag_calibrator_ros' and package.package_format == 3
+    assert warnings == []
     root = ElementTree.parse(REPO_ROOT / 'package.xml').getroot()
     assert root.find('export/build_type').text == 'ament_python'
+    assert [license_.strip() for license_ in package.licenses] == ['MIT']  # OSI, as LICENSE
+
+
+def test_every_dependency_is_a_rosdep_key_an_apt_user_of_jazzy_on_noble_resolves():
+    """rosdistro review: each dependency resolves through rosdep on the target platform, and
+    none by pip only (pip fails on noble's externally managed Python: the README's note). The
+    keys come from a pinned ros/rosdistro commit (scripts/rosdep_keys.py, the first line)."""
+    listed = (REPO_ROOT / 'test' / 'data' / 'rosdep_keys_noble_jazzy.txt').read_text()
+    assert listed.startswith('# ros/rosdistro ')
+    keys = {line for line in listed.splitlines()[1:] if line}
+    package = parse_package(REPO_ROOT / 'package.xml')
+    declared = {dependency.name for group in (
+        package.buildtool_depends, package.build_depends, package.build_export_depends,
+        package.exec_depends, package.test_depends, package.doc_depends)
+        for dependency in group}
+    assert 'rclpy' in declared and 'python3-numpy' in declared
+    assert sorted(declared - keys) == []
 
 
 def test_colcon_build_installs_console_scripts(tmp_path):
