@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """ament_python build for mag_calibrator_ros (colcon, or pip in a venv)."""
 

@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Gravity and the Earth's field: alignment to the IMU and the World Magnetic Model check.
 

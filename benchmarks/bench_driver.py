@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """icm20948_driver (simulated chip) over real DDS: rates, jitter, CPU, I2C load, faults, accuracy.
 

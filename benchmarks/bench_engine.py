@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Engine benchmark: accuracy on synthetic truth and real recordings, buffer cost and fit time.
 

@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Aligned from the first corrected message (issue #24): the direction error of the corrected
 field against the truth, from the first message the calibrator corrects.

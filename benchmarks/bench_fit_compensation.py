@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """K and c learned offline by ``mag_calibrator_fit`` from a log of the driven course.
 

@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """K learned offline on a saved calibration from a drive that never turns
 (``mag_calibrator_fit --calibration``), judged by the heading it gives over a whole course.

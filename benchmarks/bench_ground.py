@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Ground robots: a simulated robot that turns only on cmd_vel, calibrated by turning in place.
 

@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The live calibrator on recordings it never saw: replayed through the node over real DDS.
 

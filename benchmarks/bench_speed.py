@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Speed of the engine, the command line and the nodes (issue #14); ``bench_engine.py --speed``.
 

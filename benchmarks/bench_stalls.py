@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Does a first view subscriber or a first GPS fix stall ``imu/mag_corrected`` at 1 kHz?
 

@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Is the uncertainty on every corrected message honest, and the heading sigma? (issue #45)
 

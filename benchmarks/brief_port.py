@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """A faithful Python/numpy port of the brief's Rust library (peterkrull/mag-calibrator-rs).
 

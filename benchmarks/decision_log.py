@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The live session's decisions, as a text log to compare before and after a change.
 

@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Ctrl-C of ``ros2 launch``, as a terminal sends it, N times: does every launch end cleanly?
 

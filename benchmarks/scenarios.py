@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Synthetic magnetometer recordings with known truth, for the engine benchmark.
 

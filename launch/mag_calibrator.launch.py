@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Start the ICM-20948 driver and the calibrator (and RViz), with the installed config/*.yaml.
 

@@ -1,4 +1,5 @@
 #!/usr/bin/env bash
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 # Create the project venv with Python 3.11 (the ROS 2 Jazzy wheels on PyPI are cp311).
 # On a fresh Debian/Ubuntu the venv module may be missing; install it when we are allowed to.

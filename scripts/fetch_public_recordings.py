@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Download the public recordings of test/data/public_recordings.json, each from its repository
 at the pinned commit, into $MAG_PUBLIC_RECORDINGS (default ~/.cache/mag_calibrator_ros/

@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Write the rosdep keys an apt user of ROS 2 Jazzy on Ubuntu noble can resolve, from a checkout
 of ros/rosdistro (https://github.com/ros/rosdistro, Apache-2.0), for

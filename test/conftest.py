@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Test-wide settings: isolate ROS 2 traffic and locate the shared recordings."""
 

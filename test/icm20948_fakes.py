@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Test doubles shared by the hardware-layer tests: a clock tests move by hand, and a bus that
 records every transaction the driver makes against the simulator."""

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Shared helpers of the tests that run nodes over real rclpy/DDS: one context a module, every
 node on its own thread, a probe user of the calibrator, bounded waits and service calls.

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Magnetometer-to-IMU alignment from gravity: properties over random rotations, dips and noise;
 the gates; gross mounting errors named; quasi-static stretches from a paired stream."""

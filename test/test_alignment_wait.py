@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """With an IMU, the first automatic calibration waits (bounded) for the still tilts that align
 it, so the corrected field is in the IMU frame from its first message (issue #24); with the

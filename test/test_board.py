@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The simulated board's earth and mounting: a misaligned magnetometer, a location (the World
 Magnetic Model's field there) and a disturbed place."""

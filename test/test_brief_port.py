@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The benchmark yardstick (benchmarks/brief_port.py) must behave as the brief's Rust library.
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """SampleBuffer: the kNN uniqueness rule done right, its reference, merging and bookkeeping.
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The calibration file: ROS 2 parameters YAML, exact round trip, atomic save, validated load."""
 

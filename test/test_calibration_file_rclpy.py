@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The calibration file as rcl reads it: ``--params-file`` on a real rclpy node types every value
 as the node declares it, and applies exactly the sections ``section_matches`` says (the evidence

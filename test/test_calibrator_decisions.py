@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The calibrator node's small decisions without ROS: when auto_save writes, and where the
 robot is for the World Magnetic Model (the parameters, else a plausible gps/fix)."""

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """mag_calibrator node over real rclpy/DDS: simulated driver -> calibrator -> services -> topic.
 

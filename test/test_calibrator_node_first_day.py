@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """What a ROS user meets on the first day, over real rclpy/DDS: a calibration known to be wrong
 is published with its uncertainty (the node's callback, given the session's judgement), a params

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """mag_calibrator with an IMU and a location over real rclpy/DDS: the simulated driver publishes
 imu/mag and imu/data_raw from a misaligned magnetometer held still at one tilt after another; the

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Where the calibrator's location comes from, over real rclpy/DDS: gps/fix screened, replaced
 when far, forgotten on ~/reset, overridden by latitude/longitude, which are set one at a time

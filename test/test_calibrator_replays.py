@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """What the calibrator node decides over DDS, replayed without ROS (issue #43): the simulated
 board the driver node publishes (sim.board.BoardModel) streamed with its stamps through a

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The calibrator node under attack, over real rclpy/DDS (issue #9): hostile files, wrong
 parameter types, devices and FIFOs as calibration_file, bad covariances, a failing service.

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The robot's own field told through the gyroscope: readings between which the robot barely
 turned differ by ``K du + c dT`` (fit/compensation.py ``gyro_pairs``), so a robot standing still

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The calibrator node learns the robot's own field over DDS: a battery current on
 ``battery_state`` (sensor_msgs/BatteryState) and the die temperature on ``imu/temperature``

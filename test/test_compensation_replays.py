@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The robot's own field learnt on request, replayed through the session: the course
 test_compensation_node.py publishes (a battery current on ``battery_state``, the die

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Refinement converges to what ``~/calibrate`` would give, and no adoption makes it worse.
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """direction_coverage: equal-area cells after whitening, independent of N, and a useful hint."""
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """icm20948_driver over real rclpy/DDS with the simulated chip: output, faults, parameters."""
 

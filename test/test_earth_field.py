@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The World Magnetic Model through earth_field, and calibrations judged against it."""
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """ellipsoid.py's machinery: the fast path against the robust one, the solvers against scipy,
 the algebraic fits against their explicit designs, block-wise passes against single ones."""

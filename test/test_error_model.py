@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The error model behind every corrected message's covariance (issue #45): seeded by the fit's
 residual, measuring what the readings depart from F by, and marking a gross departure on the

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Held-out evidence: the store, the paired comparison that decides refinement, and the check that
 the calibration in force still fits."""

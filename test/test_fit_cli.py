@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """mag_calibrator_fit end to end: real recordings, every output, every way it must refuse."""
 

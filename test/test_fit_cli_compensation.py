@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """mag_calibrator_fit learns the robot's own field (K per ampere, c per degree) from recordings
 that log the current and the temperature: text columns by header name or option, rosbag2

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """mag_calibrator_fit's own-field inputs from bags: a rosbag2's BatteryState and Temperature
 topics paired by stamp learn K and c, and a ROS 1 bag's are paired and their bad values named.

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """mag_calibrator_fit with an accelerometer on each line (--accel-columns) and a location
 (--latitude/--longitude): the alignment and the World Magnetic Model, offline."""

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """mag_calibrator_fit's output files and dates as users give them (issue #22.11): the path
 printed is the file written, a plot that cannot be written is an error (exit 2) and leaves no

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """mag_calibrator_fit --calibration FILE: a recording replayed on a saved calibration, as the
 node with calibration_file would live it: the own field learned from a drive that never

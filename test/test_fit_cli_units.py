@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Units end to end (issue #21.1): a calibration fitted offline loads in tesla, or is refused.
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The full fit on real recordings is at least as good as the authors' own published calibrations.
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """fit_calibration: recovery of known hard and soft iron, model choice, every gate, bad input."""
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The text of another node doubling the calibrator's output (nodes/graph_watch.py)."""
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Gravity's direction from the accelerometer only while it measures gravity: the gyroscope
 tells a ground robot's tilt from its drive's acceleration (``live/gravity.py``), so a planar fit

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Ground robots over real rclpy/DDS: the simulated robot follows cmd_vel (sim.motion cmd_vel),
 the calibrator turns it with ~/rotate_and_calibrate, and every way a rotation ends commands zero

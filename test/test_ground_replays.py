@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Ground robots calibrating by themselves, replayed through the session: the simulated board of
 test_ground_node.py's driver (``sim.motion`` cmd_vel or yaw, its hard and soft iron, its seed),

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The live session with yaw-only motion (a ground robot turning in place), without ROS: heading
 coverage drives the automatic gate, the hints and the diagnostics; the defaults calibrate."""

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The hard iron from the gyroscope's turning (fit/gyro_aided.py), the turning integrated between
 messages (live/rotation_track.py) and the session's first calibration from it."""

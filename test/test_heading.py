@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Heading coverage of yaw-only motion: the ring found without a calibration, the sectors it
 covers, and hints that speak of turning (which way, how far), never of rolling a ground robot."""

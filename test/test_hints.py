@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Progress hints from the stream alone (issue #24): the same stream gives the same lines, however
 often they are looked at; the ground robot's hint only for yaw-only motion, never in the first

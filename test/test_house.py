@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The house's shape: each room imports only from the rooms below it, and no module imports
 itself back through others (docs/ARCHITECTURE.md, "Rooms")."""
@@ -221,7 +222,7 @@ def test_the_tier_check_sees_ros_in_a_function_and_a_fixture():
 
 def test_every_source_file_names_the_licence_of_the_package():
     """REP-2004 / rosdistro review: a LICENSE file, the same licence in package.xml and
-    setup.py, and an SPDX line atop every Python and shell file the repository tracks."""
+    setup.py, and a copyright and an SPDX line atop every Python and shell file tracked."""
     import subprocess
 
     root = PACKAGE.parent
@@ -231,6 +232,8 @@ def test_every_source_file_names_the_licence_of_the_package():
     tracked = subprocess.run(['git', 'ls-files', '*.py', '*.sh', '.ci/run'], cwd=root,
                              capture_output=True, text=True, check=True).stdout.split()
     assert len(tracked) > 100
-    missing = [name for name in tracked if f'SPDX-License-Identifier: {licence}' not in
-               ''.join((root / name).read_text().splitlines(keepends=True)[:2])]
-    assert missing == []
+    heads = {name: ''.join((root / name).read_text().splitlines(keepends=True)[:3])
+             for name in tracked}
+    assert [name for name, head in heads.items()
+            if f'SPDX-License-Identifier: {licence}' not in head
+            or '# Copyright 2026 mag_calibrator_ros maintainers' not in head] == []

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The simulated chip against TDK DS-000189 and the AKM AK09916 datasheet, register by register
 (issue #23): the behaviours drivers written by others rely on, checked without our driver."""

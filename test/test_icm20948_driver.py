@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Register-level protocol of the driver's magnetometer side (AK09916 behind the ICM-20948)
 against the simulated chip; the accel/gyro side is in test_icm20948_imu.py."""

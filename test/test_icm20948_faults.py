@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Fault injection in the simulator and how the driver surfaces it (no ROS; recovery from these
 faults is the supervisor's job, tested in test_icm20948_supervisor.py)."""

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Accelerometer, gyroscope and temperature of the ICM-20948: register protocol, decoding, scaling,
 data-ready and the simulator's physics (DS-000189), without ROS."""

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The AK09916 through the ICM-20948's own I2C master (issue #11: magnetometer polling at <= 1/3
 of the old bus bytes), at register level against the simulated chip: bank 3 and SLV4 protocol

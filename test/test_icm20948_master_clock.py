@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Our driver at several I2C master clocks and on both paths (issue #23): it sets the master's
 clock itself (LP_CONFIG, I2C_MST_ODR_CONFIG, slave delays) instead of relying on the model's,

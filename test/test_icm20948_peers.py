@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Other people's ICM-20948 drivers, unchanged from PyPI, against the simulated chip (issue #23).
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Icm20948Supervisor without ROS: polling, recovery from every fault the simulator injects,
 stuck data-ready, rate windows and diagnostics, on a fake clock (deterministic, no sleeping)."""

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """A hand's fast motion is not a wrong unit: the accelerometer is judged on a second of stream
 (live/sanity.py IMU_SPAN_S), so a real m/s^2 stream that dips for a fraction of a second while

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Input no calibration can fix (issue #24): a field in the wrong unit is named and not fitted,
 a field already normalised or calibrated upstream is said and nothing is adopted that moves it;

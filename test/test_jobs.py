@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Fit jobs: one recipe per kind, the same outcome inline and in the worker process, errors
 reported instead of raised, and a dead worker replaced."""

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The launch file (where launch_ros exists: apt ROS, or the ros2 CLI installed into the venv)."""
 

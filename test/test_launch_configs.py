@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Every shipped config/*.yaml reaches its node in a namespace (issue #21): `ros2 launch ...
 namespace:=robot1` and `-r __ns:=/robot1` rename the node /robot1/<name>, and a params file keyed

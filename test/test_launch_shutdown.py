@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Ctrl-C and SIGTERM end either node cleanly, as `ros2 launch` delivers them (issue #21).
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Planar fits levelled by gravity (levelled.py): a ground robot that tilts while it turns, with
 its accelerometer paired, gets its heading right; anything that is no ground turn is left to

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Trajectories: proper rotations, determinism, hand-like tumbling that covers every direction."""
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The package builds with colcon as an ament_python package and installs every console script."""
 
@@ -28,6 +29,10 @@ def test_package_xml_is_valid_for_catkin_pkg():
     root = ElementTree.parse(REPO_ROOT / 'package.xml').getroot()
     assert root.find('export/build_type').text == 'ament_python'
     assert [license_.strip() for license_ in package.licenses] == ['MIT']  # OSI, as LICENSE
+    import mag_calibrator_ros  # one version everywhere (QUALITY_DECLARATION.md, semver)
+
+    assert f"version='{package.version}'" in (REPO_ROOT / 'setup.py').read_text()
+    assert mag_calibrator_ros.__version__ == package.version
 
 
 def test_every_dependency_is_a_rosdep_key_an_apt_user_of_jazzy_on_noble_resolves():

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """ROS 2 parameters YAML text: strict typing on write, bounded parsing typed as rcl types it."""
 

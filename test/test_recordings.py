@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Recordings reader: every text layout, stdin, rosbag2 (sqlite3, mcap), every error path."""
 

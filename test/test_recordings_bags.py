@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """ROS 1 bags read as rosbag2 bags are: the MagneticField topic with its header stamps, an Imu
 topic paired by stamp, and one calibration whatever the container (ROS 1, rosbag2, CSV)."""

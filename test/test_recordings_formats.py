@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Recorded data as users have it (issues #21.7, #22.6): ``ros2 topic echo`` in CSV and YAML,
 spreadsheet CSV with decimal commas, headers with units, and readers that stay bounded whatever

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Text logs with a time column: the header names it, its unit is the header's or the one its
 values show, and the reader says which column and unit it took."""

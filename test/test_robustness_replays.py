@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The calibrator under attack (issue #9), replayed through its session: the messages the DDS
 tests of test_calibrator_robustness.py sent, with the same stamps, frames and values, given to

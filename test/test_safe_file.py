@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Safe file access: one path resolution, regular files only, bounded reads, guarded writes."""
 

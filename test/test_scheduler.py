@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """FitScheduler and StreamClock: when each fit runs, from the stream alone."""
 

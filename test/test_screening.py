@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """ReadingScreen: values refused and counted; stamps and frames judged so one bad header never
 silences the stream, and a real change (bag loop, clock step, new frame_id) is followed."""

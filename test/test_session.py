@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """CalibrationSession without ROS: one call per message, every fit decided in one place and run
 off the message path, reporting (refinement judged on held-out readings, a calibration that no

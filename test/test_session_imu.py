@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """CalibrationSession with an IMU and a location: readings paired by stamp, the alignment computed
 in the fit jobs (never on the message path), the World Magnetic Model as the reference."""

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """CalibrationSession refining, noticing a calibration that does not fit, and tracking online
 (test_session.py's sections of those names, a file of their own so that pytest-xdist's

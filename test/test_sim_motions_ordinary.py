@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Motions of ordinary use (issue #44): a wrist, a drone, a magnet attached and removed, a magnet
 zone in the room; each a consistent motion the gyroscope and accelerometer measure truly."""

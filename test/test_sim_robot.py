@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The simulated cmd_vel robot without a ROS graph: commands on its clock, the battery paced by
 the readings' stamps."""

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """OnlineTracker: the notebook's gradient descent on the full model, safe and bounded."""
 

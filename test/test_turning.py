@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """TurnController without ROS: every decision of ~/rotate_and_calibrate on an injected clock --
 refusals, the ramp, when a fit is asked for, and that every way out commands zero."""

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The RViz view: what is drawn (ROS-free) and the messages that carry it (over DDS)."""
 

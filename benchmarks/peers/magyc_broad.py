@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """MAGYC (CoMPAS Lab, PyPI ``magyc``; Rodríguez-Martínez and Camilli, arXiv 2410.13827) on BROAD
 trials: each method's soft iron and hard iron, as JSON, for ``benchmarks/bench_broad.py`` to

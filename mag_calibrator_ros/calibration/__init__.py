@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Calibration engine: pure numpy/scipy, no rclpy (docs/ARCHITECTURE.md)."""
 

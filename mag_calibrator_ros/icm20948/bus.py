@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """I2C accounting: every transaction, every failure and the bytes it put on the wire.
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The whole ICM-20948 over an injected smbus2-like bus: accelerometer, gyroscope, temperature
 and the AK09916 magnetometer behind it (no rclpy).

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """ICM-20948 and AK09916 register map (TDK DS-000189, AKM AK09916 datasheet).
 

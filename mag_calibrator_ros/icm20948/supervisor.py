@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Keeps an ICM-20948 producing samples through bus faults: the driver's state machine, no rclpy.
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The ICM-20948's and the AK09916's conversions between register counts and SI units.
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Service callbacks that always answer, and one thread for a node's slow work whose results
 come back on the executor: a waiting service never blocks the timers that complete it, and an

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """When ``auto_save`` writes the calibration in force to ``calibration_file``.
 

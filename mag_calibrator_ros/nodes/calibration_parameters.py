@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """``calibration.*``: the calibration in force, mirrored as the node's parameters.
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """diagnostic_msgs helpers (diagnostic_updater has no PyPI wheel for Jazzy)."""
 

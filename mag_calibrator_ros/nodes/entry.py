@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The nodes' console scripts (``ros2 run``, ``ros2 launch``): they catch the stop signals
 before the heavy imports (rclpy, numpy, scipy: a second or more on a small computer), so a

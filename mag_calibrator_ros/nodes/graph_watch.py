@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Other nodes that would double the corrected field (issue #46): a second publisher on
 ``imu/mag_corrected`` (two calibrators in one namespace: fusion gets every reading twice, stamps

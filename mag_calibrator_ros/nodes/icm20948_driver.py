@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """ROS 2 node ``icm20948_driver``: the whole ICM-20948, one owner of the chip and its bus.
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """``InputSubscriptions``: the calibrator's subscriptions to the robot's own field's inputs.
 

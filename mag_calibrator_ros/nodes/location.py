@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Where the robot is, for the World Magnetic Model: the ``latitude``/``longitude`` parameters,
 else a plausible fix on ``gps/fix``. :class:`LocationSource` decides; the node evaluates the

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The ``mag_calibrator`` node's parameters: the descriptor table and the checks of its values.
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Declaring parameters so that a bad value is a clear message, never a traceback; the
 command line's ``--log-level <node name>:=...`` followed in a namespace too."""

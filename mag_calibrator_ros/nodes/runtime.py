@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Process entry points for the nodes: the Jazzy start/spin/shutdown idiom in one place."""
 

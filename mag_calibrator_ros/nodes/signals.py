@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The stop signals' handler, in the standard library alone: the console scripts (entry.py) set
 it before the heavy imports, ``runtime.spin_node`` keeps it."""

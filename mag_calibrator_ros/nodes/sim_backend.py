@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The driver node's simulated backend (``backend: sim``): the ``sim.*`` parameters, the
 ``SimConfig`` they make, and the ROS wiring of the simulated robot (``sim.motion: cmd_vel``).

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The calibrator turning the robot in place: ``~/rotate_and_calibrate``, ``~/stop_rotation``.
 

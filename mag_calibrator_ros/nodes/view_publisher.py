@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The calibration drawn for RViz: the buffer as PointCloud2 (raw and corrected, a per-point
 ``weight`` field: readings merged into it), the fitted surfaces and the direction cells as a

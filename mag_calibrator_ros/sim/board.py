@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """What the sensors on a moving board measure: physics and sensor errors, in SI units, chip frame.
 

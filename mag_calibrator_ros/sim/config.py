@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """What the simulated board sees and how it misbehaves: ``SimConfig`` and its checks."""
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Orientation trajectories and the earth's field for the simulated sensor, demo and benchmarks.
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The simulated ground robot of ``sim.motion: cmd_vel``: it drives as commanded and says what
 its battery supplies.

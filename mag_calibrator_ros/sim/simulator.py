@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Register-level model of an ICM-20948 with its AK09916, behind the smbus2.SMBus methods.
 

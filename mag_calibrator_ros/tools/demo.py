@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """``mag_calibrator_demo``: the whole live pipeline on a simulated ICM-20948, in one process.
 

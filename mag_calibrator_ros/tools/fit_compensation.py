@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The robot's own field in ``mag_calibrator_fit``: its inputs read from a recording, learned
 by the live calibrator's own ``CompensationLearner``, and reported.

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Before/after pictures of a magnetometer calibration, as PNG files (no display needed).
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Read a rosbag2 or ROS 1 bag's MagneticField topic (its Imu, battery, temperature beside)."""
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Which fields of a text log's lines hold a sensor's x, y, z: names, labels, units, layouts."""
 

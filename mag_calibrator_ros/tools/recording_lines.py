@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Text read as bounded lines and fields, a block at a time, into growing float rows."""
 

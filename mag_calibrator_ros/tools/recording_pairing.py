@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Pair each reading's stamp with the nearest IMU or side-topic sample, within a tolerance."""
 

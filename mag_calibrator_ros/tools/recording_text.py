@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Read a text recording into a ``Recording``: columns, ``ros2 topic echo``, an IMU beside."""
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """A text log's time column, and the unit its stamps are in (seconds, ms, us, ns)."""
 

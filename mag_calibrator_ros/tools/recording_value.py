@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The ``Recording`` every reader returns, ``RecordingError``, and why rows were skipped."""
 

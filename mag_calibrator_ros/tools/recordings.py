@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Read magnetometer recordings into an ``(n, 3)`` float64 array for the offline fit.
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Magnetometer-to-IMU alignment from gravity: the rotation that makes the dip angle constant.
 

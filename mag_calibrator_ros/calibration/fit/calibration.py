@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The calibration value shared by every layer: ``corrected = R M (raw - b - K u - c (T - T0))``.
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The robot's own field learned from readings: ``K u + c (T - T0)`` by least squares.
 

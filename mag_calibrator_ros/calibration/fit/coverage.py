@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """How much of the sphere of field directions the samples cover, and which rotation would fill the
 gaps.

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The Earth's field expected where the robot is: the World Magnetic Model, and checks against it.
 

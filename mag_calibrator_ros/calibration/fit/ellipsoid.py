@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Ellipsoid fitting maths: algebraic starts, a fast path for clean data, robust refinement.
 

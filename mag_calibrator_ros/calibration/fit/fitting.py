@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """fit_calibration(): choose and fit a model, then judge it with quality gates a user can act on.
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The hard iron from the gyroscope: the Earth's field is fixed in the world, so readings turned
 back by the rotation the gyroscope measured must all be one vector; only the offset keeps them

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Heading coverage for yaw-only motion: what a ground robot turning in place can complete.
 

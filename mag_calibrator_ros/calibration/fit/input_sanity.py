@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Input that no calibration can fix: a field in the wrong unit, or one already normalised.
 

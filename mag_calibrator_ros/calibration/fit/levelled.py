@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Planar calibration levelled by gravity: a ground robot that tilts while it turns.
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The median absolute deviation as a normal sigma: the one formula behind every robust scale.
 

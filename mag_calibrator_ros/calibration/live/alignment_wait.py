@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The first automatic calibration waits for the alignment to the IMU, for a bounded time.
 

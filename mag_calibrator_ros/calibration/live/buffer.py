@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """A fixed-size buffer of well-spread magnetometer samples: a kNN uniqueness rule, fixed.
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The robot's own field between messages: inputs paired with readings, kept for the worker.
 

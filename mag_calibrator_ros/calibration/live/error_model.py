@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """How wrong the calibration in force is, per corrected message (issue #45, REP-145).
 

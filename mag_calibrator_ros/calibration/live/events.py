@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """What a session hands back: the outcome of each message (``Processed``) and each decision
 (``SessionEvent``), and the vocabulary both use (the reasons a reading is refused, the states).

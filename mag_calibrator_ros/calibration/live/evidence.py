@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Held-out evidence: readings no fit has seen, and the two judgements made on them.
 

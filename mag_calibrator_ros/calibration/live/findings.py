@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """What fits say about the place and the mounting, kept between fits.
 

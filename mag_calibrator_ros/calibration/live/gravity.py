@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Gravity's direction in the IMU frame, and which accelerometer samples measured it.
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Interference inputs named by parameter: ``topic:package/msg/Type:field``.
 

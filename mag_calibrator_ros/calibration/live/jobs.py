@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Fit jobs: a snapshot of the buffer in, a judged fit out, run inline or in a worker process.
 

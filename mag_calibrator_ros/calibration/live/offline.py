@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """A session driven from recorded rows instead of live messages (``mag_calibrator_fit``, tests,
 benchmarks): streaming rows through its face and asking for a fit and waiting for it.

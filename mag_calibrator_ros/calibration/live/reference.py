@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """What the buffer screens and merges readings by, and when that stops describing the sensor.
 

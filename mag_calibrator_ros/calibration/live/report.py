@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The session's state in words and numbers for people: log lines, service answers, /diagnostics.
 

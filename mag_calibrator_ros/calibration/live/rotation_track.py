@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The gyroscope's turning, integrated between messages, and the readings it turned: what the
 gyro-aided fit (``fit/gyro_aided.py``) learns the hard iron from without a sphere.

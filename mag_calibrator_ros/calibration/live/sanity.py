@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The live input watched for mistakes no calibration can fix (``fit/input_sanity.py``).
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """When the live calibrator fits: one small decision-maker, driven by the stream alone.
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """What makes a magnetometer message unusable, decided once per message with one set of counters.
 

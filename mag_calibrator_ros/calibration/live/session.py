@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The live calibrator between messages, kept apart from ROS so it can be tested without a graph.
 

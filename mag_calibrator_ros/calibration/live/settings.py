@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """What a user can tune in the live calibrator, and the engine's defaults behind each setting.
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Online calibration tracking: gradient descent on ``(|m| - 1)^2``, generalised.
 

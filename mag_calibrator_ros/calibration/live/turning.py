@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Turn in place until the heading circle is covered and a fit passes: ``~/rotate_and_calibrate``.
 

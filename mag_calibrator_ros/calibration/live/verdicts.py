@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Whether a finished fit changes the calibration in force, and what the log says about it.
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """What a person watching the calibration sees: the buffer, the fitted surface, the directions
 covered (MotionCal shows the sphere filling, ArduPilot the cells); the node draws it in RViz."""

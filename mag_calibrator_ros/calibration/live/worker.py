@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The fit worker process: ``python -m mag_calibrator_ros.calibration.live.worker``.
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """The calibration file: a ROS 2 parameters YAML, saved atomically, read bounded.
 

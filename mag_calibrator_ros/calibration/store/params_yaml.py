@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """ROS 2 parameters YAML as text, both ways, bounded: what rcl's ``--params-file`` reads.
 

@@ -1,3 +1,4 @@
+# Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Small user files read and written safely: one path resolution, bounded reads, atomic writes.
 
