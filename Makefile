@@ -6,6 +6,7 @@
 #   make bench  - set up and run the benchmarks (not part of the tests)
 #   make fetch-recordings - the public recordings some tests use, outside the repository
 #   make stress - the tests RUNS times in a row with every core kept busy (RUNS=20)
+#   make colcon-test - colcon build, then the suite through colcon test, as an apt-ROS user runs it
 
 SHELL := /bin/bash
 VENV ?= .venv
@@ -14,7 +15,7 @@ STAMP := $(VENV)/.installed
 SHARED_DATA ?= ../shared/data
 
 .PHONY: setup demo test test-core test-ros lint stress bench bench-engine bench-replay bench-node \
-	bench-recordings bench-broad fetch-recordings colcon-build clean
+	bench-recordings bench-broad fetch-recordings colcon-build colcon-test clean
 
 setup: $(STAMP)
 
@@ -66,6 +67,10 @@ bench-broad: fetch-recordings
 
 colcon-build: setup
 	source $(VENV)/bin/activate && colcon build --base-paths . --build-base build --install-base install
+
+colcon-test: colcon-build
+	source $(VENV)/bin/activate && colcon test --base-paths . --build-base build --install-base install \
+		--pytest-args -q -n auto --dist loadfile && colcon test-result --verbose
 
 clean:
 	rm -rf build install log .pytest_cache .ruff_cache
