@@ -257,3 +257,22 @@ def test_sim_time_without_a_clock_is_said_by_the_driver(ros):
         'no_clock.icm20948_driver')
     ros.remove(driver)
     ros.remove(rosout)
+
+
+def test_no_input_points_to_the_magnetic_field_topic_that_exists(ros, tmp_path):
+    """A wrong remap or namespace said only 'no input on ...': the MagneticField topic that
+    does exist a namespace away went unnamed (issue #46)."""
+    rosout = Rosout(ros)
+    elsewhere = Probe(ros, 'found_here')  # publishes /found_here/imu/mag
+    calibrator = ros.calibrator('looked_there', calibration_file=str(tmp_path / 'none.yaml'),
+                                progress_log_period=1.0)
+    logger = 'looked_there.mag_calibrator'
+
+    def pointed() -> bool:
+        return any(line.startswith('no input on /looked_there/imu/mag; sensor_msgs/MagneticField '
+                                   'is published on') and '/found_here/imu/mag' in line
+                   and '-r imu/mag:=' in line for line in rosout.of(logger, INFO))
+
+    assert wait_for(pointed), rosout.of(logger)
+    for node in (calibrator, elsewhere, rosout):
+        ros.remove(node)

@@ -48,8 +48,9 @@ class GraphWatch:
     def __init__(self) -> None:
         self.text = ''
 
-    def check(self, node: Node, input_topic: str, output_topic: str) -> tuple[str, bool]:
-        """The warning now ('' alone) and whether it changed since the last check."""
+    def check(self, node: Node, input_topic: str, output_topic: str) -> str:
+        """The warning now ('' alone), logged when it changes (once as it starts, once as it
+        ends)."""
         own = node.get_fully_qualified_name()
         publishers = [qualified(info.node_namespace, info.node_name)
                       for info in node.get_publishers_info_by_topic(output_topic)
@@ -68,5 +69,9 @@ class GraphWatch:
                 (name, topic) for topic, types in published
                 if topic.rsplit('/', 1)[-1] == CORRECTED_NAME and MAGNETIC_FIELD in types)
         text = doubled_text(output_topic, own, publishers, input_topic, calibrators)
-        changed, self.text = text != self.text, text
-        return text, changed
+        if text and text != self.text:  # one call site per severity
+            node.get_logger().warning(text)
+        elif self.text and not text:
+            node.get_logger().info(f'{output_topic}: no other node doubles it now')
+        self.text = text
+        return text

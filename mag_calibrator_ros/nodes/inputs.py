@@ -38,6 +38,14 @@ def candidate_inputs(node: Node) -> list[str]:
             for kind in types if kind in INPUT_EXAMPLES]
 
 
+def magnetic_field_topics(node: Node, *skip: str) -> list[str]:
+    """The sensor_msgs/MagneticField topics with a publisher now, but ``skip`` and calibrators'
+    outputs (``.../mag_corrected``): where a wrong remap or namespace should point instead."""
+    return sorted(topic for topic, types in node.get_topic_names_and_types()
+                  if 'sensor_msgs/msg/MagneticField' in types and topic not in skip
+                  and not topic.endswith('/mag_corrected') and node.count_publishers(topic))
+
+
 def learning_plan(node: Node, timeout_s: float) -> tuple[str, str]:
     """``~/learn_compensation``'s line as it starts (what it collects, for how long), and the
     note its answer ends with when no input is configured (the BatteryState and Odometry topics

@@ -135,7 +135,11 @@ from mag_calibrator_ros.nodes.diagnostics import (
     diagnostic_status,
 )
 from mag_calibrator_ros.nodes.graph_watch import GraphWatch
-from mag_calibrator_ros.nodes.inputs import InputSubscriptions, learning_plan
+from mag_calibrator_ros.nodes.inputs import (
+    InputSubscriptions,
+    learning_plan,
+    magnetic_field_topics,
+)
 from mag_calibrator_ros.nodes.location import LOCATION_PARAMETERS, Location, LocationSource
 from mag_calibrator_ros.nodes.mag_calibrator_parameters import (
     PARAMETERS,
@@ -552,13 +556,10 @@ class MagCalibratorNode(Node):
         values: dict[str, object] = {'calibration_file': str(self._calibration_file()),
                                      **self._rotation.diagnostic_values(now),
                                      **self._location.diagnostic_values(self._location_source)}
-        doubled, changed = self._graph.check(self, topic, self._publisher.topic_name)
-        if changed:  # the warning once, and once that it ended
-            (self.get_logger().warning if doubled else self.get_logger().info)(
-                doubled or f'{self._publisher.topic_name}: no other node doubles it now')
+        doubled = self._graph.check(self, topic, self._publisher.topic_name)
         warning = '; '.join(text for text in (doubled, self._file_warning) if text)
-        report = self.session.report(now, NodeStatus(self._problem, no_input_text(topic), values,
-                                                     warning))
+        no_input = no_input_text(topic, magnetic_field_topics(self, topic))
+        report = self.session.report(now, NodeStatus(self._problem, no_input, values, warning))
         self._log_progress(now, report)
         self._publish_diagnostics(topic, report)
         self._publish_view(now, report)
@@ -582,7 +583,7 @@ class MagCalibratorNode(Node):
         if received == self._received_at_log:  # no message since the last line (or start)
             topic = self.resolve_topic_name('imu/mag')
             text = no_message_text(topic, self.count_publishers(topic), received == 0,
-                                   now - self._started, period)
+                                   now - self._started, period, magnetic_field_topics(self, topic))
             if text is None:
                 return  # discovery takes a moment: no verdict yet
         self._last_progress_log, self._received_at_log = now, received

@@ -8,7 +8,7 @@ wording is changed in one place (tests and users match on these texts: change th
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Literal, NamedTuple
 
@@ -232,13 +232,19 @@ NO_INPUT_GRACE_S = 3.0
 discovering a driver that is already running takes a moment."""
 
 
-def no_input_text(topic: str) -> str:
+def no_input_text(topic: str, elsewhere: Sequence[str] = ()) -> str:
+    """'no input on ...', naming the MagneticField topics published ``elsewhere`` (a remap or a
+    namespace away) when there are any."""
+    if elsewhere:
+        names = ', '.join(elsewhere[:3])
+        return (f'no input on {topic}; sensor_msgs/MagneticField is published on {names}: remap '
+                f'to it (-r imu/mag:={elsewhere[0]}) or start the node in its namespace')
     return (f'no input on {topic}: is the driver running, in this namespace? '
             f'(ros2 topic info {topic})')
 
 
 def no_message_text(topic: str, publishers: int, first: bool, waited_s: float,
-                    period_s: float) -> str | None:
+                    period_s: float, elsewhere: Sequence[str] = ()) -> str | None:
     """The progress line when no message came since the previous one (``first``: none ever):
     waiting while ``topic`` has publishers; 'no input' once ``waited_s`` since start-up reached
     a progress period and NO_INPUT_GRACE_S without either; None (nothing to say) before."""
@@ -247,7 +253,7 @@ def no_message_text(topic: str, publishers: int, first: bool, waited_s: float,
                 f'({publishers} publisher(s) found)')
     if waited_s < max(period_s, NO_INPUT_GRACE_S):
         return None
-    return no_input_text(topic)
+    return no_input_text(topic, elsewhere)
 
 
 def progress_text(state: str, calibration: Calibration | None, coverage: Coverage,
