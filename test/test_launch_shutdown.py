@@ -139,21 +139,42 @@ time.sleep(3600)
 '''
 
 
+def calibrator_under(starter: Path, case_dir: Path, namespace: str) -> list[str]:
+    """The calibrator's command as ``starter`` (a stand-in for ros2 run or ros2 launch) runs
+    it, with a calibration file of its own in ``case_dir``."""
+    module, arguments, _ = NODES['mag_calibrator']
+    return [str(starter), sys.executable, '-m', module, '--ros-args', '-r',
+            f'__ns:={namespace}', *arguments,
+            '-p', f'calibration_file:={case_dir / "calibration.yaml"}']
+
+
+def ended(pid: int) -> bool:
+    """Whether process ``pid`` has exited (gone, or a zombie its starter has not reaped)."""
+    return (not Path(f'/proc/{pid}').exists()
+            or 'State:\tZ' in Path(f'/proc/{pid}/status').read_text())
+
+
+def kill_group(pid: int) -> None:
+    """SIGKILL the process group led by ``pid`` (the starter and the node in it), if any."""
+    try:
+        os.killpg(pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+
+
 def killed_parent(tmp_path: Path, parent_name: str, ends: bool) -> str | None:
     """Start the calibrator under a parent named ``parent_name``, SIGKILL the parent once the
     node runs. Returns None when the node ended (``ends``: within EXIT_TIMEOUT_S, saying why,
     without a traceback) or kept running for 3 s (not ``ends``), else what happened."""
-    module, arguments, running_line = NODES['mag_calibrator']
+    running_line = NODES['mag_calibrator'][2]
     case_dir = tmp_path / parent_name
     case_dir.mkdir()
     parent = case_dir / parent_name
     parent.write_text(PARENT.format(python=sys.executable))
     parent.chmod(0o755)
     log_path = case_dir / 'output.log'
-    namespace = f'/orphan_{parent_name}_{int(time.monotonic() * 1000) % 100000}'
-    command = [str(parent), sys.executable, '-m', module, '--ros-args', '-r',
-               f'__ns:={namespace}', *arguments,
-               '-p', f'calibration_file:={case_dir / "calibration.yaml"}']
+    command = calibrator_under(
+        parent, case_dir, f'/orphan_{parent_name}_{int(time.monotonic() * 1000) % 100000}')
     with log_path.open('wb') as log:
         starter = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
                                    stderr=log, start_new_session=True)
@@ -164,18 +185,13 @@ def killed_parent(tmp_path: Path, parent_name: str, ends: bool) -> str | None:
                 return f'{parent_name}: not running: {log_path.read_text(errors="replace")}'
             starter.kill()
             starter.wait()
-            ended = wait_until(lambda: not Path(f'/proc/{node}').exists()
-                               or 'State:\tZ' in Path(f'/proc/{node}/status').read_text(),
-                               EXIT_TIMEOUT_S if ends else 3.0)
+            stopped = wait_until(lambda: ended(node), EXIT_TIMEOUT_S if ends else 3.0)
         finally:
-            try:
-                os.killpg(starter.pid, signal.SIGKILL)  # the node is in the starter's group
-            except ProcessLookupError:
-                pass
+            kill_group(starter.pid)  # the node is in the starter's group
     output = log_path.read_text(errors='replace')
-    if ended != ends or (ends and ('ended without stopping it' not in output
-                                   or 'Traceback' in output)):
-        return f'{parent_name}: {"ended" if ended else "still running"}: {output}'
+    if stopped != ends or (ends and ('ended without stopping it' not in output
+                                     or 'Traceback' in output)):
+        return f'{parent_name}: {"ended" if stopped else "still running"}: {output}'
     return None
 
 
@@ -208,30 +224,22 @@ def test_a_node_whose_launch_ended_before_the_node_looked_stops_by_itself(tmp_pa
     """`rviz:=true` without rviz2: launch stopped after starting both nodes, before they ran,
     so their parent was already init and nothing tied them to it: orphans publishing for good
     (issue #46). The launch's pid, given in the environment, ties them."""
-    module, arguments, _ = NODES['mag_calibrator']
     starter = tmp_path / 'launch'
     starter.write_text(LAUNCH_GONE.format(python=sys.executable, variable=LAUNCH_PID_ENV))
     starter.chmod(0o755)
     log_path = tmp_path / 'output.log'
-    command = [str(starter), sys.executable, '-m', module, '--ros-args', '-r',
-               f'__ns:=/launch_gone_{os.getpid()}', *arguments,
-               '-p', f'calibration_file:={tmp_path / "calibration.yaml"}']
+    command = calibrator_under(starter, tmp_path, f'/launch_gone_{os.getpid()}')
     with log_path.open('wb') as log:
         process = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
                                    stderr=log, start_new_session=True)
         node = int(process.stdout.readline())
         process.wait()  # the launch is gone before the node has started
         try:
-            ended = wait_until(lambda: not Path(f'/proc/{node}').exists()
-                               or 'State:\tZ' in Path(f'/proc/{node}/status').read_text(),
-                               START_TIMEOUT_S + EXIT_TIMEOUT_S)
+            stopped = wait_until(lambda: ended(node), START_TIMEOUT_S + EXIT_TIMEOUT_S)
         finally:
-            try:
-                os.killpg(process.pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
+            kill_group(process.pid)
     output = log_path.read_text(errors='replace')
-    assert ended, output
+    assert stopped, output
     assert 'ended without stopping it' in output and 'Traceback' not in output, output
 
 

@@ -38,12 +38,15 @@ def candidate_inputs(node: Node) -> list[str]:
             for kind in types if kind in INPUT_EXAMPLES]
 
 
-def magnetic_field_topics(node: Node, *skip: str) -> list[str]:
-    """The sensor_msgs/MagneticField topics with a publisher now, but ``skip`` and calibrators'
-    outputs (``.../mag_corrected``): where a wrong remap or namespace should point instead."""
-    return sorted(topic for topic, types in node.get_topic_names_and_types()
-                  if 'sensor_msgs/msg/MagneticField' in types and topic not in skip
-                  and not topic.endswith('/mag_corrected') and node.count_publishers(topic))
+def magnetic_field_topics(node: Node, topic: str) -> list[str]:
+    """While nothing publishes ``topic``, the sensor_msgs/MagneticField topics with a publisher
+    now, calibrators' outputs (``.../mag_corrected``) aside: where a wrong remap or namespace
+    should point instead. [] while ``topic`` has a publisher (the graph is not searched)."""
+    if node.count_publishers(topic):
+        return []
+    return sorted(name for name, types in node.get_topic_names_and_types()
+                  if 'sensor_msgs/msg/MagneticField' in types and name != topic
+                  and not name.endswith('/mag_corrected') and node.count_publishers(name))
 
 
 def learning_plan(node: Node, timeout_s: float) -> tuple[str, str]:

@@ -110,9 +110,7 @@ def _gone(pid: int) -> bool:
         return False
     try:
         os.kill(pid, 0)
-    except ProcessLookupError:
-        return True
-    except PermissionError:  # another user's process of that pid: ours is gone
+    except (ProcessLookupError, PermissionError):  # gone, or another user's took its pid
         return True
     try:  # ended, not yet reaped by its own parent
         return Path(f'/proc/{pid}/stat').read_text().rpartition(')')[2].split()[0] == 'Z'
