@@ -66,6 +66,10 @@ def test_the_imu_and_a_location_from_parameters_reach_the_calibration(ros, tmp_p
         assert float(values['model_intensity_uT']) == pytest.approx(
             model.intensity_nt / 1000.0, abs=0.01)
         assert int(values['readings_paired']) > 0
+        # how late this node handles each stream, from the MessageInfo rclpy hands the
+        # callbacks (issue #46 item 7: a late IMU is told apart from another clock)
+        for key in ('imu_handled_after_s', 'mag_handled_after_s'):
+            assert 0.0 <= float(values[key]) < math.inf, (key, values.get(key))
     finally:
         for node in (probe, calibrator, driver):
             ros.remove(node)

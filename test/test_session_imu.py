@@ -18,6 +18,7 @@ from mag_calibrator_ros.calibration.live.offline import calibrate_now, feed
 from mag_calibrator_ros.calibration.live.pairing import (
     PAIR_TOLERANCE_NS,
     PAIR_WAIT_NS,
+    Delivery,
     ImuPairing,
 )
 from mag_calibrator_ros.calibration.live.report import calibration_summary
@@ -459,6 +460,73 @@ def test_a_reading_waits_for_its_imu_sample_only_a_bounded_time(misaligned):
     assert session.report().imu.waiting > 0
     calibrate_now(session)
     assert session.report().imu.waiting == 0
+
+
+def stream_delivered(session, mag, accel, imu_stamp_offset_ns=0, imu_queued_ns=0,
+                     imu_transit_ns=0):
+    """The node's view, in arrival order: each reading handled 1 ms after it was sent; an IMU
+    sample stamped ``imu_stamp_offset_ns`` off its reading's, reaching this process
+    ``imu_transit_ns`` after it was sent and handled ``imu_queued_ns`` after that. Handled in
+    the order a single-threaded executor would: by handling time."""
+    events = []
+    for index in range(len(mag)):
+        sent = 10_000_000_000 + index * 10_000_000
+        events.append((sent + 1_000_000, 'mag', index, Delivery(sent, sent, sent + 1_000_000)))
+        received = sent + imu_transit_ns
+        events.append((received + imu_queued_ns, 'imu', index,
+                       Delivery(sent, received, received + imu_queued_ns)))
+    for _, kind, index, delivery in sorted(events, key=lambda event: event[0]):
+        stamp = index * 10_000_000
+        if kind == 'mag':
+            session.process(stamp, 'imu_link', mag[index], delivery)
+        else:
+            session.process_imu(stamp + imu_stamp_offset_ns, 'imu_link', accel[index],
+                                delivery=delivery)
+
+
+def starvation_said(session):
+    (warning,) = [w for w in warnings_of(session) if 'imu/data_raw stamps' in w]
+    return warning
+
+
+def test_an_imu_this_node_handles_late_is_said_to_be_the_nodes_lag(misaligned):
+    """Issue #46 item 7: under load the calibrator handled imu/data_raw 0.55 s late and said the
+    stamps were on other clocks, although the driver stamped both from one; the times DDS gives
+    each message (sent, received, handled) tell this node's own queue apart."""
+    mag, accel, _, _ = misaligned
+    session = CalibrationSession(SessionSettings(auto_calibrate=False))
+    stream_delivered(session, mag[:600], accel, imu_queued_ns=PAIR_WAIT_NS + 50_000_000)
+    assert session.report().imu.paired < 100
+    warning = starvation_said(session)
+    assert "imu/data_raw stamps are 0.550 s behind imu/mag's, because this node is behind: " \
+        'it handles imu/data_raw 0.550 s after it arrives (imu/mag 0.001 s after it was ' \
+        'sent), not because of the clocks' in warning, warning
+    assert 'give the calibrator more CPU' in warning and 'one clock' not in warning
+    values = diagnostics(session).values
+    assert values['imu_handled_after_s'] == pytest.approx(0.55)
+    assert values['mag_handled_after_s'] == pytest.approx(0.001)
+
+
+def test_an_imu_delivered_late_to_this_node_is_said_to_be_delivery(misaligned):
+    mag, accel, _, _ = misaligned
+    session = CalibrationSession(SessionSettings(auto_calibrate=False))
+    stream_delivered(session, mag[:600], accel, imu_transit_ns=700_000_000,
+                     imu_queued_ns=1_000_000)
+    warning = starvation_said(session)
+    assert ("imu/data_raw stamps are 0.700 s behind imu/mag's, because imu/data_raw reaches "
+            'this node 0.701 s after it was sent (imu/mag 0.001 s), not because of the clocks'
+            in warning), warning
+
+
+def test_stamps_on_another_clock_are_said_to_be_clocks_when_delivery_is_prompt(misaligned):
+    mag, accel, _, _ = misaligned
+    session = CalibrationSession(SessionSettings(auto_calibrate=False))
+    stream_delivered(session, mag[:600], accel, imu_stamp_offset_ns=-800_000_000)
+    warning = starvation_said(session)
+    assert ("imu/data_raw stamps are 0.800 s behind imu/mag's although this node handles both "
+            'within 0.001 s of their sending: their stamps come from different clocks'
+            in warning), warning
+    assert 'stamp both from one clock' in warning
 
 
 def test_an_imu_that_stops_or_keeps_time_is_no_starvation(misaligned):

@@ -102,6 +102,7 @@ from mag_calibrator_ros.calibration.fit.earth_field import (
     earth_field,
     import_model,
 )
+from mag_calibrator_ros.calibration.live.pairing import Delivery
 from mag_calibrator_ros.calibration.live.report import (
     NodeStatus,
     SessionReport,
@@ -170,6 +171,12 @@ INPUT_QOS = QoSProfile(
     reliability=qos_profile_sensor_data.reliability,
     durability=qos_profile_sensor_data.durability,
 )
+
+
+def delivery(info: dict) -> Delivery:
+    """When a message was sent, received and (now) handled, from rclpy's MessageInfo."""
+    return Delivery(int(info.get('source_timestamp') or 0),
+                    int(info.get('received_timestamp') or 0), time.time_ns())
 
 
 class MagCalibratorNode(Node):
@@ -342,11 +349,12 @@ class MagCalibratorNode(Node):
 
     # -- stream ----------------------------------------------------------------------------------
 
-    def _on_mag(self, msg: MagneticField) -> None:
+    def _on_mag(self, msg: MagneticField, info: dict) -> None:
         field = msg.magnetic_field
         stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         frame = msg.header.frame_id
-        processed = self.session.process(stamp_ns, frame, (field.x, field.y, field.z))
+        processed = self.session.process(stamp_ns, frame, (field.x, field.y, field.z),
+                                         delivery(info))
         if processed.corrected is not None:
             out = MagneticField(header=msg.header)
             out.magnetic_field.x, out.magnetic_field.y, out.magnetic_field.z = (
@@ -363,13 +371,13 @@ class MagCalibratorNode(Node):
             self._turning.reading_accepted()
         self._handle_events()
 
-    def _on_imu(self, msg: Imu) -> None:
+    def _on_imu(self, msg: Imu, info: dict) -> None:
         """O(1): the session keeps the sample to pair magnetometer readings with."""
         stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         accel, rate = msg.linear_acceleration, msg.angular_velocity
         gyro = None if msg.angular_velocity_covariance[0] == -1.0 else (rate.x, rate.y, rate.z)
         self.session.process_imu(stamp_ns, msg.header.frame_id, (accel.x, accel.y, accel.z),
-                                 gyro)
+                                 gyro, delivery(info))
 
     def _sync_imu_subscription(self) -> None:
         wanted = bool(self.get_parameter('use_imu').value)

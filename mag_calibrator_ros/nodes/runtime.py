@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+import functools
 import os
 from pathlib import Path
 import threading
@@ -32,8 +33,10 @@ process is gone, even if it was gone before the node could look at its parent.""
 
 def guarded(node: Node, name: str, callback: Callable) -> Callable:
     """``callback`` that logs an unexpected exception (with its traceback, at most every 5 s)
-    instead of letting it end the executor's spin: a node keeps running on bad luck."""
+    instead of letting it end the executor's spin: a node keeps running on bad luck. It has the
+    callback's signature, so a subscription callback of two arguments gets the MessageInfo."""
 
+    @functools.wraps(callback)
     def run(*args):
         try:
             return callback(*args)

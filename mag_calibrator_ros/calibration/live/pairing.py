@@ -17,18 +17,21 @@ Only what can mean that is paired: a sample that is no plausible specific force,
 another frame than the magnetometer's (an alignment between two frames would rotate the
 corrected field out of the frame its header names), is refused and counted by reason. When an
 IMU is there but its stamps never meet the readings' (another clock, a delay), most readings
-go unpaired: that is measured and said, with the offset; so is a gyroscope whose rates do not
-turn gravity's direction as the accelerometer sees it turn (``gravity.RateCheck``: deg/s).
+go unpaired: that is measured and said, with the offset, and, live, which it is: the times DDS
+gives each message (``Delivery``) tell a stream this node handles late, or one delivered late,
+from stamps on another clock. So is a gyroscope whose rates do not turn gravity's direction as
+the accelerometer sees it turn (``gravity.RateCheck``: deg/s).
 """
 
 from __future__ import annotations
 
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 import math
 import statistics
 import sys
+from typing import NamedTuple
 
 from mag_calibrator_ros.calibration.live.gravity import GravityTracker
 
@@ -77,6 +80,36 @@ FRAME_WARNING_MESSAGES = IMU_RING
 """A frame refusal is shown in /diagnostics until this many IMU messages passed without one."""
 MAX_WARNED_FRAMES = 16
 """Frame pairs warned about once each (a bound: a frame name per message cannot fill memory)."""
+
+
+class Delivery(NamedTuple):
+    """When one message was sent (the publisher's clock), received by this process's DDS reader
+    and handled by its callback (this computer's clock), in ns: rclpy's MessageInfo and
+    ``time.time_ns()``. A replay has none."""
+
+    sent_ns: int
+    received_ns: int
+    handled_ns: int
+
+
+@dataclass
+class DeliveryLags:
+    """How late one stream's recent messages were handled: after being sent (transport and this
+    node's queue) and after arriving (this node's queue alone), medians in seconds."""
+
+    _lags: deque[tuple[int, int]] = field(
+        default_factory=lambda: deque(maxlen=STARVATION_WINDOW))
+
+    def add(self, delivery: Delivery | None) -> None:
+        if delivery is not None and delivery.sent_ns > 0 and delivery.received_ns > 0:
+            self._lags.append((delivery.handled_ns - delivery.sent_ns,
+                               delivery.handled_ns - delivery.received_ns))
+
+    def after_sent(self) -> float | None:
+        return statistics.median(lag for lag, _ in self._lags) / 1e9 if self._lags else None
+
+    def queued(self) -> float | None:
+        return statistics.median(wait for _, wait in self._lags) / 1e9 if self._lags else None
 
 
 @dataclass
@@ -152,6 +185,8 @@ class ImuPairing:
         self._decided: list[tuple[object, Pair | None]] = []
         self._latest_sample: int | None = None  # the stamp of the latest kept sample
         self._readings_since_sample = IMU_ABSENT_READINGS
+        self.imu_lags, self.mag_lags = DeliveryLags(), DeliveryLags()
+        """How late this node handled the latest IMU messages and readings (live only)."""
 
     @property
     def refused(self) -> int:
@@ -159,13 +194,15 @@ class ImuPairing:
         return sum(self.refusals.values())
 
     def add(self, stamp_ns: int, accel: Sequence[float], gyro: Sequence[float] | None = None,
-            frame_id: str = '', stream_frame: str | None = None) -> bool:
+            frame_id: str = '', stream_frame: str | None = None,
+            delivery: Delivery | None = None) -> bool:
         """Keep one accelerometer (and gyroscope, rad/s) sample; O(1). False when refused (by
         IMU_REASONS): a non-finite or implausible specific force, or a ``frame_id`` other than
         the magnetometer stream's ``stream_frame`` (None while unknown: then readings pair only
         with samples of their own frame). A gyroscope sample with a non-finite value counts as
         none."""
         self.rate.count += 1
+        self.imu_lags.add(delivery)
         self._since_other_frame += 1
         force = _vector(accel)
         reason = 'non_finite' if force is None else force_problem(force, self.force_range)
@@ -190,8 +227,8 @@ class ImuPairing:
             self._decide()
         return True
 
-    def settle(self, stamp_ns: int, frame_id: str | None, item: object
-               ) -> list[tuple[object, Pair | None]]:
+    def settle(self, stamp_ns: int, frame_id: str | None, item: object,
+               delivery: Delivery | None = None) -> list[tuple[object, Pair | None]]:
         """Take one reading (``item``: whatever the caller learns from) and give back, in
         arrival order, the readings whose pair is now decided, each with its pair or None.
 
@@ -200,6 +237,7 @@ class ImuPairing:
         PAIR_WAIT_NS newer arrives, or beyond PAIR_WAIT_READINGS. Without an IMU (none kept, or
         none for IMU_ABSENT_READINGS readings) nothing waits; a stamp going back (a new clock)
         decides every waiting reading first."""
+        self.mag_lags.add(delivery)
         waiting = self._waiting
         if waiting and stamp_ns < waiting[-1][0]:
             self._decide_all()
@@ -308,13 +346,39 @@ class ImuPairing:
                 f'imu/data_raw sample within {PAIR_TOLERANCE_NS / 1e6:.0f} ms, so they are not '
                 'paired (no alignment to the IMU, no levelling)')
         if abs(offset) * 1e9 > PAIR_TOLERANCE_NS:
-            side = 'behind' if offset < 0 else 'ahead of'
-            return (f"imu/data_raw stamps are {abs(offset):.3f} s {side} imu/mag's: {what}; "
-                    'stamp both from one clock (the same driver, or synchronised clocks), and '
-                    'deliver imu/data_raw without delay')
+            return self._offset_cause(offset, what)
         spacing = statistics.median(abs(gap) for gap in gaps) / 1e6
         return (f'imu/data_raw samples are too sparse: {what} (median distance to the nearest '
                 f'{spacing:.0f} ms); publish the IMU at 50 Hz or more')
+
+    def _offset_cause(self, offset: float, what: str) -> str:
+        """Stamps ``offset`` s apart (IMU minus magnetometer, at arrival), said with its cause
+        when the times DDS gave the messages tell it: one stream handled later than the other
+        by at least half the offset, the other way round, is delivery (this node's own queue
+        when that is where the messages waited), not clocks."""
+        side = 'behind' if offset < 0 else 'ahead of'
+        stamps = f"imu/data_raw stamps are {abs(offset):.3f} s {side} imu/mag's"
+        imu, mag = self.imu_lags.after_sent(), self.mag_lags.after_sent()
+        if imu is None or mag is None:  # a replay, or a middleware without the times
+            return (f'{stamps}: {what}; stamp both from one clock (the same driver, or '
+                    'synchronised clocks), and deliver imu/data_raw without delay')
+        skew = imu - mag  # > 0: the IMU's messages reach the callback later
+        if skew * offset < 0 and abs(skew) >= abs(offset) / 2:
+            late, other = (('imu/data_raw', 'imu/mag') if skew > 0
+                           else ('imu/mag', 'imu/data_raw'))
+            lags = self.imu_lags if skew > 0 else self.mag_lags
+            slow, quick = max(imu, mag), min(imu, mag)
+            if lags.queued() >= slow / 2:
+                return (f'{stamps}, because this node is behind: it handles {late} '
+                        f'{lags.queued():.3f} s after it arrives ({other} {quick:.3f} s after '
+                        f'it was sent), not because of the clocks: {what}; give the calibrator '
+                        f'more CPU (fewer jobs beside it), or publish {late} at a lower rate')
+            return (f'{stamps}, because {late} reaches this node {slow:.3f} s after it was sent '
+                    f'({other} {quick:.3f} s), not because of the clocks: {what}; publish both '
+                    'from a computer with time to spare, or over a faster link')
+        return (f'{stamps} although this node handles both within {max(imu, mag):.3f} s of '
+                f'their sending: their stamps come from different clocks: {what}; stamp both '
+                'from one clock (the same driver, or synchronised clocks)')
 
     def rates_problem(self) -> str:
         """Why the gyroscope's rates disagree with the accelerometer ('' when they do not)."""
@@ -357,6 +421,7 @@ class ImuPairing:
 __all__ = [
     'IMU_REASONS',
     'IMU_RING',
+    'Delivery',
     'PAIR_TOLERANCE_NS',
     'PAIR_WAIT_NS',
     'PAIR_WAIT_READINGS',

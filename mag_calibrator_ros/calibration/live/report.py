@@ -623,6 +623,10 @@ def _reference_values(parts: ReportInputs, now: float | None) -> dict[str, objec
             values['imu_turning_share'] = round(pairing.gravity.rates.scale, 3)
         values['imu_warning'] = pairing.warning()
         values['static_attitudes'] = int(parts.attitudes.fill)
+    for stream, lags in (('imu', pairing.imu_lags), ('mag', pairing.mag_lags)):
+        lag = lags.after_sent()  # live only: how late this node handles the stream
+        if lag is not None:
+            values[f'{stream}_handled_after_s'] = round(lag, 4)
     calibration = parts.calibration
     if calibration is not None and calibration.aligned:
         for key in ('alignment_angle_deg', 'dip_deg', 'dip_std_deg', 'static_samples'):

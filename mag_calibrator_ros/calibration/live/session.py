@@ -49,7 +49,7 @@ from mag_calibrator_ros.calibration.live.evidence import (
 from mag_calibrator_ros.calibration.live.findings import Findings
 from mag_calibrator_ros.calibration.live.hints import MotionHints
 from mag_calibrator_ros.calibration.live.jobs import REFERENCE_OPTIONS, FitJob, JobOutcome
-from mag_calibrator_ros.calibration.live.pairing import ImuPairing, RateMeter
+from mag_calibrator_ros.calibration.live.pairing import Delivery, ImuPairing, RateMeter
 from mag_calibrator_ros.calibration.live.reference import BufferReference
 from mag_calibrator_ros.calibration.live.report import CalibrationAttempt
 from mag_calibrator_ros.calibration.live.rotation_track import (
@@ -193,8 +193,10 @@ class CalibrationSession:
     #              ``_complete``, which asks verdicts.py whether it goes in force
     #              (``_put_in_force``).
 
-    def process(self, stamp_ns: int, frame_id: str, field: Sequence[float]) -> Processed:
-        """Screen one message, learn from it, and correct it with the calibration in force."""
+    def process(self, stamp_ns: int, frame_id: str, field: Sequence[float],
+                delivery: Delivery | None = None) -> Processed:
+        """Screen one message, learn from it, and correct it with the calibration in force;
+        ``delivery``, live, says how late it was handled (for the pairing's warnings)."""
         self._input_rate.count += 1
         try:
             x0, x1, x2 = (float(value) for value in field)
@@ -216,7 +218,7 @@ class CalibrationSession:
             self._turns.add_reading(stamp_ns, reading)
         epochs = (self._compensation_epoch, self._state_epoch)
         decided = self._pairing.settle(stamp_ns, frame_id,
-                                       Reading(reading, stamp_ns, epochs, state))
+                                       Reading(reading, stamp_ns, epochs, state), delivery)
         if self._pairing.has_warnings:
             self._imu_warnings()
         self._advance()
@@ -232,12 +234,14 @@ class CalibrationSession:
                          self._errors.along(corrected))
 
     def process_imu(self, stamp_ns: int, frame_id: str, accel: Sequence[float],
-                    gyro: Sequence[float] | None = None) -> bool:
+                    gyro: Sequence[float] | None = None,
+                    delivery: Delivery | None = None) -> bool:
         """Keep one accelerometer (m/s^2) and gyroscope (rad/s) sample to pair magnetometer
         readings with (``ImuPairing.add``); False when refused, counted by reason: no plausible
         specific force, or ``frame_id`` not the magnetometer stream's (said once a frame)."""
         self._input_watch.offer_imu(stamp_ns, accel)
-        kept = self._pairing.add(stamp_ns, accel, gyro, frame_id, self._screen.frame_id)
+        kept = self._pairing.add(stamp_ns, accel, gyro, frame_id, self._screen.frame_id,
+                                 delivery)
         if kept and gyro is not None and self._settings.gyro_aided:
             self._turns.add_rate(stamp_ns, gyro)
         if kept and gyro is not None and self._compensation.learning:
