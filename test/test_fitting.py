@@ -4,6 +4,7 @@
 
 import json
 import math
+import re
 import warnings
 
 from hypothesis import HealthCheck, given, settings
@@ -283,6 +284,25 @@ def test_planar_without_prior_gives_heading_and_reports_the_unobserved_terms():
     )  # fmt: skip
     assert np.degrees(np.std(heading_error)) < 0.5
     assert result.metrics.coverage == 1.0  # heading sectors in the plane
+
+
+@pytest.mark.parametrize('sweep_deg', [100.0, 150.0])
+def test_a_short_turn_counts_the_headings_it_swept(sweep_deg):
+    """Issue #46 item 9: a robot that turned 100 deg was told 330-340 deg of heading were not yet
+    seen: the headings came from the planar fit's ellipse, which a short arc leaves anything
+    (here a 7:1 axis ratio, every reading squeezed into a few sectors). The ring's circle
+    counts them."""
+    rng = np.random.default_rng(25)
+    directions = yaw_directions(rng, 300)
+    swept = np.radians(sweep_deg) * (rng.uniform(size=300) - 0.5)
+    directions[:, 0], directions[:, 1] = (np.hypot(directions[:, 0], directions[:, 1])
+                                          * np.array([np.cos(swept), np.sin(swept)]))
+    raw, _ = readings(directions, rng, np.eye(3), np.array([55.0, -45.0, 25.0]))
+    result = fit_calibration(raw, FitOptions(model='planar'))
+    sectors = round(result.metrics.coverage * 36)
+    assert abs(sectors * 10 - sweep_deg) <= 20, (sectors, result.metrics.coverage_hint)
+    unseen = int(re.search(r'(\d+)° of heading not yet seen', result.metrics.coverage_hint)[1])
+    assert abs(unseen - (360 - sweep_deg)) <= 20, result.metrics.coverage_hint
 
 
 def test_planar_with_prior_keeps_the_vertical_and_corrects_heading():

@@ -974,7 +974,8 @@ def human_summary(summary: dict[str, Any]) -> str:
                  f"(gate {gates['max_residual_pct']:g} %)")
     hint = metrics.get('coverage_hint') or 'complete'
     coverage = None if metrics['coverage'] is None else 100.0 * metrics['coverage']
-    lines.append(f'coverage  {_pct(coverage)} of the direction sphere '
+    seen = 'headings' if summary['model'] == 'planar' else 'direction sphere'
+    lines.append(f'coverage  {_pct(coverage)} of the {seen} '
                  f"(gate {100.0 * gates['min_coverage']:g} %); {hint}")
     if metrics.get('unobserved'):
         unobserved = ', '.join(metrics['unobserved'])

@@ -706,7 +706,8 @@ def _coverage(
         ring, problem = fit_ring(rows[fitted.inliers], readings)
         if ring is None:  # a flat noise blob (a still sensor) has headings all round too
             return Coverage(0.0, 0, HEADING_SECTORS, problem)
-        return heading_coverage(fitted.headings[fitted.inliers], fitted.plane_normal)
+        # the ring's headings: a circle on a short arc, where the fit's ellipse is anything
+        return heading_coverage(ring.headings(rows[fitted.inliers]), fitted.plane_normal)
     inliers = rows if fitted.inliers.all() else rows[fitted.inliers]
     coverage = direction_coverage(inliers, calibration, readings)
     if coverage.occupied == 0 and calibration is not None:
