@@ -248,3 +248,22 @@ def test_distinct_rows_keep_first_occurrences_in_order_like_numpy_unique():
         rows[rng.random(len(rows)) < 0.2, 0] = -0.0  # equal to 0.0
         first = np.sort(np.unique(rows, axis=0, return_index=True)[1])
         np.testing.assert_array_equal(distinct_rows(rows), rows[first])
+
+
+def test_a_cap_of_the_sphere_stops_the_fit_where_it_starts_to_walk():
+    """Readings on a cap fit ever larger, flatter ellipsoids (the minimum is at infinity): the
+    fit used every iteration it had walking there (100 least-squares, 50 robust; half the time
+    ``mag_calibrator_fit`` took on the x-io Fusion example log), to be refused as
+    ill-conditioned. It stops at the first step past DIVERGED_CONDITION (old: 5.6e3 here), and
+    is refused the same."""
+    rng = np.random.default_rng(5)
+    directions = unit_vectors(rng, 3000)
+    cap = directions[directions[:, 2] > 0.5][:300]
+    raw = 50.0 * cap @ np.diag([1.05, 0.97, 1.0]).T + [30.0, -20.0, 10.0]
+    raw += rng.normal(0.0, 0.3, raw.shape)
+    result = fit_calibration(raw, FitOptions(model='full'))
+    assert not result.success
+    assert ellipsoid.DIVERGED_CONDITION < result.metrics.condition_number < (
+        1.1 * ellipsoid.DIVERGED_CONDITION)
+    with pytest.raises(ValueError, match='max_condition must be below 1000'):
+        FitOptions(max_condition=ellipsoid.DIVERGED_CONDITION)

@@ -64,6 +64,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
+import math
 from statistics import NormalDist
 
 import numpy as np
@@ -116,6 +117,12 @@ _LEAST_SQUARES_ITERATIONS = 100
 _LEAST_SQUARES_TOLERANCE = 1e-12
 _ROBUST_ITERATIONS = 50
 _ROBUST_TOLERANCE = 1e-8
+DIVERGED_CONDITION = 1000.0
+"""A fit whose Jacobian's condition number passes 1000 while it rises is walking where the
+readings determine nothing (a cap of the sphere fits ever larger ellipsoids: the minimum is at
+infinity), and its iterations stop. 66x the fit's gate (15 by default; FitOptions keeps
+``max_condition`` below this): no fit that passed it on the shared recordings and benchmarks
+started above 100."""
 
 
 def _spans(n: int) -> Iterator[slice]:
@@ -684,6 +691,7 @@ def _minimise(
     if not np.isfinite(cost):
         return params, residuals, None
     damping = 0.0
+    condition = _condition(normal)
     for _ in range(iterations):
         if not (np.all(np.isfinite(normal)) and np.all(np.isfinite(gradient))):
             break
@@ -712,7 +720,19 @@ def _minimise(
         if converged or _predicted_reduction(normal, gradient) <= tolerance * cost:
             break  # (the second test spares a pass that would move nothing: Gauss-Newton from an
             # algebraic start is there after one or two steps)
+        previous, condition = condition, _condition(normal)
+        if condition > max(DIVERGED_CONDITION, previous):
+            break  # see DIVERGED_CONDITION
     return params, residuals, normal
+
+
+def _condition(normal: np.ndarray) -> float:
+    """The condition number of the Jacobian behind ``normal`` (JᵀWJ): sqrt of its own."""
+    with np.errstate(all='ignore'):
+        scales = np.linalg.eigvalsh(normal) if np.all(np.isfinite(normal)) else None
+    if scales is None or not scales[0] > 0.0:
+        return np.inf
+    return math.sqrt(scales[-1] / scales[0])
 
 
 def _predicted_reduction(normal: np.ndarray, gradient: np.ndarray) -> float:

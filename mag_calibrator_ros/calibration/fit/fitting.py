@@ -30,6 +30,7 @@ from mag_calibrator_ros.calibration.fit.coverage import (
     whitened_directions,
 )
 from mag_calibrator_ros.calibration.fit.ellipsoid import (
+    DIVERGED_CONDITION,
     PARAMETER_COUNTS,
     EllipsoidFit,
     Normalisation,
@@ -110,6 +111,9 @@ class FitOptions:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 problems.append(f'{name} must be a positive number, got {value}')
+        if not self.max_condition < DIVERGED_CONDITION:  # the fit stops beyond it
+            problems.append(f'max_condition must be below {DIVERGED_CONDITION:g}, got '
+                            f'{self.max_condition}')
         if not (math.isfinite(self.max_axis_ratio) and self.max_axis_ratio >= 1.0):
             problems.append(f'max_axis_ratio must be >= 1, got {self.max_axis_ratio}')
         if not 0.0 <= self.planar_thickness < 1.0:
