@@ -449,10 +449,10 @@ def test_the_subscription_callback_never_runs_a_fit(ros, monkeypatch, tmp_path):
         recorded(module, name)
     on_mag = mag_calibrator.MagCalibratorNode._on_mag
 
-    def instrumented(self, msg):
+    def instrumented(self, msg, info):
         inside.active = True
         try:
-            on_mag(self, msg)
+            on_mag(self, msg, info)
         finally:
             inside.active = False
 
@@ -464,7 +464,7 @@ def test_the_subscription_callback_never_runs_a_fit(ros, monkeypatch, tmp_path):
                         refine_period=1.0, calibration_file=str(tmp_path / 'c.yaml'))
     try:
         for index, row in enumerate(mag):
-            node._on_mag(magnetic_field(index * STEP_NS, row))
+            node._on_mag(magnetic_field(index * STEP_NS, row), {})
             runner.run_pending()
             node._on_poll()
             if index % 100 == 0:  # once a stream second, as the diagnostics timer
@@ -505,7 +505,7 @@ def test_node_and_mag_calibrator_fit_agree_on_the_same_stream(ros, shared_data, 
     monkeypatch.setattr(node, '_publisher', published)
     try:
         for i, row in enumerate(rows):
-            node._on_mag(magnetic_field(1_000_000_000_000 + i * 10_000_000, row))
+            node._on_mag(magnetic_field(1_000_000_000_000 + i * 10_000_000, row), {})
             node._on_poll()  # fits finish in the worker whenever they do: held readings wait
         assert [stamp_ns(m) for m in published.messages] == [
             1_000_000_000_000 + i * 10_000_000 for i in range(len(rows))]  # every one came back

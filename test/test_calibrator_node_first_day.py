@@ -89,8 +89,9 @@ def test_a_reading_judged_off_is_published_with_its_uncertainty(ros, tmp_path, m
     measured = {'error': 0.0}  # what the session says of the next message
     process = node.session.process
 
-    def judged(stamp_ns: int, frame_id: str, field):
-        return process(stamp_ns, frame_id, field)._replace(uncertainty=measured['error'])
+    def judged(stamp_ns: int, frame_id: str, field, delivery=None):
+        return process(stamp_ns, frame_id, field, delivery)._replace(
+            uncertainty=measured['error'])
 
     monkeypatch.setattr(node.session, 'process', judged)
     field = [130e-6, -60e-6, 20e-6]
@@ -104,7 +105,7 @@ def test_a_reading_judged_off_is_published_with_its_uncertainty(ros, tmp_path, m
             msg = magnetic_field(stamp * 10_000_000, field)
             if covariance is not None:
                 msg.magnetic_field_covariance = covariance.reshape(9)
-            node._on_mag(msg)
+            node._on_mag(msg, {})  # no MessageInfo: no delivery times
         out = [np.reshape(m.magnetic_field_covariance, (3, 3)) for m in published.messages]
         carried = correction @ known @ correction.T
         assert len(out) == 4

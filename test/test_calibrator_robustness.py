@@ -57,8 +57,8 @@ def watch_outcomes(node) -> dict[int, bool]:
     outcomes: dict[int, bool] = {}
     process = node.session.process
 
-    def recorded(stamp_ns, frame_id, field):
-        processed = process(stamp_ns, frame_id, field)
+    def recorded(stamp_ns, frame_id, field, delivery=None):
+        processed = process(stamp_ns, frame_id, field, delivery)
         outcomes[stamp_ns // 1_000_000_000] = processed.corrected is not None or (
             processed.accepted and node.get_parameter('publish_uncalibrated').value)
         return processed
@@ -203,6 +203,8 @@ def test_params_file_with_integers_loads(tmp_path):
     ('"oops"', '5.0e-5', ('calibration.* parameters unusable', 'offset')),
     # µT, the unit every log line shows, read as tesla: |B| of 1.9e8 µT was published (#46)
     ('[120.03, -80.0, 60.0]', '50.0', ('looks like µT',)),
+    # within 10 mT but beyond the AK09916's 4.9 mT (full_scale): every reading would saturate
+    ('[6.0e-3, 0.0, 0.0]', '5.0e-5', ('beyond what the magnetometer reads', '4.9128 mT full')),
 ])
 def test_params_file_unusable_runs_uncalibrated_and_says_why(tmp_path, offset, strength, words):
     path = params_file(tmp_path, f'      offset: {offset}\n'

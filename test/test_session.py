@@ -680,3 +680,20 @@ def test_a_stuck_fit_worker_answers_the_request_says_error_and_is_replaced():
         assert session.report().level == 'OK'
     finally:
         runner.close()
+
+
+def test_a_calibration_whose_offset_is_beyond_the_full_scale_is_refused():
+    """Issue #46 item 3: an offset no reading of this magnetometer can carry (beyond the
+    configured full_scale: every reading would saturate) is another unit, refused where a
+    calibration enters; without a full scale (0: a recording in an unknown unit) it is not
+    judged."""
+    beyond = Calibration(np.array([6e-3, 0.0, 0.0]), np.eye(3), 50e-6)
+    session = CalibrationSession(SessionSettings(full_scale=AK09916_FULL_SCALE_T))
+    problem = session.apply_calibration(beyond, 'file')
+    assert problem is not None and 'beyond what the magnetometer reads (4.9128 mT full ' \
+        'scale)' in problem, problem
+    assert session.calibration is None
+    within = Calibration(np.array([4e-3, 0.0, 0.0]), np.eye(3), 50e-6)
+    assert session.apply_calibration(within, 'file') is None
+    assert session.calibration is within
+    assert CalibrationSession(SessionSettings()).apply_calibration(beyond, 'file') is None

@@ -303,10 +303,12 @@ class MagCalibratorNode(Node):
         if parameters_given(given):
             try:
                 calibration = calibration_from(given)
+                problem = self.session.apply_calibration(calibration, 'parameters')
             except (CalibrationError, ValueError, TypeError) as error:
-                self._report_problem(f'calibration.* parameters unusable: {error}')
+                problem = str(error)
+            if problem is not None:
+                self._report_problem(f'calibration.* parameters unusable: {problem}')
                 return
-            self.session.apply_calibration(calibration, 'parameters')
             self.get_logger().info(
                 f'calibration from parameters: {calibration_summary(calibration)}')
             on_file = loaded.calibration if isinstance(loaded, LoadedCalibration) else None
@@ -325,6 +327,10 @@ class MagCalibratorNode(Node):
 
     def _loaded(self, path: Path, loaded: LoadedCalibration | Exception) -> tuple[bool, str]:
         """Put a calibration read from ``path`` in force, or report why it could not be."""
+        if not isinstance(loaded, Exception):
+            problem = self.session.apply_calibration(loaded.calibration, 'file')
+            if problem is not None:
+                loaded = CalibrationError(f'{loaded.path}: {problem}')
         if isinstance(loaded, Exception):
             message = f'{loaded}; the calibration in force is unchanged'
             if self.session.calibration is not None:  # it still works: a WARN until fixed
@@ -335,7 +341,6 @@ class MagCalibratorNode(Node):
                 f'{message} (state {self.session.report().state})')
         for note in loaded.notes:
             self.get_logger().warning(f'{loaded.path}: {note}')
-        self.session.apply_calibration(loaded.calibration, 'file')
         self._saved = loaded.calibration
         self._problem = self._file_warning = None
         message = f'loaded {loaded.path}: {calibration_summary(loaded.calibration)}'

@@ -26,6 +26,7 @@ from mag_calibrator_ros.calibration.fit.calibration import Calibration
 from mag_calibrator_ros.calibration.fit.coverage import Coverage
 from mag_calibrator_ros.calibration.fit.earth_field import EarthField, EarthReference
 from mag_calibrator_ros.calibration.fit.heading import PlaneWatch
+from mag_calibrator_ros.calibration.fit.input_sanity import calibration_unit_problem
 from mag_calibrator_ros.calibration.live import report
 from mag_calibrator_ros.calibration.live.alignment_wait import AlignmentWait
 from mag_calibrator_ros.calibration.live.backlog import DRAIN_PER_MESSAGE, Backlog, Reading
@@ -591,9 +592,16 @@ class CalibrationSession:
 
     # -- the calibration in force and the buffer's reference -----------------------------------
 
-    def apply_calibration(self, calibration: Calibration, source: str = 'file') -> None:
-        """Put a calibration in force at once (a file, parameters)."""
-        self._put_in_force(calibration, source)
+    def apply_calibration(self, calibration: Calibration, source: str = 'file') -> str | None:
+        """Put a calibration in force at once (a file, parameters), or say why it cannot be:
+        an offset beyond ``full_scale`` (every reading would saturate: another unit)."""
+        limit, problem = self._settings.full_scale_limit, None
+        if limit is not None and not np.max(np.abs(calibration.offset)) <= limit:
+            problem = calibration_unit_problem(calibration.offset, calibration.field_strength,
+                                               limit)
+        if problem is None:
+            self._put_in_force(calibration, source)
+        return problem
 
     def _put_in_force(self, calibration: Calibration, source: str) -> None:
         """The one door through which the calibration in force changes; ``source`` says why.
