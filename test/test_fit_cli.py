@@ -19,6 +19,7 @@ from rosbags.rosbag2 import StoragePlugin
 from test_recordings import write_bag
 import yaml
 
+from mag_calibrator_ros.calibration.fit.coverage import places, readings_barely_change
 from mag_calibrator_ros.calibration.fit.fitting import FitOptions, fit_calibration
 from mag_calibrator_ros.calibration.live.offline import calibrate_now, feed
 from mag_calibrator_ros.calibration.live.screening import reading_problem
@@ -144,15 +145,32 @@ def test_buffer_mode_streams_through_the_live_session_as_the_node_does(shared_da
     assert summary['metrics']['n_samples'] == live.buffer.fill
 
 
-def test_all_mode_fits_every_sample(shared_data, capsys):
+def test_all_mode_fits_every_reading_one_per_place(shared_data, capsys):
     path = shared_data / 'lsm303dlhc-altimu10v3' / 'mag_2.txt'
     code, summary, _ = run_json(capsys, [str(path), '--all', '--model', 'full'])
-    expected = fit_calibration(read_recording(path).samples, FitOptions(model='full'))
+    samples = read_recording(path).samples
+    expected = fit_calibration(places(samples)[0], FitOptions(model='full'))
     assert code == 0
-    assert summary['metrics']['n_samples'] == 301
+    assert summary['all'] == {'readings': 301, 'places': summary['metrics']['n_samples']}
+    assert 250 < summary['metrics']['n_samples'] <= 301  # a log taken to calibrate: few repeats
     assert summary['model'] == 'full'
     np.testing.assert_array_equal(summary['offset'], expected.calibration.offset)
     assert 'buffer' not in summary
+
+
+def test_all_mode_is_not_won_by_the_pauses_of_a_real_hand(capsys):
+    """BROAD trial 04 (test/data/broad): a sensor turned by hand with breaks, half its rows
+    pauses whose |B| is 5 % below the moving rows'. Fitted row by row, the pauses won: F 7.7
+    uT for 44 and 'the readings barely change' (a planar F 99-159 uT with auto). One reading
+    per place, it calibrates as the node's buffer does."""
+    path = Path(__file__).parent / 'data' / 'broad' / '04_with_breaks_A_every40.csv'
+    rows = read_recording(path).samples
+    assert not readings_barely_change(rows)
+    code, summary, _ = run_json(capsys, [str(path), '--all', '--units', 'uT'])
+    assert code == 0, summary['reason']
+    assert summary['model'] == 'full'
+    assert summary['field_strength'] == pytest.approx(44.1, abs=0.5)
+    assert summary['metrics']['coverage'] >= 0.5
 
 
 def test_human_summary_names_everything_a_user_needs(shared_data, capsys):
@@ -255,7 +273,7 @@ def test_all_mode_counts_zero_and_saturated_rows(shared_data, tmp_path, capsys):
     assert code == 0
     assert summary['rejects']['zero'] == 3
     assert summary['rejects']['saturated'] == 2
-    assert summary['metrics']['n_samples'] == len(rows)
+    assert summary['all']['readings'] == len(rows)  # fitted one per place (coverage.places)
     code, summary, _ = run_json(capsys, [str(path), '--full-scale', '400'])
     assert code == 0
     assert summary['rejects']['zero'] == 3

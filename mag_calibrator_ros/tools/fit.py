@@ -6,9 +6,10 @@ The recording (text or rosbag2, see :mod:`mag_calibrator_ros.tools.recordings`) 
 the calibrator node's own :class:`CalibrationSession` (sample buffer, its reference fits,
 automatic calibration and refinement, at the same readings as the node) and the buffer is then
 fitted as the node does on ``~/calibrate``, so an offline result predicts what the robot gets;
-or, with ``--all``, every sample is fitted. The calibration is reported in the recording's own
-units; ``--output`` writes it in tesla, the node's unit, so it needs the recording's unit
-(``--units``, a header such as ``Magnetometer X (uT)``, a bag or ``ros2 topic echo``: tesla) or
+or, with ``--all``, every reading, one per place (``coverage.places``: pauses weigh as moves).
+The calibration is reported in the recording's own units; ``--output`` writes it in tesla, the
+node's unit, so it needs the recording's unit (``--units``, a header such as ``Magnetometer X
+(uT)``, a bag or ``ros2 topic echo``: tesla) or
 the tesla per count of raw counts (``--scale``, which converts the samples to tesla as they are
 read).
 
@@ -54,6 +55,7 @@ import numpy as np
 
 from mag_calibrator_ros.calibration.fit.alignment import Alignment, StaticAttitudes
 from mag_calibrator_ros.calibration.fit.calibration import MODELS, Calibration
+from mag_calibrator_ros.calibration.fit.coverage import places
 from mag_calibrator_ros.calibration.fit.earth_field import (
     MAX_DIP_ERROR_DEG,
     MAX_FIELD_ERROR_PCT,
@@ -199,7 +201,8 @@ def build_parser() -> argparse.ArgumentParser:
                       'points and fit the buffer, exactly as the node does (the default mode; '
                       f'N={DEFAULT_CAPACITY})')
     mode.add_argument('--all', action='store_true',
-                      help='fit every sample instead of the buffer')
+                      help='fit every reading (one per place: pauses weigh as moves) instead '
+                           'of the buffer')
     parser.add_argument('--k', type=int, default=None,
                         help=f"neighbours in the buffer's uniqueness score (default {DEFAULT_K})")
     strength = parser.add_mutually_exclusive_group()
@@ -401,6 +404,11 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
                                         args.full_scale, recording.gyro)
             ups, rates = gravity_directions(recording.accel, recording.gyro, clock.stamps_ns)
             ups = ups[kept]
+        every_reading = len(fitted)
+        fitted, ups = places(fitted, ups)  # each place once: the pauses weigh as the moves
+        if ups is not None:
+            with np.errstate(invalid='ignore', divide='ignore'):
+                ups = ups / np.linalg.norm(ups, axis=1, keepdims=True)
         if earth is not None and args.field_strength is None and not args.normalise:
             intensity = earth.intensity_in(units)
             if intensity is not None:  # the model's intensity is the target, as in the node
@@ -449,6 +457,8 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     summary = build_summary(args, recording, units, result, calibration, session, screening,
                             written, plotted)
     summary['compensation'] = _finite(own_field.summary(recording, calibration, learner))
+    if session is None:
+        summary['all'] = {'readings': every_reading, 'places': len(fitted)}
     if learner is not session and learner is not None:  # what the first pass did, learning
         counts = learner.report().counts
         summary['buffer']['learning_pass'] = {'fits': dict(counts.fits),
@@ -955,7 +965,8 @@ def human_summary(summary: dict[str, Any]) -> str:
             lines.append(f'          that is a second pass, over the readings without the '
                          f'own field the first pass learned (its live fits: {learning})')
     else:
-        lines.append(f"mode      all: fitted every one of {metrics['n_samples']} samples")
+        lines.append(f"mode      all: every reading, one per place: {metrics['n_samples']} "
+                     f"places of {summary['all']['readings']} readings")
     lines.extend(fit_start.lines(start))
     how = f"   {summary['reason'].removeprefix('ok ')}" if summary['success'] else ''
     lines.append(f"model     {summary['model']}{how}")
