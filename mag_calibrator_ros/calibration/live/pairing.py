@@ -366,11 +366,11 @@ class ImuPairing:
         if skew * offset < 0 and abs(skew) >= abs(offset) / 2:
             late, other = (('imu/data_raw', 'imu/mag') if skew > 0
                            else ('imu/mag', 'imu/data_raw'))
-            lags = self.imu_lags if skew > 0 else self.mag_lags
+            queued = (self.imu_lags if skew > 0 else self.mag_lags).queued()
             slow, quick = max(imu, mag), min(imu, mag)
-            if lags.queued() >= slow / 2:
+            if queued >= slow / 2:
                 return (f'{stamps}, because this node is behind: it handles {late} '
-                        f'{lags.queued():.3f} s after it arrives ({other} {quick:.3f} s after '
+                        f'{queued:.3f} s after it arrives ({other} {quick:.3f} s after '
                         f'it was sent), not because of the clocks: {what}; give the calibrator '
                         f'more CPU (fewer jobs beside it), or publish {late} at a lower rate')
             return (f'{stamps}, because {late} reaches this node {slow:.3f} s after it was sent '
