@@ -19,7 +19,7 @@ readings between which the robot barely turned (``fit/compensation.py`` gyro_pai
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 import math
 
@@ -342,6 +342,12 @@ class CompensationLearner:
         """Length of an own-field state (``observe``): the inputs, then the temperature and
         whether it was known."""
         return len(self.series) + 2
+
+    def change(self, old: Compensation | None,
+               new: Compensation | None) -> Callable[[np.ndarray], np.ndarray]:
+        """What moves a reading compensated by ``old`` to ``new``'s compensation, as a function of
+        its own-field states (``SampleBuffer.shift``)."""
+        return lambda states: self.field_of(old, states) - self.field_of(new, states)
 
     def field_of(self, compensation: Compensation | None, states: np.ndarray) -> np.ndarray:
         """What ``compensation`` takes off readings with these own-field states, (n, 3): the

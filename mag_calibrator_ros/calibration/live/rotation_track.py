@@ -130,6 +130,17 @@ class RotationTrack:
         self._next_fit_s = now_s + period_s
         return True
 
+    def fit_due(self, now_s: float, calibrated: bool) -> str | None:
+        """The gyro-aided fit due now: 'gyro' while nothing is in force, once calibrated 'step'
+        every STEP_PERIOD_S (a magnet attached: the offset steps); None when none is."""
+        if not calibrated:
+            return 'gyro' if self.due(now_s) else None
+        return 'step' if self.due(now_s, STEP_PERIOD_S, STEP_WINDOWS) else None
+
+    def fit_snapshot(self, kind: str) -> TurnedReadings | None:
+        """The readings a 'gyro' (FIT_WINDOWS) or 'step' (STEP_WINDOWS) fit takes."""
+        return self.snapshot(FIT_WINDOWS if kind == 'gyro' else STEP_WINDOWS)
+
     def snapshot(self, last_windows: int | None = None) -> TurnedReadings | None:
         """The readings kept (of the latest ``last_windows`` windows: None, all), their
         attitudes (as rotation matrices) and windows; None before WINDOWS_NEEDED are kept."""

@@ -24,10 +24,10 @@ import numpy as np
 from mag_calibrator_ros.calibration.fit.alignment import StaticAttitudes
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
 from mag_calibrator_ros.calibration.fit.coverage import Coverage
-from mag_calibrator_ros.calibration.fit.earth_field import EarthField, EarthReference
+from mag_calibrator_ros.calibration.fit.earth_field import EarthField
 from mag_calibrator_ros.calibration.fit.heading import PlaneWatch
 from mag_calibrator_ros.calibration.fit.input_sanity import calibration_unit_problem
-from mag_calibrator_ros.calibration.live import report
+from mag_calibrator_ros.calibration.live import report, verdicts
 from mag_calibrator_ros.calibration.live.alignment_wait import AlignmentWait
 from mag_calibrator_ros.calibration.live.backlog import DRAIN_PER_MESSAGE, Backlog, Reading
 from mag_calibrator_ros.calibration.live.buffer import SampleBuffer
@@ -53,12 +53,7 @@ from mag_calibrator_ros.calibration.live.jobs import REFERENCE_OPTIONS, FitJob, 
 from mag_calibrator_ros.calibration.live.pairing import Delivery, ImuPairing, RateMeter
 from mag_calibrator_ros.calibration.live.reference import BufferReference
 from mag_calibrator_ros.calibration.live.report import CalibrationAttempt
-from mag_calibrator_ros.calibration.live.rotation_track import (
-    FIT_WINDOWS,
-    STEP_PERIOD_S,
-    STEP_WINDOWS,
-    RotationTrack,
-)
+from mag_calibrator_ros.calibration.live.rotation_track import RotationTrack
 from mag_calibrator_ros.calibration.live.sanity import InputWatch
 from mag_calibrator_ros.calibration.live.scheduler import (
     FitScheduler,
@@ -67,19 +62,7 @@ from mag_calibrator_ros.calibration.live.scheduler import (
 )
 from mag_calibrator_ros.calibration.live.screening import SCREEN_REASONS, ReadingScreen
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
-from mag_calibrator_ros.calibration.live.tracker import OnlineTracker, new_direction
-from mag_calibrator_ros.calibration.live.verdicts import (
-    Verdict,
-    automatic_verdict,
-    check_verdict,
-    gyro_verdict,
-    judged_on_evidence,
-    passed_own_gates,
-    realign_verdict,
-    refinement_verdict,
-    request_verdict,
-    step_verdict,
-)
+from mag_calibrator_ros.calibration.live.tracker import Tracking
 from mag_calibrator_ros.calibration.live.view import CalibrationView, calibration_view
 from mag_calibrator_ros.calibration.live.worker import FitRunner, InlineRunner
 
@@ -126,10 +109,7 @@ class CalibrationSession:
         self._adoptions: dict[str, int] = {}  # these counts: ``report.SessionCounts``
         self._jobs_run: dict[str, int] = {}
         self._stale_dropped = 0
-        self._tracker: OnlineTracker | None = None
-        self._tracked_updates = 0
-        self._last_taught: np.ndarray | None = None  # corrected direction last fed to the tracker
-        self._last_tracking_check: float | None = None
+        self._tracking = Tracking()  # the online tracker of the calibration in force
         self._buffer_reference = BufferReference(self._buffer)
         self._backlog = Backlog()  # the readings that arrive while a fit runs
         self._compensation_epoch = 0  # bumped by each compensation put in force
@@ -167,7 +147,7 @@ class CalibrationSession:
         self._hints.measured(None)  # measured with the old settings (model, buffer)
         self._screen.full_scale = settings.full_scale_limit
         if settings.online_tracking != old.online_tracking:
-            self._restart_tracker()
+            self._tracking.restart(self._calibration, self._settings.online_tracking)
         self._compensation.configure(*settings.compensation)
 
     def close(self) -> None:
@@ -220,8 +200,7 @@ class CalibrationSession:
         epochs = (self._compensation_epoch, self._state_epoch)
         decided = self._pairing.settle(stamp_ns, frame_id,
                                        Reading(reading, stamp_ns, epochs, state), delivery)
-        if self._pairing.has_warnings:
-            self._imu_warnings()
+        self._imu_warnings()
         self._advance()
         for item, pair in decided:  # arrival order, each once its IMU sample could be there
             (self._hold if self._job is not None or len(self._backlog) else self._ingest)(
@@ -247,8 +226,7 @@ class CalibrationSession:
             self._turns.add_rate(stamp_ns, gyro)
         if kept and gyro is not None and self._compensation.learning:
             self._compensation.gyro(stamp_ns, gyro)
-        if self._pairing.has_warnings:
-            self._imu_warnings()
+        self._imu_warnings()
         return kept
 
     def process_temperature(self, stamp_ns: int | None, celsius: float) -> None:
@@ -265,7 +243,7 @@ class CalibrationSession:
         self._attitudes.finish()
 
     def _imu_warnings(self) -> None:
-        for warning in self._pairing.take_warnings():
+        for warning in self._pairing.take_warnings() if self._pairing.has_warnings else ():
             self._event('warning', warning)
 
     def set_earth_field(self, field: EarthField | None) -> None:
@@ -335,11 +313,7 @@ class CalibrationSession:
                 self._scheduler.sample_added(self._buffer.fill == self._buffer.capacity)
             if self._buffer_reference.source is not None:
                 self._check_reference()
-            if self._tracker is not None:
-                direction = new_direction(self._calibration.apply(reading), self._last_taught)
-                if direction is not None:
-                    self._last_taught = direction
-                    self._tracker.update(reading)
+            self._tracking.teach(self._calibration, reading)
         if now >= self._next_periodic:
             self._next_periodic = now + PERIODIC_S
             self._update_centre()
@@ -356,13 +330,9 @@ class CalibrationSession:
                 self._submit(kind)
 
     def _gyro_due(self, now: float) -> str | None:
-        """'gyro' while nothing is in force and the turning kept is worth a fit; once
-        calibrated, 'step' every STEP_PERIOD_S (a magnet attached: the offset steps)."""
         if not (self._settings.gyro_aided and self._settings.auto_calibrate):
             return None
-        if self._calibration is None:
-            return 'gyro' if self._turns.due(now) else None
-        return 'step' if self._turns.due(now, STEP_PERIOD_S, STEP_WINDOWS) else None
+        return self._turns.fit_due(now, self._calibration is not None)  # 'gyro', 'step'
 
     def _update_centre(self) -> None:
         radius = 0.0
@@ -399,15 +369,14 @@ class CalibrationSession:
     def _make_job(self, kind: str, ticket: int | None) -> FitJob:
         buffer = self._buffer
         samples, weights, readings = buffer.samples, buffer.counts, buffer.readings
+        metadata = {**self._metadata, 'frame_id': self._screen.frame_id or ''}
+        alignment = self._settings.alignment_options(self._findings.earth)
         if kind == 'compensate':  # the robot's own field: live/compensation.py
             return self._compensation.job(self._calibration)
         if kind in ('gyro', 'step'):
             return FitJob(kind, np.zeros((0, 3)), None, None, self._settings.fit_options(),
-                          metadata={**self._metadata, 'frame_id': self._frame_id},
-                          current=self._calibration,
-                          alignment=self._settings.alignment_options(self._findings.earth),
-                          turned=self._turns.snapshot(
-                              FIT_WINDOWS if kind == 'gyro' else STEP_WINDOWS))
+                          metadata=metadata, current=self._calibration, alignment=alignment,
+                          turned=self._turns.fit_snapshot(kind))
         if kind == 'reference':
             return FitJob('reference', samples, weights, readings, REFERENCE_OPTIONS,
                           previous=self._buffer_reference.provisional)
@@ -416,34 +385,26 @@ class CalibrationSession:
             plane = self._buffer_reference.calibration_plane
             if plane is not None:  # a planar one knows nothing off its plane
                 recent = recent[plane.near(recent)]
-            tracked = None if self._tracker is None else self._tracker.calibration
             return FitJob('check', samples, weights, readings, self._settings.fit_options(),
                           current=self._calibration, evidence=self._evidence.readings(),
-                          recent=recent, tracked=tracked, reference=buffer.reference)
-        metadata = {**self._metadata, 'frame_id': self._frame_id}
+                          recent=recent, tracked=self._tracking.calibration,
+                          reference=buffer.reference)
         evidence = self._evidence.readings() if self._calibration is not None else None
         attitudes = self._attitudes.snapshot() if self._settings.align else None
+        if attitudes is not None and not (len(attitudes) or self._pairing.paired):
+            attitudes = None  # no IMU: the fit is not aligned
         return FitJob(
             'refine' if kind == 'refine' else 'calibrate', samples, weights, readings,
             self._findings.fit_options(self._settings, self._units), metadata=metadata,
-            current=self._calibration,
-            evidence=evidence, ticket=ticket,
+            current=self._calibration, evidence=evidence, ticket=ticket,
             ready_coverage=self._settings.min_coverage if kind == 'calibrate' else None,
-            reference=buffer.reference,
-            attitudes=attitudes if attitudes is not None and (len(attitudes)
-                                                              or self._pairing.paired)
-            else None,
-            alignment=self._settings.alignment_options(self._findings.earth),
-            earth=self._earth_reference(),
+            reference=buffer.reference, attitudes=attitudes, alignment=alignment,
+            earth=self._findings.earth_reference(self._settings, self._units),
             ups=buffer.ups if buffer.paired else None,
             paired=buffer.paired_readings if buffer.paired else None,
             turned=self._turns.snapshot() if kind == 'refine' and self._settings.gyro_aided
             else None,
         )
-
-    def _earth_reference(self) -> EarthReference | None:
-        """The World Magnetic Model's field here with the tolerances a fit is checked by."""
-        return self._findings.earth_reference(self._settings, self._units)
 
     # -- a fit's outcome -----------------------------------------------------------------------
 
@@ -480,17 +441,16 @@ class CalibrationSession:
             self._answer(self._compensation.window_answer(self._clock.now, self._calibration,
                                                          verdict))
         elif job.kind == 'gyro':
-            self._apply(gyro_verdict(outcome, current, self._units))
+            self._apply(verdicts.gyro_verdict(outcome, current, self._units))
         elif job.kind == 'step':
-            verdict = step_verdict(outcome, current, self._units)
+            verdict = verdicts.step_verdict(outcome, current, self._units)
             self._apply(verdict)
             if verdict.collect_anew:  # the old readings describe another sensor
-                self._collect_anew(self._clock.now)
-                self._evidence.clear()
+                self._collect_anew(math.inf)
                 self._turns.forget()
         elif job.ticket is not None:
             self._note_reference(outcome)
-            verdict = request_verdict(outcome, current, self._units, self._findings.earth)
+            verdict = verdicts.request_verdict(outcome, current, self._units, self._findings.earth)
             self._apply(verdict, job.ticket)
         elif job.kind == 'calibrate':
             self._scheduler.calibrate_done(self._clock.now, outcome.fitted or bool(outcome.error),
@@ -498,20 +458,20 @@ class CalibrationSession:
             if outcome.result is not None and not outcome.error:
                 self._note_reference(outcome)
             self._apply(self._alignment_wait.judge(
-                automatic_verdict(outcome, current, self._misfit.misfit, self._units,
-                                  self._findings.earth),
+                verdicts.automatic_verdict(outcome, current, self._misfit.misfit, self._units,
+                                           self._findings.earth),
                 outcome, self._clock.now, self._pairing.paired > 0, self._settings.align))
         else:
-            verdict = refinement_verdict(outcome, current)
+            verdict = verdicts.refinement_verdict(outcome, current)
             self._apply(verdict)
             if not outcome.error:
                 self._note_reference(outcome)
             if verdict.adopt is None:
-                self._apply(realign_verdict(outcome, current))
-            self._scheduler.refine_done(judged_on_evidence(outcome.comparison),
+                self._apply(verdicts.realign_verdict(outcome, current))
+            self._scheduler.refine_done(verdicts.judged_on_evidence(outcome.comparison),
                                        verdict.adopt is not None)
 
-    def _apply(self, verdict: Verdict, ticket: int | None = None) -> None:
+    def _apply(self, verdict: verdicts.Verdict, ticket: int | None = None) -> None:
         """Record a verdict's attempt, put its calibration in force and log it. The event
         carries the attempt when it answers a request or puts the fit in force."""
         if verdict.attempt is not None:
@@ -538,10 +498,9 @@ class CalibrationSession:
         if not outcome.error and outcome.job.current is self._calibration:
             misfit_change = self._misfit.update(now, outcome.fit_check)
             if outcome.comparison is not None:
-                last, self._last_tracking_check = self._last_tracking_check, now
-                since_last_check_s = None if last is None else now - last
-        verdict = check_verdict(outcome, self._calibration, misfit_change, since_last_check_s,
-                                self._settings, self._units)
+                since_last_check_s = self._tracking.checked(now)
+        verdict = verdicts.check_verdict(outcome, self._calibration, misfit_change,
+                                         since_last_check_s, self._settings, self._units)
         if verdict.message:
             self._event(verdict.level, verdict.message)
         if verdict.collect_anew:
@@ -551,7 +510,7 @@ class CalibrationSession:
 
     def _note_reference(self, outcome: JobOutcome) -> None:
         """Only a fit that passed its own gates (the model's aside) tells about the place."""
-        for warning in self._findings.note(outcome) if passed_own_gates(outcome) else ():
+        for warning in self._findings.note(outcome) if verdicts.passed_own_gates(outcome) else ():
             self._event('warning', warning)
 
     def request_calibration(self) -> int:
@@ -616,7 +575,7 @@ class CalibrationSession:
         self._sync_states()
         reference = self._buffer_reference
         if source == 'tracking':
-            self._tracked_updates += 1
+            self._tracking.updates += 1
             if reference.source == 'calibration':
                 reference.set(calibration, None, 'calibration')
             self._calibration = calibration
@@ -638,7 +597,7 @@ class CalibrationSession:
             if reference.source != 'fit' or moved:
                 reference.set(calibration, None, 'calibration')
         self._calibration = calibration  # last: whoever sees it in force sees it counted
-        self._restart_tracker()
+        self._tracking.restart(self._calibration, self._settings.online_tracking)
 
     def _recompensate(self, calibration: Calibration) -> None:
         """What the buffer and evidence hold was compensated by the compensation in force:
@@ -647,12 +606,8 @@ class CalibrationSession:
         again before ``~/calibrate`` could fit). The buffer's own fit described the old
         readings: the caller screens by the new calibration until the next reference fit, and
         a fit made of the old ones is abandoned (``_complete``)."""
-        learner = self._compensation
         old = None if self._calibration is None else self._calibration.compensation
-
-        def change(states: np.ndarray) -> np.ndarray:
-            return learner.field_of(old, states) - learner.field_of(calibration.compensation,
-                                                                    states)
+        change = self._compensation.change(old, calibration.compensation)
         self._buffer.shift(change)
         self._evidence.shift(change)
         self._buffer_reference.provisional = None
@@ -687,7 +642,8 @@ class CalibrationSession:
         self._event('info', report.set_aside_text(source, refused, window))
 
     def _collect_anew(self, now: float) -> None:
-        """After a misfit: forget samples and evidence from before it, keep the calibration."""
+        """After a misfit: forget the samples, and the evidence older than MISFIT_WINDOW_S
+        before ``now`` (all of it at ``math.inf``); keep the calibration."""
         self._buffer.clear()
         self._compensation.restart_mean()
         self._hints.measured(None)
@@ -697,34 +653,19 @@ class CalibrationSession:
         self._buffer_reference.set(None, None, None)
         self._attitudes.clear()
 
-    # -- online tracking -----------------------------------------------------------------------
-
-    def _restart_tracker(self) -> None:
-        self._last_taught = None
-        self._last_tracking_check = None
-        if self._settings.online_tracking and self._calibration is not None:
-            self._tracker = OnlineTracker(self._calibration)
-        else:
-            self._tracker = None
-
     # -- state, reset --------------------------------------------------------------------------
 
     def reset(self) -> None:
         """Empty the buffer and evidence, forget the stream's frame and stamps (a new sensor may
         follow); the calibration in force stays. A fit running now is abandoned."""
-        self._buffer.clear()
-        self._hints.measured(None)
-        self._evidence.clear()
+        self._collect_anew(math.inf)  # every sample and all evidence
         self._screen.reset()
-        self._scheduler.reset()
         self._misfit.reset()
         self._backlog.drop_held(self._accepted)
         self._epoch += 1
-        self._buffer_reference.provisional = None
         self._buffer_reference.set(self._calibration, None,
                                   'calibration' if self._calibration else None)
-        self._restart_tracker()
-        self._attitudes.clear()
+        self._tracking.restart(self._calibration, self._settings.online_tracking)
         self._pairing.clear()
         self._turns.reset()
         self.end_compensation_window('~/reset emptied what it was learning from')
@@ -765,7 +706,7 @@ class CalibrationSession:
             rejects={**self._screen.counts, **self._refusals}, adoptions=dict(self._adoptions),
             fits=dict(self._jobs_run), held=len(self._backlog),
             hold_overflows=self._backlog.overflows, held_out=len(self._evidence),
-            stale_dropped=self._stale_dropped, tracked_updates=self._tracked_updates)
+            stale_dropped=self._stale_dropped, tracked_updates=self._tracking.updates)
         watch = self._input_watch
         parts = report.ReportInputs(
             settings=self._settings, units=self._units, state=state,
@@ -774,15 +715,15 @@ class CalibrationSession:
             misfit=self._misfit, errors=self._errors, input_rate=self._input_rate,
             pairing=self._pairing,
             attitudes=self._attitudes, counts=counts, last_attempt=self._last_attempt,
-            tracker=self._tracker, findings=self._findings,
-            earth_reference=self._earth_reference(),
+            tracker=self._tracking.tracker, findings=self._findings,
+            earth_reference=self._findings.earth_reference(self._settings, self._units),
             compensation_values=self._compensation.diagnostic_values(
                 self._calibration, self._units, self._clock.now),
             compensation_needs=self._compensation.needs(), runner=self._runner,
             input_values={**watch.values(), **self._alignment_wait.values()},
             input_problem=watch.problem or watch.imu_problem,
-            waiting_for_alignment=self._alignment_wait.waiting, frame_id=self._frame_id,
-            progress=self._progress_text(state, coverage),
+            waiting_for_alignment=self._alignment_wait.waiting,
+            frame_id=self._screen.frame_id or '', progress=self._progress_text(state, coverage),
             earth_warning=self._findings.earth_warning(self._calibration, self._settings,
                                                        self._units))
         problem = (node is not None and node.problem) or self._runner.problem
@@ -806,11 +747,6 @@ class CalibrationSession:
         if not self._settings.refine:
             return 'calibrated'
         return 'calibrated-converged' if self._scheduler.converged else 'calibrated-refining'
-
-    @property
-    def _frame_id(self) -> str:
-        """The stream's frame, '' while unknown."""
-        return self._screen.frame_id or ''
 
     def _progress_text(self, state: str, coverage: Coverage) -> str:
         wait = self._alignment_wait

@@ -287,3 +287,37 @@ def _smoothed(average: float, value: float) -> float:
     if not math.isfinite(average):
         return value
     return average + LOSS_SMOOTHING * (value - average)
+
+
+class Tracking:
+    """The online tracker of the calibration in force, started afresh with each one: it learns
+    only from readings that point somewhere new (``new_direction``) and counts the steps that
+    went in force."""
+
+    def __init__(self) -> None:
+        self.tracker: OnlineTracker | None = None
+        self.updates = 0  # steps put in force (source 'tracking')
+        self._last_taught: np.ndarray | None = None  # corrected direction that last taught it
+        self._last_check: float | None = None
+
+    def restart(self, calibration: Calibration | None, enabled: bool) -> None:
+        self._last_taught = self._last_check = None
+        self.tracker = None if calibration is None or not enabled else OnlineTracker(calibration)
+
+    @property
+    def calibration(self) -> Calibration | None:
+        return None if self.tracker is None else self.tracker.calibration
+
+    def teach(self, calibration: Calibration | None, reading: np.ndarray) -> None:
+        """One reading that went to the buffer, when ``calibration`` corrects it somewhere new."""
+        if self.tracker is None or calibration is None:
+            return
+        direction = new_direction(calibration.apply(reading), self._last_taught)
+        if direction is not None:
+            self._last_taught = direction
+            self.tracker.update(reading)
+
+    def checked(self, now: float) -> float | None:
+        """Seconds since the previous check compared with the tracker (None: the first)."""
+        last, self._last_check = self._last_check, now
+        return None if last is None else now - last
