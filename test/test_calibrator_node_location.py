@@ -73,8 +73,8 @@ def test_gps_fixes_are_screened_replaced_when_far_forgotten_on_reset_and_overrid
             assert set_parameter_over_service(probe, calibrator, name, value)[0]
         assert wait_for(lambda: earth_latitude(calibrator) == 45.5)
         assert wait_for(lambda: (publisher.publish(a_fix(10.0, 10.0)),
-                                 calibrator._location.fix == (10.0, 10.0, 0.0))[1])
-        assert calibrator._location_asked[1] == 'parameters'  # the fix did not take over
+                                 calibrator._earth_here.source.fix == (10.0, 10.0, 0.0))[1])
+        assert calibrator._earth_here.asked[1] == 'parameters'  # the fix did not take over
         assert calibrator.session.report().earth.latitude_deg == 45.5
         for name in ('latitude', 'longitude'):
             assert set_parameter_over_service(probe, calibrator, name, math.nan)[0]

@@ -164,6 +164,17 @@ def test_nothing_outside_the_engine_reaches_into_the_session():
     assert _reaches() == []
 
 
+HUB_LINES = {SESSION: 760, PACKAGE / 'nodes' / 'mag_calibrator.py': 610,
+             PACKAGE / 'nodes' / 'icm20948_driver.py': 600}
+"""The hubs stay readable (#43's bounds): what grows in them belongs in a room of its own."""
+
+
+def test_the_hubs_stay_within_their_length():
+    longer = {path.name: lines for path, bound in HUB_LINES.items()
+              if (lines := len(path.read_text().splitlines())) > bound}
+    assert longer == {}
+
+
 def test_the_face_checks_see_a_grown_face_and_a_reach():
     grown = ('class CalibrationSession:\n    def __init__(self):\n'
              + ''.join(f'        self.part{i} = {i}\n' for i in range(FACE_BOUND))

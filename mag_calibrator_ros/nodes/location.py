@@ -1,8 +1,9 @@
 # Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
 """Where the robot is, for the World Magnetic Model: the ``latitude``/``longitude`` parameters,
-else a plausible fix on ``gps/fix``. :class:`LocationSource` decides; the node evaluates the
-model (on its I/O thread) whenever ``LocationSource.wanted`` changes.
+else a plausible fix on ``gps/fix``. :class:`LocationSource` decides; :class:`EarthFieldHere`
+evaluates the model (on the node's I/O thread) whenever ``LocationSource.wanted`` changes and
+hands the field to the session.
 
 - The parameters win: a user who set both knows better than a receiver that may not have
   settled. Setting them to NaN hands the location back to the fixes.
@@ -23,9 +24,17 @@ from __future__ import annotations
 from collections import Counter
 import math
 
+from rclpy.node import Node
 from sensor_msgs.msg import NavSatFix, NavSatStatus
 
-from mag_calibrator_ros.calibration.fit.earth_field import location_problems
+from mag_calibrator_ros.calibration.fit.earth_field import (
+    EarthField,
+    EarthFieldError,
+    earth_field,
+    location_problems,
+)
+from mag_calibrator_ros.calibration.live.session import CalibrationSession
+from mag_calibrator_ros.nodes.answers import IoThread
 
 Location = tuple[float, float, float]
 """(latitude deg north, longitude deg east, altitude m above the WGS84 ellipsoid)."""
@@ -178,3 +187,70 @@ class LocationSource:
     def refused_text(self) -> str:
         """'null island: 3, no fix: 1' (empty when none was refused)."""
         return ', '.join(f'{reason}: {count}' for reason, count in self.refused.items())
+
+
+class EarthFieldHere:
+    """The World Magnetic Model's field where the robot is, kept in the session: evaluated on
+    the I/O thread each time the location source wants another place, dropped when it wants
+    none; every change is logged once."""
+
+    def __init__(self, node: Node, session: CalibrationSession, io: IoThread) -> None:
+        self._node, self._session, self._io = node, session, io
+        self.source = LocationSource(bool(node.get_parameter('use_gps').value))
+        self.asked: tuple[Location, str] | None = None  # the last place sent to the model
+        self._in_force = ''  # 'parameters' or 'gps/fix' once the model's field is known
+
+    def relocate(self) -> None:
+        """Evaluate the model where the source now wants it (the parameters read afresh)."""
+        source, node = self.source, self._node
+        source.use_gps = bool(node.get_parameter('use_gps').value)
+        source.set_parameters(*(float(node.get_parameter(name).value)
+                                for name in LOCATION_PARAMETERS))
+        wanted = source.wanted
+        if wanted == self.asked:
+            return
+        self.asked = wanted
+        if wanted is None:
+            if self._in_force:
+                node.get_logger().info('no location any more: fits are not checked against '
+                                       'the World Magnetic Model until one is given')
+            self._in_force = ''
+            self._session.set_earth_field(None)
+            return
+        where, source_name = wanted
+        self._io.run(lambda: earth_field(*where)).add_done_callback(
+            lambda future: self._located(where, source_name, future.result()))
+
+    def on_fix(self, msg: NavSatFix) -> None:
+        """Screen the fix; a plausible one locates, or replaces a far one (LocationSource)."""
+        refused = self.source.first_refusal(msg)
+        if refused is not None:
+            self._node.get_logger().warning(refused)
+        if self.source.wanted != self.asked:
+            self.relocate()
+
+    def forget_fix(self) -> bool:
+        """``~/reset``: forget the fix's location (the next plausible fix locates)."""
+        forgot = self.source.forget_fix()
+        self.relocate()
+        return forgot
+
+    def diagnostic_values(self) -> dict[str, object]:
+        return self.source.diagnostic_values(self._in_force)
+
+    def _located(self, where: Location, source: str, result: EarthField | Exception) -> None:
+        if (where, source) != self.asked:
+            return  # another location was asked for meanwhile
+        logger = self._node.get_logger()
+        if isinstance(result, Exception):
+            what = '' if isinstance(result, EarthFieldError) else f'{type(result).__name__}: '
+            logger.warning(f'no World Magnetic Model field at {where} (from {source}): '
+                           f'{what}{result}; running without it')
+            self._in_force = ''
+            self._session.set_earth_field(None)  # not a field from elsewhere
+            return
+        self._in_force = source
+        self._session.set_earth_field(result)
+        logger.info(f'earth field here (from {source}): {result.describe()}')
+        for note in result.notes:
+            logger.warning(note)

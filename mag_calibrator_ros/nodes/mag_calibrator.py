@@ -96,12 +96,7 @@ from mag_calibrator_ros.calibration.fit.calibration import (
     transform_covariance,
     with_uncertainty,
 )
-from mag_calibrator_ros.calibration.fit.earth_field import (
-    EarthField,
-    EarthFieldError,
-    earth_field,
-    import_model,
-)
+from mag_calibrator_ros.calibration.fit.earth_field import import_model
 from mag_calibrator_ros.calibration.live.pairing import Delivery
 from mag_calibrator_ros.calibration.live.report import (
     NodeStatus,
@@ -141,7 +136,7 @@ from mag_calibrator_ros.nodes.inputs import (
     learning_plan,
     magnetic_field_topics,
 )
-from mag_calibrator_ros.nodes.location import LOCATION_PARAMETERS, Location, LocationSource
+from mag_calibrator_ros.nodes.location import LOCATION_PARAMETERS, EarthFieldHere
 from mag_calibrator_ros.nodes.mag_calibrator_parameters import (
     PARAMETERS,
     parameter_problems,
@@ -216,10 +211,8 @@ class MagCalibratorNode(Node):
         self._auto_save = AutoSaveThrottle()
         self._saved: Calibration | None = None  # last saved to or loaded from the file
         self._imu_subscription = None
-        self._location_source = ''  # 'parameters' or 'gps/fix' once the model's field is known
-        self._location = LocationSource(bool(self.get_parameter('use_gps').value))
+        self._earth_here = EarthFieldHere(self, self.session, self._io)  # parameters, gps/fix
         self._graph = GraphWatch()  # another publisher on the output, another calibrator
-        self._location_asked: tuple[Location, str] | None = None  # last sent to the model
         import_model()  # now: an import on the I/O thread would hold the lock messages need
         self._startup(self._calibration_parameters.given)
         self.add_on_set_parameters_callback(self._validate_parameters)
@@ -230,11 +223,11 @@ class MagCalibratorNode(Node):
         self.create_subscription(MagneticField, 'imu/mag', guarded(self, 'imu/mag', self._on_mag),
                                  INPUT_QOS)
         self._sync_imu_subscription()
-        self.create_subscription(NavSatFix, 'gps/fix', guarded(self, 'gps/fix', self._on_fix),
-                                 INPUT_QOS)
+        self.create_subscription(NavSatFix, 'gps/fix',
+                                 guarded(self, 'gps/fix', self._earth_here.on_fix), INPUT_QOS)
         self._inputs = InputSubscriptions(self, self.session, lambda: self._settings,
                                           INPUT_QOS)  # imu/temperature ...
-        self._relocate()
+        self._earth_here.relocate()
         # Services wait for the fit worker and the I/O thread outside the default (mutually
         # exclusive) group, or the poll timer that completes them could never run.
         waiting = ReentrantCallbackGroup()
@@ -287,7 +280,7 @@ class MagCalibratorNode(Node):
         if 'use_imu' in names:
             self._sync_imu_subscription()
         if names & {*LOCATION_PARAMETERS, 'use_gps'}:
-            self._relocate()
+            self._earth_here.relocate()
 
     # -- start-up --------------------------------------------------------------------------------
 
@@ -393,53 +386,6 @@ class MagCalibratorNode(Node):
             self.destroy_subscription(self._imu_subscription)
             self._imu_subscription = None
 
-    # -- the Earth's field here -------------------------------------------------------------------
-
-    def _relocate(self) -> None:
-        """Evaluate the model where the location source now wants it, or drop it (none)."""
-        source = self._location
-        source.use_gps = bool(self.get_parameter('use_gps').value)
-        source.set_parameters(*(float(self.get_parameter(name).value)
-                                for name in LOCATION_PARAMETERS))
-        wanted = source.wanted
-        if wanted == self._location_asked:
-            return
-        self._location_asked = wanted
-        if wanted is None:
-            if self._location_source:
-                self.get_logger().info('no location any more: fits are not checked against the '
-                                       'World Magnetic Model until one is given')
-            self._location_source = ''
-            self.session.set_earth_field(None)
-            return
-        where, source_name = wanted
-        self._io.run(lambda: earth_field(*where)).add_done_callback(
-            lambda future: self._located(where, source_name, future.result()))
-
-    def _on_fix(self, msg: NavSatFix) -> None:
-        """Screen the fix; a plausible one locates, or replaces a far one (LocationSource)."""
-        refused = self._location.first_refusal(msg)
-        if refused is not None:
-            self.get_logger().warning(refused)
-        if self._location.wanted != self._location_asked:
-            self._relocate()
-
-    def _located(self, where: Location, source: str, result: EarthField | Exception) -> None:
-        if (where, source) != self._location_asked:
-            return  # another location was asked for meanwhile
-        if isinstance(result, Exception):
-            what = '' if isinstance(result, EarthFieldError) else f'{type(result).__name__}: '
-            self.get_logger().warning(f'no World Magnetic Model field at {where} (from '
-                                      f'{source}): {what}{result}; running without it')
-            self._location_source = ''
-            self.session.set_earth_field(None)  # not a field from elsewhere
-            return
-        self._location_source = source
-        self.session.set_earth_field(result)
-        self.get_logger().info(f'earth field here (from {source}): {result.describe()}')
-        for note in result.notes:
-            self.get_logger().warning(note)
-
     # -- what the session decided -----------------------------------------------------------------
 
     def _on_poll(self) -> None:
@@ -538,8 +484,7 @@ class MagCalibratorNode(Node):
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response):
         self.session.reset()
-        forgot = self._location.forget_fix()
-        self._relocate()
+        forgot = self._earth_here.forget_fix()
         response.success = True
         response.message = (f'buffer emptied; the calibration in force is unchanged '
                             f'(state {self.session.report().state})')
@@ -568,7 +513,7 @@ class MagCalibratorNode(Node):
         topic = self.resolve_topic_name('imu/mag')
         values: dict[str, object] = {'calibration_file': str(self._calibration_file()),
                                      **self._rotation.diagnostic_values(now),
-                                     **self._location.diagnostic_values(self._location_source)}
+                                     **self._earth_here.diagnostic_values()}
         doubled = self._graph.check(self, topic, self._publisher.topic_name)
         warning = '; '.join(text for text in (doubled, self._file_warning) if text)
         no_input = no_input_text(topic, magnetic_field_topics(self, topic))
