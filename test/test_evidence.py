@@ -259,6 +259,28 @@ def test_the_monitor_confirms_after_a_sustained_misfit_and_clears_when_it_fits_a
     assert monitor.update(13.0 + MISFIT_CONFIRM_S, fits) == 'cleared' and not monitor.misfit
 
 
+@pytest.mark.parametrize('looks, expected', [
+    ([(4.0, True, False)], 'world'),  # the offset held while the field changed: the world's
+    ([(4.0, True, False), (5.0, False, True)], 'confirmed'),  # then it moved: the sensor's
+    ([(-20.0, True, False)], 'confirmed'),  # a look long before the misfit says nothing of it
+    ([], 'confirmed'),  # no look (no gyroscope): the sensor's, as without one
+])
+def test_a_misfit_is_the_worlds_only_when_a_recent_look_saw_the_offset_hold(looks, expected):
+    monitor = MisfitMonitor()
+    off = FitCheck(True, True, 40.0, 70.0, 50.0, 0.3)
+    fits = FitCheck(True, False, 0.5, 50.0, 50.0, 0.3)
+    for t, world, moved in looks:
+        monitor.offset_looked(t, world, moved)
+    monitor.update(3.0, off)
+    assert monitor.update(3.0 + MISFIT_CONFIRM_S, off) == expected
+    assert monitor.misfit and monitor.world == (expected == 'world')
+    assert (monitor.world_since is not None) == (expected == 'world')
+    monitor.update(20.0, fits)
+    assert monitor.update(20.0 + MISFIT_CONFIRM_S, fits) == 'cleared'
+    assert not monitor.world  # and what it saw is kept for the session to forget its readings
+    assert (monitor.world_since is not None) == (expected == 'world')
+
+
 @pytest.mark.parametrize('gate', [5.0, 2.0])
 def test_a_noisy_sensor_is_judged_against_its_own_residual(gate):
     raw, good = tumble(500, noise=0.03)  # 3 % noise: median |e| about 2 %

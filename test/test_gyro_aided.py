@@ -191,10 +191,10 @@ def test_a_gap_in_the_rates_starts_a_new_window_and_no_reading_is_kept_without_r
 
 
 def replay(offset: np.ndarray, seconds: float, seed: int, settings: SessionSettings,
-           mounting: np.ndarray | None = None, change=None, soft_iron: np.ndarray | None = None
-           ) -> tuple[CalibrationSession, float | None, list]:
+           mounting: np.ndarray | None = None, change=None, soft_iron: np.ndarray | None = None,
+           timed: list | None = None) -> tuple[CalibrationSession, float | None, list]:
     """The wrist motion streamed through a session; ``change(t, readings)`` edits the readings
-    (uT) over time (a magnet attached, a magnet in the room)."""
+    (uT) over time (a magnet attached, a magnet in the room); ``timed`` gets (t, event)."""
     rates, attitudes = wrist_motion(seconds, seed)
     readings = readings_of(attitudes, offset, 0.3, seed, mounting, soft_iron)
     if change is not None:
@@ -207,7 +207,10 @@ def replay(offset: np.ndarray, seconds: float, seed: int, settings: SessionSetti
         stamp = int(index * 1e9 / RATE_HZ)
         session.process_imu(stamp, '', gravity[index], rates[index])
         session.process(stamp, '', reading)
-        events += session.take_events()
+        taken = session.take_events()
+        events += taken
+        if timed is not None:
+            timed += [(index / RATE_HZ, event) for event in taken]
         if first is None and session.calibration is not None:
             first = index / RATE_HZ
     return session, first, events
@@ -273,6 +276,60 @@ def test_a_magnet_attached_to_the_board_is_learned_from_the_turning_within_10_s(
     assert session.report().counts.adoptions.get('step') == 1
 
 
+def test_a_magnet_attached_before_any_calibration_is_learned_from_the_latest_turning():
+    """20 s of turning about one axis (no fit: the offset along it is unseen), then a magnet
+    stuck on and turning about every axis: the fit's span holds windows of two offsets, which no
+    one offset fits; its latest windows are the sensor as it is now, so the magnet's offset is
+    in force within 10 s of it (BROAD trial 32: 19.6 s after the first movement before)."""
+    before, added, at_s = np.array([15.0, -25.0, 10.0]), np.array([0.0, 30.0, -20.0]), 20.0
+    rates = np.vstack([wrist_motion(at_s, 4, axes=1)[0], wrist_motion(25.0, 4)[0]])
+    attitudes = [Rotation.identity()]
+    for rate in rates[:-1]:
+        attitudes.append(attitudes[-1] * Rotation.from_rotvec(rate / RATE_HZ))
+    attitudes = Rotation.concatenate(attitudes).as_matrix()
+    t = np.arange(len(rates)) / RATE_HZ
+    readings = (readings_of(attitudes, before, 0.3, 4) + np.outer(t >= at_s, added)) * 1e-6
+    gravity = np.einsum('nji,j->ni', attitudes, np.array([0.0, 0.0, 9.81]))
+    session, first = CalibrationSession(SessionSettings()), None
+    for index, reading in enumerate(readings):
+        stamp = int(index * 1e9 / RATE_HZ)
+        session.process_imu(stamp, '', gravity[index], rates[index])
+        session.process(stamp, '', reading)
+        if first is None and session.calibration is not None:
+            first = t[index]
+    assert first is not None and at_s < first <= at_s + 10.0
+    assert np.linalg.norm(session.calibration.offset * 1e6 - (before + added)) < 2.0
+
+
+@pytest.mark.parametrize('from_gyro', [True, False])
+def test_a_rough_gyro_fit_in_force_is_refined_from_more_turning_and_a_file_is_not(from_gyro):
+    """A gyro fit from a few seconds of turning (here 2 uT off, its directions uncertain by
+    2 deg) is replaced by a fit of more turning whose directions are surer and which beats it
+    on the held-out windows (before, the first stayed until a sphere could be fitted: on a
+    partial sphere, never). A file's calibration is the sphere refinements' to judge."""
+    from mag_calibrator_ros.calibration.fit.calibration import Calibration
+
+    offset = np.array([15.0, -25.0, 10.0])
+    metadata = {'fit': 'gyro_aided', 'direction_std_deg': 2.0} if from_gyro else {}
+    rough = Calibration((offset + [2.0, 0.0, 0.0]) * 1e-6, np.eye(3),
+                        np.linalg.norm(EARTH) * 1e-6, 'sphere', metadata)
+    rates, attitudes = wrist_motion(30.0, 3)
+    readings = readings_of(attitudes, offset, 0.3, 3) * 1e-6
+    gravity = np.einsum('nji,j->ni', attitudes, np.array([0.0, 0.0, 9.81]))
+    session = CalibrationSession(SessionSettings(), rough)
+    refined = []
+    for index, reading in enumerate(readings):
+        stamp = int(index * 1e9 / RATE_HZ)
+        session.process_imu(stamp, '', gravity[index], rates[index])
+        session.process(stamp, '', reading)
+        refined += [e for e in session.take_events()
+                    if e.adopted and 'refined from the gyroscope' in e.message]
+    assert bool(refined) == from_gyro
+    if from_gyro:
+        assert np.linalg.norm(session.calibration.offset * 1e6 - offset) < 1.0  # from 2
+        assert session.calibration.metadata['direction_std_deg'] < 2.0
+
+
 def test_a_magnet_fixed_in_the_room_is_not_learned_as_a_step():
     """A field added in the world frame (the sensor turning inside a magnet's field) agrees with
     no body-fixed offset as the sensor turns."""
@@ -283,6 +340,29 @@ def test_a_magnet_fixed_in_the_room_is_not_learned_as_a_step():
                               change=room_magnet)
     assert first is not None and first < 25.0
     assert not any(e.adopted and 'hard-iron step' in e.message for e in events)
+
+
+def test_a_magnet_standing_in_the_room_is_the_worlds_and_nothing_inside_it_is_learned():
+    """Half a minute of turning inside a world-fixed field: the calibration misfits, but the
+    gyroscope says the offset held while the field it turns changed, so the misfit is the
+    world's (said once): the calibration stays, nothing goes in force inside, and once out it
+    fits again. (Collecting anew, as for a sensor that changed, put a fit of the disturbed
+    readings in force.)"""
+    offset = np.array([15.0, -25.0, 10.0])
+
+    def room_magnet(t, readings, attitudes):
+        inside = (t >= 25.0) & (t < 55.0)
+        readings[inside] += np.einsum('nji,j->ni', attitudes[inside], np.array([25.0, 0, 0]))
+    timed = []
+    session, first, _ = replay(offset, 80.0, 11, SessionSettings(), change=room_magnet,
+                               timed=timed)
+    assert first is not None and first < 25.0
+    said = [t for t, e in timed if 'the field around the sensor is disturbed' in e.message]
+    assert len(said) == 1 and 25.0 < said[0] < 55.0, [(t, e.message) for t, e in timed
+                                                      if e.level != 'debug']
+    assert not [e.message for t, e in timed if e.adopted and 25.0 <= t < 60.0]
+    assert any('fits the live data again' in e.message for t, e in timed if t > 55.0)
+    assert np.linalg.norm(session.calibration.offset * 1e6 - offset) < 1.5
 
 
 def test_another_boards_file_is_corrected_by_a_step_within_seconds():

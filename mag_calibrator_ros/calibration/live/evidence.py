@@ -142,6 +142,10 @@ class HeldOutEvidence:
         """Drop what was held out before ``time_s``: it describes a situation that has ended."""
         self._valid &= self._times >= time_s
 
+    def forget_between(self, start_s: float, end_s: float) -> None:
+        """Drop what was held out from ``start_s`` until ``end_s``: readings of a disturbance."""
+        self._valid &= (self._times < start_s) | (self._times >= end_s)
+
     def clear(self) -> None:
         self._valid[:] = False
 
@@ -404,19 +408,35 @@ def _sphere_error(points: np.ndarray) -> float:
 
 class MisfitMonitor:
     """Turns a series of FitChecks into a confirmed misfit, and back once it fits again: each
-    verdict must hold for MISFIT_CONFIRM_S of judged checks before it changes the state."""
+    verdict must hold for MISFIT_CONFIRM_S of judged checks before it changes the state.
+
+    A misfit is the world's (``world``: a magnet, steel, a vehicle in the room) when, within
+    MISFIT_WINDOW_S before it is confirmed, the gyroscope's turning said the sensor still has the
+    offset in force while the field it turns changed (``verdicts.world_disturbance``, told by
+    ``offset_looked``) and no later look found the offset moved: the calibration stays, and
+    ``world_since`` says from when the readings are the disturbance's, not the sensor's (kept
+    once it cleared, for the session to forget them; None after a misfit of the sensor)."""
 
     def __init__(self) -> None:
-        self.misfit = False
-        self.last: FitCheck | None = None
-        self._since: float | None = None  # start of the run of checks that disagree
-        self._error = 0.0  # the latest judged check's median |B| error, field units
+        self.reset()
 
     def reset(self) -> None:
         self.misfit = False
-        self.last = None
-        self._since = None
-        self._error = 0.0
+        self.world = False
+        self.world_since: float | None = None
+        self.last: FitCheck | None = None
+        self._since: float | None = None  # start of the run of checks that disagree
+        self._error = 0.0  # the latest judged check's median |B| error, field units
+        self._world_look: float | None = None  # the latest look that saw the world change
+        self._moved_look: float | None = None  # the latest look that saw the offset move
+
+    def offset_looked(self, now_s: float, world: bool, moved: bool) -> None:
+        """A gyro look at the offset (``step``): it saw the world's field change around an
+        unchanged offset (``world``), or the offset move (``moved``), or neither."""
+        if world:
+            self._world_look = now_s
+        if moved:
+            self._moved_look = now_s
 
     @property
     def uncertainty(self) -> float:
@@ -425,7 +445,8 @@ class MisfitMonitor:
         return self._error if self.misfit else 0.0
 
     def update(self, now_s: float, check: FitCheck) -> str | None:
-        """'confirmed' or 'cleared' when the state changes, else None."""
+        """'confirmed' (or 'world', the world's) or 'cleared' when the state changes, else
+        None."""
         self.last = check
         if not check.judged:
             return None
@@ -437,8 +458,15 @@ class MisfitMonitor:
             self._since = now_s
         if now_s - self._since < MISFIT_CONFIRM_S:
             return None
-        self.misfit, self._since = check.off, None
-        return 'confirmed' if self.misfit else 'cleared'
+        onset, self.misfit, self._since = self._since, check.off, None
+        if not self.misfit:
+            self.world = False
+            return 'cleared'
+        look, moved = self._world_look, self._moved_look
+        self.world = (look is not None and now_s - look <= MISFIT_WINDOW_S
+                      and (moved is None or moved < look))
+        self.world_since = min(onset, look) - MISFIT_WINDOW_S / 2.0 if self.world else None
+        return 'world' if self.world else 'confirmed'
 
 
 __all__ = [

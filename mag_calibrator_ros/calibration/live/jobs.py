@@ -45,6 +45,7 @@ from mag_calibrator_ros.calibration.fit.earth_field import (
 from mag_calibrator_ros.calibration.fit.ellipsoid import robust_sigma
 from mag_calibrator_ros.calibration.fit.fitting import FitOptions, FitResult, fit_calibration
 from mag_calibrator_ros.calibration.fit.gyro_aided import (
+    MIN_WINDOWS,
     GyroAidedFit,
     TurnedReadings,
     fit_gyro_aided,
@@ -81,6 +82,9 @@ force kept), judged against the calibration in force on held-out windows: a hard
 HELD_OUT_WINDOWS = 3
 """gyro: every third window of turned readings is held out of the fit to judge it by (windows
 interleaved in time, so a disturbance for a while touches both sides alike)."""
+
+WINDOWS_NEEDED = math.ceil(MIN_WINDOWS * HELD_OUT_WINDOWS / (HELD_OUT_WINDOWS - 1))
+"""Windows a gyro-aided fit takes at least: it sees MIN_WINDOWS, the held-out third judges it."""
 
 REFERENCE_OPTIONS = FitOptions(model='full')
 """How the buffer is fitted for its reference: the default gates, model ``full``, the one that
@@ -166,6 +170,9 @@ class JobOutcome:
     """compensate: the robot's own field learned, with its evidence."""
     gyro_fit: GyroAidedFit | None = None
     """gyro: the offset from the turning, its uncertainty and the raw field's spread."""
+    field_seen: float = math.nan
+    """step: the strength of the field the look's readings turn, corrected by the calibration
+    in force and the offset fitted (its field_strength's units)."""
     turning: Comparison | None = None
     """refine: the calibration in force against the candidate on the turned readings
     (``turned_worse``; ``better``: the candidate turns directions worse than the one in force)."""
@@ -238,6 +245,43 @@ def _run(job: FitJob) -> JobOutcome:
 
 
 def gyro_aided_outcome(job: FitJob) -> JobOutcome:
+    """The fit of ``_gyro_aided_fit`` on the windows taken, or, when those fail, on the latest
+    half of them, and so on while at least WINDOWS_NEEDED remain: a magnet attached (a tool
+    mounted, a start-up transient) within the span leaves windows of two offsets, which no one
+    offset fits, and the sensor as it is now is the latest windows'. Each span meets the same
+    gates; the longest that passes them is taken (the most turning, the surest). With a
+    calibration in force (``verdicts.gyro_improvable``), the whole span is fitted once, and its
+    comparison is against the one in force on the same held-out windows."""
+    outcome = _gyro_aided_fit(job)
+    if job.current is not None:
+        return _against_current(outcome)
+    data, windows = job.turned, int(job.turned.windows.max()) + 1 if len(job.turned.windows) else 0
+    while not _fitted(outcome) and windows // 2 >= WINDOWS_NEEDED:
+        windows //= 2
+        latest = data.windows >= data.windows.max() - windows + 1
+        part = _part(data, latest)
+        part = TurnedReadings(part.readings, part.rotations, part.windows - part.windows.min())
+        outcome = _gyro_aided_fit(replace(job, turned=part))
+    return replace(outcome, job=job)
+
+
+def _against_current(outcome: JobOutcome) -> JobOutcome:
+    fit, data = outcome.gyro_fit, outcome.job.turned
+    if fit is None or fit.calibration is None:
+        return outcome
+    part = _part(data, data.windows % HELD_OUT_WINDOWS == HELD_OUT_WINDOWS - 1)
+    return replace(outcome, comparison=compare_residuals(
+        turned_errors(outcome.job.current, part), turned_errors(fit.calibration, part),
+        'held-out turned readings'))
+
+
+def _fitted(outcome: JobOutcome) -> bool:
+    """The span's fit passed its own gates (whether it beats the raw field is the verdict's:
+    a sensor calibrated already is not searched for a span that says otherwise)."""
+    return outcome.gyro_fit is not None and outcome.gyro_fit.success
+
+
+def _gyro_aided_fit(job: FitJob) -> JobOutcome:
     """The offset alone, then the soft iron with it, fitted on two of every three windows of
     turned readings and judged on the third (``compare_residuals``: the rule every candidate
     meets): the raw field is the first candidate, the offset replaces it only when better, the
@@ -282,6 +326,7 @@ def step_outcome(job: FitJob) -> JobOutcome:
     fit = fit_gyro_aided(_part(corrected, ~held), max_residual_pct=job.options.max_residual_pct)
     if fit.calibration is None:
         return JobOutcome(job, gyro_fit=fit)
+    seen = fit.calibration.field_strength  # |M (x - b) - shift|: the field the look turns
     shift = np.linalg.solve(current.matrix, fit.calibration.offset)  # into raw units
     candidate = current.with_compensation(
         current.compensation, offset=current.offset + shift,
@@ -291,7 +336,7 @@ def step_outcome(job: FitJob) -> JobOutcome:
     part = _part(data, held)
     comparison = compare_residuals(turned_errors(current, part), turned_errors(candidate, part),
                                    'held-out turned readings')
-    return JobOutcome(job, comparison=comparison, gyro_fit=fit)
+    return JobOutcome(job, comparison=comparison, gyro_fit=fit, field_seen=seen)
 
 
 def turned_worse(current: Calibration, candidate: Calibration,

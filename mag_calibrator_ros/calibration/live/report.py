@@ -215,6 +215,17 @@ def misfit_text(check: FitCheck | None, units: str, auto_calibrate: bool) -> str
             f'sensor, new payload, or a magnet nearby? {action}')
 
 
+def world_text(check: FitCheck | None, units: str) -> str:
+    """A misfit that is the world's (``MisfitMonitor.world``): what is seen and what is kept."""
+    measured = '?' if check is None or not check.judged else format_field(
+        check.measured_field, units)
+    expected = '?' if check is None else format_field(check.expected_field, units)
+    return (f'the field around the sensor is disturbed: |B| {measured} vs {expected} expected, '
+            "while the gyroscope's turning says the sensor's offset has not changed - a magnet, "
+            'steel or a vehicle nearby? The calibration stays in force (its output marked '
+            'uncertain) and nothing is learned until the field fits it again')
+
+
 LEFT_PLANE_TEXT = ('the sensor moved out of the plane it was calibrated turning in: collecting '
                    'in 3-D for a full calibration (keep turning it through every orientation); '
                    'the planar calibration stays in force until a better one is found')
@@ -481,7 +492,8 @@ def session_report(parts: ReportInputs, now: float | None, coverage: Coverage,
     since the previous report that had one, None keeps the latest measured. ``refused``:
     messages refused by screening since the previous such report."""
     node = node or NodeStatus()
-    misfit = misfit_text(parts.misfit.last, parts.units, parts.settings.auto_calibrate)
+    misfit = (world_text(parts.misfit.last, parts.units) if parts.misfit.world else
+              misfit_text(parts.misfit.last, parts.units, parts.settings.auto_calibrate))
     earth = parts.findings.earth
     accuracy = parts.errors.accuracy(
         parts.calibration, None if earth is None else earth.inclination_deg,
@@ -681,6 +693,7 @@ __all__ = [
     'display_units',
     'format_field',
     'misfit_text',
+    'world_text',
     'no_input_text',
     'no_message_text',
     'progress_text',

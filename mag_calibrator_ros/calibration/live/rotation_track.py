@@ -20,8 +20,8 @@ import math
 
 import numpy as np
 
-from mag_calibrator_ros.calibration.fit.gyro_aided import MIN_WINDOWS, TurnedReadings
-from mag_calibrator_ros.calibration.live.jobs import HELD_OUT_WINDOWS
+from mag_calibrator_ros.calibration.fit.gyro_aided import TurnedReadings
+from mag_calibrator_ros.calibration.live.jobs import WINDOWS_NEEDED
 
 STEP_S = 0.02
 """One reading kept per 20 ms of stream (50 Hz): more add noise samples, not turning."""
@@ -38,9 +38,6 @@ MAX_READINGS = 6000
 old windows judge a refinement as well as new ones: a soft iron fitted to the sphere's latest
 directions that bends the earlier ones is refused (BROAD trial 04: worse by 12 % on the
 minute before it, not on the last 30 s)."""
-
-WINDOWS_NEEDED = math.ceil(MIN_WINDOWS * HELD_OUT_WINDOWS / (HELD_OUT_WINDOWS - 1))
-"""Windows kept before a fit is tried: the fit sees MIN_WINDOWS, the held-out third judges it."""
 
 FIT_PERIOD_S = 2.0
 """Stream seconds between gyro-aided fits while nothing is in force."""
@@ -74,6 +71,7 @@ class RotationTrack:
         self._rate: tuple[float, float, float] | None = None
         self._rate_stamp: int | None = None
         self._next_fit_s = 0.0
+        self._next_refit_s = 0.0
 
     def forget(self) -> None:
         """Forget the readings kept (the sensor changed), not the turning integrated."""
@@ -130,11 +128,15 @@ class RotationTrack:
         self._next_fit_s = now_s + period_s
         return True
 
-    def fit_due(self, now_s: float, calibrated: bool) -> str | None:
-        """The gyro-aided fit due now: 'gyro' while nothing is in force, once calibrated 'step'
+    def fit_due(self, now_s: float, calibrated: bool, improvable: bool = False) -> str | None:
+        """The gyro-aided fit due now: 'gyro' while nothing is in force, and every FIT_PERIOD_S
+        while a gyro fit in force may be improved on (``improvable``); once calibrated 'step'
         every STEP_PERIOD_S (a magnet attached: the offset steps); None when none is."""
         if not calibrated:
             return 'gyro' if self.due(now_s) else None
+        if improvable and now_s >= self._next_refit_s and self._enough():
+            self._next_refit_s = now_s + FIT_PERIOD_S
+            return 'gyro'
         return 'step' if self.due(now_s, STEP_PERIOD_S, STEP_WINDOWS) else None
 
     def fit_snapshot(self, kind: str) -> TurnedReadings | None:

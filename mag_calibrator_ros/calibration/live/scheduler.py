@@ -28,6 +28,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 import math
 
+from mag_calibrator_ros.calibration.live.buffer import SampleBuffer
+from mag_calibrator_ros.calibration.live.evidence import MisfitMonitor
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
 
 CHECK_PERIOD_S = 0.25
@@ -79,16 +81,19 @@ class Situation:
     refine_period: float
     min_samples: int
     request_waiting: bool
+    disturbed: bool = False
+    """The misfit is the world's (``MisfitMonitor.world``): nothing to learn, only checks."""
 
     @classmethod
-    def of(cls, now: float, settings: SessionSettings, fill: int, capacity: int,
-           calibrated: bool, misfit: bool, request_waiting: bool) -> Situation:
+    def of(cls, now: float, settings: SessionSettings, buffer: SampleBuffer, calibrated: bool,
+           misfit: MisfitMonitor, request_waiting: bool) -> Situation:
         """The situation at one reading, from the session's settings and state."""
-        return cls(now=now, buffer_full=fill == capacity, buffer_fill=fill,
-                   calibrated=calibrated, misfit=misfit, auto_calibrate=settings.auto_calibrate,
+        return cls(now=now, buffer_full=buffer.fill == buffer.capacity, buffer_fill=buffer.fill,
+                   calibrated=calibrated, misfit=misfit.misfit,
+                   auto_calibrate=settings.auto_calibrate,
                    auto_calibrate_period=settings.auto_calibrate_period, refine=settings.refine,
                    refine_period=settings.refine_period, min_samples=settings.min_samples,
-                   request_waiting=request_waiting)
+                   request_waiting=request_waiting, disturbed=misfit.world)
 
 
 class FitScheduler:
@@ -128,6 +133,8 @@ class FitScheduler:
         s = situation
         if s.request_waiting:
             return 'request'
+        if s.disturbed:
+            return self._check_due(s)
         if s.buffer_full and self._since_reference >= self._reference_factor * self.capacity:
             return 'reference'
         if s.auto_calibrate and (not s.calibrated or s.misfit) and (
@@ -141,6 +148,9 @@ class FitScheduler:
                 self._refine_interval = min(2.0 * self._refine_interval, s.refine_period)
                 self._next_refine = s.now + self._refine_factor * self._refine_interval
                 return 'refine'
+        return self._check_due(s)
+
+    def _check_due(self, s: Situation) -> str | None:
         if s.calibrated and s.now >= self._next_fit_check:
             self._next_fit_check = s.now + CHECK_FIT_PERIOD_S
             return 'check'

@@ -55,19 +55,14 @@ from mag_calibrator_ros.calibration.live.reference import BufferReference
 from mag_calibrator_ros.calibration.live.report import CalibrationAttempt
 from mag_calibrator_ros.calibration.live.rotation_track import RotationTrack
 from mag_calibrator_ros.calibration.live.sanity import InputWatch
-from mag_calibrator_ros.calibration.live.scheduler import (
-    FitScheduler,
-    Situation,
-    StreamClock,
-)
+from mag_calibrator_ros.calibration.live.scheduler import FitScheduler, Situation, StreamClock
 from mag_calibrator_ros.calibration.live.screening import SCREEN_REASONS, ReadingScreen
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
 from mag_calibrator_ros.calibration.live.tracker import Tracking
 from mag_calibrator_ros.calibration.live.view import CalibrationView, calibration_view
 from mag_calibrator_ros.calibration.live.worker import FitRunner, InlineRunner
 
-PERIODIC_S = 1.0
-"""Stream seconds between updates of the field's centre (for filing evidence by direction)."""
+PERIODIC_S = 1.0  # stream seconds between updates of the field's centre (evidence's cells)
 
 class CalibrationSession:
     """The calibrator's state between messages: buffer, evidence, calibration in force, fits."""
@@ -303,7 +298,7 @@ class CalibrationSession:
         # deterministic), so a recording replayed again holds out other readings.
         if self._calibration is not None and self._hold_out.random() * HOLD_OUT_EVERY < 1.0:
             self._evidence.add(reading, self._buffer_reference.direction(reading), now, state)
-        else:
+        elif not self._misfit.world:  # a disturbance of the world teaches nothing
             if self._buffer_reference.left_plane(reading):
                 self._leave_plane()
             outcome = self._buffer.add(reading, None if pair is None else pair[2], state)
@@ -320,11 +315,11 @@ class CalibrationSession:
             self._answer(self._compensation.window_answer(now, self._calibration))
         self._hints.learnt(now, self._buffer, reading)  # the kind of hint (hints.py)
         if self._job is None:
-            situation = Situation.of(now, self._settings, self._buffer.fill,
-                                     self._buffer.capacity, self._calibration is not None,
-                                     self._misfit.misfit, self._backlog.request_ready)
+            situation = Situation.of(now, self._settings, self._buffer,
+                                     self._calibration is not None, self._misfit,
+                                     self._backlog.request_ready)
             kind = (self._scheduler.due(situation)
-                    or self._compensation.due(now, self._calibration)  # 'compensate' or None
+                    or (not self._misfit.world and self._compensation.due(now, self._calibration))
                     or self._gyro_due(now))
             if kind is not None:
                 self._submit(kind)
@@ -332,7 +327,8 @@ class CalibrationSession:
     def _gyro_due(self, now: float) -> str | None:
         if not (self._settings.gyro_aided and self._settings.auto_calibrate):
             return None
-        return self._turns.fit_due(now, self._calibration is not None)  # 'gyro', 'step'
+        return self._turns.fit_due(now, self._calibration is not None,  # 'gyro', 'step'
+                                   verdicts.gyro_improvable(self._calibration, self._misfit.world))
 
     def _update_centre(self) -> None:
         radius = 0.0
@@ -443,7 +439,8 @@ class CalibrationSession:
         elif job.kind == 'gyro':
             self._apply(verdicts.gyro_verdict(outcome, current, self._units))
         elif job.kind == 'step':
-            verdict = verdicts.step_verdict(outcome, current, self._units)
+            self._misfit.offset_looked(self._clock.now, *verdicts.offset_look(outcome, current))
+            verdict = verdicts.step_verdict(outcome, current, self._units, self._misfit.world)
             self._apply(verdict)
             if verdict.collect_anew:  # the old readings describe another sensor
                 self._collect_anew(math.inf)
@@ -497,10 +494,14 @@ class CalibrationSession:
         misfit_change = since_last_check_s = None
         if not outcome.error and outcome.job.current is self._calibration:
             misfit_change = self._misfit.update(now, outcome.fit_check)
+            if misfit_change == 'cleared' and self._misfit.world_since is not None:
+                self._evidence.forget_between(self._misfit.world_since, now)  # its readings
+                self._turns.forget()
             if outcome.comparison is not None:
                 since_last_check_s = self._tracking.checked(now)
         verdict = verdicts.check_verdict(outcome, self._calibration, misfit_change,
-                                         since_last_check_s, self._settings, self._units)
+                                         since_last_check_s, self._settings, self._units,
+                                         self._misfit.world)
         if verdict.message:
             self._event(verdict.level, verdict.message)
         if verdict.collect_anew:
@@ -565,11 +566,11 @@ class CalibrationSession:
     def _put_in_force(self, calibration: Calibration, source: str) -> None:
         """The one door through which the calibration in force changes; ``source`` says why.
 
-        A new calibration ('given', 'file', 'parameters', 'request', 'auto', 'refine') is counted
-        in ``adoptions`` and judged afresh: the misfit monitor, the scheduler and the tracker
-        restart, and it screens the buffer unless the buffer has a fit of its own. 'realign'
-        rotates the one in force into the IMU frame (only the tracker restarts); 'tracking'
-        steps it towards the tracker's (counted in ``tracked_updates``; the buffer's reference
+        A new calibration ('given', 'file', 'parameters', 'request', 'auto', 'refine', 'gyro',
+        'step') is counted in ``adoptions`` and judged afresh: the misfit monitor, the scheduler
+        and the tracker restart; it screens the buffer unless the buffer has a fit of its own.
+        'realign' rotates the one in force into the IMU frame (only the tracker restarts);
+        'tracking' steps it towards the tracker's (``tracked_updates``; the buffer's reference
         follows when it is the calibration in force; a static fit keeps the compensation)."""
         calibration = self._compensation.carry(calibration, self._calibration, source)
         self._sync_states()

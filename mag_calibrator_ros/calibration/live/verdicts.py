@@ -39,6 +39,7 @@ from mag_calibrator_ros.calibration.live.report import (
     format_field,
     misfit_text,
     reference_text,
+    world_text,
 )
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
 
@@ -138,12 +139,13 @@ def gyro_verdict(outcome: JobOutcome, current: Calibration | None, units: str) -
     - else, when it passed its bounds and the raw field's own turned readings are within the
       residual gate, the raw field goes in force: the gyroscope confirmed it;
     - else nothing: the sphere fits (``automatic_verdict``) go on as before.
-    The sphere's refinements then judge whatever went in force on held-out readings."""
+    The sphere's refinements then judge whatever went in force on held-out readings; while
+    a gyro fit is in force, ``gyro_refinement_verdict`` judges the next ones."""
     if outcome.error:
         return Verdict(level='warning', message=f'gyro-aided calibration failed: {outcome.error}')
     fit, comparison = outcome.gyro_fit, outcome.comparison
     if current is not None:
-        return Verdict(level='debug', message='gyro-aided calibration: calibrated meanwhile')
+        return gyro_refinement_verdict(outcome, current, units)
     if fit is None or not fit.success or comparison is None:
         reason = fit.reason if fit is not None and fit.reason else 'no offset solved'
         return Verdict(level='debug', message=f'gyro-aided calibration not yet: {reason}')
@@ -172,6 +174,39 @@ def gyro_verdict(outcome: JobOutcome, current: Calibration | None, units: str) -
                    f'the raw field spreads by {fit.raw_residual_pct:.1f} %')
 
 
+def gyro_improvable(calibration: Calibration | None, disturbed: bool = False) -> bool:
+    """Whether the calibration in force is a gyro fit (its directions' sigma known) that a
+    fit of more turning may improve on; a sphere fit, a file or the raw field confirmed are
+    the sphere refinements' to judge, and in a disturbance of the world (``disturbed``)
+    nothing is learned."""
+    return (not disturbed and calibration is not None
+            and calibration.metadata.get('fit') == 'gyro_aided'
+            and calibration.metadata_number('direction_std_deg') is not None)
+
+
+def gyro_refinement_verdict(outcome: JobOutcome, current: Calibration, units: str) -> Verdict:
+    """A gyro fit of the latest turning replaces the gyro fit in force when the calibration
+    in force is still that one (``gyro_improvable``), the new fit passed its own bounds, its
+    directions are surer than the one in force's, and it beats it on the held-out windows by
+    the rule every candidate meets: a first fit from a few seconds of turning (a magnet just
+    attached) improves as the turning grows, never worse on what was held out."""
+    fit, comparison = outcome.gyro_fit, outcome.comparison
+    if (current is not outcome.job.current or not gyro_improvable(current) or fit is None
+            or not fit.success or comparison is None):
+        return Verdict()
+    before = current.metadata_number('direction_std_deg')
+    if not (fit.direction_std_deg < before and comparison.better):
+        return Verdict(level='debug', message=f'gyro-aided refinement not adopted: directions '
+                       f'uncertain by {fit.direction_std_deg:.2f} deg (in force {before:.2f}), '
+                       f'{comparison.reason}')
+    candidate = fit.calibration.with_metadata(residual_rms_pct=round(fit.residual_pct, 3))
+    attempt = CalibrationAttempt(True, calibration_summary(candidate, units), outcome)
+    return Verdict(candidate, 'gyro', 'info',
+                   f"refined from the gyroscope's turning ({fit.windows} windows, directions "
+                   f'uncertain by {before:.2f} -> {fit.direction_std_deg:.2f} deg): '
+                   f'{comparison.reason}', attempt)
+
+
 STEP_SIGMAS = 5.0
 """A step must move the offset by five of its own standard deviations (each reading of a look
 every second is judged: a one-in-a-million chance of a false step a look)..."""
@@ -181,16 +216,44 @@ MIN_STEP = 0.05
 the refinements' to find, from the sphere."""
 
 
-def step_verdict(outcome: JobOutcome, current: Calibration | None, units: str) -> Verdict:
+EQUIVALENT_SIGMAS = 3.0
+"""A look says the offset in force still holds when the offset it fitted, widened by three of its
+standard deviations, stays within MIN_STEP of the field of it: a step the looks would call one
+is ruled out, not merely unproven."""
+
+
+def offset_look(outcome: JobOutcome, current: Calibration | None) -> tuple[bool, bool]:
+    """What a step look (``jobs.step_outcome``) says of the sensor: (world, moved).
+
+    ``world``: the offset in force still holds (EQUIVALENT_SIGMAS) while the field its readings
+    turn is another strength, by MIN_STEP of it at least: the field changed around the sensor
+    (a magnet, steel, a vehicle in the room), not on it; a body-fixed step moves the offset the
+    turning sees, a world-fixed field turns with the world and leaves it. ``moved``: the
+    offset moved by a step (STEP_SIGMAS and MIN_STEP). Neither when the look saw too little."""
+    fit = outcome.gyro_fit
+    if outcome.error or current is None or fit is None or not fit.success:
+        return False, False
+    room = MIN_STEP * current.field_radius()
+    size = float(np.linalg.norm(fit.calibration.offset - current.offset))
+    sigma = float(np.linalg.norm(fit.offset_std))
+    held = size + EQUIVALENT_SIGMAS * sigma < room
+    changed = abs(outcome.field_seen / current.field_strength - 1.0) > MIN_STEP
+    return held and changed, size >= STEP_SIGMAS * sigma and size >= room
+
+
+def step_verdict(outcome: JobOutcome, current: Calibration | None, units: str,
+                 disturbed: bool = False) -> Verdict:
     """A hard-iron step (``jobs.step_outcome``): the latest turned readings agree with another
     offset, the rest of the calibration in force kept. It goes in force at once, and what was
     learned before it is forgotten (``collect_anew``: the old buffer is not mixed with the new
     sensor), when the offset passed its own bounds, moved by STEP_SIGMAS of its uncertainty and
     MIN_STEP of the field, and beats the calibration in force on the held-out windows by the
     rule every candidate meets. A field disturbed in the world (a magnet in the room) agrees
-    with no offset as the sensor turns: no step. Looks that find none say nothing."""
+    with no offset as the sensor turns: no step; while one is known (``disturbed``: the
+    misfit is the world's) the readings are the disturbance's and no step is taken from them.
+    Looks that find none say nothing."""
     fit, comparison = outcome.gyro_fit, outcome.comparison
-    if outcome.error or current is None or current is not outcome.job.current:
+    if outcome.error or current is None or current is not outcome.job.current or disturbed:
         return Verdict()
     if fit is None or not fit.success or comparison is None or not comparison.better:
         return Verdict()
@@ -283,11 +346,13 @@ def realign_verdict(outcome: JobOutcome, current: Calibration | None) -> Verdict
 
 def check_verdict(outcome: JobOutcome, current: Calibration | None, misfit_change: str | None,
                   since_last_check_s: float | None, settings: SessionSettings,
-                  units: str) -> Verdict:
+                  units: str, disturbed: bool = False) -> Verdict:
     """A check of the calibration in force on recent held-out readings.
 
-    ``misfit_change``: what ``MisfitMonitor.update`` made of it ('confirmed', 'cleared' or
-    None). With online tracking, a step towards the tracker's calibration goes in force when the
+    ``misfit_change``: what ``MisfitMonitor.update`` made of it ('confirmed', 'world' (a
+    disturbance of the world: the calibration stays and nothing is learned), 'cleared' or
+    None); ``disturbed``: the world's misfit holds, no tracking step. With online tracking, a
+    step towards the tracker's calibration goes in force when the
     tracker beats the calibration in force by ``tracking_improvement`` on held-out readings; the
     step is bounded by ``tracking_max_change_rate`` times the stream seconds since the previous
     check (``since_last_check_s``, None for the first), so it can never jump.
@@ -301,12 +366,15 @@ def check_verdict(outcome: JobOutcome, current: Calibration | None, misfit_chang
     if misfit_change == 'confirmed':
         level, message = 'warning', misfit_text(outcome.fit_check, units, settings.auto_calibrate)
         collect_anew = settings.auto_calibrate
+    elif misfit_change == 'world':  # the sensor is as calibrated: nothing to collect anew
+        level, message = 'warning', world_text(outcome.fit_check, units)
     elif misfit_change == 'cleared':
         level, message = 'info', (f'the calibration in force fits the live data again (median '
                    f'error {outcome.fit_check.median_error_pct:.1f} %)')
     step = None
     comparison = outcome.comparison
-    if (comparison is not None and since_last_check_s is not None and since_last_check_s > 0
+    if (comparison is not None and not disturbed and since_last_check_s is not None
+            and since_last_check_s > 0
             and comparison.better and comparison.candidate_pct
             < settings.tracking_improvement * comparison.current_pct):
         try:
@@ -412,14 +480,18 @@ def compensation_verdict(outcome: JobOutcome, current: Calibration | None) -> Ve
 __all__ = [
     'COVERAGE_SLACK',
     'Verdict',
+    'EQUIVALENT_SIGMAS',
     'compensation_verdict',
     'automatic_verdict',
     'bounded_step',
     'check_text',
     'check_verdict',
     'coverage_kept',
+    'gyro_improvable',
+    'gyro_refinement_verdict',
     'gyro_verdict',
     'judged_on_evidence',
+    'offset_look',
     'passed_own_gates',
     'realign_verdict',
     'refinement_verdict',
