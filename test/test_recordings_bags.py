@@ -52,9 +52,14 @@ def imu(accel, gyro, stamp_ns):
                            linear_acceleration_covariance=np.zeros(9))
 
 
-def write_ros1(path: Path, messages: list[tuple[str, str, object, int]]) -> Path:
-    """A real ROS 1 bag: (topic, msgtype, message, receive time ns) in that order."""
-    with Writer(path) as writer:
+def write_ros1(path: Path, messages: list[tuple[str, str, object, int]],
+               compression: str | None = None) -> Path:
+    """A real ROS 1 bag: (topic, msgtype, message, receive time ns) in that order; its chunks
+    compressed by ``compression`` ('lz4', 'bz2') when given."""
+    bag = Writer(path)
+    if compression is not None:
+        bag.set_compression(Writer.CompressionFormat[compression.upper()])
+    with bag as writer:
         connections = {}
         for topic, msgtype, message, time_ns in messages:
             if topic not in connections:
@@ -157,6 +162,27 @@ def test_a_damaged_ros1_bag_is_one_clear_line(tmp_path):
     broken.write_bytes(b'#ROSBAG V2.0\n' + b'\x00' * 64)
     with pytest.raises(RecordingError, match='cannot read ROS 1 bag'):
         read_recording(broken)
+
+
+@pytest.mark.parametrize('compression', ['lz4', 'bz2'])
+def test_a_damaged_compressed_chunk_is_one_clear_line_and_exit_2(tmp_path, capsys, compression):
+    """A decompressor's own error (lz4's RuntimeError, bz2's OSError) raised while the reader
+    reads the file is the file's fault: one line naming it, exit 2, no traceback."""
+    stamps = [START_NS + i * 10**7 for i in range(2000)]
+    messages = [('/imu/mag', MAGNETIC_FIELD, magnetic_field(MAG_ROWS[i % 40], stamp), stamp)
+                for i, stamp in enumerate(stamps)]
+    bag = write_ros1(tmp_path / 'compressed.bag', messages, compression)
+    assert len(read_recording(bag).samples) == 2000  # whole, it reads
+    data = bytearray(bag.read_bytes())
+    middle = len(data) // 2
+    data[middle:middle + 256] = bytes(b ^ 0x5A for b in data[middle:middle + 256])
+    bag.write_bytes(bytes(data))
+    with pytest.raises(RecordingError, match='damaged data in the file'):
+        read_recording(bag)
+    assert fit.main([str(bag)]) == 2
+    err = capsys.readouterr().err
+    assert 'compressed.bag' in err and 'Traceback' not in err
+    assert len(err.strip().splitlines()) == 1
 
 
 def test_the_committed_real_ros1_bag_reads_and_is_named_normalised(capsys):

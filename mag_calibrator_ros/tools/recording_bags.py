@@ -83,7 +83,7 @@ def read_rosbag(
             mag_rows = _GrowingRows(4)
             pending: list[tuple[float, ...]] = []
             count = 0
-            for connection, log_time, rawdata in reader.messages(connections=connections):
+            for connection, log_time, rawdata in _messages(path, kind, reader, connections):
                 try:
                     message = deserialize(rawdata, connection.msgtype)
                 except Exception:  # noqa: BLE001 - a corrupt message is counted, not fatal
@@ -263,6 +263,23 @@ def _choose_topic(path: Path, topics: dict[str, str | None], wanted: str | None,
         raise RecordingError(f'{path}: no {msgtype} topic in this bag; topics: {listing}')
     raise RecordingError(f'{path}: {len(candidates)} {msgtype} topics '
                          f'({", ".join(candidates)}); choose one with {option}')
+
+
+def _messages(path: Path, kind: str, reader, connections: list):  # noqa: ANN001, ANN202
+    """The reader's messages; whatever the reader itself raises while it reads the file (a
+    damaged chunk: lz4's RuntimeError, zstd's ZstdError, bz2's OSError, a short read) is the
+    file's fault, said in one line. Errors of the code reading each message are not caught
+    here: they are bugs, not damaged files."""
+    iterator = iter(reader.messages(connections=connections))
+    while True:
+        try:
+            item = next(iterator)
+        except StopIteration:
+            return
+        except Exception as error:  # noqa: BLE001 - any decompressor's own error type
+            raise RecordingError(f'{path}: cannot read {kind}: damaged data in the file '
+                                 f'({_one_line(error)})') from error
+        yield item
 
 
 def _one_line(error: BaseException) -> str:
