@@ -24,7 +24,7 @@ a calibration is in force, the corrected one after. Then, per trial:
 - x-io Fusion (``imufusion``, ENU convention) fed gyroscope, accelerometer and each field, its
   heading error by BROAD's own metric (``heading_error``) RMS over the movement samples;
 - the peers given the same samples, batch over the whole trial: the package's ellipsoid fit
-  (``fit_calibration``, model 'full', every row) and MAGYC's four methods (CoMPAS Lab, PyPI
+  (``fit_calibration``, model 'full', one row per place) and MAGYC's four methods (CoMPAS Lab, PyPI
   ``magyc``, run by benchmarks/peers/magyc_broad.py in a venv of its own; n/a without it).
   MAGYC differentiates the field between successive rows, and the aktos-t holds its
   magnetometer between updates (repeated rows): ``--magyc-step N`` gives it every N-th row,
@@ -57,6 +57,7 @@ import imufusion
 import numpy as np
 import scipy.io as spio
 
+from mag_calibrator_ros.calibration.fit.coverage import places
 from mag_calibrator_ros.calibration.fit.fitting import FitOptions, fit_calibration
 from mag_calibrator_ros.calibration.live.error_model import heading_sigma_deg
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
@@ -194,8 +195,9 @@ def replay(data: dict) -> dict:
 
 
 def ellipsoid(data: dict) -> tuple[np.ndarray | None, str]:
-    """The package's ellipsoid fit, model 'full', of every raw row, applied to every row."""
-    result = fit_calibration(data['imu_mag'], FitOptions(model='full'))
+    """The package's ellipsoid fit, model 'full', of the raw rows one per place (as
+    ``mag_calibrator_fit --all`` fits them: pauses weigh as moves), applied to every row."""
+    result = fit_calibration(places(data['imu_mag'])[0], FitOptions(model='full'))
     if result.calibration is None:
         return None, result.reason
     return result.calibration.apply(data['imu_mag']), ('ok' if result.success
