@@ -269,7 +269,7 @@ def _against_current(outcome: JobOutcome) -> JobOutcome:
     fit, data = outcome.gyro_fit, outcome.job.turned
     if fit is None or fit.calibration is None:
         return outcome
-    part = _part(data, data.windows % HELD_OUT_WINDOWS == HELD_OUT_WINDOWS - 1)
+    part = _part(data, _held_out(data))
     return replace(outcome, comparison=compare_residuals(
         turned_errors(outcome.job.current, part), turned_errors(fit.calibration, part),
         'held-out turned readings'))
@@ -289,7 +289,7 @@ def _gyro_aided_fit(job: FitJob) -> JobOutcome:
     its own calibration unless another is clearly better). The fit returned is the one chosen,
     its comparison the one against the raw field."""
     data = job.turned
-    held = data.windows % HELD_OUT_WINDOWS == HELD_OUT_WINDOWS - 1
+    held = _held_out(data)
     train, part = _part(data, ~held), _part(data, held)
     most = 15.0 if job.alignment is None else job.alignment.max_angle_deg
     bounds = {'max_residual_pct': job.options.max_residual_pct, 'max_rotation_deg': most}
@@ -322,7 +322,7 @@ def step_outcome(job: FitJob) -> JobOutcome:
     data, current = job.turned, job.current
     corrected = TurnedReadings(current.unrotated(data.readings),
                                data.rotations, data.windows)
-    held = data.windows % HELD_OUT_WINDOWS == HELD_OUT_WINDOWS - 1
+    held = _held_out(data)
     fit = fit_gyro_aided(_part(corrected, ~held), max_residual_pct=job.options.max_residual_pct)
     if fit.calibration is None:
         return JobOutcome(job, gyro_fit=fit)
@@ -352,6 +352,11 @@ def turned_worse(current: Calibration, candidate: Calibration,
                       f'{"better" if worse else "not better"} on {len(turned.readings)} '
                       f'readings turned by the gyroscope: RMS {100 * new:.2f} % (the fit) vs '
                       f'{100 * now:.2f} % (in force)')
+
+
+def _held_out(data: TurnedReadings) -> np.ndarray:
+    """The readings of every HELD_OUT_WINDOWS-th window: what judges a gyro fit."""
+    return data.windows % HELD_OUT_WINDOWS == HELD_OUT_WINDOWS - 1
 
 
 def _part(data: TurnedReadings, rows: np.ndarray) -> TurnedReadings:

@@ -30,6 +30,7 @@ from mag_calibrator_ros.calibration.fit.alignment import rotation_angle_deg
 from mag_calibrator_ros.calibration.fit.calibration import Calibration, CalibrationError
 from mag_calibrator_ros.calibration.fit.coverage import CELL_COUNT
 from mag_calibrator_ros.calibration.fit.earth_field import EarthField, disturbance_text
+from mag_calibrator_ros.calibration.fit.gyro_aided import GyroAidedFit
 from mag_calibrator_ros.calibration.live.evidence import MIN_EVIDENCE, Comparison, FitCheck
 from mag_calibrator_ros.calibration.live.jobs import JobOutcome
 from mag_calibrator_ros.calibration.live.report import (
@@ -233,12 +234,21 @@ def offset_look(outcome: JobOutcome, current: Calibration | None) -> tuple[bool,
     fit = outcome.gyro_fit
     if outcome.error or current is None or fit is None or not fit.success:
         return False, False
-    room = MIN_STEP * current.field_radius()
-    size = float(np.linalg.norm(fit.calibration.offset - current.offset))
-    sigma = float(np.linalg.norm(fit.offset_std))
-    held = size + EQUIVALENT_SIGMAS * sigma < room
+    size, sigma = _offset_change(fit, current)
+    held = size + EQUIVALENT_SIGMAS * sigma < MIN_STEP * current.field_radius()
     changed = abs(outcome.field_seen / current.field_strength - 1.0) > MIN_STEP
-    return held and changed, size >= STEP_SIGMAS * sigma and size >= room
+    return held and changed, _is_step(size, sigma, current)
+
+
+def _offset_change(fit: GyroAidedFit, current: Calibration) -> tuple[float, float]:
+    """How far a look's offset lies from the one in force, and that distance's 1-sigma."""
+    return (float(np.linalg.norm(fit.calibration.offset - current.offset)),
+            float(np.linalg.norm(fit.offset_std)))
+
+
+def _is_step(size: float, sigma: float, current: Calibration) -> bool:
+    """STEP_SIGMAS of its own uncertainty and MIN_STEP of the field: a step."""
+    return size >= STEP_SIGMAS * sigma and size >= MIN_STEP * current.field_radius()
 
 
 def step_verdict(outcome: JobOutcome, current: Calibration | None, units: str,
@@ -257,10 +267,8 @@ def step_verdict(outcome: JobOutcome, current: Calibration | None, units: str,
         return Verdict()
     if fit is None or not fit.success or comparison is None or not comparison.better:
         return Verdict()
-    shift = fit.calibration.offset - current.offset
-    size = float(np.linalg.norm(shift))
-    sigma = float(np.linalg.norm(fit.offset_std))
-    if size < STEP_SIGMAS * sigma or size < MIN_STEP * current.field_radius():
+    size, sigma = _offset_change(fit, current)
+    if not _is_step(size, sigma, current):
         return Verdict()
     candidate = fit.calibration
     attempt = CalibrationAttempt(True, calibration_summary(candidate, units), outcome)
