@@ -76,6 +76,9 @@ MIN_TEMPERATURE_SPAN = 2.0
 """Degrees Celsius: a narrower span is reported as 'did not vary' without a fit of c."""
 TEMPERATURE = 'temperature'
 """The name of the temperature term in reports."""
+ALIKE_CORRELATION = 0.995
+"""Two inputs whose samples correlate beyond this never varied independently (two topics of one
+battery's current, a current and a speed it follows exactly)."""
 PAIR_LAGS_S = (1.0, 3.0)
 """Readings compared through the gyroscope are this far apart (up to PAIR_SLACK times): long
 enough for a speed change to reach the current, short enough that a gyroscope bias of 0.2 deg/s
@@ -488,6 +491,8 @@ def fit_compensation(data: CompensationData, base: Calibration) -> CompensationF
                                                      -1.0, 1.0))))
     varied = [index for index, span in enumerate(spans)
               if span > 0 and (labels[index] != TEMPERATURE or span >= MIN_TEMPERATURE_SPAN)]
+    alike = _alike(columns, labels, varied)
+    varied = [index for index in varied if index not in alike]
     design = np.stack([columns[i] for i in varied], axis=1) if varied else np.zeros((len(raw), 0))
     anchors = np.full(len(labels), math.nan)
     if data.anchor is not None and len(data.anchor) == len(names) + 1:
@@ -502,7 +507,7 @@ def fit_compensation(data: CompensationData, base: Calibration) -> CompensationF
     for index, label in enumerate(labels):
         if index not in varied:
             reports.append(TermReport(label, spans[index], 0.0, math.inf, 0.0, False, False,
-                                      _need(label, spans[index], False)))
+                                      alike.get(index) or _need(label, spans[index], False)))
             continue
         column = varied.index(index) + 1
         picks = np.array([axis * m + column for axis in range(3)])
@@ -578,6 +583,25 @@ def fit_compensation(data: CompensationData, base: Calibration) -> CompensationF
     return CompensationFit(candidate, tuple(reports), len(raw), residual_pct, current_pct,
                            candidate_pct, removed, kept=tuple(labels[i] for i in kept),
                            pairs=len(pairs), held_pair_errors=held_pair_errors)
+
+
+def _alike(columns: list[np.ndarray], labels: list[str], varied: list[int]) -> dict[int, str]:
+    """The inputs that varied only with an earlier one (correlation beyond ALIKE_CORRELATION),
+    each with the words saying so: their fields cannot be told apart, and a fit of both found
+    any K1 = -K2 as good as the truth (issue #47); the earlier one is fitted alone."""
+    alike: dict[int, str] = {}
+    for position, index in enumerate(varied):
+        for earlier in varied[:position]:
+            if earlier in alike or labels[index] == TEMPERATURE:
+                continue
+            correlation = float(np.corrcoef(columns[earlier], columns[index])[0, 1])
+            if abs(correlation) >= ALIKE_CORRELATION:
+                alike[index] = (f"input '{labels[index]}' never varied apart from "
+                                f"'{labels[earlier]}' (correlation {correlation:.3f}): their "
+                                'fields cannot be told apart; list one of them in '
+                                'interference_inputs')
+                break
+    return alike
 
 
 def _need(label: str, span: float, varied: bool) -> str:
