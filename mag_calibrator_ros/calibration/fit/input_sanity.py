@@ -190,6 +190,46 @@ def calibration_unit_problem(offset_t: ArrayLike, field_strength_t: float,
     return None
 
 
+TEMPERATURE_RANGE_C = (-60.0, 200.0)
+"""A die or board temperature in degrees Celsius lies within this (the ICM-20948 works from
+-40 to 85 degC, datasheet DS-000189 Table 1; a kelvin or Fahrenheit reading of a warm robot
+does not)."""
+
+FIELD_PER_EARTH = 200.0
+"""With no full scale given, a field beyond this many field strengths is none a magnetometer
+reads (MAX_OFFSET_T, 10 mT, against the Earth's 50 µT)."""
+
+
+def field_limit(full_scale: float | None, field_strength: float) -> float:
+    """The largest field, in the calibration's units, any term or corrected reading may have:
+    the magnetometer's full scale, or FIELD_PER_EARTH field strengths without one."""
+    return full_scale if full_scale else FIELD_PER_EARTH * field_strength
+
+
+def compensation_bound_problems(compensation: object, limit: float,
+                                units: str = 'T') -> list[str]:
+    """Everything in a compensation (``fit.calibration.Compensation``) no robot can have,
+    naming the term and the bound: an input or one degree Celsius moving the field by more than
+    ``limit`` (the magnetometer's full scale: the chip would saturate at a unit of the input),
+    or T0 outside TEMPERATURE_RANGE_C. A file edited by hand with K = 1e300 T/A published fields
+    of 2e300 T (issue #47)."""
+    problems = []
+    for name, column in zip(compensation.inputs, compensation.interference.T, strict=True):
+        size = float(np.max(np.abs(column)))
+        if not size <= limit:
+            problems.append(f"interference for '{name}' is {size:.3g} {units} per unit of the "
+                            f'input, beyond the {limit:.3g} {units} the magnetometer reads')
+    drift = float(np.max(np.abs(compensation.temperature_coefficient)))
+    if not drift <= limit:
+        problems.append(f'temperature_coefficient is {drift:.3g} {units} per degC, beyond the '
+                        f'{limit:.3g} {units} the magnetometer reads')
+    t0, (low, high) = compensation.reference_temperature, TEMPERATURE_RANGE_C
+    if t0 is not None and not low <= t0 <= high:
+        problems.append(f'reference_temperature {t0:.6g} degC is outside {low:g} to {high:g} '
+                        'degC (a kelvin or Fahrenheit value?)')
+    return problems
+
+
 def stated_unit_note(field_strength_t: float, units: str) -> str | None:
     """A word when the unit a user stated makes the field strength unlike the Earth's
     (outside STATED_UNIT_FIELD_UT), or None."""
@@ -229,6 +269,10 @@ def accel_unit_problem(samples: ArrayLike) -> str | None:
 __all__ = [
     'ACCEL_RANGE_MPS2',
     'EARTH_UT',
+    'FIELD_PER_EARTH',
+    'TEMPERATURE_RANGE_C',
+    'compensation_bound_problems',
+    'field_limit',
     'MAX_TESLA',
     'MIN_DIRECTION_SPREAD_DEG',
     'MIN_READINGS',

@@ -32,6 +32,7 @@ from mag_calibrator_ros.calibration.fit.compensation import (
     TEMPERATURE,
     CompensationData,
 )
+from mag_calibrator_ros.calibration.fit.input_sanity import TEMPERATURE_RANGE_C
 from mag_calibrator_ros.calibration.live.inputs import InputSpec, parse_input
 from mag_calibrator_ros.calibration.live.jobs import (
     REFERENCE_OPTIONS,
@@ -44,6 +45,12 @@ from mag_calibrator_ros.calibration.live.verdicts import Verdict, compensation_v
 
 SAMPLE_RING = 32
 """Recent samples of each input and of the temperature, to pair readings with by stamp."""
+MAX_TEMPERATURE_STEP_C = 5.0
+MAX_TEMPERATURE_RATE_C_S = 1.0
+"""A temperature step beyond MAX_TEMPERATURE_STEP_C at more than this rate is none a board
+makes (``temperature``)..."""
+CONFIRM_SAMPLES = 3
+"""...unless this many samples in a row agree on the new level."""
 INPUT_TOLERANCE_NS = 500_000_000
 """A reading learns only from input samples within 0.5 s of its stamp (fresh); the correction
 uses the latest value whatever its age (an input that stopped changing still holds)."""
@@ -125,6 +132,7 @@ class _Series:
         self.samples: deque[tuple[int, float]] = deque(maxlen=SAMPLE_RING)
         self.latest = math.nan
         self.received = 0
+        self.refused = 0  # samples no robot makes (``CompensationLearner.input``), said once
 
     def add(self, stamp_ns: int, value: float) -> None:
         if math.isfinite(value):
@@ -198,6 +206,7 @@ class CompensationLearner:
         self.covered = np.zeros(1, dtype=bool)
         """Which of those terms the compensation in force has (held exactly there)."""
         self._from_file = False  # the calibration in force came from a file or parameters
+        self._temperature_step = (math.nan, 0)  # a step's new level, and samples agreeing
         self.reset()
         self.configure(inputs, use_temperature, learn)
         self.last_fit = None
@@ -248,10 +257,36 @@ class CompensationLearner:
 
     # -- per message (O(k)) --------------------------------------------------------------------
 
-    def temperature(self, stamp_ns: int | None, celsius: float) -> None:
-        """One ``sensor_msgs/Temperature`` sample (degrees Celsius); implausible ones dropped."""
-        if math.isfinite(celsius) and -60.0 <= celsius <= 200.0:
-            self.temperature_series.add(self._stamp(stamp_ns), float(celsius))
+    def temperature(self, stamp_ns: int | None, celsius: float) -> str | None:
+        """One ``sensor_msgs/Temperature`` sample (degrees Celsius). One outside
+        TEMPERATURE_RANGE_C is dropped; so is a step of more than MAX_TEMPERATURE_STEP_C faster
+        than MAX_TEMPERATURE_RATE_C_S (a die warms by degrees a minute; Fahrenheit from another
+        publisher steps by tens at once) until CONFIRM_SAMPLES in a row agree on the new level
+        (a publisher restarted). The reason, the first time it is dropped."""
+        series, stamp, (low, high) = self.temperature_series, self._stamp(stamp_ns), \
+            TEMPERATURE_RANGE_C
+        if not math.isfinite(celsius):
+            return None
+        problem = None
+        if not low <= celsius <= high:
+            problem = (f'{celsius:g} degC is outside {low:g} to {high:g} degC (kelvin?); '
+                       'sensor_msgs/Temperature is in degrees Celsius')
+        elif series.samples and abs(celsius - series.samples[-1][1]) > MAX_TEMPERATURE_STEP_C:
+            last_stamp, last = series.samples[-1]
+            seconds = max(stamp - last_stamp, 0) / 1e9
+            level, count = self._temperature_step
+            count = count + 1 if abs(celsius - level) <= MAX_TEMPERATURE_STEP_C else 1
+            self._temperature_step = (celsius, count)
+            if (abs(celsius - last) > MAX_TEMPERATURE_RATE_C_S * seconds
+                    and count < CONFIRM_SAMPLES):
+                problem = (f'{celsius:g} degC follows {last:g} degC {seconds:.2g} s before: no '
+                           'die warms so fast (two publishers, or degrees Fahrenheit?)')
+        if problem is None:
+            series.add(stamp, float(celsius))
+            self._temperature_step = (math.nan, 0)
+            return None
+        series.refused += 1
+        return (f'imu/temperature sample dropped: {problem}' if series.refused == 1 else None)
 
     def gyro(self, stamp_ns: int, rate: np.ndarray | tuple[float, float, float]) -> None:
         """One gyroscope sample (rad/s, the IMU's frame), integrated into the attitude kept
@@ -291,11 +326,33 @@ class CompensationLearner:
             return NO_ATTITUDE
         return (float(self._stretch), *self._attitude)
 
-    def input(self, index: int, stamp_ns: int | None, value: float) -> None:
+    def input(self, index: int, stamp_ns: int | None, value: float,
+              calibration: Calibration | None = None, limit: float | None = None) -> str | None:
         """One sample of input ``index``; ``stamp_ns`` None (a message without a header, such as
-        Twist) takes the latest reading's stamp."""
-        if 0 <= index < len(self.series):
-            self.series[index].add(self._stamp(stamp_ns), float(value))
+        Twist) takes the latest reading's stamp. A sample no robot makes
+        (``InputSpec.sample_problem``), or one whose own field under the compensation in force
+        is beyond ``limit`` (the magnetometer would saturate), is dropped: the reason, the first
+        time (one 65535 A "unknown" current published a 0.13 T field, issue #47)."""
+        if not 0 <= index < len(self.series):
+            return None
+        value, spec = float(value), self.specs[index]
+        problem = spec.sample_problem(value)
+        compensation = None if calibration is None else calibration.compensation
+        columns = (None if compensation is None or limit is None
+                   else input_columns(compensation.inputs, self.names))
+        if problem is None and columns is not None and index in columns:
+            field = abs(value) * float(np.max(np.abs(
+                compensation.interference[:, columns.index(index)])))
+            if not field <= limit:
+                problem = (f'{value:g} puts {field:.3g} of own field on the magnetometer under '
+                           f'the compensation in force, beyond the {limit:.3g} it reads')
+        series = self.series[index]
+        if problem is None:
+            series.add(self._stamp(stamp_ns), value)
+            return None
+        series.refused += 1
+        return (f"interference input '{spec.text}' sample dropped: {problem}"
+                if series.refused == 1 else None)
 
     def _stamp(self, stamp_ns: int | None) -> int:
         if stamp_ns is not None and stamp_ns > 0:

@@ -22,6 +22,17 @@ SPEC = re.compile(r'^(?P<topic>~?/?[A-Za-z_][\w/]*):(?P<type>[A-Za-z_]\w*/(?:msg
 """``topic:package/msg/Type:field`` (see the module docstring)."""
 MAX_INPUTS = 8
 
+KIND_LIMITS = (('current', 1000.0, 'A'), ('voltage', 1000.0, 'V'), ('linear', 100.0, 'm/s'),
+               ('angular', 100.0, 'rad/s'), ('velocity', 1000.0, 'per s'),
+               ('effort', 1e4, 'N or N m'))
+"""The largest size each kind of input takes on any robot (the first kind a field's path or
+name contains): a 1000 A pack current or a 100 m/s speed is none; other fields up to
+ANY_LIMIT. A battery driver's "unknown" (65535) lies beyond them (issue #47)."""
+ANY_LIMIT = 1e6
+SENTINELS = frozenset({65535.0, 32767.0, -32767.0, -32768.0})
+"""Integer "unknown" values drivers put in float fields (UINT16_MAX, INT16_MAX/MIN), refused
+in every kind (sensor_msgs/BatteryState's own "unmeasured" is NaN)."""
+
 
 @dataclass(frozen=True)
 class InputSpec:
@@ -46,6 +57,20 @@ class InputSpec:
         except (AttributeError, IndexError, TypeError, ValueError):
             return math.nan
         return abs(number) if self.absolute else number
+
+    def sample_problem(self, value: float) -> str | None:
+        """Why ``value`` is no sample of this input (non-finite, a sentinel, beyond its kind's
+        size), or None."""
+        if not math.isfinite(value):
+            return None if math.isnan(value) else f'{value} is not a number it can take'
+        words = re.findall(r'[a-z]+', ' '.join(self.path or (self.text,)).lower())
+        kind, limit, unit = next((kind for kind in KIND_LIMITS if any(
+            kind[0] in word for word in words)), ('value', ANY_LIMIT, ''))
+        if value in SENTINELS:
+            return f'{value:g} is a driver\'s "unknown" value, not a measurement'
+        if abs(value) > limit:
+            return f"{value:g} is beyond any robot's {kind} ({limit:g} {unit})".replace(' )', ')')
+        return None
 
 
 def parse_input(text: str) -> InputSpec | str:
@@ -72,4 +97,5 @@ def input_problems(inputs: tuple[str, ...]) -> list[str]:
     return problems
 
 
-__all__ = ['MAX_INPUTS', 'InputSpec', 'input_problems', 'parse_input']
+__all__ = ['ANY_LIMIT', 'KIND_LIMITS', 'MAX_INPUTS', 'SENTINELS', 'InputSpec', 'input_problems',
+           'parse_input']

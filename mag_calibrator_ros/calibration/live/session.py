@@ -26,7 +26,11 @@ from mag_calibrator_ros.calibration.fit.calibration import Calibration
 from mag_calibrator_ros.calibration.fit.coverage import Coverage
 from mag_calibrator_ros.calibration.fit.earth_field import EarthField
 from mag_calibrator_ros.calibration.fit.heading import PlaneWatch
-from mag_calibrator_ros.calibration.fit.input_sanity import calibration_unit_problem
+from mag_calibrator_ros.calibration.fit.input_sanity import (
+    calibration_unit_problem,
+    compensation_bound_problems,
+    field_limit,
+)
 from mag_calibrator_ros.calibration.live import report, verdicts
 from mag_calibrator_ros.calibration.live.alignment_wait import AlignmentWait
 from mag_calibrator_ros.calibration.live.backlog import DRAIN_PER_MESSAGE, Backlog, Reading
@@ -96,8 +100,7 @@ class CalibrationSession:
         self._errors = ErrorModel()
         self._clock = StreamClock()
         self._refusals = dict.fromkeys(REFUSAL_REASONS[len(SCREEN_REASONS):], 0)
-        self._accepted = 0
-        self._accepted_at_poll = 0  # accepted messages at the previous poll(): is the stream idle?
+        self._accepted = self._accepted_at_poll = self._implausible = 0  # _at_poll: idle?
         self._input_rate = RateMeter()
         self._calibration: Calibration | None = None  # only ``_put_in_force`` changes it
         self._last_attempt: CalibrationAttempt | None = None
@@ -150,24 +153,13 @@ class CalibrationSession:
         self._runner.close()
 
     # -- per message ---------------------------------------------------------------------------
-    # The path of one reading, a call of ``process``:
-    # 1. screen:   screening.ReadingScreen refuses what no fit should see (non-finite, zero,
-    #              saturated, out of range, stamps going back or jumping, another frame).
-    # 2. pair:     pairing.ImuPairing gives it the accelerometer sample taken with it, when an
-    #              IMU feeds ``process_imu``.
-    # 3. learn:    ``_ingest``: a held-out share goes to evidence.HeldOutEvidence (to judge
-    #              calibrations on), the rest to buffer.SampleBuffer (screened by
-    #              reference.BufferReference) and the tracker, a paired still one to
-    #              alignment.StaticAttitudes. While a fit runs, readings (backlog.Reading)
-    #              wait in ``_hold`` and are fed afterwards in order (``_advance``), so the result
-    #              does not depend on how long the fit took.
-    # 4. correct:  the calibration in force (``Calibration.apply``) corrects it.
-    # 5. publish:  ``Processed`` goes back to the caller: the node publishes it (with
-    #              ``transform_covariance``), ``mag_calibrator_fit`` reports on the run.
-    # 6. schedule: scheduler.FitScheduler says which fit is due (``_ingest``); ``_submit`` makes
-    #              its jobs.FitJob for the worker.FitRunner; its outcome comes back to
-    #              ``_complete``, which asks verdicts.py whether it goes in force
-    #              (``_put_in_force``).
+    # The path of one reading, a call of ``process`` (ARCHITECTURE.md, "A reading's path"):
+    # screen (screening.ReadingScreen), pair (pairing.ImuPairing), learn (``_ingest``: a
+    # held-out share to evidence.HeldOutEvidence, the rest to buffer.SampleBuffer and the
+    # tracker; while a fit runs, readings wait in ``_hold`` and are fed afterwards in order, so
+    # the result does not depend on how long the fit took), correct (``Calibration.apply``),
+    # publish (``Processed``), schedule (scheduler.FitScheduler; ``_submit`` makes the
+    # jobs.FitJob, ``_complete`` asks verdicts.py, ``_put_in_force`` is the one door).
 
     def process(self, stamp_ns: int, frame_id: str, field: Sequence[float],
                 delivery: Delivery | None = None) -> Processed:
@@ -204,7 +196,14 @@ class CalibrationSession:
         if calibration is None:
             return Processed(True, None, None)
         corrected = calibration.apply(reading)
-        sigma = self._errors.sigma(float(np.linalg.norm(corrected)))
+        size = float(np.linalg.norm(corrected))
+        if not size <= self._field_limit():  # an input or term no robot has: never published
+            self._implausible += 1
+            self._event('warning', None if self._implausible > 1 else (
+                f'a corrected field of {size:.3g} is beyond any the magnetometer reads: not '
+                'published (an interference input or a compensation term is wrong)'))
+            return Processed(True, None, None)
+        sigma = self._errors.sigma(size)
         return Processed(True, corrected, calibration, math.hypot(sigma, self._misfit.uncertainty),
                          self._errors.along(corrected))
 
@@ -226,12 +225,17 @@ class CalibrationSession:
 
     def process_temperature(self, stamp_ns: int | None, celsius: float) -> None:
         """One sensor temperature (degC, ``imu/temperature``) for the own field's drift."""
-        self._compensation.temperature(stamp_ns, celsius)
+        self._event('warning', self._compensation.temperature(stamp_ns, celsius))
 
     def process_input(self, index: int, stamp_ns: int | None, value: float) -> None:
         """One sample of own-field input ``index`` (``interference_inputs``' order, or the
         ``input_names`` a recording gave), paired with readings by stamp."""
-        self._compensation.input(index, stamp_ns, value)
+        self._event('warning', self._compensation.input(
+            index, stamp_ns, value, self._calibration, self._field_limit()))
+
+    def _field_limit(self) -> float | None:  # the largest term or corrected field there is
+        calibration, full_scale = self._calibration, self._settings.full_scale_limit
+        return None if calibration is None else field_limit(full_scale, calibration.field_strength)
 
     def finish(self) -> None:
         """The recording ends (offline): its last still stretch counts as an attitude too."""
@@ -274,14 +278,10 @@ class CalibrationSession:
     def _ingest(self, item: Reading) -> None:
         """Everything a reading teaches, in stream order (the held ones after the fit).
 
-        ``epochs``: the compensation the reading was compensated by on arrival, and the inputs
-        its own-field ``state`` is made of (``CompensationLearner.observe``). A compensation put
-        in force since moved the buffer and evidence (``_put_in_force``); a reading that was
-        held (a fit ran) or waited for its IMU sample then still carries the old one's
-        correction and teaches nothing: how many there are depends on how long the fit took,
-        and on a loaded computer a backlog of them, some not compensated at all, went into the
-        buffer and failed the next fit (a residual of 5.9 %, issue #22). A state of other
-        inputs than today's is unknown."""
+        ``epochs``: the compensation it was compensated by on arrival, and the inputs its
+        own-field ``state`` is made of. One compensated by a compensation since replaced
+        teaches nothing (their number depends on how long the fit took; on a loaded computer
+        they failed the next fit, issue #22); a state of other inputs than today's is unknown."""
         reading, stamp_ns, epochs, state, pair = item
         now = self._clock.advance(stamp_ns)
         self._backlog.ingested += 1
@@ -553,12 +553,15 @@ class CalibrationSession:
     # -- the calibration in force and the buffer's reference -----------------------------------
 
     def apply_calibration(self, calibration: Calibration, source: str = 'file') -> str | None:
-        """Put a calibration in force at once (a file, parameters), or say why it cannot be:
-        an offset beyond ``full_scale`` (every reading would saturate: another unit)."""
+        """Put a calibration in force at once (a file, parameters), or say why it cannot be: an
+        offset beyond ``full_scale`` (another unit), or an own-field term beyond any field read."""
         limit, problem = self._settings.full_scale_limit, None
         if limit is not None and not np.max(np.abs(calibration.offset)) <= limit:
             problem = calibration_unit_problem(calibration.offset, calibration.field_strength,
                                                limit)
+        elif calibration.compensation is not None:
+            problem = '; '.join(compensation_bound_problems(calibration.compensation, field_limit(
+                limit, calibration.field_strength), 'field units')) or None
         if problem is None:
             self._put_in_force(calibration, source)
         return problem
@@ -681,8 +684,9 @@ class CalibrationSession:
         self._events.clear()
         return events
 
-    def _event(self, level: str, message: str, **kwargs) -> None:
-        self._events.append(SessionEvent(level, message, **kwargs))
+    def _event(self, level: str, message: str | None, **kwargs) -> None:
+        if message is not None:  # None: nothing to say (a problem said once already)
+            self._events.append(SessionEvent(level, message, **kwargs))
 
     @property
     def calibration(self) -> Calibration | None:
@@ -708,7 +712,9 @@ class CalibrationSession:
             fits=dict(self._jobs_run), held=len(self._backlog),
             hold_overflows=self._backlog.overflows, held_out=len(self._evidence),
             stale_dropped=self._stale_dropped, tracked_updates=self._tracking.updates)
-        watch = self._input_watch
+        watch, wait = self._input_watch, self._alignment_wait
+        progress = report.progress_text(state, self._calibration, coverage, buffer, self._settings,
+                                        watch.problem or (wait.progress() if wait.waiting else ''))
         parts = report.ReportInputs(
             settings=self._settings, units=self._units, state=state,
             calibration=self._calibration, buffer=self._buffer,
@@ -724,7 +730,7 @@ class CalibrationSession:
             input_values={**watch.values(), **self._alignment_wait.values()},
             input_problem=watch.problem or watch.imu_problem,
             waiting_for_alignment=self._alignment_wait.waiting,
-            frame_id=self._screen.frame_id or '', progress=self._progress_text(state, coverage),
+            frame_id=self._screen.frame_id or '', progress=progress,
             earth_warning=self._findings.earth_warning(self._calibration, self._settings,
                                                        self._units))
         problem = (node is not None and node.problem) or self._runner.problem
@@ -748,12 +754,6 @@ class CalibrationSession:
         if not self._settings.refine:
             return 'calibrated'
         return 'calibrated-converged' if self._scheduler.converged else 'calibrated-refining'
-
-    def _progress_text(self, state: str, coverage: Coverage) -> str:
-        wait = self._alignment_wait
-        return report.progress_text(state, self._calibration, coverage, self._buffer,
-                                    self._settings, self._input_watch.problem
-                                    or (wait.progress() if wait.waiting else ''))
 
 
 __all__ = ['REFUSAL_REASONS', 'SCREEN_REASONS', 'STATES', 'CalibrationAttempt',

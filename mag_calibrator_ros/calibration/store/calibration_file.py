@@ -64,7 +64,11 @@ from mag_calibrator_ros.calibration.fit.calibration import (
     rotation_problems,
 )
 from mag_calibrator_ros.calibration.fit.earth_field import TESLA_PER_UNIT
-from mag_calibrator_ros.calibration.fit.input_sanity import calibration_unit_problem
+from mag_calibrator_ros.calibration.fit.input_sanity import (
+    MAX_OFFSET_T,
+    calibration_unit_problem,
+    compensation_bound_problems,
+)
 from mag_calibrator_ros.calibration.store.params_yaml import (
     MAX_DEPTH,
     MAX_FILE_BYTES,
@@ -282,9 +286,13 @@ def calibration_from_parameters(
         np.array(offset_values), np.reshape(matrix_values, (3, 3)), strength, model, extra,
         None if rotation_values is None else np.reshape(rotation_values, (3, 3)), compensation,
     )
-    if scale == 1.0:
-        return calibration
-    return calibration.scaled(scale).with_metadata(**{UNITS_KEY: TESLA})
+    if scale != 1.0:
+        calibration = calibration.scaled(scale).with_metadata(**{UNITS_KEY: TESLA})
+    if calibration.compensation is not None:
+        problems = compensation_bound_problems(calibration.compensation, MAX_OFFSET_T)
+        if problems:
+            raise CalibrationError('; '.join(problems))
+    return calibration
 
 
 def _compensation(extra: dict[str, Any], problems: list[str]) -> Compensation | None:
