@@ -230,6 +230,21 @@ def test_invalid_settings_refuse_to_start_with_one_message(tmp_path):
         rclpy.try_shutdown(context=context)
 
 
+def test_an_input_topic_rcl_refuses_refuses_to_start_with_one_message():
+    """Issue #47: the spec's own pattern let ``battery_c/`` through; rcl refused it only when
+    subscribed, with a traceback. Now it is named at start-up, as every invalid setting is."""
+    context = Context()
+    spec = 'battery_c/:sensor_msgs/msg/BatteryState:current'
+    rclpy.init(args=['--ros-args', '-p', f"interference_inputs:=['{spec}']"], context=context)
+    try:
+        with pytest.raises(ConfigurationError) as refused:
+            MagCalibratorNode(context=context)
+        assert f"interference input '{spec}': topic name" in str(refused.value)
+        assert 'must not end with a forward slash' in str(refused.value)
+    finally:
+        rclpy.try_shutdown(context=context)
+
+
 @pytest.mark.parametrize('device', ['/dev/full', '/dev/null'])
 def test_save_never_writes_through_a_device(ros, calibration_path, device):
     node, probe = start(ros, f'device_{Path(device).name}', calibration_file=str(calibration_path))

@@ -98,6 +98,25 @@ def test_a_bad_interference_input_is_refused_with_its_form(learning):
     assert 'topic:package/msg/Type:field' in reason
 
 
+def test_an_input_set_at_run_time_is_subscribed_in_that_change_and_rcl_names_are_checked(
+        learning):
+    """Issue #47: rclpy runs post-set callbacks newest first, and the inputs' own ran before the
+    node's settings changed: a new input was subscribed one change late. A topic rcl refuses
+    (``battery_c/``) passed the spec's pattern and killed the node at the next change."""
+    calibrator, probe, _, _ = learning
+    odometry = 'odom:nav_msgs/msg/Odometry:twist.twist.linear.x'
+    assert set_parameter_over_service(probe, calibrator, 'interference_inputs',
+                                      [BATTERY, odometry])[0]
+    assert wait_for(lambda: probe.count_subscribers('/own_field/odom') >= 1), (
+        'the new input was not subscribed by the change that set it')
+    ok, reason = set_parameter_over_service(probe, calibrator, 'interference_inputs',
+                                            ['battery_c/:sensor_msgs/msg/BatteryState:current'])
+    assert not ok and 'must not end with a forward slash' in reason
+    assert set_parameter_over_service(probe, calibrator, 'compensation_timeout', 30.0)[0]
+    assert probe.call('mag_calibrator/reset').success  # alive after both
+    assert calibrator.get_parameter('interference_inputs').value == [BATTERY, odometry]
+
+
 def _ask(probe: Probe, service: str):
     """Call a Trigger service without waiting (the answer comes once readings taught it)."""
     client = probe.create_client(Trigger, service)

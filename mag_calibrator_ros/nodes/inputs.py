@@ -14,7 +14,10 @@ from __future__ import annotations
 from collections.abc import Callable
 import importlib
 
+from rclpy.exceptions import InvalidTopicNameException
+from rclpy.expand_topic_name import expand_topic_name
 from rclpy.node import Node
+from rclpy.validate_full_topic_name import validate_full_topic_name
 from sensor_msgs.msg import Temperature
 
 from mag_calibrator_ros.calibration.live.inputs import InputSpec, parse_input
@@ -67,6 +70,24 @@ def learning_plan(node: Node, timeout_s: float) -> tuple[str, str]:
             f"{', '.join(sources) or 'nothing'}" + (f' ({note})' if note else '')), note
 
 
+def input_topic_problems(inputs: object, node_name: str = 'mag_calibrator',
+                         namespace: str = '/') -> list[str]:
+    """The ``interference_inputs`` whose topic rcl refuses (its own expansion and validation:
+    the spec's pattern lets ``battery_c/`` through, and subscribing it raised in the executor
+    at the next parameter change, issue #47)."""
+    problems = []
+    for text in inputs if isinstance(inputs, (list, tuple)) else ():
+        spec = parse_input(text) if isinstance(text, str) else text
+        if isinstance(spec, str):
+            continue  # the settings' checks name the form
+        try:
+            validate_full_topic_name(expand_topic_name(spec.topic, node_name, namespace))
+        except (InvalidTopicNameException, ValueError) as error:
+            reason = str(error).split(', at /')[0].splitlines()[0]
+            problems.append(f"interference input '{text}': {reason}")
+    return problems
+
+
 def _stamp_ns(message: object) -> int | None:
     """The message's header stamp in ns, None without a header (Twist) or with a zero stamp."""
     header = getattr(message, 'header', None)
@@ -99,8 +120,8 @@ class InputSubscriptions:
         self._wanted: tuple[tuple[str, ...], bool] | None = None
         self.problems: list[str] = []
         """Inputs that could not be subscribed (shown in the log)."""
-        self.sync()
-        node.add_post_set_parameters_callback(lambda _parameters: self.sync())
+        self.sync()  # and after each parameter change (the node calls it: rclpy runs
+        # post-set callbacks newest first, and one of its own ran before the settings changed)
 
     def sync(self) -> None:
         """Subscribe what the session's settings name now (after a parameter change too)."""
@@ -146,4 +167,4 @@ class InputSubscriptions:
         return on_message
 
 
-__all__ = ['TEMPERATURE_TOPIC', 'InputSubscriptions']
+__all__ = ['TEMPERATURE_TOPIC', 'InputSubscriptions', 'input_topic_problems']

@@ -272,6 +272,7 @@ class MagCalibratorNode(Node):
         if any(parameter.name in PARAMETERS for parameter in parameters):
             self._settings = session_settings(self._current_values())
             self.session.reconfigure(self._settings)
+            self._inputs.sync()  # in this change: the inputs follow the settings just made
         names = {parameter.name for parameter in parameters}
         in_force = self.session.calibration
         if ('auto_save' in names and self.get_parameter('auto_save').value

@@ -27,6 +27,7 @@ from mag_calibrator_ros.calibration.store.calibration_file import (
     resolve_calibration_path,
 )
 from mag_calibrator_ros.icm20948 import registers as reg
+from mag_calibrator_ros.nodes.inputs import input_topic_problems
 from mag_calibrator_ros.nodes.location import parameter_location_problems
 from mag_calibrator_ros.nodes.turning import turn_settings_from
 
@@ -192,6 +193,7 @@ def parameter_problems(values: Mapping[str, object], at_run_time: bool = False) 
     """Everything wrong with these parameter values (``at_run_time``: half a location waits for
     the other instead of being refused)."""
     problems = session_settings(values).problems()
+    problems += input_topic_problems(values['interference_inputs'])
     problems += turn_settings_from(values).problems()
     try:
         resolve_calibration_path(str(values['calibration_file']))
