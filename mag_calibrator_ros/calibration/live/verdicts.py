@@ -279,6 +279,40 @@ def step_verdict(outcome: JobOutcome, current: Calibration | None, units: str,
                    f'{comparison.reason}; collecting anew', attempt, collect_anew=True)
 
 
+MAX_REFINED_FIELD_STEP = 0.05
+MAX_REFINED_FIELD_CHANGE = 0.10
+"""A refinement moves F by at most 5 % of the one in force, and a chain of them by at most 10 %
+of the F it started from (``CHAIN_KEY``, unit-free: the chain's F over its first). On a ground
+robot the offset along the turning axis is barely observed, and a sphere centred farther along
+it, with a larger F, makes every horizontal error a smaller share of F: each such fit won on
+held-out readings, and a chain walked F from 54 to 344 µT (issue #47). A true F that far off is
+a new calibration's to find (a misfit)."""
+CHAIN_KEY = 'refined_field_ratio'
+
+
+def chain_ratio(current: Calibration, candidate: Calibration) -> float:
+    """The candidate's F over the F its chain of refinements started from."""
+    return (current.metadata_number(CHAIN_KEY) or 1.0) * (candidate.field_strength
+                                                          / current.field_strength)
+
+
+def field_walk(current: Calibration, candidate: Calibration) -> str | None:
+    """Why ``candidate`` moves F further than refinement may (MAX_REFINED_FIELD_*), or None.
+    Only between planar calibrations, once the one in force determined its offset along the
+    normal (``levelled_offset_normal_std``): a first one from a level turn knows nothing there,
+    and a 3-D fit observes it (its coverage gates)."""
+    if not (current.model == candidate.model == 'planar'
+            and current.metadata_number('levelled_offset_normal_std') is not None):
+        return None
+    step = candidate.field_strength / current.field_strength - 1.0
+    total = chain_ratio(current, candidate) - 1.0
+    if abs(step) <= MAX_REFINED_FIELD_STEP and abs(total) <= MAX_REFINED_FIELD_CHANGE:
+        return None
+    return (f'it moves the field strength by {100 * step:+.1f} % ({100 * total:+.1f} % since '
+            f'the fit refinements started from), beyond {100 * MAX_REFINED_FIELD_STEP:g} % '
+            f'({100 * MAX_REFINED_FIELD_CHANGE:g} %): a term the readings barely observe')
+
+
 def refinement_verdict(outcome: JobOutcome, current: Calibration | None) -> Verdict:
     """The adoption rule of refinement: a fit of the buffer goes in force when all of these hold,
     and each one that fails is the reason logged (debug) for keeping the calibration in force:
@@ -293,7 +327,9 @@ def refinement_verdict(outcome: JobOutcome, current: Calibration | None) -> Verd
       (``coverage_kept``);
     - with the gyroscope, the one in force is not better than it on the readings the gyroscope
       turned (``outcome.turning``): magnitudes cannot see a soft iron that bends directions, the
-      turning can.
+      turning can;
+    - it moves F no further than MAX_REFINED_FIELD_STEP, and the chain no further than
+      MAX_REFINED_FIELD_CHANGE (``field_walk``): the rule cannot be won by scaling F.
 
     It converges: the held-out store keeps up to READINGS_PER_CELL a direction cell, so a real
     gain of a few per cent is proven once the sensor has turned long enough, and the calibration
@@ -308,10 +344,16 @@ def refinement_verdict(outcome: JobOutcome, current: Calibration | None) -> Verd
         return Verdict(level='debug', message='refinement kept the calibration: it fits the '
                        f'magnitudes better ({comparison.reason}) but turns directions worse: the '
                        f'one in force is {turning.reason}')
+    walk = (None if result is None or not result.success or current is None
+            else field_walk(current, result.calibration))
+    if walk is not None and comparison is not None and comparison.better:
+        return Verdict(level='debug', message=f'refinement kept the calibration: {walk}, '
+                       f'though {comparison.reason}')
     if (result is not None and result.success and comparison is not None
             and comparison.better and current is outcome.job.current
             and coverage_kept(current, result.calibration)):
-        candidate = result.calibration
+        candidate = result.calibration.with_metadata(**{
+            CHAIN_KEY: round(chain_ratio(current, result.calibration), 6)})
         return Verdict(candidate, 'refine', 'info',
                        f'refined: residual {comparison.current_pct:.2f} % -> '
                        f'{comparison.candidate_pct:.2f} % on {comparison.readings} '
@@ -489,6 +531,11 @@ __all__ = [
     'COVERAGE_SLACK',
     'Verdict',
     'EQUIVALENT_SIGMAS',
+    'MAX_REFINED_FIELD_CHANGE',
+    'MAX_REFINED_FIELD_STEP',
+    'CHAIN_KEY',
+    'chain_ratio',
+    'field_walk',
     'compensation_verdict',
     'automatic_verdict',
     'bounded_step',
