@@ -210,6 +210,34 @@ def test_a_worker_that_stops_answering_is_killed_restarted_and_said(monkeypatch)
 
 
 
+def test_an_idle_worker_that_is_stopped_is_said_and_replaced(monkeypatch):
+    """Issue #47: a worker stopped (SIGSTOP) between fits left /diagnostics OK until a job had
+    waited JOB_DEADLINE_S (300 s). Its state says it at once; after STOPPED_GRACE_S (1 s here)
+    it is replaced without a job being lost, and the new one fits."""
+    monkeypatch.setattr(fit_worker, 'STOPPED_GRACE_S', 1.0)
+    runner = ProcessRunner()
+    try:
+        runner.submit(job())
+        assert wait(runner).result.success and runner.problem is None
+        stopped = runner.pid
+        os.kill(stopped, signal.SIGSTOP)
+        problems, deadline = set(), time.monotonic() + 60.0
+        while runner.restarts == 0 and time.monotonic() < deadline:
+            problems.add(runner.problem)
+            assert runner.poll() is None  # no job: nothing comes back
+            time.sleep(0.05)
+        assert (f'the fit worker process {stopped} is stopped (SIGSTOP or a debugger): fits wait;'
+                ' it is replaced after 1 s stopped') in problems
+        assert runner.restarts == 1, problems
+        assert runner.last_restart == 'the fit worker was stopped for more than 1 s'
+        with pytest.raises(ProcessLookupError):  # killed and reaped
+            os.kill(stopped, 0)
+        runner.submit(job())
+        assert wait(runner).result.success and runner.pid != stopped
+    finally:
+        runner.close()
+
+
 def test_closing_the_runner_of_a_stopped_worker_ends_in_bounded_time():
     """Closing closed the worker's output before the worker had ended: that waited for the
     reader thread's read, which a stopped (SIGSTOP) worker never ends, and hung for ever (the

@@ -9,16 +9,18 @@ until stdin closes (its parent, the ``ProcessRunner``, stopped or died). Started
 the runner, never by users. A plain subprocess rather than multiprocessing: nothing of the
 parent's main script is imported again, and the worker cannot outlive its parent.
 
-A watchdog bounds every job: a worker that does not answer within ``JOB_DEADLINE_S`` (stopped,
-hung, swapped out for good) is killed and restarted, and the job comes back as an error that
-says so; one that dies is restarted at once. While it is gone or starting again, ``problem``
-says so (the node's /diagnostics ERROR).
+A watchdog bounds every job: a worker that does not answer within ``JOB_DEADLINE_S`` (hung,
+swapped out for good) is killed and restarted, and the job comes back as an error that says so;
+one that dies is restarted at once, one stopped (SIGSTOP) after ``STOPPED_GRACE_S``, with or
+without a job. While it is gone, stopped or starting again, ``problem`` says so (the node's
+/diagnostics ERROR).
 """
 
 from __future__ import annotations
 
 import contextlib
 from dataclasses import replace
+import math
 import os
 import pickle
 from queue import SimpleQueue
@@ -50,6 +52,12 @@ tenth of a core (WORKER_NICENESS). Meanwhile readings wait (``backlog.py``)."""
 STARTUP_DEADLINE_S = 300.0
 """How long a starting worker may take to import the fitting stack and say it is ready (as
 generous, for the same reasons)."""
+STOPPED_GRACE_S = 10.0
+"""How long the worker may stay stopped (SIGSTOP, a debugger: state T or t in /proc/<pid>/stat,
+proc(5)) before it is replaced. A stopped process makes no progress on any computer, unlike a
+slow one, so this need not be generous; until then ``problem`` says so. Without this a stopped
+idle worker left /diagnostics OK until a job reached JOB_DEADLINE_S (issue #47)."""
+_STATE_CHECK_S = 1.0  # /proc is read at most this often (poll runs per message)
 _READY = 'ready'  # the worker's first message: imports done, reading jobs
 
 
@@ -151,6 +159,7 @@ class _Worker:
         )
         self.started_at = time.monotonic()
         self.ready_at: float | None = None  # when it said it was ready (the reader sets it)
+        self._checked_at, self._stopped_at = -math.inf, None  # ``stopped_for``
         self.outcomes: SimpleQueue = SimpleQueue()
         threading.Thread(target=self._read, daemon=True, name='fit worker reader').start()
 
@@ -169,6 +178,20 @@ class _Worker:
     @property
     def alive(self) -> bool:
         return self.process.poll() is None
+
+    def stopped_for(self, now: float) -> float:
+        """Seconds it has been seen stopped (0 while it runs, or where /proc is not there),
+        checked at most every _STATE_CHECK_S."""
+        if now - self._checked_at >= _STATE_CHECK_S:
+            self._checked_at = now
+            try:
+                with open(f'/proc/{self.process.pid}/stat', 'rb') as stat:
+                    state = stat.read().rsplit(b')', 1)[1].split()[0]  # after '(comm)'
+            except (OSError, IndexError):
+                state = b'R'
+            stopped = state in (b'T', b't')
+            self._stopped_at = (self._stopped_at or now) if stopped else None
+        return 0.0 if self._stopped_at is None else now - self._stopped_at
 
     def stop(self, kill: bool, timeout_s: float = 2.0) -> int | None:
         """End the process: killed at once, or given ``timeout_s`` to exit on end of input.
@@ -228,6 +251,10 @@ class ProcessRunner:
         if self.restarts and (worker is None or worker.ready_at is None):
             return (f'the fit worker is restarting (restart {self.restarts}: '
                     f'{self.last_restart}); fits wait until it is up')
+        stopped = 0.0 if worker is None else worker.stopped_for(time.monotonic())
+        if stopped:
+            return (f'the fit worker process {worker.process.pid} is stopped (SIGSTOP or a '
+                    f'debugger): fits wait; it is replaced after {STOPPED_GRACE_S:g} s stopped')
         return None
 
     def start(self) -> None:
@@ -273,6 +300,8 @@ class ProcessRunner:
         if not worker.alive:
             return f'the fit worker process ended (exit status {worker.process.returncode})'
         now = time.monotonic()
+        if worker.stopped_for(now) > STOPPED_GRACE_S:
+            return f'the fit worker was stopped for more than {STOPPED_GRACE_S:g} s'
         if worker.ready_at is None:
             if now - worker.started_at > STARTUP_DEADLINE_S:
                 return f'the fit worker did not start within {STARTUP_DEADLINE_S:g} s'
