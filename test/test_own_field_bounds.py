@@ -162,3 +162,40 @@ def test_two_inputs_that_never_vary_apart_are_named_and_the_first_fitted_alone()
     assert fit.kept[0] == 'current' and 'current_again' not in fit.kept
     gains = fit.calibration.compensation.interference
     assert gains[0, 0] == pytest.approx(0.8e-6, rel=0.1) and not np.any(gains[:, 1])
+
+
+def test_an_input_that_goes_silent_is_named_with_the_misfit_it_may_cause():
+    """Issue #47 item 6: a battery driver that stopped kept its last current in force for good
+    (right for a publisher that sends only on change), and when the true current then changed
+    the misfit blamed a magnet. The silence is shown in /diagnostics and named with the misfit;
+    the input publishing again clears it."""
+    from test_session import EXACT, RATE_HZ, distorted
+
+    gain = np.array([10e-6, 0.0, 0.0])  # T/A along x: 3 A puts 30 µT on the sensor
+    session = CalibrationSession(
+        SessionSettings(interference_inputs=(BATTERY,), use_temperature=False,
+                        auto_calibrate=False),
+        calibration=EXACT.with_compensation(Compensation((BATTERY,), gain[:, None],
+                                                         np.zeros(3))))
+    raw, step = distorted('tumble', 2500, seed=45), round(1e9 / RATE_HZ)
+    silent_values, warnings = [], []
+    for index, row in enumerate(raw):
+        stamp, seconds = (index + 1) * step, index / RATE_HZ
+        current = 3.0 if seconds < 15.0 else 0.0  # the driver stops at 15 s; the motors too
+        if seconds < 15.0 and index % 5 == 0:
+            session.process_input(0, stamp, current)
+        session.process(stamp, 'imu_link', row + gain * current)
+        if index % 50 == 0:
+            session.poll()
+            warnings += [event.message for event in session.take_events()
+                         if event.level == 'warning']
+            silent_values.append(session.report().values.get('interference_silent'))
+    silent = f"interference input '{BATTERY}' has sent nothing for"
+    assert silent_values[:14] == [None] * 14  # publishing at 10 Hz: not silent
+    assert silent_values[-1].startswith(silent) and silent_values[-1].endswith(
+        'its own field is held at its last value, 3'), silent_values[-1]
+    misfits = [message for message in warnings if 'does not fit the live data' in message]
+    assert misfits and silent in misfits[0], warnings
+    session.process_input(0, (len(raw) + 1) * step, 0.0)
+    session.process_input(0, (len(raw) + 2) * step, 0.0)
+    assert 'interference_silent' not in session.report().values

@@ -51,6 +51,11 @@ MAX_TEMPERATURE_RATE_C_S = 1.0
 makes (``temperature``)..."""
 CONFIRM_SAMPLES = 3
 """...unless this many samples in a row agree on the new level."""
+SILENT_INTERVALS = 10
+SILENT_MIN_S = 2.0
+"""An input is silent after SILENT_INTERVALS of its own sample intervals without one (at least
+SILENT_MIN_S of stream): its own field is then held at its last value, which a publisher that
+sends only on change (cmd_vel) means, and a driver that stopped does not (``silence_note``)."""
 INPUT_TOLERANCE_NS = 500_000_000
 """A reading learns only from input samples within 0.5 s of its stamp (fresh); the correction
 uses the latest value whatever its age (an input that stopped changing still holds)."""
@@ -139,6 +144,15 @@ class _Series:
             self.samples.append((stamp_ns, value))
             self.latest = value
             self.received += 1
+
+    def silent_for(self, stamp_ns: int) -> float | None:
+        """Stream seconds since the last sample when it is silent (SILENT_INTERVALS), or None."""
+        if len(self.samples) < 2:
+            return None
+        stamps = np.array([stamp for stamp, _ in self.samples], dtype=float)
+        gap = (stamp_ns - stamps[-1]) / 1e9
+        interval = float(np.median(np.diff(stamps))) / 1e9
+        return gap if gap > max(SILENT_MIN_S, SILENT_INTERVALS * interval) else None
 
     def at(self, stamp_ns: int, tolerance_ns: int) -> float:
         """The value nearest ``stamp_ns`` within the tolerance, else NaN."""
@@ -665,6 +679,24 @@ class CompensationLearner:
             return ''
         return '; '.join(term.need for term in fit.terms if term.need)
 
+    def silence_note(self, calibration: Calibration | None) -> str:
+        """Which inputs the compensation in force applies are silent (SILENT_INTERVALS), held at
+        their last value: a field that then departs may be theirs, not a magnet's (issue #47:
+        a driver that stopped kept its last current for good, and the misfit blamed the world).
+        '' when none is."""
+        compensation = None if calibration is None else calibration.compensation
+        columns = None if compensation is None else input_columns(compensation.inputs,
+                                                                  self.names)
+        notes = []
+        for index in columns or ():
+            series = self.series[index]
+            gap = series.silent_for(self._last_stamp or 0)
+            if gap is not None:
+                notes.append(f"interference input '{self.specs[index].text}' has sent nothing "
+                             f'for {gap:.0f} s: its own field is held at its last value, '
+                             f'{series.latest:g}')
+        return '; '.join(notes)
+
     def diagnostic_values(self, calibration: Calibration | None, units: str = 'T',
                           now: float = 0.0) -> dict[str, object]:
         """K, c, T0, the share removed and when it was learned; what is still needed."""
@@ -677,6 +709,9 @@ class CompensationLearner:
                 f"the calibration compensates {', '.join(self.unmatched)}, which "
                 'interference_inputs does not list: those terms are not applied (list them in '
                 'the same order)')
+        silence = self.silence_note(calibration)
+        if silence:
+            values['interference_silent'] = silence
         if self.temperature_series.received:
             values['temperature_degC'] = round(self.temperature_series.latest, 2)
         compensation = None if calibration is None else calibration.compensation

@@ -501,9 +501,9 @@ class CalibrationSession:
                 since_last_check_s = self._tracking.checked(now)
         verdict = verdicts.check_verdict(outcome, self._calibration, misfit_change,
                                          since_last_check_s, self._settings, self._units,
-                                         self._misfit.world)
-        if verdict.message:
-            self._event(verdict.level, verdict.message)
+                                         self._misfit.world,
+                                         self._compensation.silence_note(self._calibration))
+        self._event(verdict.level, verdict.message or None)
         if verdict.collect_anew:
             self._collect_anew(now)
         if verdict.adopt is not None:

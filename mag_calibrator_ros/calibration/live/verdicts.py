@@ -396,12 +396,14 @@ def realign_verdict(outcome: JobOutcome, current: Calibration | None) -> Verdict
 
 def check_verdict(outcome: JobOutcome, current: Calibration | None, misfit_change: str | None,
                   since_last_check_s: float | None, settings: SessionSettings,
-                  units: str, disturbed: bool = False) -> Verdict:
+                  units: str, disturbed: bool = False, silence: str = '') -> Verdict:
     """A check of the calibration in force on recent held-out readings.
 
     ``misfit_change``: what ``MisfitMonitor.update`` made of it ('confirmed', 'world' (a
     disturbance of the world: the calibration stays and nothing is learned), 'cleared' or
-    None); ``disturbed``: the world's misfit holds, no tracking step. With online tracking, a
+    None); ``disturbed``: the world's misfit holds, no tracking step; ``silence``: the own-field
+    inputs held at a stale value (``CompensationLearner.silence_note``), said with a misfit as
+    a cause as likely as the one named. With online tracking, a
     step towards the tracker's calibration goes in force when the
     tracker beats the calibration in force by ``tracking_improvement`` on held-out readings; the
     step is bounded by ``tracking_max_change_rate`` times the stream seconds since the previous
@@ -418,6 +420,8 @@ def check_verdict(outcome: JobOutcome, current: Calibration | None, misfit_chang
         collect_anew = settings.auto_calibrate
     elif misfit_change == 'world':  # the sensor is as calibrated: nothing to collect anew
         level, message = 'warning', world_text(outcome.fit_check, units)
+    if silence and misfit_change in ('confirmed', 'world'):
+        message += f'; {silence}'
     elif misfit_change == 'cleared':
         level, message = 'info', (f'the calibration in force fits the live data again (median '
                    f'error {outcome.fit_check.median_error_pct:.1f} %)')
