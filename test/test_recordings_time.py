@@ -92,6 +92,8 @@ def test_a_whitespace_log_read_line_by_line_keeps_its_time(tmp_path):
     (1.7e12 + np.arange(10) * 1001 + np.arange(10) % 2, None, 1e-3),  # epoch ms, 1 Hz, jitter
     (5e5 + np.arange(10) * 1001 + np.arange(10) % 2, None, 1e-3),  # millis() at 1 Hz, jitter
     (1.5e9 + np.arange(10) * 4000, None, 1e-6),  # us since boot (25 min): not a 1970 date
+    (np.repeat(np.arange(10.0), 100), None, 1.0),  # whole seconds at 100 Hz (issue #47)
+    (np.repeat(np.arange(10.0) * 1000, 100), None, 1e-3),  # whole seconds as ms at 100 Hz
 ])
 def test_time_units_from_values_or_header(values, header, scale):
     assert time_unit(values, header)[0] == scale
@@ -151,3 +153,19 @@ def test_a_px4_log_as_ulog2csv_writes_it_calibrates_in_its_time_and_unit(tmp_pat
         assert summary['rate_hz'] == pytest.approx(50.0)
         assert sum(summary['rejects'].values()) < 150  # duplicates at most, no stamp jump
         assert summary['rejects'].get('stamp_jump', 0) == 0
+
+
+def test_a_time_column_in_no_order_is_no_clock_and_costs_no_rows():
+    """Issue #47: a column named 'time' whose values were in no order was taken as the clock,
+    and the calibrator refused 98 % of the rows as stamps going back. It is said and not used;
+    every row is read. A clock that wraps once (a logger restarted) is still the clock."""
+    shuffled = np.random.default_rng(0).permutation(30) * 0.01
+    recording = read_text(io.StringIO(log('time,mx,my,mz', shuffled.tolist())))
+    assert recording.rows == 30 and recording.stamps is None
+    assert recording.time_source.startswith("column 'time' (field 0) is no clock (")
+    clock = fit.Clock.of(recording, None)
+    assert not clock.stamped and clock.source.startswith("column 'time' (field 0) is no clock")
+    wrapped = [0.01 * (i % 20) for i in range(30) for _ in range(4)]  # one step back in 120
+    rows = [row for row in ROWS for _ in range(4)]
+    recording = read_text(io.StringIO(log('time,mx,my,mz', wrapped, rows)))
+    assert recording.stamps is not None and len(recording.stamps) == 120

@@ -91,6 +91,7 @@ from mag_calibrator_ros.tools import fit_compensation as own_field
 from mag_calibrator_ros.tools import fit_start
 from mag_calibrator_ros.tools.recording_bags import is_rosbag
 from mag_calibrator_ros.tools.recording_text import RATE_UNITS, read_paired_recording
+from mag_calibrator_ros.tools.recording_time import row_step
 from mag_calibrator_ros.tools.recording_value import Recording, RecordingError, describe_skips
 from mag_calibrator_ros.tools.recordings import read_recording
 
@@ -623,9 +624,8 @@ class Clock:
                 raise UsageError(f'--rate is for logs without time stamps; {recording.source} '
                                  f'has its own ({recording.time_source}): drop --rate')
             seconds = recording.stamps - (recording.stamps[0] if len(recording.stamps) else 0)
-            steps = np.diff(seconds)
-            steps = steps[steps > 0]
-            measured = 1.0 / float(np.median(steps)) if len(steps) else math.nan
+            step = row_step(seconds[np.isfinite(seconds)])
+            measured = 1.0 / step if step > 0 else math.nan
             return cls(np.round(seconds * 1e9).astype(np.int64), True, measured,
                        str(recording.time_source))
         rate_hz = DEFAULT_RATE_HZ if rate is None else rate
@@ -633,7 +633,8 @@ class Clock:
             raise UsageError(f'--rate must be a positive number of Hz, got {rate_hz}')
         stamps = np.round(np.arange(recording.rows) * (1e9 / rate_hz)).astype(np.int64)
         given = '--rate' if rate is not None else 'the default; --rate sets it'
-        return cls(stamps, False, rate_hz, f'none in the log: rows replayed {rate_hz:g} Hz apart '
+        why = recording.time_source or 'none in the log'  # or a time column that is no clock
+        return cls(stamps, False, rate_hz, f'{why}: rows replayed {rate_hz:g} Hz apart '
                    f'({given}) for the live session; still readings found without a clock')
 
 

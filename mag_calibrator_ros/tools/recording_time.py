@@ -102,9 +102,7 @@ def time_unit(values: np.ndarray, header_unit: str | None = None) -> tuple[float
     finite = values[np.isfinite(values)]
     if len(finite) < 2:
         return 1.0, 'seconds (too few values to tell)'
-    steps = np.diff(finite)
-    steps = steps[steps > 0]
-    step = float(np.median(steps)) if len(steps) else 0.0
+    step = row_step(finite)
     size = float(np.median(np.abs(finite)))
     for scale in (1e-9, 1e-6, 1e-3, 1.0):
         if (EPOCH_SECONDS[0] <= size * scale < EPOCH_SECONDS[1]
@@ -121,9 +119,35 @@ def time_unit(values: np.ndarray, header_unit: str | None = None) -> tuple[float
     return 1.0, f'seconds (from steps of {step:g}{rate})'
 
 
+def row_step(values: np.ndarray) -> float:
+    """The time between rows of finite stamps: the median forward step, or, when most rows
+    repeat the previous stamp (a clock coarser than the rows: whole seconds at 100 Hz, read as
+    a 1 kHz millis() log by their steps of 1), the forward span over the rows."""
+    steps = np.diff(values)
+    forward = steps[steps > 0]
+    if not len(forward):
+        return 0.0
+    if np.count_nonzero(steps == 0) > len(steps) / 2:
+        return float(forward.sum()) / len(steps)
+    return float(np.median(forward))
+
+
+MAX_BACKWARD_SHARE = 0.01
+"""A time column is the recording's clock when no more than this share of its steps go back (a
+wrap or a restart now and then); a column named 'time' whose values are in no order is none,
+and the calibrator refused 98 % of its rows as stamps going back (issue #47)."""
+
+
 def _stamps(table: np.ndarray, time: TimeColumn | None) -> tuple[np.ndarray | None, str | None]:
-    """Seconds of each row from the time column read as the table's last column."""
+    """Seconds of each row from the time column read as the table's last column, with what it
+    is; no stamps, and why, when the column is no clock (MAX_BACKWARD_SHARE)."""
     if time is None:
         return None, None
-    scale, why = time_unit(table[:LAYOUT_SAMPLE_LINES, -1], time.header_unit)
-    return table[:, -1] * scale, f"column '{time.name}' (field {time.index}), {why}"
+    column, source = table[:, -1], f"column '{time.name}' (field {time.index})"
+    steps = np.diff(column[np.isfinite(column)])
+    backward = int(np.count_nonzero(steps < 0))
+    if backward > MAX_BACKWARD_SHARE * len(steps):
+        return None, (f'{source} is no clock ({100.0 * backward / len(steps):.0f} % of its '
+                      'steps go back), not used')
+    scale, why = time_unit(column[:LAYOUT_SAMPLE_LINES], time.header_unit)
+    return column * scale, f'{source}, {why}'
