@@ -17,7 +17,7 @@ from mag_calibrator_ros.calibration.live.screening import MAX_READING
 from mag_calibrator_ros.tools import recording_columns, recording_lines, recording_text
 from mag_calibrator_ros.tools.recording_bags import MAGNETIC_FIELD
 from mag_calibrator_ros.tools.recording_columns import column_roles, parse_columns, sensor_columns
-from mag_calibrator_ros.tools.recording_value import Recording, RecordingError
+from mag_calibrator_ros.tools.recording_value import Recording, RecordingError, describe_skips
 from mag_calibrator_ros.tools.recordings import read_recording
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
@@ -442,3 +442,21 @@ def test_a_bag_without_the_rosbags_library_says_how_to_get_it(tmp_path, monkeypa
     monkeypatch.setattr(builtins, '__import__', no_rosbags)
     with pytest.raises(RecordingError, match='pip install rosbags'):
         read_recording(bag)
+
+
+def test_messages_a_damaged_mcap_loses_are_counted(tmp_path):
+    """Issue #47 item 6: 500 zeroed bytes in an mcap file ended the reader's pass through a
+    chunk, and two thirds of the messages were gone without a word. What the bag's own index
+    lists and was not read is counted, and the line says it."""
+    rows = np.array([[1e-6 * i, -2e-6, 3e-5] for i in range(3000)])
+    bag = write_bag(tmp_path / 'bag', StoragePlugin.MCAP, {'/imu/mag': rows})
+    assert read_recording(bag).skipped == {}
+    (storage,) = bag.glob('*.mcap')
+    data = bytearray(storage.read_bytes())
+    at = int(0.3 * len(data))
+    data[at:at + 500] = bytes(500)
+    storage.write_bytes(bytes(data))
+    recording = read_recording(bag)
+    assert 0 < recording.rows < 3000
+    assert recording.skipped == {'not_read': 3000 - recording.rows}
+    assert "listed in the bag's index but not read" in describe_skips(recording.skipped)

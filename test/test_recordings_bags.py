@@ -296,3 +296,18 @@ def test_a_simulated_ros1_bag_and_its_rosbag2_and_csv_agree(tmp_path, capsys):
         runs[name] = (status, summary)
     assert runs['ros1'][0] == 0, runs['ros1'][1]['reason']
     compare(runs)
+
+
+def test_an_unindexed_ros1_bag_says_how_to_repair_it(tmp_path):
+    """Issue #47 item 6: a `rosbag record` killed before it wrote its index leaves a bag
+    (index_pos 0) that rosbags refuses with "reindex before reading": the line names the
+    tool that repairs it."""
+    data = bytearray(small_bag(tmp_path).read_bytes())
+    at = data.index(b'index_pos=') + len(b'index_pos=')
+    data[at:at + 8] = (0).to_bytes(8, 'little')
+    killed = tmp_path / 'killed.bag.active'
+    killed.write_bytes(bytes(data))
+    with pytest.raises(RecordingError) as raised:
+        read_recording(killed)
+    assert str(raised.value).startswith(f'{killed}: cannot read ROS 1 bag (Bag is not indexed')
+    assert '`rosbag reindex FILE` on a ROS 1 machine' in str(raised.value)

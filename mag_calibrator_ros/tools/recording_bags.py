@@ -82,8 +82,9 @@ def read_rosbag(
             total = sum(c.msgcount for c in connections if c.topic == chosen) or None
             mag_rows = _GrowingRows(4)
             pending: list[tuple[float, ...]] = []
-            count = 0
+            count = seen = 0
             for connection, log_time, rawdata in _messages(path, kind, reader, connections):
+                seen += connection.topic == chosen
                 try:
                     message = deserialize(rawdata, connection.msgtype)
                 except Exception:  # noqa: BLE001 - a corrupt message is counted, not fatal
@@ -109,10 +110,12 @@ def read_rosbag(
             mag_rows.extend(pending)
             if progress is not None:
                 progress(count, count)
+            skipped['not_read'] = max((total or 0) - seen, 0)  # damaged: the reader stopped
     except RecordingError:
         raise
     except (ReaderError, OSError, ValueError, KeyError) as error:
-        raise RecordingError(f'{path}: cannot read {kind} ({_one_line(error)})') from error
+        raise RecordingError(f'{path}: cannot read {kind} ({_one_line(error)})'
+                             + _repair_hint(error)) from error
     table = mag_rows.result()
     keep = _usable(table[:, 1:], skipped)
     table = table[keep]
@@ -280,6 +283,17 @@ def _messages(path: Path, kind: str, reader, connections: list):  # noqa: ANN001
             raise RecordingError(f'{path}: cannot read {kind}: damaged data in the file '
                                  f'({_one_line(error)})') from error
         yield item
+
+
+UNINDEXED_HINT = ('; a recording stopped before rosbag wrote its index (a .bag.active file) '
+                  'is made readable by `rosbag reindex FILE` on a ROS 1 machine (ROS 1 '
+                  'rosbag: wiki.ros.org/rosbag/Commandline)')
+
+
+def _repair_hint(error: BaseException) -> str:
+    """How to repair what the reader refused, when there is a way ('' otherwise): rosbags
+    reads no unindexed ROS 1 bag and its words name no tool a ROS 2 machine has."""
+    return UNINDEXED_HINT if 'not indexed' in str(error) else ''
 
 
 def _one_line(error: BaseException) -> str:

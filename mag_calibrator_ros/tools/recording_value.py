@@ -22,6 +22,7 @@ SKIP_REASONS = {
     'undecodable': 'undecodable message',
     'incomplete': 'message without magnetic_field x, y, z',
     'bad_time': 'time column not a finite number',
+    'not_read': "listed in the bag's index but not read (damaged data: the reader stopped)",
 }
 """Why a line or message was skipped: key -> words for the summary."""
 
