@@ -9,6 +9,8 @@ the session in test_compensation_replays.py."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import time
 
 from node_helpers import Probe, set_parameter_over_service, wait_for
@@ -172,3 +174,21 @@ def test_learn_compensation_with_no_input_configured_answers_at_once_naming_the_
     assert f"published now: interference_inputs:=['{entry}']" in response.message
     for node in (probe, calibrator):
         ros.remove(node)
+
+
+def test_a_type_of_no_interface_package_runs_nothing_of_that_package():
+    """Issue #47 item 6: an input spec's package was imported on the executor thread to find
+    its message type, and 'matplotlib/msg/Figure' stalled the node 386 ms importing matplotlib.
+    A package without rosidl's msg subpackage is refused before any of it runs."""
+    code = ('import sys\n'
+            'from mag_calibrator_ros.nodes.inputs import message_class\n'
+            'try:\n'
+            "    message_class('matplotlib/msg/Figure')\n"
+            'except ImportError as error:\n'
+            '    print(error)\n'
+            "print('matplotlib' in sys.modules, message_class('sensor_msgs/msg/BatteryState')"
+            '.__name__)\n')
+    shown = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                           check=True, timeout=120).stdout.splitlines()
+    assert shown == ["no ROS interface package 'matplotlib' (with a msg subpackage) is "
+                     'installed', 'False BatteryState']

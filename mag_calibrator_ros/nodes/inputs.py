@@ -13,6 +13,8 @@ from __future__ import annotations
 
 from collections.abc import Callable
 import importlib
+import importlib.util
+from pathlib import Path
 
 from rclpy.exceptions import InvalidTopicNameException
 from rclpy.expand_topic_name import expand_topic_name
@@ -101,8 +103,15 @@ def _stamp_ns(message: object) -> int | None:
 
 def message_class(type_name: str) -> type:
     """The Python class of a ROS message type 'package/msg/Type' (or 'package/Type'), as
-    rosidl_runtime_py's get_message finds it (that package has no PyPI wheel for the venv)."""
+    rosidl_runtime_py's get_message finds it (that package has no PyPI wheel for the venv).
+    A package without the ``msg`` subpackage rosidl generates is refused before anything of it
+    runs: importing 'matplotlib/msg/X' stalled the executor for 386 ms (issue #47)."""
     package, _, name = type_name.replace('/msg/', '/').partition('/')
+    found = importlib.util.find_spec(package) if package.isidentifier() else None
+    if found is None or not any((Path(location) / 'msg' / '__init__.py').is_file()
+                                for location in found.submodule_search_locations or ()):
+        raise ImportError(f"no ROS interface package '{package}' (with a msg subpackage) is "
+                          'installed')
     message = getattr(importlib.import_module(f'{package}.msg'), name)
     if not hasattr(message, 'get_fields_and_field_types'):
         raise ValueError(f'{type_name} is not a message type')
