@@ -164,3 +164,26 @@ def test_the_cli_refuses_a_normalised_recording(tmp_path, capsys):
     for extra in ([], ['--all']):
         assert main([path, *extra]) == EXIT_USAGE
         assert 'already normalised or calibrated upstream' in capsys.readouterr().err
+
+
+def test_a_hard_iron_within_the_full_scale_is_tesla_live_and_offline(tmp_path, capsys):
+    """Issue #47 item 6: a hard iron of 1-4.9 mT, within the AK09916's 4.9 mT, was called a
+    wrong unit for good (the bound was 1 mT). Up to the full scale it is a field; beyond it,
+    and gauss or µT published as tesla, still a wrong unit."""
+    board = BoardModel(SimConfig(hard_iron_ut=(2000.0, 500.0, -300.0), noise_ut=0.3,
+                                 motion='tumble', seed=2))
+    mag, _, _ = board_readings(board, 20.0, RATE_HZ)
+    session = CalibrationSession(SessionSettings(full_scale=AK09916_FULL_SCALE_T))
+    said = stream(session, mag)
+    assert not [e for _, e in said if 'cannot be tesla' in e.message]
+    assert session.calibration is not None, session.report(20.0, measure_coverage=True).progress
+    np.testing.assert_allclose(session.calibration.offset, [2e-3, 0.5e-3, -0.3e-3], atol=5e-6)
+    assert field_unit_problem(mag, full_scale_t=AK09916_FULL_SCALE_T) is None
+    assert field_unit_problem(mag) is not None  # no full scale known: 1 mT
+    assert 'looks like µT' in field_unit_problem(mag * 1e6 / 40, full_scale_t=4.9e-3)
+    path = write(tmp_path / 'iron.csv', mag * 1e6)
+    assert main([path, '--units', 'uT', '--full-scale', '4900', '--json']) in (0, 1)
+    assert 'cannot be' not in capsys.readouterr().err
+    assert main([path, '--units', 'uT']) == EXIT_USAGE  # no full scale known: how to give it
+    error = capsys.readouterr().err
+    assert "give the magnetometer's full scale (full_scale, --full-scale)" in error

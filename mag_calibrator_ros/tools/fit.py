@@ -365,7 +365,10 @@ def run(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     if args.scale is not None:
         recording = scaled_recording(recording, args.scale)
         units = TESLA
-    problem = input_problem(recording, units, args.scale is not None)
+    per_unit = TESLA_PER_UNIT.get(units)
+    full_scale_t = (None if args.full_scale is None or per_unit is None
+                    else args.full_scale * (args.scale or 1.0) * per_unit)
+    problem = input_problem(recording, units, args.scale is not None, full_scale_t)
     if problem is not None:
         raise UsageError(f'{recording.source}: {problem}')
     if args.output is not None and units not in TESLA_PER_UNIT:
@@ -690,10 +693,12 @@ SANITY_ROWS = 20_000
 """Rows (evenly spread over the recording) judged for a wrong unit or a normalised field."""
 
 
-def input_problem(recording: Recording, units: str, scaled: bool = False) -> str | None:
+def input_problem(recording: Recording, units: str, scaled: bool = False,
+                  full_scale_t: float | None = None) -> str | None:
     """Why the recording cannot be calibrated (``fit/input_sanity.py``), or None: readings
     that cannot be in their stated unit (``input_units``; with ``scaled``, the tesla that
-    --scale made of counts), or a field already normalised or calibrated upstream."""
+    --scale made of counts; up to --full-scale, ``full_scale_t``), or a field already
+    normalised or calibrated upstream."""
     rows = recording.samples[::max(1, len(recording.samples) // SANITY_ROWS)]
     if scaled:
         fix = 'check --scale (the tesla per count: 0.15e-6 for the AK09916)'
@@ -702,7 +707,7 @@ def input_problem(recording: Recording, units: str, scaled: bool = False) -> str
                'published it used another unit: fix it there')
     else:
         fix = 'give the unit the numbers are in with --units (uT, nT, G, mG, T)'
-    return field_unit_problem(rows, units, fix) or normalised_problem(rows)
+    return field_unit_problem(rows, units, fix, full_scale_t) or normalised_problem(rows)
 
 
 def streamed(settings: SessionSettings, metadata: dict[str, Any], recording: Recording,

@@ -73,17 +73,20 @@ PUBLISH_TESLA = ("publish tesla (sensor_msgs/MagneticField, REP-103; 1 gauss = 1
 """The fix for a ROS stream; ``mag_calibrator_fit`` names its own (``--units``, ``--scale``)."""
 
 
-def field_unit_problem(readings: ArrayLike, claimed: str = 'T',
-                       fix: str = PUBLISH_TESLA) -> str | None:
+def field_unit_problem(readings: ArrayLike, claimed: str = 'T', fix: str = PUBLISH_TESLA,
+                       full_scale_t: float | None = None) -> str | None:
     """Why readings said to be in ``claimed`` (tesla on a ROS topic; a unit of TESLA_PER_UNIT)
     cannot be (their median |B| names the likely unit), or None. Needs MIN_READINGS usable rows;
-    fewer are not judged, nor an unknown ``claimed``."""
+    fewer are not judged, nor an unknown ``claimed``. Up to the magnetometer's full scale
+    (``full_scale_t``) when it is beyond MAX_TESLA: a hard iron of 2 mT beside an AK09916
+    (4.9 mT) was called a wrong unit for good (issue #47), and no unit mistake puts the Earth's
+    field there (gauss, µT, mG and nT make it 0.5, 50, 500 or 5e4 "T")."""
     norms = _magnitudes(readings)
     per_unit = TESLA_PER_UNIT.get(claimed)
     if len(norms) < MIN_READINGS or per_unit is None:
         return None
     median = float(np.median(norms))
-    if MIN_TESLA <= median * per_unit <= MAX_TESLA:
+    if MIN_TESLA <= median * per_unit <= max(MAX_TESLA, full_scale_t or 0.0):
         return None
     points = np.asarray(readings, dtype=float).reshape(-1, 3)
     finite = points[np.all(np.isfinite(points), axis=1)]
@@ -91,9 +94,12 @@ def field_unit_problem(readings: ArrayLike, claimed: str = 'T',
     likely = likely_field_unit(median, integral)
     where = 'beyond' if median * per_unit > MAX_TESLA else 'far below'
     what = 'the magnetometer input' if claimed == 'T' else 'the readings'
+    iron = ('' if where != 'beyond' or full_scale_t else '; if a magnet beside the sensor '
+            "really makes it read that much, give the magnetometer's full scale (full_scale, "
+            '--full-scale) and fields up to it are taken')
     return (f'{what} cannot be {"tesla" if claimed == "T" else claimed}: |B| {median:.4g} '
             f'"{claimed}" is {where} any field on Earth ({EARTH_UT[0]:.0f}-{EARTH_UT[1]:.0f} '
-            f'µT); it looks like {likely}: {fix}; not calibrating it')
+            f'µT); it looks like {likely}: {fix}; not calibrating it{iron}')
 
 
 def likely_field_unit(median: float, integral: bool = False) -> str:

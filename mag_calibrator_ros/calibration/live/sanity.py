@@ -57,8 +57,10 @@ class InputWatch:
     in its own unit (µT, counts) is only judged for normalisation.
     """
 
-    def __init__(self, tesla: bool = True) -> None:
+    def __init__(self, tesla: bool = True, full_scale: float | None = None) -> None:
         self.tesla = tesla
+        self.full_scale = full_scale
+        """The magnetometer's full scale (T): fields up to it can be tesla (the unit check)."""
         self._fields: deque[tuple[float, float, float]] = deque(maxlen=WINDOW)
         self._accel: deque[tuple[int, tuple[float, float, float]]] = deque()
         self._offered = 0
@@ -87,8 +89,8 @@ class InputWatch:
         if self._offered == MIN_READINGS or (due is not None and not now < due):
             self._next_judgement = now + JUDGE_PERIOD_S
             rows = np.array(self._fields)
-            problem = (field_unit_problem(rows) if self.tesla else None) or normalised_problem(
-                rows)
+            problem = (field_unit_problem(rows, full_scale_t=self.full_scale) if self.tesla
+                       else None) or normalised_problem(rows)
             if problem is None and self.problem.startswith(NORMALISED):
                 # a still spell leaves the magnitude as constant: only a varying one clears it
                 problem = self.problem if magnitude_spread(rows) <= NORMALISED_SPREAD else None

@@ -121,7 +121,7 @@ class CalibrationSession:
         self._next_periodic = 0.0
         self._events: deque[SessionEvent] = deque(maxlen=MAX_EVENTS)
         self._hints = MotionHints()  # the kind of hint, judged at stream points (hints.py)
-        self._input_watch = InputWatch(self._units == 'T')  # wrong units, normalised input
+        self._input_watch = InputWatch(self._units == 'T', self._settings.full_scale_limit)
         self._alignment_wait = AlignmentWait()  # the first calibration waits to be aligned
         self._attitudes = attitudes or StaticAttitudes()  # still ones paired, for alignment
         self._pairing = pairing or ImuPairing()
@@ -143,7 +143,7 @@ class CalibrationSession:
             self._buffer.resize(settings.buffer_size, settings.k)
             self._scheduler.capacity = settings.buffer_size
         self._hints.measured(None)  # measured with the old settings (model, buffer)
-        self._screen.full_scale = settings.full_scale_limit
+        self._screen.full_scale = self._input_watch.full_scale = settings.full_scale_limit
         if settings.online_tracking != old.online_tracking:
             self._tracking.restart(self._calibration, self._settings.online_tracking)
         self._compensation.configure(*settings.compensation)
