@@ -7,14 +7,18 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 
+from mag_calibrator_ros.calibration.fit.calibration import Calibration
 from mag_calibrator_ros.calibration.live.screening import (
     CONFIRM_MESSAGES,
     SCREEN_REASONS,
     ReadingScreen,
     reading_problem,
 )
+from mag_calibrator_ros.calibration.live.session import CalibrationSession
+from mag_calibrator_ros.calibration.live.settings import SessionSettings
 
 GOOD = (20e-6, 30e-6, -10e-6)
 SECOND = 1_000_000_000
@@ -40,6 +44,23 @@ def test_every_value_reason_is_counted():
     assert screen.screen(0, 'imu_link', 0.0, 2e-5, 1e-5) is None  # one zero component is fine
     assert reading_problem(1e11, 0.0, 1.0, None) is None  # no full scale: no saturation check
     assert reading_problem(1e150, 1e150, 1e150, None) == 'out_of_range'  # but never garbage
+
+
+def test_a_tesla_reading_below_any_field_is_refused_and_never_published():
+    """Issue #47 item 6: a 5e-11 T reading (tesla scaled twice) passed the screen and, with a
+    calibration in force, was published as -b. In a tesla stream every component below
+    MIN_TESLA (0.1 µT, under one AK09916 count) is out of range; one small component is not,
+    nor the same numbers in a stream of another unit."""
+    screen = ReadingScreen(full_scale=4.9e-3, tesla=True)
+    assert screen.screen(0, 'imu_link', 5e-11, 2e-11, -3e-11) == 'out_of_range'
+    assert screen.screen(0, 'imu_link', 5e-11, 2e-11, 0.2e-6) is None
+    assert ReadingScreen().screen(0, 'imu_link', 5e-11, 2e-11, -3e-11) is None
+    offset = np.array([20e-6, -5e-6, 3e-6])
+    session = CalibrationSession(SessionSettings(full_scale=4.9e-3),
+                                 calibration=Calibration(offset, np.eye(3), 50e-6))
+    processed = session.process(SECOND, 'imu_link', [5e-11, 2e-11, -3e-11])
+    assert not processed.accepted and processed.corrected is None
+    assert session.report().counts.rejects['out_of_range'] == 1
 
 
 def test_equal_stamps_are_accepted():

@@ -114,7 +114,7 @@ REJECT_WORDS = {
     'non_finite': 'NaN/Inf',
     'zero': 'all-zero',
     'saturated': 'at or beyond --full-scale',
-    'out_of_range': 'beyond any magnetometer (|value| > 1e12)',
+    'out_of_range': 'beyond any magnetometer (|value| > 1e12) or, in tesla, below any field',
     'duplicate': 'exact duplicates of a buffered sample',
     'magnitude_outlier': 'magnitude outliers',
 }

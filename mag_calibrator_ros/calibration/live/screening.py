@@ -15,6 +15,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 import math
 
+from mag_calibrator_ros.calibration.fit.input_sanity import MIN_TESLA
+
 VALUE_REASONS = ('non_finite', 'zero', 'saturated', 'out_of_range')
 STREAM_REASONS = ('stamp_backwards', 'stamp_jump', 'frame_changed')
 SCREEN_REASONS = VALUE_REASONS + STREAM_REASONS
@@ -38,11 +40,14 @@ MAX_READING = 1e12
 computation (squares, whitening) can overflow."""
 
 
-def reading_problem(x0: float, x1: float, x2: float, full_scale: float | None) -> str | None:
+def reading_problem(x0: float, x1: float, x2: float, full_scale: float | None,
+                    least: float = 0.0) -> str | None:
     """Why one reading can never be a sample (a VALUE_REASONS entry), or None.
 
-    All-zero is refused but one exact-zero component is a legitimate reading. Plain floats, as
-    this runs for every message.
+    All-zero is refused but one exact-zero component is a legitimate reading; so is a reading
+    whose every component is below ``least`` (MIN_TESLA in a tesla stream: below one count of
+    an AK09916 and any field, a 5e-11 T reading of tesla scaled twice was published as -b, issue
+    #47). Plain floats, as this runs for every message.
     """
     if not (math.isfinite(x0) and math.isfinite(x1) and math.isfinite(x2)):
         return 'non_finite'
@@ -51,7 +56,7 @@ def reading_problem(x0: float, x1: float, x2: float, full_scale: float | None) -
     largest = max(abs(x0), abs(x1), abs(x2))
     if full_scale is not None and largest >= full_scale:
         return 'saturated'
-    if largest > MAX_READING:
+    if largest > MAX_READING or largest < least:
         return 'out_of_range'
     return None
 
@@ -79,8 +84,9 @@ class ReadingScreen:
     or frame is accepted and left in ``changes`` for the caller to report.
     """
 
-    def __init__(self, full_scale: float | None = None) -> None:
+    def __init__(self, full_scale: float | None = None, tesla: bool = False) -> None:
         self.full_scale = full_scale
+        self.least = MIN_TESLA if tesla else 0.0  # no field is weaker (``reading_problem``)
         self.counts = dict.fromkeys(SCREEN_REASONS, 0)
         self._reported = dict(self.counts)  # the counts at the latest ``new_refusals``
         self.frame_id: str | None = None
@@ -104,7 +110,7 @@ class ReadingScreen:
 
     def screen(self, stamp_ns: int, frame_id: str, x0: float, x1: float, x2: float) -> str | None:
         """The reason this message is refused (counted), or None when it is accepted."""
-        reason = reading_problem(x0, x1, x2, self.full_scale)
+        reason = reading_problem(x0, x1, x2, self.full_scale, self.least)
         if reason is None:
             reason = self._frame_problem(frame_id)
         if reason is None:

@@ -93,7 +93,7 @@ class CalibrationSession:
         self._metadata = {'units': 'T', **(metadata or {})}  # stamped on every fit
         self._units = str(self._metadata['units'])
         self._buffer = SampleBuffer(self._settings.buffer_size, self._settings.k)
-        self._screen = ReadingScreen(self._settings.full_scale_limit)
+        self._screen = ReadingScreen(self._settings.full_scale_limit, self._units == 'T')
         self._evidence = HeldOutEvidence()
         self._scheduler = FitScheduler(self._settings.buffer_size)
         self._misfit = MisfitMonitor()
