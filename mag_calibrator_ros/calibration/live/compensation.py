@@ -137,13 +137,18 @@ class _Series:
         self.samples: deque[tuple[int, float]] = deque(maxlen=SAMPLE_RING)
         self.latest = math.nan
         self.received = 0
-        self.refused = 0  # samples no robot makes (``CompensationLearner.input``), said once
+        self.refused = 0  # samples no robot makes (``refuse``)
 
     def add(self, stamp_ns: int, value: float) -> None:
         if math.isfinite(value):
             self.samples.append((stamp_ns, value))
             self.latest = value
             self.received += 1
+
+    def refuse(self, message: str) -> str | None:
+        """Count a dropped sample; ``message`` the first time only (said once)."""
+        self.refused += 1
+        return message if self.refused == 1 else None
 
     def silent_for(self, stamp_ns: int) -> float | None:
         """Stream seconds since the last sample when it is silent (SILENT_INTERVALS), or None."""
@@ -299,8 +304,7 @@ class CompensationLearner:
             series.add(stamp, float(celsius))
             self._temperature_step = (math.nan, 0)
             return None
-        series.refused += 1
-        return (f'imu/temperature sample dropped: {problem}' if series.refused == 1 else None)
+        return series.refuse(f'imu/temperature sample dropped: {problem}')
 
     def gyro(self, stamp_ns: int, rate: np.ndarray | tuple[float, float, float]) -> None:
         """One gyroscope sample (rad/s, the IMU's frame), integrated into the attitude kept
@@ -364,9 +368,7 @@ class CompensationLearner:
         if problem is None:
             series.add(self._stamp(stamp_ns), value)
             return None
-        series.refused += 1
-        return (f"interference input '{spec.text}' sample dropped: {problem}"
-                if series.refused == 1 else None)
+        return series.refuse(f"interference input '{spec.text}' sample dropped: {problem}")
 
     def _stamp(self, stamp_ns: int | None) -> int:
         if stamp_ns is not None and stamp_ns > 0:

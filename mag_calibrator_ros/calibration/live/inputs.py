@@ -13,6 +13,7 @@ subscribes them (``nodes/inputs.py``); ``live/compensation.py`` pairs their valu
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 import math
 import re
 
@@ -58,14 +59,19 @@ class InputSpec:
             return math.nan
         return abs(number) if self.absolute else number
 
+    @cached_property
+    def kind(self) -> tuple[str, float, str]:
+        """(kind, largest size, unit) of KIND_LIMITS this input's field is, found once."""
+        words = re.findall(r'[a-z]+', ' '.join(self.path or (self.text,)).lower())
+        return next((kind for kind in KIND_LIMITS if any(kind[0] in word for word in words)),
+                    ('value', ANY_LIMIT, ''))
+
     def sample_problem(self, value: float) -> str | None:
         """Why ``value`` is no sample of this input (non-finite, a sentinel, beyond its kind's
         size), or None."""
         if not math.isfinite(value):
             return None if math.isnan(value) else f'{value} is not a number it can take'
-        words = re.findall(r'[a-z]+', ' '.join(self.path or (self.text,)).lower())
-        kind, limit, unit = next((kind for kind in KIND_LIMITS if any(
-            kind[0] in word for word in words)), ('value', ANY_LIMIT, ''))
+        kind, limit, unit = self.kind
         if value in SENTINELS:
             return f'{value:g} is a driver\'s "unknown" value, not a measurement'
         if abs(value) > limit:
