@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from mag_calibrator_ros.calibration.fit.calibration import Calibration
 from mag_calibrator_ros.calibration.fit.gyro_aided import (
     MAX_DIRECTION_STD_DEG,
     TurnedReadings,
@@ -16,6 +17,7 @@ from mag_calibrator_ros.calibration.fit.gyro_aided import (
     fit_gyro_aided_full,
     turned_errors,
 )
+from mag_calibrator_ros.calibration.live.jobs import turned_worse
 from mag_calibrator_ros.calibration.live.rotation_track import STEP_S, WINDOW_S, RotationTrack
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
@@ -185,9 +187,39 @@ def test_a_gap_in_the_rates_starts_a_new_window_and_no_reading_is_kept_without_r
         track.add_reading(int(index * 1e7), (1.0, 2.0, 3.0))
     track.add_rate(int(151e7), (math.nan, 0.0, 0.0))  # a broken rate stops the stream
     track.add_reading(int(151e7), (1.0, 2.0, 3.0))
-    kept = track._readings  # noqa: SLF001 - the part under test
-    assert len({window for window, _, _ in kept}) == 2
-    assert len(kept) == 50  # one per STEP_S of the 2 x 0.5 s
+    kept = track.snapshot(2)  # the two windows there are
+    assert len(set(kept.windows.tolist())) == 2
+    assert len(set(kept.spans.tolist())) == 2  # a span never outlives its stream
+    assert len(kept.readings) == 50  # one per STEP_S of the 2 x 0.5 s
+
+
+def tracked(rates: np.ndarray, readings: np.ndarray) -> TurnedReadings:
+    """The readings through the session's own RotationTrack at RATE_HZ: windows and spans."""
+    track = RotationTrack()
+    for index, (rate, reading) in enumerate(zip(rates, readings, strict=True)):
+        track.add_rate(round(index * 1e9 / RATE_HZ), rate)
+        track.add_reading(round(index * 1e9 / RATE_HZ), reading)
+    return track.snapshot()
+
+
+@pytest.mark.parametrize('seed', [0, 1, 2])
+def test_a_soft_iron_that_bends_directions_is_judged_worse_whatever_its_field_strength(seed):
+    """BROAD trial 04: the magnitudes preferred a soft iron that bent the heading by 5 deg; the
+    turned readings, judged per half-second window and relative to each F, let it in (the hand
+    turns too little in half a second, and its 4 % larger F shrank its errors)."""
+    rates, attitudes = wrist_motion(60.0, seed)
+    field = float(np.linalg.norm(EARTH))
+    readings = readings_of(attitudes, np.zeros(3), 0.02 * field, seed)  # BROAD's noise
+    turned = tracked(rates, readings)
+    assert len(set(turned.spans.tolist())) < len(set(turned.windows.tolist())) / 3
+    right = Calibration(np.zeros(3), np.eye(3), field)
+    bend = np.array([[1.02, -0.02, 0.0], [-0.02, 0.98, 0.0], [0.0, 0.0, 1.0]])
+    bent = Calibration(np.zeros(3), bend, 1.04 * field)
+    assert turned_worse(right, bent, turned).better
+    assert not turned_worse(bent, right, turned).better
+    scaled = Calibration(np.zeros(3), 1.04 * np.eye(3), 1.04 * field)  # one F for another
+    same = turned_worse(right, scaled, turned)
+    assert not same.better and same.candidate_pct == pytest.approx(same.current_pct)
 
 
 def replay(offset: np.ndarray, seconds: float, seed: int, settings: SessionSettings,

@@ -50,6 +50,7 @@ from mag_calibrator_ros.calibration.fit.gyro_aided import (
     TurnedReadings,
     fit_gyro_aided,
     fit_gyro_aided_full,
+    turned_direction_errors,
     turned_errors,
 )
 from mag_calibrator_ros.calibration.fit.heading import (
@@ -342,16 +343,18 @@ def step_outcome(job: FitJob) -> JobOutcome:
 def turned_worse(current: Calibration, candidate: Calibration,
                  turned: TurnedReadings) -> Comparison:
     """Whether ``candidate`` turns directions worse than ``current`` (``better``: the one in
-    force is): its RMS error on the turned readings (uncapped: a soft iron that bends some
-    directions is exactly the large errors a cap would hide) above the current one's by more
-    than MIN_GAIN. A refinement must not be worse; proving it better is the magnitudes' job."""
-    now = float(np.sqrt(np.mean(turned_errors(current, turned) ** 2)))
-    new = float(np.sqrt(np.mean(turned_errors(candidate, turned) ** 2)))
+    force is): its RMS direction error over the turned spans (``turned_direction_errors``;
+    uncapped: a soft iron that bends some directions is exactly the large errors a cap would
+    hide) above the current one's by more than MIN_GAIN. A refinement must not be worse;
+    proving it better is the magnitudes' job."""
+    now = float(np.sqrt(np.mean(turned_direction_errors(current, turned) ** 2)))
+    new = float(np.sqrt(np.mean(turned_direction_errors(candidate, turned) ** 2)))
     worse = new > (1.0 + MIN_GAIN) * now
     return Comparison(worse, 100.0 * now, 100.0 * new, len(turned.readings), math.nan,
                       f'{"better" if worse else "not better"} on {len(turned.readings)} '
-                      f'readings turned by the gyroscope: RMS {100 * new:.2f} % (the fit) vs '
-                      f'{100 * now:.2f} % (in force)')
+                      f'readings turned by the gyroscope: directions off by RMS '
+                      f'{math.degrees(new):.2f} deg (the fit) vs {math.degrees(now):.2f} deg '
+                      '(in force)')
 
 
 def _held_out(data: TurnedReadings) -> np.ndarray:
@@ -360,7 +363,8 @@ def _held_out(data: TurnedReadings) -> np.ndarray:
 
 
 def _part(data: TurnedReadings, rows: np.ndarray) -> TurnedReadings:
-    return TurnedReadings(data.readings[rows], data.rotations[rows], data.windows[rows])
+    return TurnedReadings(data.readings[rows], data.rotations[rows], data.windows[rows],
+                          None if data.spans is None else data.spans[rows])
 
 
 def through_gyroscope(comparison: Comparison, pair_errors: tuple | None) -> Comparison:

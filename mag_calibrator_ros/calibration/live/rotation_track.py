@@ -29,6 +29,12 @@ STEP_S = 0.02
 WINDOW_S = 0.5
 """A window of readings shares one frame: half a second of integrated rates."""
 
+SPAN_S = 2.0
+"""Windows of one stream are grouped in spans of 2 s, what a refinement's directions are judged
+over (``turned_direction_errors``): a hand turns tens of degrees in them, enough for a bent
+direction to show, while a gyroscope's bias (well under 0.5 deg/s) turns the field by less than
+a degree."""
+
 MAX_GAP_S = 0.1
 """Rates further apart than this (or going back) start a new stream: a turn in the gap is
 unknown."""
@@ -59,7 +65,7 @@ class RotationTrack:
     """Integrates the gyroscope (rad/s) and keeps recent readings with their attitudes."""
 
     def __init__(self) -> None:
-        self._readings: deque[tuple[int, tuple[float, float, float], list]] = deque(
+        self._readings: deque[tuple[int, int, tuple[float, float, float], list]] = deque(
             maxlen=MAX_READINGS)
         self.reset()
 
@@ -77,8 +83,9 @@ class RotationTrack:
         """Forget the readings kept (the sensor changed), not the turning integrated."""
         self._readings.clear()
         self._kept_stamp: int | None = None
-        self._window = -1
+        self._window = self._span = -1
         self._window_start: int | None = None
+        self._span_start: int | None = None
         self._window_stream = -1
 
     def add_rate(self, stamp_ns: int, rate: Sequence[float]) -> None:
@@ -114,10 +121,13 @@ class RotationTrack:
         attitude = _turned(self._attitude, wx * dt, wy * dt, wz * dt)
         if (self._window_stream != self._stream or self._window_start is None
                 or not 0 <= stamp_ns - self._window_start < WINDOW_S * 1e9):
+            if (self._window_stream != self._stream or self._span_start is None
+                    or not 0 <= stamp_ns - self._span_start < SPAN_S * 1e9):
+                self._span, self._span_start = self._span + 1, stamp_ns
             self._window += 1
             self._window_start, self._window_stream = stamp_ns, self._stream
         self._kept_stamp = stamp_ns
-        self._readings.append((self._window, tuple(float(v) for v in reading),
+        self._readings.append((self._window, self._span, tuple(float(v) for v in reading),
                                _matrix(attitude)))  # once here, not at every snapshot
 
     def due(self, now_s: float, period_s: float = FIT_PERIOD_S,
@@ -145,18 +155,21 @@ class RotationTrack:
 
     def snapshot(self, last_windows: int | None = None) -> TurnedReadings | None:
         """The readings kept (of the latest ``last_windows`` windows: None, all), their
-        attitudes (as rotation matrices) and windows; None before WINDOWS_NEEDED are kept."""
+        attitudes (as rotation matrices), windows and spans; None before WINDOWS_NEEDED are
+        kept."""
         if not self._enough(min(WINDOWS_NEEDED, last_windows or WINDOWS_NEEDED)):
             return None
         kept = self._readings
         if last_windows is not None:  # from the newest back: O(what is taken), not O(kept)
             first = kept[-1][0] - last_windows + 1
             kept = list(takewhile(lambda item: item[0] >= first, reversed(kept)))[::-1]
-        windows = np.array([window for window, _, _ in kept], dtype=int)
-        readings = np.array([reading for _, reading, _ in kept], dtype=float)
-        rotations = np.array([matrix for _, _, matrix in kept], dtype=float)
+        windows = np.array([item[0] for item in kept], dtype=int)
+        spans = np.array([item[1] for item in kept], dtype=int)
+        readings = np.array([item[2] for item in kept], dtype=float)
+        rotations = np.array([item[3] for item in kept], dtype=float)
         return TurnedReadings(readings.reshape(-1, 3), rotations.reshape(-1, 3, 3),
-                              windows - (windows[0] if len(windows) else 0))
+                              windows - (windows[0] if len(windows) else 0),
+                              spans - (spans[0] if len(spans) else 0))
 
 
     def _enough(self, windows: int = WINDOWS_NEEDED) -> bool:
