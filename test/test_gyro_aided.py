@@ -10,6 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.fit.fitting import FitOptions
 from mag_calibrator_ros.calibration.fit.gyro_aided import (
     MAX_DIRECTION_STD_DEG,
     TurnedReadings,
@@ -17,7 +18,7 @@ from mag_calibrator_ros.calibration.fit.gyro_aided import (
     fit_gyro_aided_full,
     turned_errors,
 )
-from mag_calibrator_ros.calibration.live.jobs import turned_worse
+from mag_calibrator_ros.calibration.live.jobs import FitJob, gyro_aided_outcome, turned_worse
 from mag_calibrator_ros.calibration.live.rotation_track import STEP_S, WINDOW_S, RotationTrack
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
@@ -421,3 +422,20 @@ def test_another_boards_file_is_corrected_by_a_step_within_seconds():
     after = session.calibration.apply(readings[-200:])
     assert np.all(np.abs(np.linalg.norm(after, axis=1) / (np.linalg.norm(EARTH) * 1e-6) - 1)
                   < 0.1)
+
+
+def test_a_gyro_fit_does_not_beat_the_one_in_force_by_its_field_strength_alone():
+    """The gyroscope judges directions: a calibration in force whose F is 10 % low (its
+    directions right) is not replaced for that by a fit of the same turning; judged relative to
+    each F, the fit's errors were 10 % smaller and it won."""
+    rates, attitudes = wrist_motion(40.0, 0)
+    offset = np.array([12.0, -30.0, 7.5])
+    turned = tracked(rates, readings_of(attitudes, offset, 0.3, 0))
+    in_force = Calibration(offset, np.eye(3), 0.9 * float(np.linalg.norm(EARTH)),
+                           metadata={'fit': 'gyro_aided', 'direction_std_deg': 0.9})
+    job = FitJob('gyro', np.zeros((0, 3)), None, None, FitOptions(), current=in_force,
+                 turned=turned)
+    outcome = gyro_aided_outcome(job)
+    assert outcome.gyro_fit.success, outcome.gyro_fit.reason
+    assert outcome.comparison.readings >= 100
+    assert not outcome.comparison.better, outcome.comparison.reason

@@ -51,7 +51,6 @@ from mag_calibrator_ros.calibration.fit.gyro_aided import (
     fit_gyro_aided,
     fit_gyro_aided_full,
     turned_direction_errors,
-    turned_errors,
 )
 from mag_calibrator_ros.calibration.fit.heading import (
     COMPLETE_HEADING_COVERAGE,
@@ -261,7 +260,8 @@ def gyro_aided_outcome(job: FitJob) -> JobOutcome:
         windows //= 2
         latest = data.windows >= data.windows.max() - windows + 1
         part = _part(data, latest)
-        part = TurnedReadings(part.readings, part.rotations, part.windows - part.windows.min())
+        part = TurnedReadings(part.readings, part.rotations, part.windows - part.windows.min(),
+                              None if part.spans is None else part.spans - part.spans.min())
         outcome = _gyro_aided_fit(replace(job, turned=part))
     return replace(outcome, job=job)
 
@@ -271,9 +271,8 @@ def _against_current(outcome: JobOutcome) -> JobOutcome:
     if fit is None or fit.calibration is None:
         return outcome
     part = _part(data, _held_out(data))
-    return replace(outcome, comparison=compare_residuals(
-        turned_errors(outcome.job.current, part), turned_errors(fit.calibration, part),
-        'held-out turned readings'))
+    return replace(outcome, comparison=_turned_better(outcome.job.current, fit.calibration,
+                                                      part))
 
 
 def _fitted(outcome: JobOutcome) -> bool:
@@ -284,11 +283,11 @@ def _fitted(outcome: JobOutcome) -> bool:
 
 def _gyro_aided_fit(job: FitJob) -> JobOutcome:
     """The offset alone, then the soft iron with it, fitted on two of every three windows of
-    turned readings and judged on the third (``compare_residuals``: the rule every candidate
-    meets): the raw field is the first candidate, the offset replaces it only when better, the
-    soft iron replaces the offset only when it is not worse (a sensor calibrated already keeps
-    its own calibration unless another is clearly better). The fit returned is the one chosen,
-    its comparison the one against the raw field."""
+    turned readings and judged on the third's directions (``_turned_better``: the rule every
+    candidate meets): the raw field is the first candidate, the offset replaces it only when
+    better, the soft iron replaces the offset only when it is not worse (a sensor calibrated
+    already keeps its own calibration unless another is clearly better). The fit returned is
+    the one chosen, its comparison the one against the raw field."""
     data = job.turned
     held = _held_out(data)
     train, part = _part(data, ~held), _part(data, held)
@@ -301,8 +300,8 @@ def _gyro_aided_fit(job: FitJob) -> JobOutcome:
     stamp = time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())
     fits = [replace(fit, calibration=fit.calibration.with_metadata(time=stamp, **job.metadata))
             for fit in (sphere, full)]
-    raw = turned_errors(None, part)
-    errors = [turned_errors(fit.calibration, part) for fit in fits]
+    raw = turned_direction_errors(None, part)
+    errors = [turned_direction_errors(fit.calibration, part) for fit in fits]
     what = 'held-out turned readings'
     against_raw = [compare_residuals(raw, error, what) for error in errors]
     sphere, full = fits
@@ -322,7 +321,7 @@ def step_outcome(job: FitJob) -> JobOutcome:
     stay), fitted and judged as ``gyro_aided_outcome`` does, against the calibration in force."""
     data, current = job.turned, job.current
     corrected = TurnedReadings(current.unrotated(data.readings),
-                               data.rotations, data.windows)
+                               data.rotations, data.windows, data.spans)
     held = _held_out(data)
     fit = fit_gyro_aided(_part(corrected, ~held), max_residual_pct=job.options.max_residual_pct)
     if fit.calibration is None:
@@ -335,9 +334,16 @@ def step_outcome(job: FitJob) -> JobOutcome:
     fit = replace(fit, calibration=candidate, offset_std=np.abs(
         np.linalg.solve(current.matrix, np.diag(fit.offset_std))).sum(axis=1))
     part = _part(data, held)
-    comparison = compare_residuals(turned_errors(current, part), turned_errors(candidate, part),
-                                   'held-out turned readings')
-    return JobOutcome(job, comparison=comparison, gyro_fit=fit, field_seen=seen)
+    return JobOutcome(job, comparison=_turned_better(current, candidate, part), gyro_fit=fit,
+                      field_seen=seen)
+
+
+def _turned_better(current: Calibration | None, candidate: Calibration,
+                   part: TurnedReadings) -> Comparison:
+    """The rule every candidate meets, on the directions of held-out turned readings
+    (``turned_direction_errors``): relative to each F, a fit won by its F alone."""
+    return compare_residuals(turned_direction_errors(current, part),
+                             turned_direction_errors(candidate, part), 'held-out turned readings')
 
 
 def turned_worse(current: Calibration, candidate: Calibration,
