@@ -277,6 +277,38 @@ def test_single_measurement_and_self_test_take_one_sample_and_power_down(mode):
             assert sim.truth_for_reading(field) is not None
 
 
+def test_a_single_measurement_latches_after_a_read_st2_never_ended_a_continuous_one_waits():
+    """A data read that ST2 never ended protects the registers in the continuous modes: the
+    next sample waits and DRDY stays 0. A new single measurement latches regardless (DS-000189
+    §13.2 p.78 is silent; Pimoroni's icm20948 never reads ST2 there and works on real boards)."""
+    clock, sim = make(SimConfig(seed=3))
+    wake(sim)
+    sim.write_byte_data(ICM, reg.INT_PIN_CFG, reg.INT_PIN_CFG_BYPASS_EN)
+    clock.sleep(0.01)
+    ak = reg.AK09916_ADDRESS
+    sim.write_byte_data(ak, reg.CNTL2, reg.MODE_SINGLE)
+    clock.sleep(reg.SINGLE_MEASUREMENT_S + 1e-4)
+    for _ in range(3):
+        sim.read_i2c_block_data(ak, reg.HXL, 6)  # HXL..HZH: the read starts, never ends
+        clock.sleep(reg.MODE_CHANGE_WAIT_S)
+        sim.write_byte_data(ak, reg.CNTL2, reg.MODE_SINGLE)
+        clock.sleep(reg.SINGLE_MEASUREMENT_S + 1e-4)
+        assert sim.read_byte_data(ak, reg.ST1) & reg.ST1_DRDY
+    assert sim.samples_measured == sim.mag_samples_read + 1 == 4
+    sim.read_i2c_block_data(ak, reg.HXL, reg.MAG_BURST_LENGTH)  # ends with ST2
+    sim.write_byte_data(ak, reg.CNTL2, reg.MODE_POWER_DOWN)
+    clock.sleep(reg.MODE_CHANGE_WAIT_S)
+    rate = next(mode for mode, hz in reg.CONTINUOUS_RATES.items() if hz == 100)
+    sim.write_byte_data(ak, reg.CNTL2, rate)
+    clock.sleep(0.015)
+    assert sim.read_byte_data(ak, reg.ST1) & reg.ST1_DRDY
+    sim.read_i2c_block_data(ak, reg.HXL, 6)  # no ST2: protected from here on
+    clock.sleep(0.05)
+    assert not sim.read_byte_data(ak, reg.ST1) & reg.ST1_DRDY
+    sim.read_byte_data(ak, reg.ST2)  # the read ends: the sample that waited is latched
+    assert sim.read_byte_data(ak, reg.ST1) & reg.ST1_DRDY
+
+
 def test_single_measurement_through_the_master():
     """A driver that triggers single measurements through SLV4 sees DRDY in the copy."""
     clock, sim = make(SimConfig(seed=1))

@@ -1,11 +1,12 @@
 # Copyright 2026 mag_calibrator_ros maintainers
 # SPDX-License-Identifier: MIT
-"""Other people's ICM-20948 drivers, unchanged from PyPI, against the simulated chip (issue #23).
+"""Other people's ICM-20948 drivers, unchanged from PyPI, against the simulated chip (#23, #48).
 
 Our driver and the simulator share one model of the chip, so they agree by construction. These
 drivers were written against real boards: SparkFun's ``qwiic_icm20948`` (over smbus2 through
-``qwiic_i2c``) and Adafruit's ``adafruit_icm20x`` (over CircuitPython's ``busio.I2C``, stood in
-for by ``BusioI2C`` below). Each must bring the chip up on its first attempt, and read
+``qwiic_i2c``), Adafruit's ``adafruit_icm20x`` (over CircuitPython's ``busio.I2C``, stood in
+for by ``BusioI2C`` below) and Pimoroni's ``icm20948`` (an smbus2 bus, single measurements
+without ST2). Each must bring the chip up on its first attempt, and read
 magnetometer samples that are the simulator's truth (in the AK09916's own axes), |accel| = 1 g on
 a still board, and a plausible gyro and temperature. A failure here is a finding about the
 simulator, to be fixed from the datasheet, never by patching the peer driver.
@@ -169,3 +170,24 @@ def test_adafruit_icm20x_runs_unchanged(monkeypatch):
     assert np.all(np.abs(np.array(gyro)) < math.radians(5.0))
     assert imu.accelerometer_data_rate == pytest.approx(1125.0 / 21)  # its own divider, 20
     assert imu.gyro_data_rate == pytest.approx(1100.0 / 11)
+
+
+def test_pimoroni_icm20948_runs_unchanged():
+    """Pimoroni's ``icm20948`` (MIT, github.com/pimoroni/icm20948-python) starts a single
+    measurement for every field, waits for DRDY and reads HXL..HZH through SLV0 without ever
+    reading ST2, which it says only continuous modes need; on real boards it reads a new
+    field each time, so a single measurement latches whether or not ST2 ended the last read."""
+    icm20948 = pytest.importorskip('icm20948')
+    sim = SimulatedIcm20948Bus(STILL)
+    bus = MasterResetWatch(sim)
+    imu = icm20948.ICM20948(i2c_addr=ICM, i2c_bus=bus)
+    readings, motion = [], []
+    while len(readings) < SAMPLES:
+        x, y, z = imu.read_magnetometer_data(timeout=0.5)  # uT, the AK09916's axes
+        readings.append(tuple(round(v / 0.15) for v in (x, y, z)))
+        motion.append(imu.read_accelerometer_gyro_data())  # g and deg/s
+    assert_the_truth(sim, readings)
+    accel, gyro = np.array(motion)[:, :3], np.array(motion)[:, 3:]
+    assert np.all(np.abs(np.linalg.norm(accel, axis=1) - 1.0) < 0.05)
+    assert np.all(np.abs(gyro) < 5.0)
+    assert abs(imu.read_temperature() - STILL.temperature_c) < STILL.temperature_rise_c + 0.5

@@ -20,8 +20,8 @@ others against real chips run against it unchanged (``test/test_icm20948_peers.p
   transfers ending with I2C_SLV4_DONE (and SLV4_NACK for an address nobody answers) in the
   read-to-clear I2C_MST_STATUS;
 - the AK09916's continuous, single-measurement and self-test modes driven by a clock, ST1/ST2
-  semantics (DRDY, DOR, HOFL, data protection from the first data read until ST2), int16
-  saturation and 0.15 uT quantisation.
+  semantics (DRDY, DOR, HOFL, data protection from the first data read until ST2 or a new
+  single measurement), int16 saturation and 0.15 uT quantisation.
 
 Where the datasheets are silent the model says so and picks what breaks fewest real drivers.
 
@@ -803,11 +803,7 @@ class SimulatedIcm20948Bus:
             if register <= reg.TMPS:
                 return self._data[register - reg.HXL]
             value = self._data[7]
-            self._locked = False  # ST2 ends the read
-            if self._pending is not None:  # a sample finished during the read: latch it now
-                data, truth = self._pending
-                self._pending = None
-                self._latch(data, truth)
+            self._end_read()  # ST2 ends the read
             return value
         if register == reg.CNTL2:
             return self._mode
@@ -831,9 +827,24 @@ class SimulatedIcm20948Bus:
         )
         if not legal or not settled:
             return  # the AK09916 ignores prohibited codes and mode changes not via power-down
+        if value in (reg.MODE_SINGLE, reg.MODE_SELF_TEST):
+            # A new measurement latches whether or not ST2 ended the last read. DS-000189
+            # §13.2 p.78 says only that a data or ST2 read clears DRDY, nothing of protection
+            # in this mode; from drivers that run on real boards: Pimoroni's icm20948 reads
+            # every single measurement without ST2 (test/test_icm20948_peers.py).
+            self._end_read()
         self._mode = value
         self._mode_since = self._now()
         self._next_sample_index = 0
+
+    def _end_read(self) -> None:
+        """A data read ends (ST2 read, or a single measurement started): the registers are
+        no longer protected, and a sample that finished during the read is latched now."""
+        self._locked = False
+        if self._pending is not None:
+            data, truth = self._pending
+            self._pending = None
+            self._latch(data, truth)
 
     def _next_ak_event(self) -> float:
         """Sim time of the AK09916's next measurement (inf: none coming)."""
