@@ -13,8 +13,15 @@ from pathlib import Path
 import sys
 
 import numpy as np
+import pytest
 
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.fit.compensation import (
+    TEMPERATURE,
+    TermReport,
+    interference_grade,
+    interference_pct,
+)
 from mag_calibrator_ros.calibration.live.session import CalibrationSession, SessionEvent
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
 from mag_calibrator_ros.icm20948 import registers as reg
@@ -70,3 +77,27 @@ def test_learn_compensation_learns_on_request_with_live_learning_off():
     assert answer.message.startswith('learned in ')
     assert session.calibration.compensation is not None
     assert session.report().counts.adoptions.get('compensation') == 1
+    # its size on ArduPilot's compassmot scale: the K in force over the current's 5-95 % range
+    low, high = np.percentile(run['current'], [5.0, 95.0])
+    gain = np.linalg.norm(session.calibration.compensation.interference[:, 0])
+    learned = session.calibration.metadata_number('compensation_interference_pct')
+    assert learned == pytest.approx(100.0 * gain * (high - low) / F, rel=0.02)
+    assert f"{learned:.1f} % of F (ArduPilot's compassmot scale: fine)" in answer.message
+    values = session.report().values  # /diagnostics
+    assert values['compensation_interference_pct'] == learned
+    assert values['interference_scale'] == 'fine'
+
+
+@pytest.mark.parametrize(('pct', 'grade'), [(0.0, 'fine'), (30.0, 'fine'),
+                                            (30.1, 'grey zone'), (60.0, 'grey zone'),
+                                            (60.1, 'too much')])
+def test_the_own_field_is_graded_on_ardupilots_compassmot_scale(pct, grade):
+    assert interference_grade(pct).startswith(grade)
+
+
+def test_the_interference_is_the_inputs_field_not_the_temperature_drift():
+    terms = tuple(TermReport(name, 1.0, effect, 0.1, 9.0, True, True)
+                  for name, effect in (('a', 12.0), ('b', 20.0), (TEMPERATURE, 40.0)))
+    assert interference_pct(terms, ('a', 'b', TEMPERATURE)) == pytest.approx(32.0)
+    assert interference_pct(terms, ('a',)) == pytest.approx(12.0)
+    assert interference_pct(terms, (TEMPERATURE,)) is None

@@ -100,6 +100,10 @@ def test_a_csv_with_current_and_temperature_learns_k_and_c(tmp_path, capsys, cou
     assert found['problems'] == []
     assert_near_truth(found, truth, recording)
     assert found['removed_pct'] > 1.0 and found['reference_temperature_degC'] is not None
+    low, high = np.percentile(recording.current_a, [5.0, 95.0])  # its size, ArduPilot's way
+    field = np.linalg.norm(found['interference']['current']) * (high - low)
+    assert found['interference_pct'] == pytest.approx(
+        100.0 * field / summary['field_strength'], rel=0.02)
     assert status == 0, summary['reason']
     assert summary['buffer']['learning_pass']['fits']['compensate'] > 0
     saved = load_calibration(output).compensation

@@ -40,6 +40,7 @@ CALIBRATION_METADATA_KEYS = (
     # the robot's own field (K u + c (T - T0)) and when it was learned
     'interference_inputs', 'interference', 'temperature_coefficient', 'reference_temperature',
     'compensation_time', 'compensation_removed_pct', 'compensation_readings',
+    'compensation_interference_pct',
 )
 """Metadata a saved file may carry (declared so --params-file keeps it), and the optional
 compensation (``calibration_file``'s COMPENSATION_KEYS)."""

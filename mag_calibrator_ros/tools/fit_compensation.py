@@ -27,6 +27,7 @@ import numpy as np
 from mag_calibrator_ros.calibration.fit.calibration import Calibration, Compensation
 from mag_calibrator_ros.calibration.live.compensation import input_columns
 from mag_calibrator_ros.calibration.live.jobs import kept_compensation
+from mag_calibrator_ros.calibration.live.report import interference_text
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
 from mag_calibrator_ros.tools.recording_value import Recording
@@ -175,6 +176,7 @@ def summary(recording: Recording, calibration: Calibration | None,
         found['reference_temperature_degC'] = compensation.reference_temperature
         found['removed_pct'] = calibration.metadata.get('compensation_removed_pct')  # type: ignore[union-attr]
         found['readings'] = calibration.metadata.get('compensation_readings')  # type: ignore[union-attr]
+        found['interference_pct'] = calibration.metadata.get('compensation_interference_pct')  # type: ignore[union-attr]
     if session is None:
         found['needs'] = ('the compensation is learned by the buffer as the node does; drop '
                           '--all to learn it')
@@ -207,6 +209,9 @@ def lines(found: dict[str, Any] | None, units: str) -> list[str]:
         if removed is not None:
             out.append(f'          removes {removed:.2f} % of the field (RMS over the readings '
                        'it was learned from)')
+        if found.get('interference_pct') is not None:
+            out.append('          ' + interference_text(found['interference_pct'])
+                       .removeprefix('; '))
         if any(':' not in name for name in found['interference']):
             out.append("          on the robot: the node's interference_inputs name the topics "
                        'carrying these inputs, in this order (topic:package/msg/Type:field)')

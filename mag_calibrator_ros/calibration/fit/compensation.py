@@ -93,8 +93,13 @@ MIN_TURN_DEG = 20.0
 the sensor turned this far (95th percentile from its mean) over the readings: held one way, a
 current's field across the Earth's changes |corrected| only in second order, which a fit
 can match by any of a circle of coefficients."""
-LEARNED = ('compensation_time', 'compensation_removed_pct', 'compensation_readings')
+LEARNED = ('compensation_time', 'compensation_removed_pct', 'compensation_readings',
+           'compensation_interference_pct')
 """Metadata of a learned compensation, carried with it into later static fits."""
+INTERFERENCE_GRADES = ((30.0, 'fine'), (60.0, 'grey zone, it may do'))
+"""ArduPilot's scale for the own field (its wiki, "Advanced Compass Setup", CompassMot: under
+30 % of the Earth's field acceptable, 31-60 % a grey zone, above 60 % move the compass away
+from the power wires, ESCs and motors, or use an external one)."""
 
 
 @dataclass(frozen=True)
@@ -178,6 +183,24 @@ class CompensationFit:
     held_pair_errors: tuple[np.ndarray, np.ndarray] | None = None
     """The held-out pairs' ``|difference not explained by the rotation|/F``: the calibration
     in force and the candidate (``evidence.compare_residuals`` judges them)."""
+
+
+def interference_pct(terms: tuple[TermReport, ...], kept: tuple[str, ...]) -> float | None:
+    """The field the kept inputs (not the temperature: the sensor's drift) cause over their
+    ranges, together at worst, % of the field strength F: what ArduPilot's compassmot reports as
+    interference at full throttle (of the total field; a planar calibration's F is the
+    horizontal field, so its share is larger, and is the one its heading feels). None without
+    a kept input."""
+    effects = [term.effect_pct for term in terms if term.name in kept and term.name != TEMPERATURE]
+    return float(sum(effects)) if effects else None
+
+
+def interference_grade(pct: float) -> str:
+    """``pct`` of the Earth's field on ArduPilot's scale (INTERFERENCE_GRADES)."""
+    for bound, grade in INTERFERENCE_GRADES:
+        if pct <= bound:
+            return grade
+    return 'too much: move the magnetometer away from the currents, or them from it'
 
 
 @dataclass(frozen=True)
@@ -640,7 +663,8 @@ def _with_reason(fit: CompensationFit, reports: list[TermReport],
                            pairs=fit.pairs)
 
 
-__all__ = ['DETERMINED_PCT', 'LEARNED', 'MIN_READINGS', 'MIN_TURN_DEG', 'NO_PAIRS', 'PAIR_LAGS_S',
-           'PAIR_MAX_TURN_DEG', 'SIGNIFICANT_SIGMA', 'TEMPERATURE', 'CompensationData',
-           'CompensationFit', 'GyroPairs', 'TermReport', 'fit_compensation', 'gyro_pairs',
-           'magnitude_spread_pct', 'pair_evidence']
+__all__ = ['DETERMINED_PCT', 'INTERFERENCE_GRADES', 'LEARNED', 'MIN_READINGS', 'MIN_TURN_DEG',
+           'NO_PAIRS', 'PAIR_LAGS_S', 'PAIR_MAX_TURN_DEG', 'SIGNIFICANT_SIGMA', 'TEMPERATURE',
+           'CompensationData', 'CompensationFit', 'GyroPairs', 'TermReport', 'fit_compensation',
+           'gyro_pairs', 'interference_grade', 'interference_pct', 'magnitude_spread_pct',
+           'pair_evidence']

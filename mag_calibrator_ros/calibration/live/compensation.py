@@ -31,6 +31,7 @@ from mag_calibrator_ros.calibration.fit.compensation import (
     MIN_READINGS,
     TEMPERATURE,
     CompensationData,
+    interference_grade,
 )
 from mag_calibrator_ros.calibration.fit.input_sanity import TEMPERATURE_RANGE_C
 from mag_calibrator_ros.calibration.live.inputs import InputSpec, parse_input
@@ -724,6 +725,9 @@ class CompensationLearner:
             for key in LEARNED:
                 if key in calibration.metadata:
                     values[key] = calibration.metadata[key]
+            interference = calibration.metadata_number('compensation_interference_pct')
+            if interference is not None:
+                values['interference_scale'] = interference_grade(interference)
         if self._window is not None:
             values['compensation_learning'] = (
                 f'~/learn_compensation: {max(self._window.deadline - now, 0.0):.0f} s left')

@@ -18,6 +18,7 @@ from mag_calibrator_ros.calibration.fit.alignment import (
     rotation_angle_deg,
 )
 from mag_calibrator_ros.calibration.fit.calibration import Calibration
+from mag_calibrator_ros.calibration.fit.compensation import interference_grade
 from mag_calibrator_ros.calibration.fit.coverage import HEADING_SECTORS, Coverage
 from mag_calibrator_ros.calibration.fit.earth_field import EarthCheck, EarthField, EarthReference
 from mag_calibrator_ros.calibration.fit.heading import COMPLETE_HEADING_COVERAGE
@@ -114,8 +115,18 @@ def compensation_text(calibration: Calibration, units: str = 'T') -> str:
     removed = calibration.metadata_number('compensation_removed_pct')
     if removed is not None:
         text += f', {removed:.2f} % of the field'
+    text += interference_text(calibration.metadata_number('compensation_interference_pct'))
     learned = calibration.metadata.get('compensation_time')
     return text + (f' (learned {learned})' if learned else '')
+
+
+def interference_text(pct: float | None) -> str:
+    """'; the inputs' field over their ranges is x % of F (ArduPilot's compassmot scale:
+    <grade>)' ('' without one): the size of the robot's own field on a scale users know."""
+    if pct is None:
+        return ''
+    return (f"; the inputs' field over their ranges is {pct:.1f} % of F (ArduPilot's "
+            f'compassmot scale: {interference_grade(pct)})')
 
 
 UNOBSERVED_WORDS = {'offset_normal': 'the offset along the turning axis',

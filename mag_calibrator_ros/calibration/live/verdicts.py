@@ -28,6 +28,7 @@ import numpy as np
 
 from mag_calibrator_ros.calibration.fit.alignment import rotation_angle_deg
 from mag_calibrator_ros.calibration.fit.calibration import Calibration, CalibrationError
+from mag_calibrator_ros.calibration.fit.compensation import interference_pct
 from mag_calibrator_ros.calibration.fit.coverage import CELL_COUNT
 from mag_calibrator_ros.calibration.fit.earth_field import EarthField, disturbance_text
 from mag_calibrator_ros.calibration.fit.gyro_aided import GyroAidedFit
@@ -38,6 +39,7 @@ from mag_calibrator_ros.calibration.live.report import (
     calibration_summary,
     coverage_pct,
     format_field,
+    interference_text,
     misfit_text,
     reference_text,
     world_text,
@@ -520,15 +522,19 @@ def compensation_verdict(outcome: JobOutcome, current: Calibration | None) -> Ve
         why = 'no held-out readings' if comparison is None else comparison.reason
         return Verdict(level='debug', message=f'compensation kept as it is: {why}')
     compensation = fit.calibration.compensation
-    candidate = fit.calibration.with_metadata(
-        compensation_removed_pct=round(fit.removed_pct, 3), compensation_readings=fit.readings)
+    interference = interference_pct(fit.terms, fit.kept)
+    learned = {'compensation_removed_pct': round(fit.removed_pct, 3),
+               'compensation_readings': fit.readings}
+    if interference is not None:
+        learned['compensation_interference_pct'] = round(interference, 2)
+    candidate = fit.calibration.with_metadata(**learned)
     terms = ', '.join(f'{term.name} {term.effect_pct:.2f} % of the field' for term in fit.terms
                       if term.name in fit.kept)
     t0 = ('' if compensation.reference_temperature is None
           else f', T0 {compensation.reference_temperature:g} degC')
     return Verdict(candidate, 'compensation', 'info', (
         f"compensating the robot's own field: {terms}{t0}; it removes {fit.removed_pct:.2f} % "
-        f'of the field; {comparison.reason}'))
+        f'of the field{interference_text(interference)}; {comparison.reason}'))
 
 
 __all__ = [
