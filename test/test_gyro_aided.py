@@ -18,7 +18,12 @@ from mag_calibrator_ros.calibration.fit.gyro_aided import (
     fit_gyro_aided_full,
     turned_errors,
 )
-from mag_calibrator_ros.calibration.live.jobs import FitJob, gyro_aided_outcome, turned_worse
+from mag_calibrator_ros.calibration.live.jobs import (
+    FitJob,
+    gyro_aided_outcome,
+    step_outcome,
+    turned_worse,
+)
 from mag_calibrator_ros.calibration.live.rotation_track import STEP_S, WINDOW_S, RotationTrack
 from mag_calibrator_ros.calibration.live.session import CalibrationSession
 from mag_calibrator_ros.calibration.live.settings import SessionSettings
@@ -439,3 +444,22 @@ def test_a_gyro_fit_does_not_beat_the_one_in_force_by_its_field_strength_alone()
     assert outcome.gyro_fit.success, outcome.gyro_fit.reason
     assert outcome.comparison.readings >= 100
     assert not outcome.comparison.better, outcome.comparison.reason
+
+
+def test_a_step_is_as_uncertain_as_its_new_offset_and_the_terms_it_keeps():
+    """A step keeps the soft iron and rotation in force and fits a new offset: its directions
+    are uncertain by both (in quadrature), not by the old fit's alone (they were, and a later
+    gyro fit had to beat that to refine it)."""
+    rates, attitudes = wrist_motion(8.0, 4)
+    old, new = np.array([12.0, -30.0, 7.5]), np.array([12.0, 0.0, -12.5])
+    turned = tracked(rates, readings_of(attitudes, new, 0.3, 4))
+    in_force = Calibration(old, np.eye(3), float(np.linalg.norm(EARTH)),
+                           metadata={'fit': 'gyro_aided', 'direction_std_deg': 0.5})
+    job = FitJob('step', np.zeros((0, 3)), None, None, FitOptions(), current=in_force,
+                 turned=turned)
+    fit = step_outcome(job).gyro_fit
+    assert fit.success, fit.reason
+    assert np.linalg.norm(fit.calibration.offset - new) < 1.0
+    told = fit.calibration.metadata_number('direction_std_deg')
+    assert told == pytest.approx(math.hypot(0.5, fit.direction_std_deg), abs=1e-3)
+    assert told > 0.5

@@ -328,9 +328,11 @@ def step_outcome(job: FitJob) -> JobOutcome:
         return JobOutcome(job, gyro_fit=fit)
     seen = fit.calibration.field_strength  # |M (x - b) - shift|: the field the look turns
     shift = np.linalg.solve(current.matrix, fit.calibration.offset)  # into raw units
-    candidate = current.with_compensation(
+    before = current.metadata_number('direction_std_deg') or 0.0  # a file's: none known
+    candidate = current.with_compensation(  # its directions: the old terms' and the new offset's
         current.compensation, offset=current.offset + shift,
-        step_time=time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()))
+        step_time=time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()),
+        direction_std_deg=round(math.hypot(before, fit.direction_std_deg), 3))
     fit = replace(fit, calibration=candidate, offset_std=np.abs(
         np.linalg.solve(current.matrix, np.diag(fit.offset_std))).sum(axis=1))
     part = _part(data, held)
