@@ -343,7 +343,7 @@ def step_outcome(job: FitJob) -> JobOutcome:
 def _turned_better(current: Calibration | None, candidate: Calibration,
                    part: TurnedReadings) -> Comparison:
     """The rule every candidate meets, on the directions of held-out turned readings
-    (``turned_direction_errors``): relative to each F, a fit won by its F alone."""
+    (``turned_direction_errors``): judged relative to each one's F, a fit won by its F alone."""
     return compare_residuals(turned_direction_errors(current, part),
                              turned_direction_errors(candidate, part), 'held-out turned readings')
 
