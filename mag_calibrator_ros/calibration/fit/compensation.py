@@ -196,7 +196,7 @@ def interference_pct(terms: tuple[TermReport, ...], kept: tuple[str, ...]) -> fl
 
 
 def interference_grade(pct: float) -> str:
-    """``pct`` of the Earth's field on ArduPilot's scale (INTERFERENCE_GRADES)."""
+    """``pct`` of the field strength on ArduPilot's scale (INTERFERENCE_GRADES)."""
     for bound, grade in INTERFERENCE_GRADES:
         if pct <= bound:
             return grade

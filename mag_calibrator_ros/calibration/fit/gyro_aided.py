@@ -349,11 +349,7 @@ def turned_errors(calibration: Calibration | None, data: TurnedReadings) -> np.n
         corrected = (readings - calibration.offset) @ calibration.correction.T
         radius = calibration.field_strength
     turned = np.einsum('nij,nj->ni', rotations, corrected)
-    errors = np.zeros(len(readings))
-    for label in np.unique(labels):
-        rows = labels == label
-        errors[rows] = np.linalg.norm(turned[rows] - turned[rows].mean(axis=0), axis=1)
-    return errors / (radius if radius > 0.0 else 1.0)
+    return _from_group_means(turned, labels) / (radius if radius > 0.0 else 1.0)
 
 
 def turned_direction_errors(calibration: Calibration | None, data: TurnedReadings) -> np.ndarray:
@@ -371,11 +367,16 @@ def turned_direction_errors(calibration: Calibration | None, data: TurnedReading
     turned = np.einsum('nij,nj->ni', np.asarray(data.rotations, dtype=float).reshape(-1, 3, 3),
                        directions)
     labels = np.asarray(data.windows if data.spans is None else data.spans).reshape(-1)
-    errors = np.zeros(len(readings))
+    return _from_group_means(turned, labels)
+
+
+def _from_group_means(turned: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """Each turned vector's distance from the mean of those sharing its label (its frame)."""
+    distances = np.zeros(len(turned))
     for label in np.unique(labels):
         rows = labels == label
-        errors[rows] = np.linalg.norm(turned[rows] - turned[rows].mean(axis=0), axis=1)
-    return errors
+        distances[rows] = np.linalg.norm(turned[rows] - turned[rows].mean(axis=0), axis=1)
+    return distances
 
 
 def _centred(readings: np.ndarray, rotations: np.ndarray, labels: np.ndarray
@@ -484,11 +485,9 @@ def _spread(readings: np.ndarray, rotations: np.ndarray, labels: np.ndarray,
             offset: np.ndarray, matrix: np.ndarray | None = None) -> float:
     corrected = readings - offset if matrix is None else (readings - offset) @ matrix.T
     turned = np.einsum('nij,nj->ni', rotations, corrected)
-    squares = []
-    for label in np.unique(labels):
-        rows = labels == label
-        squares.append(np.sum((turned[rows] - turned[rows].mean(axis=0)) ** 2, axis=1))
-    return math.sqrt(float(np.mean(np.concatenate(squares)))) if squares else math.nan
+    if not len(turned):
+        return math.nan
+    return math.sqrt(float(np.mean(_from_group_means(turned, labels) ** 2)))
 
 
 def _angle_deg(rotation: np.ndarray) -> float:
