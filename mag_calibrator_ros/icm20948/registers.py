@@ -20,6 +20,7 @@ BANK_MASK = 0x30
 WHO_AM_I = 0x00
 WHO_AM_I_VALUE = 0xEA
 USER_CTRL = 0x03
+USER_CTRL_FIFO_EN = 1 << 6  # the FIFO takes what FIFO_EN_1/2 select, at the sample rate
 USER_CTRL_I2C_MST_EN = 1 << 5
 USER_CTRL_I2C_MST_RST = 1 << 1
 # LP_CONFIG (DS-000189 §8.3 p.37) resets to 0x40: I2C_MST_CYCLE = 1, the I2C master duty-cycled at
@@ -47,6 +48,8 @@ I2C_MST_STATUS_SLV4_NACK = 1 << 4  # SLV4's slave did not acknowledge
 I2C_MST_STATUS_SLV0_NACK = 1 << 0
 INT_STATUS_1 = 0x1A
 INT_STATUS_1_RAW_DATA_0_RDY = 1 << 0  # new accel/gyro/temp data; cleared by reading INT_STATUS_1
+INT_STATUS_2 = 0x1B
+INT_STATUS_2_FIFO_OVERFLOW = 0x1F  # FIFO_OVERFLOW_INT[4:0]; cleared by reading INT_STATUS_2
 # ACCEL_X/Y/Z (0x2D), GYRO_X/Y/Z (0x33), TEMP (0x39): int16 big-endian, contiguous.
 ACCEL_XOUT_H = 0x2D
 TEMP_OUT_L = 0x3A
@@ -57,6 +60,32 @@ IMU_BURST_LENGTH = TEMP_OUT_L - ACCEL_XOUT_H + 1  # 14 bytes: one coherent sampl
 # one host burst from ACCEL_XOUT_H can carry the accel/gyro/temperature sample and the AK09916's.
 EXT_SLV_SENS_DATA_00 = 0x3B
 EXT_SLV_SENS_DATA_COUNT = 24
+
+# The FIFO (bank 0; DS-000189 §7.1 and registers 0x66-0x72, pages not verified): FIFO_EN_1 bits
+# 3:0 put slaves 0-3's EXT_SLV_SENS_DATA in, FIFO_EN_2 accel (bit 4), gyro z/y/x (bits 3-1) and
+# temperature (bit 0); each sample appends the selected registers in register order, so with
+# 0x1F a record is ACCEL_XOUT_H..TEMP_OUT_L, the 14 bytes of the data registers (ArduPilot's
+# AP_InertialSensor_Invensensev2 reads 14-byte records). FIFO_RST bits 4:0 hold it empty while
+# set; FIFO_MODE bit 0: 1 snapshot (no writes once full), 0 stream (the oldest bytes go).
+# FIFO_COUNTH/L: bytes in it, read high then low (reading FIFO_COUNTH latches both); FIFO_R_W:
+# each byte read pops one. 512 bytes (PX4's ICM20948 driver, FIFO::SIZE).
+FIFO_EN_1 = 0x66
+FIFO_EN_2 = 0x67
+FIFO_EN_2_ACCEL = 1 << 4
+FIFO_EN_2_GYRO = 0x0E  # GYRO_Z, GYRO_Y, GYRO_X
+FIFO_EN_2_TEMP = 1 << 0
+FIFO_EN_2_ALL = FIFO_EN_2_ACCEL | FIFO_EN_2_GYRO | FIFO_EN_2_TEMP
+FIFO_RST = 0x68
+FIFO_RST_ALL = 0x1F
+FIFO_MODE = 0x69
+FIFO_MODE_SNAPSHOT = 0x1F  # every FIFO's bit (ArduPilot writes 0x0F, PX4 bit 0)
+FIFO_COUNTH = 0x70
+FIFO_COUNTL = 0x71
+FIFO_R_W = 0x72
+FIFO_COUNT_HIGH_MASK = 0x1F  # FIFO_CNT[12:8]
+FIFO_SIZE = 512
+FIFO_RECORD_LENGTH = IMU_BURST_LENGTH  # accel, gyro, temperature
+FIFO_EMPTY_BYTE = 0xFF  # what a read of an empty FIFO returns (the family's DS-000178 p.68)
 
 # Bank 2 (configuration; reached through REG_BANK_SEL, then back to bank 0 for data)
 CONFIG_BANK = 2

@@ -65,6 +65,7 @@ from mag_calibrator_ros.icm20948.units import (
 from mag_calibrator_ros.sim import motion
 from mag_calibrator_ros.sim.board import BoardModel, ImuTruth
 from mag_calibrator_ros.sim.config import SimConfig
+from mag_calibrator_ros.sim.fifo import SimulatedFifo
 
 MEASUREMENT_TIME_S = reg.SINGLE_MEASUREMENT_S  # before the first DRDY in any measuring mode
 TRUTH_LOG_SIZE = 8192  # magnetometer readings remembered for truth_for_reading
@@ -74,6 +75,11 @@ TIME_EPSILON_S = 1e-9  # float tolerance on timing checks
 IMU_DATA = range(reg.ACCEL_XOUT_H, reg.TEMP_OUT_L + 1)
 EXT_DATA = range(reg.EXT_SLV_SENS_DATA_00, reg.EXT_SLV_SENS_DATA_00 + reg.EXT_SLV_SENS_DATA_COUNT)
 _IMU_WORDS = struct.Struct('>7h')
+READ_ONLY_BANK0 = (reg.WHO_AM_I, reg.INT_STATUS_1, reg.INT_STATUS_2, reg.I2C_MST_STATUS,
+                   reg.FIFO_COUNTH, reg.FIFO_COUNTL, reg.FIFO_R_W)
+# FIFO_EN_2 bit -> the bytes of the 14 data registers it puts in a record (register order)
+_FIFO_FIELDS = ((reg.FIFO_EN_2_ACCEL, 0, 6), (1 << 1, 6, 8), (1 << 2, 8, 10), (1 << 3, 10, 12),
+                (reg.FIFO_EN_2_TEMP, 12, 14))
 
 
 @dataclass(frozen=True)
@@ -291,6 +297,8 @@ class SimulatedIcm20948Bus:
         self._imu_reads = _ReadCounter()
         self._sample_id = 0  # every latched sample of either sensor gets a new id
         self._at: float | None = None  # sim time of an I2C master round being run
+        self.fifo = SimulatedFifo(delivered=self._imu_reads.delivered)  # one delivery log
+        self._tear_fifo_read_after: int | None = None  # fault: the next FIFO read breaks off
         self._power_on()
 
     # --- power and faults ------------------------------------------------------------------------
@@ -314,6 +322,8 @@ class SimulatedIcm20948Bus:
         self._master_clock = _SampleClock(rate_hz=reg.MASTER_CYCLE_RATE_HZ)  # its duty cycle
         self._imu_ready = False
         self._imu_reads.forget()
+        self.fifo.clear()
+        self.fifo.overflowed = False
         self._mst_status = 0  # I2C_MST_STATUS, cleared by reading it
         self._last_round_at = -math.inf  # sim time of the master's last round
         self._round_number = 0  # rounds since reset: the phase of delayed slaves
@@ -355,6 +365,22 @@ class SimulatedIcm20948Bus:
         self._outage_until = self._clock() + duration_s
         self._reset_after_outage = reset
 
+    @_locked
+    def tear_next_fifo_read(self, after_bytes: int) -> None:
+        """Fault: the next read of FIFO_R_W breaks off after ``after_bytes`` bytes (a stretched
+        clock the host controller timed out on: ETIMEDOUT, as i2c-dev reports it): those bytes
+        left the FIFO, the host got none of them."""
+        self._tear_fifo_read_after = max(int(after_bytes), 0)
+
+    @_locked
+    def corrupt_fifo(self, lost_bytes: int = 1, junk_bytes: int = 0) -> None:
+        """Fault: ``lost_bytes`` at the FIFO's head vanish, so every record after them is read
+        shifted, and ``junk_bytes`` appear after the rest of the head record (equal numbers:
+        the count stays whole records, one record is corrupt: what ArduPilot's temperature
+        check is for)."""
+        self._advance_imu()  # the records due by now are in first
+        self.fifo.slip(lost_bytes, junk_bytes)
+
     @property
     def in_outage(self) -> bool:
         return self._clock() < self._outage_until
@@ -386,8 +412,8 @@ class SimulatedIcm20948Bus:
         if i2c_addr == self.config.address:
             if self._now() < self._icm_ready_at:
                 raise _nack(f'ICM-20948 at {i2c_addr:#04x} busy resetting')
+            self._advance_imu()  # before the master: FIFO records take its copy as of their time
             self._advance_master()
-            self._advance_imu()
             return
         if i2c_addr == reg.AK09916_ADDRESS and self._ak_on_host_bus():
             self._advance()
@@ -424,8 +450,11 @@ class SimulatedIcm20948Bus:
             raise ValueError(f'Desired block length over 32 bytes or below 1: {length}')
         self._transaction(i2c_addr, f'block read from register {register:#04x}')
         self._note_data_read(i2c_addr, register, length)
+        if i2c_addr == self.config.address and self._bank == 0 \
+                and register <= reg.FIFO_R_W and register + length > reg.FIFO_COUNTH:
+            return self._fifo_block(register, length)
         if i2c_addr == self.config.address and (
-            self._bank != 0 or register > reg.INT_STATUS_1
+            self._bank != 0 or register > reg.INT_STATUS_2
         ) and register + length <= reg.REG_BANK_SEL:
             return list(self._banks[self._bank][register:register + length])  # plain registers
         if i2c_addr == reg.AK09916_ADDRESS:
@@ -477,7 +506,32 @@ class SimulatedIcm20948Bus:
         if self._bank == 0 and register == reg.I2C_MST_STATUS:
             status, self._mst_status = self._mst_status, 0  # read-to-clear
             return status
+        if self._bank == 0 and register == reg.INT_STATUS_2:
+            overflowed, self.fifo.overflowed = self.fifo.overflowed, False  # read-to-clear
+            return reg.INT_STATUS_2_FIFO_OVERFLOW if overflowed else 0
+        if self._bank == 0 and register == reg.FIFO_COUNTH:
+            return (self.fifo.latch_count() >> 8) & reg.FIFO_COUNT_HIGH_MASK
+        if self._bank == 0 and register == reg.FIFO_COUNTL:
+            return self.fifo.latched_count & 0xFF
+        if self._bank == 0 and register == reg.FIFO_R_W:
+            return self._fifo_block(reg.FIFO_R_W, 1)[0]
         return self._banks[self._bank][register]
+
+    def _fifo_block(self, register: int, length: int) -> list[int]:
+        """A read from ``register`` (FIFO_COUNTH .. FIFO_R_W) on: the address increments up to
+        FIFO_R_W and stays there, each byte popping one: PX4's ICM20948 driver reads
+        FIFO_COUNTH, FIFO_COUNTL and the records in one transfer (FIFOTransferBuffer)."""
+        values = [self._read_register(self.config.address, address)
+                  for address in range(register, reg.FIFO_R_W)]
+        if register + length <= reg.FIFO_R_W:
+            return values[:length]
+        wanted = length - len(values)
+        tear, self._tear_fifo_read_after = self._tear_fifo_read_after, None
+        if tear is not None and tear < wanted:
+            self.fifo.pop(tear)
+            raise OSError(errno.ETIMEDOUT, f'{os.strerror(errno.ETIMEDOUT)} (simulated FIFO '
+                                           f'read broken off after {tear} of {wanted} bytes)')
+        return values + self.fifo.pop(wanted)
 
     def _write_register(self, i2c_addr: int, register: int, value: int) -> None:
         if i2c_addr == reg.AK09916_ADDRESS:
@@ -487,9 +541,9 @@ class SimulatedIcm20948Bus:
         if register == reg.REG_BANK_SEL:
             self._bank = (value & reg.BANK_MASK) >> reg.BANK_SHIFT
             return
-        if self._bank == 0 and (register in (reg.WHO_AM_I, reg.INT_STATUS_1, reg.I2C_MST_STATUS)
-                                or register in IMU_DATA or register in EXT_DATA):
-            return  # read-only
+        if self._bank == 0 and (register in READ_ONLY_BANK0 or register in IMU_DATA
+                                or register in EXT_DATA):
+            return  # read-only (a host's FIFO_R_W writes are not modelled: no driver makes them)
         if self._bank == reg.MASTER_BANK and register == reg.I2C_SLV4_DI:
             return  # read-only
         if self._bank == 0 and register == reg.PWR_MGMT_1 and value & reg.PWR_MGMT_1_DEVICE_RESET:
@@ -502,6 +556,8 @@ class SimulatedIcm20948Bus:
         if self._bank == 0 and register == reg.PWR_MGMT_1:
             value &= ~reg.PWR_MGMT_1_DEVICE_RESET & 0xFF
         self._banks[self._bank][register] = value
+        if self._bank == 0 and register == reg.FIFO_RST and value & reg.FIFO_RST_ALL:
+            self.fifo.clear()  # held empty while asserted (_fifo_clock)
         if self._bank == 0 and register in (reg.PWR_MGMT_1, reg.PWR_MGMT_2):
             self._power_sensors()
         elif self._bank == reg.CONFIG_BANK and register in (
@@ -585,8 +641,13 @@ class SimulatedIcm20948Bus:
 
     def _advance_imu(self) -> None:
         """Latch each sensor's newest sample due by now (older ones are lost): the data
-        registers hold the accelerometer's and the gyroscope's latest, each from its own clock."""
+        registers hold the accelerometer's and the gyroscope's latest, each from its own clock.
+        With the FIFO on, every sample since the last look is also written to it, in order."""
         now = self._now()
+        fifo_clock = self._fifo_clock()
+        fifo_index = fifo_clock.index if fifo_clock is not None else None
+        if fifo_clock is not None:
+            self._fifo_backlog(fifo_clock, now)
         due = {}  # sample time -> the sensors' register offsets whose sample falls then
         for clock, first in ((self._accel, 0), (self._gyro, 3)):
             index = clock.due(now)
@@ -609,11 +670,86 @@ class SimulatedIcm20948Bus:
         self._sample_id += 1
         self._imu_reads.latch(self._sample_id, truth)
         self.imu_samples_measured += 1
+        self._remember_imu_truth(words, truth)
+        if fifo_clock is not None and fifo_clock.index != fifo_index:
+            self._write_fifo(fifo_clock.time_of(fifo_clock.index),
+                             bytes(self._banks[0][reg.ACCEL_XOUT_H:reg.TEMP_OUT_L + 1]), truth)
+
+    def _remember_imu_truth(self, words: list[int], truth: ImuTruth) -> None:
         key = tuple(words[:6])
         self._imu_truth[key] = truth
         self._imu_truth.move_to_end(key)
         if len(self._imu_truth) > IMU_TRUTH_LOG_SIZE:
             self._imu_truth.popitem(last=False)
+
+    # --- the FIFO --------------------------------------------------------------------------------
+
+    def _fifo_clock(self) -> _SampleClock | None:
+        """The clock the FIFO is written on, or None while it takes nothing (USER_CTRL FIFO_EN
+        off, nothing selected in FIFO_EN_1/2, FIFO_RST held, asleep). DS-000189 says "at the
+        sample rate": here the gyroscope's, the accelerometer's with the gyroscope off; a sensor
+        on a slower clock is recorded as its data registers hold it then."""
+        bank0 = self._banks[0]
+        if not bank0[reg.USER_CTRL] & reg.USER_CTRL_FIFO_EN or bank0[reg.FIFO_RST] \
+                & reg.FIFO_RST_ALL or not (bank0[reg.FIFO_EN_2] & reg.FIFO_EN_2_ALL
+                                           or bank0[reg.FIFO_EN_1] & 0x0F):
+            return None
+        for clock in (self._gyro, self._accel):
+            if clock.origin is not None:
+                return clock
+        return None
+
+    def _fifo_backlog(self, clock: _SampleClock, now: float) -> None:
+        """Records of the samples before the newest one due (the newest is latched by
+        ``_advance_imu``), each evaluated at its own time. Only those that can still be in the
+        FIFO are evaluated: snapshot mode keeps the first that fit, stream mode the last."""
+        first, last = clock.index + 1, clock.due(now) - 1
+        if last < first:
+            return
+        first = max(first, clock.first_after(-math.inf))  # none before its start-up
+        keep = reg.FIFO_SIZE // 2 + 2  # at least one byte each: more never fit
+        count = last - first + 1
+        if count > keep:
+            snapshot = bool(self._banks[0][reg.FIFO_MODE] & reg.FIFO_MODE_SNAPSHOT)
+            self.fifo.overrun(count - keep)
+            self.imu_samples_measured += count - keep
+            if not snapshot:
+                first = last - keep + 1
+            else:
+                last = first + keep - 1
+        config = self._imu_config
+        for index in range(first, last + 1):
+            t = clock.time_of(index)
+            accel, gyro, truth = self.board.inertial(t, config.accel_noise_bandwidth_hz,
+                                                     config.gyro_noise_bandwidth_hz)
+            words = [*(_int16(v) for v in accel / config.accel_scale),
+                     *(_int16(v) for v in gyro / config.gyro_scale),
+                     temperature_counts(truth.temperature_c)]
+            self.imu_samples_measured += 1
+            self._remember_imu_truth(words, truth)
+            self._write_fifo(t, _IMU_WORDS.pack(*words), truth)
+
+    def _write_fifo(self, t: float, data: bytes, truth: ImuTruth) -> None:
+        """One record at sample time ``t`` from the 14 data register bytes ``data``: the fields
+        FIFO_EN_2 selects, then the EXT_SLV_SENS_DATA of each slave FIFO_EN_1 selects as the
+        I2C master's rounds up to ``t`` left them (slave order, each its LENG bytes)."""
+        bank0, enabled = self._banks[0], self._banks[0][reg.FIFO_EN_2]
+        record = bytearray()
+        for bit, start, end in _FIFO_FIELDS:
+            if enabled & bit:
+                record += data[start:end]
+        slaves = bank0[reg.FIFO_EN_1] & 0x0F
+        if slaves:
+            self._advance_master(until=t)
+            offset = reg.EXT_SLV_SENS_DATA_00
+            for slave in range(4):
+                ctrl = self._banks[3][reg.I2C_SLV0_CTRL + slave * reg.I2C_SLV_STRIDE]
+                length = ctrl & reg.I2C_SLV_LENG_MASK if ctrl & reg.I2C_SLV_EN else 0
+                if slaves & (1 << slave):
+                    record += bank0[offset:offset + length]
+                offset += length
+        self.fifo.write(bytes(record), truth,
+                        snapshot=bool(bank0[reg.FIFO_MODE] & reg.FIFO_MODE_SNAPSHOT))
 
     # --- the I2C master (bank 3) -----------------------------------------------------------------
 
@@ -631,14 +767,15 @@ class SimulatedIcm20948Bus:
                 return clock
         return self._master_clock
 
-    def _advance_master(self) -> None:
-        """Run every master round due by now, each at its own time, so the AK09916 sees every
-        read. Rounds that cannot change anything (no AK09916 event since, no transfer pending,
-        a copy that stayed the same for a full delay cycle) are skipped in one step."""
+    def _advance_master(self, until: float | None = None) -> None:
+        """Run every master round due by now (or ``until``), each at its own time, so the
+        AK09916 sees every read. Rounds that cannot change anything (no AK09916 event since, no
+        transfer pending, a copy that stayed the same for a full delay cycle) are skipped in one
+        step."""
         clock = self._round_clock()
-        now = self._now()
+        now = self._now() if until is None else until
         if clock is None or clock.origin is None:
-            self._last_round_at = now  # rounds start with the clock's next tick
+            self._last_round_at = max(self._last_round_at, now)  # from the clock's next tick
             return
         last = clock.due(now)
         k = clock.first_after(self._last_round_at)
@@ -771,7 +908,8 @@ class SimulatedIcm20948Bus:
 
     @property
     def imu_samples_read(self) -> int:
-        return self._imu_reads.fresh
+        """New inertial samples read: from the data registers, and FIFO records popped whole."""
+        return self._imu_reads.fresh + self.fifo.delivered_count
 
     @property
     def imu_repeated_reads(self) -> int:
