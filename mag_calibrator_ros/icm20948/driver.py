@@ -10,7 +10,10 @@ failures surface as ``OSError`` so a caller (``Icm20948Supervisor``) can back of
 re-initialise; identity problems raise errors that name bus, address, expected and found values.
 
 Data-ready is polled (no interrupt line): INT_STATUS_1 for the accel/gyro/temperature sample
-(then one coherent 14-byte burst). The magnetometer is reached one of two ways:
+(then one coherent 14-byte burst); or, with ``fifo``, the chip's FIFO holds every sample and
+``read_fifo`` drains it in bounded bursts, checked and stamped as ``icm20948/fifo.py`` says
+(ArduPilot's AP_InertialSensor_Invensensev2 always reads it so). The magnetometer is reached
+one of two ways:
 
 - I2C bypass (``aux_master=False``; the only way with accel and gyro off): the AK09916 sits on the
   host bus; ST1 is polled, the 8-byte HXL..ST2 burst read on DRDY (15 wire bytes per sample plus
@@ -34,6 +37,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+import errno
 import math
 import struct
 import time
@@ -42,6 +46,7 @@ import numpy as np
 
 from mag_calibrator_ros.icm20948 import registers as reg
 from mag_calibrator_ros.icm20948.bus import BusMonitor, CountingBus, SmbusLike
+from mag_calibrator_ros.icm20948.fifo import FifoTimeline, temperature_plausible
 from mag_calibrator_ros.icm20948.units import accel_scale, gyro_scale, temperature_celsius
 
 INIT_TRANSACTION_ATTEMPTS = 3  # per register access during bring-up
@@ -64,6 +69,11 @@ LOOK_GAP_PERIODS = 1.0 + 1.0 / POLLS_PER_SAMPLE
 # Bring-up's SLV4 transfers run with the master on its duty cycle at I2C_MST_ODR_CONFIG = 0.
 BRING_UP_ROUND_S = 1.0 / reg.MASTER_CYCLE_RATE_HZ
 MAG_SHARE = 'magnetometer'  # BusMonitor label of the magnetometer's wire bytes
+# The FIFO is drained this often at most (a few records a read at the chip's 1125 Hz: ArduPilot
+# takes up to 4 per read over I2C), each transaction at most this many records: an SMBus block
+# read carries 32 bytes.
+FIFO_DRAIN_PERIOD_S = 0.004
+FIFO_RECORDS_PER_READ = 32 // reg.FIFO_RECORD_LENGTH
 
 
 class DeviceNotFoundError(OSError):
@@ -107,14 +117,22 @@ class MasterPlan:
 
 
 def master_plan(mag_rate_hz: int, imu: ImuSettings | None,
-                odr_config: int | None = None) -> MasterPlan | None:
+                odr_config: int | None = None, fifo: bool = False) -> MasterPlan | None:
     """The master's set-up for these rates, or None when it cannot carry every magnetometer
     sample by its DRDY. On the sample clock: ``MASTER_SAMPLES_PER_MAG`` rounds per magnetometer
-    period. On the duty cycle (its own oscillator, not locked to the samples): the smallest slave
-    delay whose copies outlive the longest gap between two looks (``LOOK_GAP_PERIODS``), so
-    every copy is looked at, provided the AK09916 is still read as fast as it may measure."""
+    period; with the FIFO (the copy looked at once a drain, not with every sample) the AK09916
+    read on one round in 1 + delay, the largest delay that still reads it faster than it
+    measures, so each copy lives as long as it can (ArduPilot's I2C_SLV4_DLY on its FIFO). On
+    the duty cycle (its own oscillator, not locked to the samples): the smallest slave delay
+    whose copies outlive the longest gap between two looks (``LOOK_GAP_PERIODS`` of a sample
+    period, or of a drain with the FIFO), so every copy is looked at, provided the AK09916 is
+    still read as fast as it may measure."""
     if imu is None:
         return None
+    if odr_config is None and fifo:
+        delay = min(math.floor(imu.odr_hz / ((1.0 + CLOCK_TOLERANCE) * mag_rate_hz) + 1e-9) - 1,
+                    reg.I2C_SLV4_DLY_MASK)
+        return MasterPlan(None, imu.odr_hz, delay) if delay >= 0 else None
     if odr_config is None:
         if imu.odr_hz < MASTER_SAMPLES_PER_MAG * mag_rate_hz:
             return None
@@ -122,12 +140,22 @@ def master_plan(mag_rate_hz: int, imu: ImuSettings | None,
     if not isinstance(odr_config, int) or not 0 <= odr_config <= reg.I2C_MST_ODR_CONFIG_MASK:
         return None
     round_hz = reg.MASTER_CYCLE_RATE_HZ / (1 << odr_config)
-    lifetime = LOOK_GAP_PERIODS / (imu.odr_hz * (1.0 - CLOCK_TOLERANCE))
+    look_gap = FIFO_DRAIN_PERIOD_S if fifo else 1.0 / imu.odr_hz
+    lifetime = LOOK_GAP_PERIODS * look_gap / (1.0 - CLOCK_TOLERANCE)
     delay = max(0, math.ceil(lifetime * round_hz - 1e-9) - 1)
     if delay > reg.I2C_SLV4_DLY_MASK or round_hz / (1 + delay) < (
             1.0 + CLOCK_TOLERANCE) * mag_rate_hz - 1e-6:
         return None
     return MasterPlan(odr_config, round_hz, delay)
+
+
+def fifo_drain_period(plan: MasterPlan | None) -> float:
+    """How often the FIFO is drained: ``FIFO_DRAIN_PERIOD_S``, or sooner when the master's copy
+    of the magnetometer, looked at once a drain, would otherwise outlive no gap between looks."""
+    if plan is None:
+        return FIFO_DRAIN_PERIOD_S
+    return min(FIFO_DRAIN_PERIOD_S,
+               plan.read_period_s * (1.0 - CLOCK_TOLERANCE) / LOOK_GAP_PERIODS)
 
 
 @dataclass(frozen=True)
@@ -271,6 +299,16 @@ class Icm20948:
         self.overflows = 0
         self.imu_resyncs = 0
         self.mag_fallbacks = 0  # master path: samples found without their copied DRDY
+        self.fifo_overflows = 0  # the FIFO filled up: samples lost, FIFO reset
+        self.fifo_resets = 0  # every FIFO reset after bring-up (overflow, torn read, corrupt)
+        self.fifo_corrupt = 0  # records that failed the sentinel (misaligned or garbage)
+        self.fifo_records = 0  # records read and handed on
+        self.fifo_reads = 0  # drains that found records
+        self.fifo = False
+        self._timeline: FifoTimeline | None = None
+        self._fifo_temperature: int | None = None  # the last trusted temperature word
+        self._fifo_partial = False  # the last count was not whole records
+        self._fifo_reset_due = False
         self.aux_master = False
         self.master: MasterPlan | None = None
         self._slv4_delay = 0
@@ -288,11 +326,14 @@ class Icm20948:
     # --- bring-up --------------------------------------------------------------------------------
 
     def initialise(self, mag_rate_hz: int = 100, imu: ImuSettings | None = None,
-                   aux_master: bool = False, master_odr_config: int | None = None) -> None:
+                   aux_master: bool = False, master_odr_config: int | None = None,
+                   fifo: bool = False) -> None:
         """Reset the chip, configure accel/gyro (or power them down when ``imu`` is None), reach
         the AK09916 (``aux_master``: through the chip's I2C master, set up as ``master_plan``
-        says for ``master_odr_config``: None, one round per accel/gyro sample; n, its duty cycle
-        at 1.1 kHz / 2^n; else bypass) and start its continuous measurement.
+        says for ``master_odr_config``: None, on the accel/gyro sample clock; n, its duty cycle
+        at 1.1 kHz / 2^n; else bypass) and start its continuous measurement. ``fifo``: the
+        accelerometer, gyroscope and temperature go through the FIFO (``read_fifo``), else
+        they are polled (``read_imu``).
 
         Raises ``DeviceNotFoundError`` / ``UnreliableBusError`` (OSErrors) when the chip does not
         answer, ``WrongDeviceError`` (a ValueError) on a wrong identity, ``OSError`` on a bus
@@ -306,7 +347,10 @@ class Icm20948:
             )
         if imu is not None and imu.problems():
             raise ValueError('; '.join(imu.problems()))
-        plan = master_plan(mag_rate_hz, imu, master_odr_config) if aux_master else None
+        if fifo and imu is None:
+            raise ValueError('the FIFO carries the accelerometer and gyroscope: it needs '
+                             'ImuSettings')
+        plan = master_plan(mag_rate_hz, imu, master_odr_config, fifo) if aux_master else None
         if aux_master and plan is None:
             raise ValueError(
                 f'the I2C master path cannot carry every {mag_rate_hz} Hz magnetometer sample '
@@ -317,7 +361,7 @@ class Icm20948:
                 f'faster than the magnetometer once slowed to the accel/gyro rate; use bypass'
             )
         self.mag_rate_hz = self.imu = self.master = None
-        self.aux_master = False
+        self.aux_master = self.fifo = False
         self._mag_taken_at = -math.inf
         self._mag_pending = None
         self._mag_last_copy = b''
@@ -355,6 +399,10 @@ class Icm20948:
             self._accel_scale = accel_scale(imu.accel_range_g)
             self._gyro_scale = gyro_scale(imu.gyro_range_dps)
             self._imu_window = (1.0 - CLOCK_TOLERANCE) / imu.odr_hz
+        if fifo:
+            self._reset_fifo(counted=False)
+            self.fifo = True
+            self._timeline = FifoTimeline(1.0 / imu.odr_hz)
 
     def _configure_inertial(self, imu: ImuSettings) -> None:
         """Bank 2: aligned sample clocks, dividers, ranges and DLPF; read back, then bank 0."""
@@ -674,7 +722,7 @@ class Icm20948:
         twice, never a reset's zeros)."""
         st1, data = copy[0], bytes(copy[1:])
         drdy = bool(st1 & reg.ST1_DRDY)
-        duty_cycled = self.master is not None and self.master.odr_config is not None
+        duty_cycled = self.fifo or self.master is not None and self.master.odr_config is not None
         if drdy:
             if duty_cycled and data == self._mag_last_copy and burst_at - self._mag_taken_at \
                     < self.master.read_period_s / (1.0 - CLOCK_TOLERANCE):
@@ -700,6 +748,136 @@ class Icm20948:
     def _read(operation: Callable, *args: int):
         """A read transaction with ``READ_ATTEMPTS`` tries; the last error propagates."""
         return _with_retries(READ_ATTEMPTS, operation, args)
+
+    # --- the FIFO --------------------------------------------------------------------------------
+
+    def read_fifo(self) -> list[tuple[ImuReading, float]]:
+        """Drain the FIFO: FIFO_COUNTH/L, then the whole records counted, a few per transaction,
+        each checked by its temperature word; through the I2C master, one look at the
+        magnetometer's copy. Returns (reading, sample time on this driver's clock), oldest
+        first (``FifoTimeline``). The FIFO is reset, and counted, when it filled up
+        (``fifo_overflows``: what it held is still read, then the gap is not bridged), when a
+        record fails the check or counts stay off whole records (``fifo_corrupt``), and after a
+        read that may have taken bytes and failed. ``OSError`` on the count read propagates."""
+        if not self.fifo:
+            raise RuntimeError('read_fifo() needs initialise() with fifo=True')
+        if self._fifo_reset_due:
+            self._reset_fifo()
+        before = self._clock()
+        raw = self._read(self.bus.read_i2c_block_data, self.address, reg.FIFO_COUNTH, 2)
+        after = self._clock()
+        if len(raw) != 2:
+            raise OSError(f'short read from ICM-20948 at {self.address:#04x} on '
+                          f'{self.bus_name}: expected the 2 FIFO count bytes, got {len(raw)}')
+        count = ((raw[0] & reg.FIFO_COUNT_HIGH_MASK) << 8) | raw[1]
+        records, partial = divmod(count, reg.FIFO_RECORD_LENGTH)
+        overflowed = count + reg.FIFO_RECORD_LENGTH > reg.FIFO_SIZE
+        samples = []
+        if partial and not overflowed:
+            # A record still being written, or a FIFO out of step: two counts tell them apart.
+            if self._fifo_partial:
+                self.fifo_corrupt += 1
+                self._reset_fifo()
+            self._fifo_partial = not self._fifo_partial
+        elif records:
+            self._fifo_partial = False
+            samples = self._read_records(records, before, after, overflowed)
+        if self.aux_master:
+            self._look_at_mag_copy(after)
+        return samples
+
+    def _read_records(self, records: int, before: float, after: float,
+                      overflowed: bool) -> list[tuple[ImuReading, float]]:
+        times = self._timeline.stamp(records, before, after, complete=not overflowed)
+        samples = []
+        length = reg.FIFO_RECORD_LENGTH
+        for start in range(0, records, FIFO_RECORDS_PER_READ):
+            wanted = min(FIFO_RECORDS_PER_READ, records - start) * length
+            try:
+                data = self._read_fifo_bytes(wanted)
+            except OSError:
+                self._fifo_reset_due = True  # how many bytes left it is unknown
+                if not samples:
+                    raise
+                break
+            for offset in range(0, wanted, length):
+                reading = self._decode_imu(data[offset:offset + length])
+                if not self._trusted(reading.counts[6]):
+                    self.fifo_corrupt += 1
+                    self._fifo_reset_due = True
+                    break
+                samples.append((reading, times[start + offset // length]))
+            if self._fifo_reset_due:
+                break
+        self.fifo_records += len(samples)
+        self.fifo_reads += 1
+        if overflowed and not self._fifo_reset_due:
+            self.fifo_overflows += 1
+            self._fifo_reset_due = True
+        if self._fifo_reset_due:
+            try:
+                self._reset_fifo()
+            except OSError:
+                pass  # due still: the next drain tries first
+        return samples
+
+    def _read_fifo_bytes(self, length: int) -> list[int]:
+        """``length`` bytes from FIFO_R_W. A NACK (EREMOTEIO: the address or register byte was
+        not acknowledged, no data byte moved) is tried once more; any other failure, or a short
+        read, may have taken bytes: it propagates."""
+        for attempt in range(READ_ATTEMPTS):
+            try:
+                data = self.bus.read_i2c_block_data(self.address, reg.FIFO_R_W, length)
+            except OSError as error:
+                if error.errno != errno.EREMOTEIO or attempt == READ_ATTEMPTS - 1:
+                    raise
+                continue
+            if len(data) != length:
+                raise OSError(f'short FIFO read from ICM-20948 at {self.address:#04x} on '
+                              f'{self.bus_name}: expected {length} bytes, got {len(data)}')
+            return data
+        return []  # unreachable
+
+    def _trusted(self, temperature: int) -> bool:
+        """ArduPilot's sentinel (``fifo.temperature_plausible``), chained record to record: the
+        first record after a reset is aligned by the reset, each later one within a
+        millisecond or so of the last trusted one."""
+        if not temperature_plausible(temperature, self._fifo_temperature):
+            return False
+        self._fifo_temperature = temperature
+        return True
+
+    def _reset_fifo(self, counted: bool = True) -> None:
+        """FIFO off, emptied and on again with the accelerometer, gyroscope and temperature in
+        snapshot mode, so a full FIFO keeps its oldest whole records rather than overwriting
+        bytes (ArduPilot's ``_fifo_reset`` sequence; its FIFO_MODE is snapshot too)."""
+        user_ctrl = self._retry(self.bus.read_byte_data, self.address, reg.USER_CTRL)
+        self._write_icm(reg.FIFO_EN_2, 0)
+        self._write_icm(reg.USER_CTRL, user_ctrl & ~reg.USER_CTRL_FIFO_EN & 0xFF)
+        self._write_icm(reg.FIFO_MODE, reg.FIFO_MODE_SNAPSHOT)
+        self._write_icm(reg.FIFO_RST, reg.FIFO_RST_ALL)
+        self._write_icm(reg.FIFO_RST, 0)
+        self._write_icm(reg.USER_CTRL, user_ctrl | reg.USER_CTRL_FIFO_EN)
+        self._write_icm(reg.FIFO_EN_2, reg.FIFO_EN_2_ALL)
+        self.fifo_resets += counted
+        self._fifo_partial = self._fifo_reset_due = False
+        if self._timeline is not None:
+            self._timeline.restart()
+
+    def _look_at_mag_copy(self, at: float) -> None:
+        """With the FIFO, the master's copy of the magnetometer is read once a drain (it lives
+        longer than the gap between two: ``master_plan``). A failed look is not an error of
+        the drain: the copy is still there at the next."""
+        length = reg.MAG_MASTER_LENGTH
+        try:
+            copy = self._read(self.bus.read_i2c_block_data, self.address,
+                              reg.EXT_SLV_SENS_DATA_00, length)
+        except OSError:
+            return
+        if len(copy) != length:
+            return
+        self.bus.monitor.attribute(MAG_SHARE, 3 + length, 9 * (3 + length) + 3)
+        self._take_mag_copy(copy, at, at)
 
     def _resync_imu(self) -> None:
         at = self._clock()
@@ -765,6 +943,6 @@ class Icm20948:
 
 
 def master_possible(mag_rate_hz: int, imu: ImuSettings | None,
-                    odr_config: int | None = None) -> bool:
+                    odr_config: int | None = None, fifo: bool = False) -> bool:
     """Whether the I2C master path can carry every magnetometer sample (``master_plan``)."""
-    return master_plan(mag_rate_hz, imu, odr_config) is not None
+    return master_plan(mag_rate_hz, imu, odr_config, fifo) is not None

@@ -11,8 +11,10 @@ say. ``step()`` does whatever is due at the injected clock's "now" and returns t
 Polling: each data-ready flag is checked ``POLLS_PER_SAMPLE`` times per sample period; both
 sensors hold a sample until the next one arrives, so a poll may come a third of a period late
 before anything is lost, while an idle poll costs one byte of payload (ST1 / INT_STATUS_1).
-Through the chip's I2C master (the default whenever the accelerometer/gyroscope run fast
-enough) the magnetometer has no poll of its own: its samples come with the accel/gyro reads.
+Through the chip's I2C master (the default whenever the accelerometer/gyroscope are polled and
+run fast enough) the magnetometer has no poll of its own: its samples come with the accel/gyro
+reads. With the FIFO (``imu_fifo``) the accelerometer/gyroscope have no data-ready poll: the
+FIFO is drained every ``driver.fifo_drain_period`` and each record stamped by the chip's clock.
 """
 
 from __future__ import annotations
@@ -31,7 +33,9 @@ from mag_calibrator_ros.icm20948.driver import (
     ImuReading,
     ImuSettings,
     MagReading,
+    MasterPlan,
     WrongDeviceError,
+    fifo_drain_period,
     master_plan,
     master_possible,
 )
@@ -60,7 +64,7 @@ class MagSample:
 
 @dataclass(frozen=True)
 class ImuSample:
-    stamp: object
+    stamp: object  # polled: when read; from the FIFO: when sampled (``stamp_ago``)
     reading: ImuReading
 
 
@@ -106,8 +110,15 @@ class Icm20948Supervisor:
     ``stamp`` gives the stamp attached to each sample (the node passes its ROS clock); ``log``
     receives (level, message) with level 'info' | 'warning' | 'error'. ``mag_via_master``: read
     the AK09916 through the chip's I2C master whenever ``master_possible`` for
-    ``master_odr_config`` (None: one round per accel/gyro sample, which needs them at least
-    twice the magnetometer rate; n: the master's duty cycle at 1.1 kHz / 2^n), else in bypass.
+    ``master_odr_config`` (None: on the accel/gyro sample clock, which needs them at least
+    twice the magnetometer rate when polled; n: the master's duty cycle at 1.1 kHz / 2^n), else
+    in bypass; None (default): through the master when polled (its copy rides on each
+    accel/gyro burst: 8-10 wire bytes a sample), in bypass with the FIFO (no burst to ride on:
+    bypass's 17 bytes a sample and 4 a look at ST1 cost less than a look at the copy each
+    drain, and its DRDY is the AK09916's own).
+    ``imu_fifo``: accelerometer, gyroscope and temperature from the chip's FIFO, drained every
+    ``fifo_drain_period``, each sample stamped by ``stamp_ago(age_s)`` with the time it was
+    sampled (``FifoTimeline``; without ``stamp_ago``, when it was read); else polled.
     """
 
     def __init__(
@@ -120,11 +131,13 @@ class Icm20948Supervisor:
         imu: ImuSettings | None = None,
         publish_imu: bool = True,
         publish_temperature: bool = True,
-        mag_via_master: bool = True,
+        mag_via_master: bool | None = None,
         master_odr_config: int | None = None,
+        imu_fifo: bool = False,
         clock: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], None] = time.sleep,
         stamp: Callable[[], object] | None = None,
+        stamp_ago: Callable[[float], object] | None = None,
         log: Callable[[str, str], None] | None = None,
     ) -> None:
         if mag_rate_hz not in reg.CONTINUOUS_MODES:
@@ -141,11 +154,24 @@ class Icm20948Supervisor:
         self.imu_settings = imu
         self.publish_imu = publish_imu
         self.publish_temperature = publish_temperature
-        self.aux_master = mag_via_master and master_possible(mag_rate_hz, imu, master_odr_config)
+        self.imu_fifo = imu_fifo and imu is not None
+        if mag_via_master is None:
+            mag_via_master = not self.imu_fifo
+        self.aux_master = mag_via_master and master_possible(mag_rate_hz, imu, master_odr_config,
+                                                             self.imu_fifo)
         self.master_odr_config = master_odr_config
+        # The magnetometer is looked at with each accel/gyro read rather than on its own clock:
+        # through the master (its copy comes with them), and with the FIFO (each drain is a
+        # wake-up anyway, sooner than the 1.5 a sample its own polls would be: on a busy
+        # machine a sample then has to wait out fewer late looks before the next replaces it).
+        self._mag_with_imu = self.aux_master or self.imu_fifo
         self._clock = clock
         self._sleep = sleep
         self._stamp = stamp if stamp is not None else time.time_ns
+        if stamp_ago is None:
+            stamp_ago = ((lambda age: self._stamp()) if stamp is not None
+                         else (lambda age: time.time_ns() - round(age * 1e9)))
+        self._stamp_ago = stamp_ago
         self._log = log if log is not None else (lambda level, message: None)
         self._lock = threading.Lock()
         self.monitor = BusMonitor({reg.AK09916_ADDRESS: MAG_SHARE})
@@ -160,7 +186,9 @@ class Icm20948Supervisor:
         self._consecutive_errors = 0
         self._failing_since = 0.0
         self._warned_at: dict[str, float] = {}
-        self._base = {'overflows': 0, 'overruns': 0, 'imu_resyncs': 0, 'mag_fallbacks': 0}
+        self._base = {'overflows': 0, 'overruns': 0, 'imu_resyncs': 0, 'mag_fallbacks': 0,
+                      'fifo_overflows': 0, 'fifo_resets': 0, 'fifo_corrupt': 0,
+                      'fifo_records': 0, 'fifo_reads': 0}
         self.reinitialisations = 0
         self.last_recovery_s: float | None = None
         self.imu_saturated = 0
@@ -170,15 +198,17 @@ class Icm20948Supervisor:
         self._window_start = clock()
         self._window_bus = BusCounters()
         self._window_mag_bus = BusCounters()
-        self._window_counts = (0, 0, 0)  # errors, overflows, saturated
+        self._window_counts = (0, 0, 0, 0)  # errors, overflows, saturated, FIFO faults
         mag_period = 1.0 / mag_rate_hz
         self._mag = _Stream(mag_period, mag_period / POLLS_PER_SAMPLE,
                             max(STUCK_PERIODS * mag_period, STUCK_MIN_S))
         self._imu: _Stream | None = None
         if imu is not None:
             imu_period = 1.0 / imu.odr_hz
-            self._imu = _Stream(imu_period, imu_period / POLLS_PER_SAMPLE,
-                                max(STUCK_PERIODS * imu_period, STUCK_MIN_S)
+            poll_period = imu_period / POLLS_PER_SAMPLE if not self.imu_fifo else \
+                fifo_drain_period(self._plan())
+            self._imu = _Stream(imu_period, poll_period,
+                                max(STUCK_PERIODS * max(imu_period, poll_period), STUCK_MIN_S)
                                 + reg.SENSOR_STARTUP_S)
 
     # --- counters --------------------------------------------------------------------------------
@@ -204,16 +234,45 @@ class Icm20948Supervisor:
         return self._driver_count('imu_resyncs')
 
     @property
+    def fifo_overflows(self) -> int:
+        """Times the FIFO filled up (samples lost; it was reset)."""
+        return self._driver_count('fifo_overflows')
+
+    @property
+    def fifo_resets(self) -> int:
+        """FIFO resets after bring-up: overflows, torn reads, corrupt records."""
+        return self._driver_count('fifo_resets')
+
+    @property
+    def fifo_corrupt(self) -> int:
+        """FIFO records or counts that failed the sentinel (misaligned or garbage)."""
+        return self._driver_count('fifo_corrupt')
+
+    @property
+    def fifo_records_per_read(self) -> float:
+        reads = self._driver_count('fifo_reads')
+        return self._driver_count('fifo_records') / reads if reads else 0.0
+
+    @property
     def mag_fallbacks(self) -> int:
         """Magnetometer samples found through the master without their copied DRDY."""
         return self._driver_count('mag_fallbacks')
+
+    def _plan(self) -> MasterPlan | None:
+        if not self.aux_master:
+            return None
+        return master_plan(self.mag_rate_hz, self.imu_settings, self.master_odr_config,
+                           self.imu_fifo)
 
     @property
     def master_clock(self) -> str:
         """The I2C master's round clock as the driver set it up, for people."""
         if not self.aux_master:
             return 'none (bypass)'
-        plan = master_plan(self.mag_rate_hz, self.imu_settings, self.master_odr_config)
+        plan = self._plan()
+        if plan.odr_config is None and plan.delay:
+            return (f'{plan.round_hz:.1f} Hz, the accel/gyro sample clock (I2C_MST_CYCLE 0), '
+                    f'the AK09916 read every {1 + plan.delay} rounds')
         if plan.odr_config is None:
             return f'{plan.round_hz:.1f} Hz, one round per accel/gyro sample (I2C_MST_CYCLE 0)'
         return (f'{plan.round_hz:.1f} Hz duty cycle (I2C_MST_ODR_CONFIG {plan.odr_config}), '
@@ -242,8 +301,10 @@ class Icm20948Supervisor:
             samples: list[Sample] = []
             if self._imu is not None and now >= self._imu.next_poll:
                 self._poll_imu(now, samples)
-                if self.running and self.aux_master:
-                    self._poll_mag(now, samples)  # what that read brought, no bus traffic
+                if self.running and self._mag_with_imu:
+                    # through the master: what that read brought, no bus traffic; in bypass
+                    # with the FIFO: a look at ST1 with each drain, more often than alone
+                    self._poll_mag(now, samples)
             if self.running and now >= self._mag.next_poll:
                 self._poll_mag(now, samples)
             return samples
@@ -276,7 +337,7 @@ class Icm20948Supervisor:
                 self._bus = CountingBus(self._open_bus(), self.monitor)
             driver = Icm20948(self._bus, self.address, self.bus_name, self._sleep, self._clock)
             driver.initialise(self.mag_rate_hz, self.imu_settings, self.aux_master,
-                              self.master_odr_config)
+                              self.master_odr_config, self.imu_fifo)
         except (OSError, WrongDeviceError) as error:
             self._fault(f'initialisation failed: {error}', now)
             self._close_bus()  # a USB adapter may come back as a new device: reopen next time
@@ -291,7 +352,7 @@ class Icm20948Supervisor:
             if stream is not None:
                 stream.next_poll = started + stream.poll_period
                 stream.last_ready, stream.in_vain_since, stream.in_vain = started, None, 0
-        if self.aux_master:
+        if self._mag_with_imu:
             self._mag.next_poll = float('inf')  # taken with each accel/gyro read instead
         if self._episode_start is not None:
             self.last_recovery_s = started - self._episode_start
@@ -347,19 +408,35 @@ class Icm20948Supervisor:
         stream = self._imu
         self._schedule(stream, now)
         try:
-            reading = self._driver.read_imu()
+            if self.imu_fifo:
+                timed = self._driver.read_fifo()
+            else:
+                reading = self._driver.read_imu()
+                timed = [] if reading is None else [(reading, None)]
         except OSError as error:
             self._read_error(error, now)
             return
         self._consecutive_errors = 0
-        if reading is None:
+        if not timed:
             if self._looked_in_vain(stream):
                 self._check_imu_stuck(now)
             return
         # When the read ended, not when the step began: a thread descheduled inside the read
         # saw this data-ready after the stall, and its resync may clear the next one's flag.
-        stream.last_ready, stream.in_vain_since, stream.in_vain = self._clock(), None, 0
-        stamp = self._stamp()
+        read_at = self._clock()
+        stream.last_ready, stream.in_vain_since, stream.in_vain = read_at, None, 0
+        for reading, sampled_at in timed:
+            if sampled_at is None:
+                self._emit_imu(reading, self._stamp(), now, samples)
+            else:
+                self._emit_imu(reading, self._stamp_ago(max(read_at - sampled_at, 0.0)),
+                               sampled_at, samples)
+
+    def _emit_imu(self, reading: ImuReading, stamp: object, at: float,
+                  samples: list[Sample]) -> None:
+        """One inertial sample (and, at most ``TEMPERATURE_HZ``, its temperature) handed on;
+        ``at``: its time on this clock, for the temperature's rate."""
+        stream, now = self._imu, at
         if reading.saturated:
             self.imu_saturated += 1
             self._warn('saturated', 'accelerometer or gyroscope at full scale: the true value '
@@ -470,8 +547,9 @@ class Icm20948Supervisor:
             bus_window = self.monitor.counters - self._window_bus
             mag_bus = self.monitor.share(MAG_SHARE)
             mag_window, self._window_mag_bus = mag_bus - self._window_mag_bus, mag_bus
-            counts = (self.i2c_errors, self.overflows, self.imu_saturated)
-            errors, overflows, saturated = (
+            counts = (self.i2c_errors, self.overflows, self.imu_saturated,
+                      self.fifo_overflows + self.fifo_corrupt)
+            errors, overflows, saturated, fifo_faults = (
                 a - b for a, b in zip(counts, self._window_counts, strict=True))
             self._window_start, self._window_bus = now, self.monitor.counters
             self._window_counts = counts
@@ -517,6 +595,15 @@ class Icm20948Supervisor:
                     imu_warnings.insert(0, f'{imu_rate:.1f} Hz of {settings.odr_hz:.1f} Hz')
                 if saturated:
                     imu_warnings.append(f'{saturated} samples at full scale (range too small?)')
+                if fifo_faults:
+                    imu_warnings.append(f'{fifo_faults} FIFO overflows or corrupt records, '
+                                        f'FIFO reset (read too late: machine busy?)')
+                fifo_values = {
+                    'FIFO overflows': self.fifo_overflows,
+                    'FIFO resets': self.fifo_resets,
+                    'FIFO corrupt records': self.fifo_corrupt,
+                    'FIFO records per read': self.fifo_records_per_read,
+                } if self.imu_fifo else {}
                 statuses.append(self._stream_status('imu', imu_rate, imu_warnings, {
                     'requested rate (Hz)': settings.rate_hz,
                     'chip rate (Hz)': settings.odr_hz,
@@ -530,6 +617,8 @@ class Icm20948Supervisor:
                                         else self._last_celsius),
                     **shared,
                     'saturated samples': self.imu_saturated,
+                    'read': 'FIFO' if self.imu_fifo else 'polled (data-ready)',
+                    **fifo_values,
                     'resyncs': self.imu_resyncs,
                 }))
             return statuses
