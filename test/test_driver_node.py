@@ -335,6 +335,19 @@ def test_diagnostics_report_rates_counters_bus_and_address(harness_factory):
     assert 'overflows (HOFL)' in values_of(h.status('magnetometer'))
     imu = values_of(h.status('imu'))
     assert imu['chip rate (Hz)'] == '225' and imu['requested rate (Hz)'] == '200'
+    assert imu['read'] == 'FIFO' and imu['FIFO overflows'] == imu['FIFO corrupt records'] == '0'
+    assert float(imu['FIFO records per read']) > 0.5
+    assert values_of(h.status('magnetometer'))['path'] == 'bypass'  # with the FIFO (issue #48)
+
+
+def test_polling_stays_the_fallback_with_the_magnetometer_through_the_master(harness_factory):
+    h = harness_factory(imu_fifo=False, sim__seed=8)
+    assert h.spin_until(lambda: len(h.messages) > 50 and len(h.imu) > 100
+                        and any(s.name.endswith('imu') for s in h.statuses), limit_s=10.0)
+    imu = values_of(h.status('imu'))
+    assert imu['read'] == 'polled (data-ready)' and 'FIFO overflows' not in imu
+    assert values_of(h.status('magnetometer'))['path'] == 'I2C master'
+    assert_valid_stream(h)
 
 
 def test_survives_i2c_errors_and_publishes_only_valid_samples(harness_factory):

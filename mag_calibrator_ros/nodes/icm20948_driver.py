@@ -15,7 +15,8 @@ supervisor's loop sleeps until its next poll. Publishers are thread-safe.
 
 Published topics (relative, REP-145; reliable, volatile, depth 10, as REP-2003 asks of drivers;
 one frame for all three, the ICM-20948 accel/gyro frame, with the magnetometer axes already
-remapped into it; every stamp from the node's clock, taken at the read):
+remapped into it; every stamp from the node's clock, when read, but imu/data_raw's and
+imu/temperature's with ``imu_fifo``: when the chip sampled it):
 
 - ``imu/mag`` (sensor_msgs/MagneticField): the field, tesla, at ``rate_hz``.
 - ``imu/data_raw`` (sensor_msgs/Imu), with ``publish_imu``: m/s^2 and rad/s, no orientation
@@ -48,6 +49,8 @@ The chip:
 - ``accel_range_g`` (4), ``gyro_range_dps`` (1000): full scales.
 - ``dlpf`` (3): the digital low-pass filter DLPFCFG of both, 1 to 6.
 - ``publish_imu`` (true), ``publish_temperature`` (true): the optional topics.
+- ``imu_fifo`` (true): accelerometer, gyroscope and temperature from the chip's FIFO, each
+  sample stamped when the chip took it; false: polled on data-ready, stamped when read.
 
 The messages (settable while running):
 
@@ -97,6 +100,7 @@ import sys
 import threading
 
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.duration import Duration
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -154,6 +158,7 @@ class DriverSettings:
     imu: ImuSettings
     publish_imu: bool
     publish_temperature: bool
+    imu_fifo: bool
     accel_noise_density: float
     gyro_noise_density: float
     sim: SimConfig | None
@@ -189,6 +194,10 @@ PARAMETERS: dict[str, tuple[object, ParameterDescriptor]] = {
     'publish_imu': (True, _descriptor('Publish imu/data_raw (accelerometer and gyroscope).')),
     'publish_temperature': (True, _descriptor(
         'Publish imu/temperature (die temperature, at most 10 Hz).')),
+    'imu_fifo': (True, _descriptor(
+        "Read the accelerometer, gyroscope and temperature from the chip's FIFO in bursts, "
+        'each sample stamped when the chip took it (needed towards 1125 Hz); false: poll '
+        'data-ready and stamp each sample when read.')),
     'frame_id': ('imu_link', _descriptor(
         'header.frame_id of imu/mag, imu/data_raw and imu/temperature: the ICM-20948 '
         'accel/gyro frame (REP-145).', read_only=False,
@@ -309,8 +318,10 @@ class Icm20948DriverNode(Node):
         self.supervisor = Icm20948Supervisor(
             self._open_bus, address=s.address, bus_name=self.bus_name, mag_rate_hz=s.rate_hz,
             imu=s.imu if inertial else None, publish_imu=s.publish_imu,
-            publish_temperature=s.publish_temperature,
-            stamp=lambda: clock.now().to_msg(), log=self._log,
+            publish_temperature=s.publish_temperature, imu_fifo=s.imu_fifo,
+            stamp=lambda: clock.now().to_msg(),
+            stamp_ago=lambda age: (clock.now() - Duration(nanoseconds=round(age * 1e9))).to_msg(),
+            log=self._log,
         )
         self._diagnostics_timer = self.create_timer(1.0, self._publish_diagnostics)
         topics = [self.resolve_topic_name(TOPIC) + f' {s.rate_hz} Hz']
@@ -397,6 +408,7 @@ class Icm20948DriverNode(Node):
             imu=imu_settings(values),
             publish_imu=values['publish_imu'],
             publish_temperature=values['publish_temperature'],
+            imu_fifo=values['imu_fifo'],
             accel_noise_density=values['accel_noise_density'],
             gyro_noise_density=values['gyro_noise_density'],
             sim=sim,
