@@ -23,6 +23,7 @@ the gyroscope integrated over 10 s of tumbling / turning versus the true rotatio
     python benchmarks/bench_driver.py                  # 30 s per nominal row, 20 s per fault row
     python benchmarks/bench_driver.py --duration 10 --fault-duration 10   # quicker
     python benchmarks/bench_driver.py --master-clocks --duration 10   # the master's clocks only
+    python benchmarks/bench_driver.py --fifo --duration 600   # the FIFO, 10 min simulated
 """
 
 from __future__ import annotations
@@ -49,7 +50,8 @@ TODAY_MAG_BYTES_PER_S = TODAY_POLLS_PER_SAMPLE * MAG_RATE_HZ * (3 + 9)
 TODAY_MAG_BITS_PER_S = TODAY_POLLS_PER_SAMPLE * MAG_RATE_HZ * (9 * (3 + 9) + 3)
 
 
-def _driver_parameters(imu_rate: int | None, error_rate: float, motion: str = 'tumble'):
+def _driver_parameters(imu_rate: int | None, error_rate: float, motion: str = 'tumble',
+                       polled: bool = False):
     from rclpy.parameter import Parameter
 
     parameters = [
@@ -63,12 +65,13 @@ def _driver_parameters(imu_rate: int | None, error_rate: float, motion: str = 't
         parameters += [Parameter('publish_imu', value=False),
                        Parameter('publish_temperature', value=False)]
     else:
-        parameters += [Parameter('imu_rate_hz', value=imu_rate)]
+        parameters += [Parameter('imu_rate_hz', value=imu_rate),
+                       Parameter('imu_fifo', value=not polled)]
     return parameters
 
 
 def _driver_process(duration_s: float, imu_rate: int | None, error_rate: float,
-                    outage: bool) -> int:
+                    outage: bool, polled: bool = False) -> int:
     """Child: run the node for warm-up + duration; print its own counters and CPU as JSON."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
@@ -76,7 +79,8 @@ def _driver_process(duration_s: float, imu_rate: int | None, error_rate: float,
     from mag_calibrator_ros.nodes.icm20948_driver import Icm20948DriverNode
 
     rclpy.init()
-    node = Icm20948DriverNode(parameter_overrides=_driver_parameters(imu_rate, error_rate))
+    node = Icm20948DriverNode(parameter_overrides=_driver_parameters(imu_rate, error_rate,
+                                                                     polled=polled))
     gc.freeze()  # as the console script does (icm20948_driver.started_node)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
@@ -121,6 +125,10 @@ def _driver_process(duration_s: float, imu_rate: int | None, error_rate: float,
         'reinitialisations': node.reinitialisations,
         'overruns': node.overruns,
         'imu_resyncs': node.supervisor.imu_resyncs,
+        'fifo': node.supervisor.imu_fifo,
+        'fifo_faults': [node.supervisor.fifo_overflows, node.supervisor.fifo_resets,
+                        node.supervisor.fifo_corrupt],
+        'fifo_records_per_read': node.supervisor.fifo_records_per_read,
         'chip_rate_hz': node.settings.imu.odr_hz,
         'outage_start': outage_start_ros,
         'node_recovery_s': node.last_recovery_s,
@@ -193,9 +201,10 @@ def _intervals(stamps: np.ndarray) -> dict[str, float]:
 
 
 def run_scenario(sink: _Sink, name: str, duration_s: float, imu_rate: int | None,
-                 error_rate: float = 0.0, outage: bool = False) -> dict:
+                 error_rate: float = 0.0, outage: bool = False, polled: bool = False) -> dict:
     command = [sys.executable, __file__, '--driver-process', '--duration', str(duration_s),
                '--error-rate', str(error_rate)]
+    command += ['--polled'] if polled else []
     command += ['--imu-rate', str(imu_rate)] if imu_rate is not None else []
     command += ['--outage'] if outage else []
     child = subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
@@ -243,6 +252,9 @@ def run_scenario(sink: _Sink, name: str, duration_s: float, imu_rate: int | None
         'reinits': result['reinitialisations'],
         'overruns': result['overruns'],
         'imu_resyncs': result['imu_resyncs'],
+        'fifo': result['fifo'],
+        'fifo_faults': result['fifo_faults'],
+        'fifo_records_per_read': result['fifo_records_per_read'],
     })
     return row
 
@@ -274,6 +286,18 @@ def print_table(rows: list[dict]) -> None:
 
 # --- the magnetometer's path at each master clock (simulated time) ------------------------------
 
+class _SimClock:
+    """Simulated time: the supervisor is stepped to each poll it asks for, nothing else runs."""
+
+    now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+    def sleep(self, dt: float) -> None:
+        self.now += dt
+
+
 def master_clocks(seconds: float) -> int:
     """The supervisor (driver and simulator, no ROS) on a simulated clock stepped to each poll it
     asks for, at each I2C master clock it can run and in bypass: the magnetometer's wire bytes
@@ -283,15 +307,6 @@ def master_clocks(seconds: float) -> int:
     from mag_calibrator_ros.sim.config import SimConfig
     from mag_calibrator_ros.sim.simulator import SimulatedIcm20948Bus
 
-    class Clock:
-        now = 1000.0
-
-        def __call__(self) -> float:
-            return self.now
-
-        def sleep(self, dt: float) -> None:
-            self.now += dt
-
     print(f'magnetometer {MAG_RATE_HZ} Hz through each I2C master clock, {seconds:g} s simulated '
           f'after 1 s:')
     print('| IMU (chip) | path / master clock | mag Hz | mag bytes / sample | without DRDY | '
@@ -299,7 +314,7 @@ def master_clocks(seconds: float) -> int:
     print('|---|---|---:|---:|---:|---:|---:|')
     for imu_rate in (200, 1000):
         for via_master, odr_config in ((True, None), (True, 0), (True, 3), (False, None)):
-            clock = Clock()
+            clock = _SimClock()
             sim = SimulatedIcm20948Bus(SimConfig(seed=1), clock=clock)
             supervisor = Icm20948Supervisor(
                 lambda sim=sim: sim, imu=ImuSettings(rate_hz=imu_rate), clock=clock,
@@ -330,6 +345,107 @@ def master_clocks(seconds: float) -> int:
             print(f'| {imu_rate} ({supervisor.imu_settings.odr_hz:.0f} Hz) | {path} | '
                   f'{mag / seconds:.2f} | {wire / max(mag, 1):.2f} | '
                   f'{supervisor.mag_fallbacks - fallbacks0} | {lost} | {imu / seconds:.1f} |')
+    return 0
+
+
+# --- the FIFO on a simulated clock (issue #48) ---------------------------------------------------
+
+FIFO_CHUNK_S = 5.0  # checked against the truth this often (the simulator keeps 16384 truths)
+
+
+def fifo_stream(seconds: float, imu_rate: int = 1000) -> int:
+    """The supervisor reading the FIFO (no ROS, no machine load): ``seconds`` of stream at the
+    chip's rate for ``imu_rate`` with the magnetometer at 100 Hz, every published inertial
+    sample matched to the simulator's truth by its exact counts (lost, duplicated, corrupt),
+    the stamps' spacing against the chip's period and their error against the true sample
+    times; then each fault once (an overflow from a 100 ms stall, a torn read, a corrupt
+    record, 1 and 2 bytes lost), its count and how long until samples flow again."""
+    from mag_calibrator_ros.icm20948.driver import ImuSettings
+    from mag_calibrator_ros.icm20948.supervisor import Icm20948Supervisor, ImuSample, MagSample
+    from mag_calibrator_ros.sim.config import SimConfig
+    from mag_calibrator_ros.sim.simulator import SimulatedIcm20948Bus
+
+    clock = _SimClock()
+    start = clock.now
+    sim = SimulatedIcm20948Bus(SimConfig(seed=11), clock=clock)
+    supervisor = Icm20948Supervisor(
+        lambda: sim, imu=ImuSettings(rate_hz=imu_rate), clock=clock, sleep=clock.sleep,
+        stamp=clock, stamp_ago=lambda age: clock() - age, imu_fifo=True)
+    period = 1.0 / supervisor.imu_settings.odr_hz
+
+    def advance(duration: float) -> list:
+        out, end = [], clock.now + duration
+        while clock.now < end:
+            clock.now = max(clock.now, min(supervisor.next_due(), end)) + 20e-6
+            out.extend(supervisor.step())
+        return out
+
+    advance(1.0)
+    totals = dict(published=0, measured=0, corrupt=0, duplicated=0, mag=0, mag_measured=0)
+    worst_spacing = worst_error = 0.0
+    last_stamp = None
+    for _ in range(max(1, round(seconds / FIFO_CHUNK_S))):
+        measured, mag_measured = sim.imu_samples_measured, sim.samples_measured
+        delivered = sim.imu_samples_read
+        out = advance(FIFO_CHUNK_S)
+        imu = [x for x in out if isinstance(x, ImuSample)]
+        truths = sim.imu_truths_read()[-(sim.imu_samples_read - delivered):] \
+            if sim.imu_samples_read > delivered else []
+        order = {id(t): i for i, t in enumerate(truths)}
+        positions = [order.get(id(sim.imu_truth_for_reading(
+            x.reading.linear_acceleration, x.reading.angular_velocity))) for x in imu]
+        totals['corrupt'] += sum(p is None for p in positions)
+        found = [p for p in positions if p is not None]
+        totals['duplicated'] += len(found) - len(set(found))
+        totals['published'] += len(imu)
+        totals['measured'] += sim.imu_samples_measured - measured
+        totals['mag'] += sum(isinstance(x, MagSample) for x in out)
+        totals['mag_measured'] += sim.samples_measured - mag_measured
+        stamps = np.array(([last_stamp] if last_stamp is not None else [])
+                          + [x.stamp for x in imu])
+        worst_spacing = max(worst_spacing, float(np.max(np.abs(np.diff(stamps) - period))))
+        last_stamp = stamps[-1]
+        errors = [x.stamp - start - truths[p].sample_time
+                  for x, p in zip(imu, positions, strict=True) if p is not None]
+        worst_error = max(worst_error, float(np.max(np.abs(errors))))
+    left = sim.fifo.count // 14
+    print(f'FIFO, IMU {imu_rate} ({1 / period:.0f} Hz) and magnetometer {MAG_RATE_HZ} Hz '
+          f'({supervisor.master_clock}), {seconds:g} s simulated after 1 s:')
+    print(f"  IMU: {totals['published']} published of {totals['measured']} measured "
+          f"({totals['measured'] - totals['published'] - left} lost, {left} still in the FIFO), "
+          f"{totals['duplicated']} duplicated, {totals['corrupt']} corrupt; FIFO overflows "
+          f'{supervisor.fifo_overflows}, resets {supervisor.fifo_resets}, corrupt '
+          f'{supervisor.fifo_corrupt}; {supervisor.fifo_records_per_read:.2f} records a read')
+    print(f'  stamps: spacing within {100 * worst_spacing / period:.4f} % of the '
+          f'{1e3 * period:.4f} ms period; within {1e3 * worst_error:.3f} ms '
+          f'({100 * worst_error / period:.1f} % of it) of the true sample times')
+    print(f"  magnetometer: {totals['mag']} published of {totals['mag_measured']} measured, "
+          f'{supervisor.mag_fallbacks} without DRDY; bus '
+          f'{supervisor.monitor.counters.wire_bytes / (clock.now - start):.0f} wire bytes/s')
+    print('  | fault | counted as | samples again after (ms of stream) | corrupt published |')
+    print('  |---|---|---:|---:|')
+    faults = (('overflow: 100 ms stall', lambda: setattr(clock, 'now', clock.now + 0.1)),
+              ('torn read after 5 bytes', lambda: sim.tear_next_fifo_read(5)),
+              ('1 byte lost', lambda: sim.corrupt_fifo(1)),
+              ('corrupt record (2 lost, 2 junk)', lambda: sim.corrupt_fifo(2, 2)))
+    for name, inject in faults:
+        advance(0.5)
+        clock.now += 0.003  # records wait in the FIFO
+        counts = (supervisor.fifo_overflows, supervisor.fifo_resets, supervisor.fifo_corrupt)
+        inject()
+        fault_at = clock.now
+        out = [x for x in advance(0.2) if isinstance(x, ImuSample)]
+        delivered = sim.imu_truths_read()[-300:]
+        order = {id(t) for t in delivered}
+        corrupt = sum(id(sim.imu_truth_for_reading(x.reading.linear_acceleration,
+                                                   x.reading.angular_velocity)) not in order
+                      for x in out)
+        again = next((x.stamp for x in out if x.stamp > fault_at + 0.001), math.nan)
+        now = (supervisor.fifo_overflows, supervisor.fifo_resets, supervisor.fifo_corrupt)
+        counted = ', '.join(f'{label} +{b - a}' for label, a, b in zip(
+            ('overflows', 'resets', 'corrupt'), counts, now, strict=True) if b != a)
+        print(f'  | {name} | {counted or "nothing"} | {1e3 * (again - fault_at):.1f} | '
+              f'{corrupt} |')
     return 0
 
 
@@ -437,39 +553,61 @@ def main() -> int:
     parser.add_argument('--master-clocks', action='store_true',
                         help='only the magnetometer path at each I2C master clock, on a '
                              'simulated clock (no ROS, no machine load in the numbers)')
+    parser.add_argument('--load', type=int, default=0,
+                        help='run this many `yes > /dev/null` beside the node rows (issue #48: '
+                             'one per core)')
+    parser.add_argument('--rows', default='',
+                        help='scenario names to run, separated by ; (default: all)')
+    parser.add_argument('--fifo', action='store_true',
+                        help='only the FIFO on a simulated clock: --duration s of 1125 Hz '
+                             'stream checked against the truth, then its faults')
     parser.add_argument('--driver-process', action='store_true', help=argparse.SUPPRESS)
     parser.add_argument('--imu-rate', type=int, default=None, help=argparse.SUPPRESS)
     parser.add_argument('--error-rate', type=float, default=0.0, help=argparse.SUPPRESS)
     parser.add_argument('--outage', action='store_true', help=argparse.SUPPRESS)
+    parser.add_argument('--polled', action='store_true', help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.driver_process:
-        return _driver_process(args.duration, args.imu_rate, args.error_rate, args.outage)
+        return _driver_process(args.duration, args.imu_rate, args.error_rate, args.outage,
+                               args.polled)
     if args.master_clocks:
         return master_clocks(args.duration)
+    if args.fifo:
+        return fifo_stream(args.duration)
 
     os.environ.setdefault('ROS_DOMAIN_ID', str(random.SystemRandom().randint(101, 180)))
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    scenarios = [  # name, duration, IMU rate, I2C error rate, outage, polled
+        ('mag only', args.duration, None, 0.0, False, False),
+        ('IMU 200 Hz', args.duration, 200, 0.0, False, False),
+        ('IMU 1 kHz', args.duration, 1000, 0.0, False, False),
+        ('IMU 1 kHz, polled', args.duration, 1000, 0.0, False, True),
+        ('IMU 200 Hz, 5 % I2C errors', args.fault_duration, 200, 0.05, False, False),
+        ('IMU 1 kHz, 5 % I2C errors', args.fault_duration, 1000, 0.05, False, False),
+        (f'IMU 200 Hz, {OUTAGE_S:g} s outage', args.fault_duration, 200, 0.0, True, False),
+    ]
+    wanted = {name.strip() for name in args.rows.split(';') if name.strip()}
     sink = _Sink()
+    hogs = [subprocess.Popen(['yes'], stdout=subprocess.DEVNULL) for _ in range(args.load)]
     try:
-        rows = [
-            run_scenario(sink, 'mag only', args.duration, None),
-            run_scenario(sink, 'IMU 200 Hz', args.duration, 200),
-            run_scenario(sink, 'IMU 1 kHz', args.duration, 1000),
-            run_scenario(sink, 'IMU 200 Hz, 5 % I2C errors', args.fault_duration, 200, 0.05),
-            run_scenario(sink, 'IMU 1 kHz, 5 % I2C errors', args.fault_duration, 1000, 0.05),
-            run_scenario(sink, f'IMU 200 Hz, {OUTAGE_S:g} s outage', args.fault_duration, 200,
-                         outage=True),
-        ]
+        rows = [run_scenario(sink, name, duration, rate, errors, outage, polled)
+                for name, duration, rate, errors, outage, polled in scenarios
+                if not wanted or name in wanted]
     finally:
         sink.close()
+        for hog in hogs:
+            hog.kill()
     print(f'\nicm20948_driver, sim backend, magnetometer {MAG_RATE_HZ} Hz, ROS_DOMAIN_ID '
           f"{os.environ['ROS_DOMAIN_ID']}; rates received, from header stamps (outage row: "
           f'outside the outage); CPU of the node process (simulator included); I2C wire bytes/s '
           f'and share of a 400 kHz bus.\n')
     print_table(rows)
+    if args.load:
+        print(f'(with {args.load} `yes > /dev/null` beside it)')
     outage_row = rows[-1]
-    print(f"\noutage row: recovery {outage_row.get('recovery_s', math.nan):.2f} s after the "
-          f"device is back; messages stamped inside the outage: {outage_row.get('in_outage')}")
+    if 'recovery_s' in outage_row:
+        print(f"\noutage row: recovery {outage_row['recovery_s']:.2f} s after the device is "
+              f"back; messages stamped inside the outage: {outage_row.get('in_outage')}")
     before_pct = 100 * TODAY_MAG_BITS_PER_S / 400_000
     print(f'magnetometer polling (its own wire bytes; before issue #11: '
           f'{TODAY_MAG_BYTES_PER_S:.0f} B/s, {before_pct:.2f} % of the bus, a 9-byte burst '
@@ -480,7 +618,11 @@ def main() -> int:
               f" of before, {'I2C master' if row['mag_via_master'] else 'bypass'}")
     for row in rows:
         print(f"  {row['scenario']}: temperature {row['temperature_hz']:.1f} Hz, overruns "
-              f"{row['overruns']}, imu resyncs {row['imu_resyncs']}, magnetometer samples "
+              f"{row['overruns']}, imu resyncs {row['imu_resyncs']}, "
+              + (f"FIFO overflows/resets/corrupt {'/'.join(map(str, row['fifo_faults']))}, "
+                 f"{row['fifo_records_per_read']:.2f} records a read, " if row['fifo'] else
+                 'polled, ')
+              + f"magnetometer samples "
               f"without DRDY {row['mag_fallbacks']}, I2C master clock {row['master_clock']}")
     if args.skip_accuracy:
         return 0
